@@ -1,0 +1,1 @@
+"""Model Discrepancy Explorer app (Panel + HoloViews), installed as ``mdcore_app``."""

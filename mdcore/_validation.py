@@ -1,0 +1,77 @@
+"""Input checks shared by the public functions.
+
+Every public function validates at its boundary with these helpers, so that a wrong
+shape, a NaN or a negative variance gives a ``ValueError`` that names the argument,
+what was expected, what was received, and how to fix it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_float_array(value, name: str, *, ndim: int | None = None, min_ndim: int | None = None,
+                   allow_empty: bool = False, finite: bool = True) -> np.ndarray:
+    """Convert ``value`` to a float64 array and check its rank and values.
+
+    Parameters
+    ----------
+    value : array_like
+        What the caller passed.
+    name : str
+        The argument name used in error messages.
+    ndim, min_ndim : int, optional
+        Required exact or minimum number of dimensions.
+    allow_empty : bool, default=False
+        Whether a zero-size array is acceptable.
+    finite : bool, default=True
+        Whether NaN and inf are rejected.
+    """
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be a numeric array; could not convert it ({exc}).") from None
+    if ndim is not None and arr.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimension(s); received shape {arr.shape}.")
+    if min_ndim is not None and arr.ndim < min_ndim:
+        raise ValueError(
+            f"{name} must have at least {min_ndim} dimension(s); received shape {arr.shape}.")
+    if not allow_empty and arr.size == 0:
+        raise ValueError(f"{name} is empty (shape {arr.shape}); it needs at least one value.")
+    if finite and not np.all(np.isfinite(arr)):
+        bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+        raise ValueError(
+            f"{name} contains {bad} NaN or infinite value(s) (shape {arr.shape}); "
+            "remove or impute them before calling.")
+    return arr
+
+
+def check_positive(arr: np.ndarray, name: str, *, strict: bool = True) -> np.ndarray:
+    """Raise when ``arr`` has values that are negative (or zero, when ``strict``)."""
+    bad = arr <= 0 if strict else arr < 0
+    if np.any(bad):
+        what = "positive" if strict else "non-negative"
+        raise ValueError(
+            f"{name} must be {what}; received minimum {float(np.min(arr))!r}. "
+            f"Variances and thresholds are {what} numbers.")
+    return arr
+
+
+def check_bounds(bounds, name: str = "bounds") -> np.ndarray:
+    """Check a (p, 2) array of [lower, upper] rows with lower < upper."""
+    b = as_float_array(bounds, name, ndim=2)
+    if b.shape[1] != 2:
+        raise ValueError(f"{name} must have shape (p, 2) with [lower, upper] rows; "
+                         f"received shape {b.shape}.")
+    if np.any(b[:, 0] >= b[:, 1]):
+        rows = np.nonzero(b[:, 0] >= b[:, 1])[0].tolist()
+        raise ValueError(f"{name} needs lower < upper in every row; rows {rows} are not "
+                         f"(received {b[rows].tolist()}).")
+    return b
+
+
+def choose(value: str, name: str, options) -> str:
+    """Check that a string option is one of ``options`` (scipy-style message)."""
+    if value not in options:
+        raise ValueError(f"{value!r} is not a valid {name}. It must be one of {sorted(options)!r}.")
+    return value

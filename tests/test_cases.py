@@ -1,0 +1,112 @@
+"""Case studies: shapes, units, determinism, true discrepancy, and the CSV loader."""
+
+import numpy as np
+import pytest
+
+from mdcore import cases
+
+
+@pytest.mark.parametrize("name", cases.names())
+def test_case_shapes_and_metadata(name):
+    c = cases.load(name, seed=0)
+    p, d_x, n_out = c.p, c.d_x, c.n_out
+    assert c.theta_bounds.shape == (p, 2) and len(c.theta_names) == len(c.theta_units) == p
+    assert c.X_train.shape[1] == c.X_test.shape[1] == d_x == len(c.x_names)
+    assert c.z_train.shape == (c.X_train.shape[0], n_out)
+    assert c.z_test.shape == (c.X_test.shape[0], n_out)
+    assert c.noise_var.shape == c.V_m.shape == (n_out,)
+    assert c.phi_prior.size == 2 + n_out + d_x
+    assert c.initial_design.shape[1] == p
+    assert np.all(c.initial_design >= c.theta_bounds[:, 0])
+    assert np.all(c.initial_design <= c.theta_bounds[:, 1])
+    sims = c.simulate(c.X_test, c.initial_design[:3])
+    assert sims.shape == (3, c.X_test.shape[0], n_out)
+    assert c.synthetic and c.description
+
+
+def test_beam_sizes_match_spec():
+    b1 = cases.load("beam-1d")
+    np.testing.assert_allclose(b1.X_train[:, 0], np.linspace(0.1, 0.9, 13))
+    assert b1.X_test.shape == (200, 1) and b1.initial_design.shape == (25, 2)
+    b2 = cases.load("beam-2d")
+    assert b2.X_train.shape == (64, 2) and b2.X_test.shape == (400, 2)
+    np.testing.assert_allclose(b2.initial_design[:, 0], np.linspace(50, 90, 4))
+    assert b2.X_train[:, 1].max() == pytest.approx(0.05)          # crack length in metres
+
+
+@pytest.mark.parametrize("name", ["beam-1d", "beam-2d"])
+def test_noise_is_deterministic_under_seed(name):
+    a, b, c = cases.load(name, seed=3), cases.load(name, seed=3), cases.load(name, seed=4)
+    np.testing.assert_array_equal(a.z_train, b.z_train)
+    np.testing.assert_array_equal(a.z_test, b.z_test)
+    assert not np.allclose(a.z_train, c.z_train)
+    # The residual at the truth is noise of variance 0.001 mm² (statistical check).
+    resid = a.z_test - a.simulate(a.X_test, a.theta_true)[0] - a.true_delta(a.X_test)
+    n = resid.size
+    assert abs(resid.var() / 1e-3 - 1) < 4 * np.sqrt(2 / n)
+
+
+def test_true_discrepancy_equations():
+    x = np.array([[0.1], [0.35], [0.9]])
+    want = 0.3 * (1.5 - x) * np.sin(1.8 * (x - 0.2) * 2 * np.pi)                  # Eq. 19
+    np.testing.assert_allclose(cases.load("beam-1d").true_delta(x), want, rtol=1e-14)
+    X = np.array([[0.1, 0.0], [0.3, 0.025], [0.5, 0.05]])
+    want2 = (0.3 * np.sin(3 * X[:, 0] * 2 * np.pi - 0.2)
+             - 0.2 * (1 - X[:, 0]) * np.cos(6 * X[:, 1] * 2 * np.pi))[:, None]    # Eq. 20
+    np.testing.assert_allclose(cases.load("beam-2d").true_delta(X), want2, rtol=1e-14)
+
+
+def test_shear5_reads_shipped_csv_and_regenerates_exactly():
+    assert cases.SHEAR5_CSV.read_text(encoding="utf-8") == cases.make_shear5_measurements(seed=0)
+    c = cases.load("shear-5")
+    assert sorted(set(c.X_train[:, 0].round(6))) == [0.0, 0.3, 0.5]
+    assert sorted(set(c.X_test[:, 0].round(6))) == [0.1, 0.2, 0.4]
+    assert c.X_train.shape == (30, 1) and c.z_test.shape == (30, 5)
+    # First mode carries the largest discrepancy, about −0.6 Hz (SPEC §9).
+    d = c.true_delta(np.array([[0.0]]))[0]
+    assert np.argmax(np.abs(d)) == 0 and -0.75 < d[0] < -0.5
+    np.testing.assert_allclose(c.V_m, (0.01 * c.z_train.mean(axis=0)) ** 2)
+    assert "SYNTHETIC" in c.title and "SYNTHETIC" in c.description
+
+
+def test_simulate_bad_input():
+    c = cases.load("beam-1d")
+    with pytest.raises(ValueError, match=r"theta must have shape \(n_theta, 2\) for beam-1d"):
+        c.simulate(c.X_train, [1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match=r"X must have shape \(N, 1\)"):
+        c.simulate(np.zeros((3, 2)), c.theta_true)
+    with pytest.raises(ValueError, match="not a valid case name"):
+        cases.load("beam-3d")
+
+
+GOOD = "# provenance line\nmass_kg,repeat,f1,f2\n0.0,1,10.5,20.25\n0.1,1,10.4,20.1\n"
+
+
+def write(tmp_path, text, name="m.csv"):
+    p = tmp_path / name
+    p.write_text(text, encoding="utf-8")
+    return p
+
+
+def test_read_measurements_good_file(tmp_path):
+    m = cases.read_measurements(write(tmp_path, GOOD), inputs=["mass_kg"])
+    np.testing.assert_array_equal(m.X, [[0.0], [0.1]])
+    np.testing.assert_array_equal(m.z, [[10.5, 20.25], [10.4, 20.1]])
+    assert m.output_names == ("f1", "f2") and m.comments == ("provenance line",)
+
+
+@pytest.mark.parametrize("text,match", [
+    (GOOD.replace("f2\n", "f3\n"), r"line 2: column\(s\) \['f2'\] not found"),
+    (GOOD.replace("20.25", "abc"), r"line 3, column 'f2': 'abc' is not a number"),
+    (GOOD.replace("10.4", "nan"), r"line 4, column 'f1': 'nan' is not finite"),
+    (GOOD.replace("0.1,1,10.4,20.1", "0.1,1,10.4"), r"line 4: 3 field\(s\), but the header has 4"),
+    ("# only a comment\n", "no header row"),
+    ("mass_kg,f1\n", "no data rows"),
+])
+def test_read_measurements_bad_files(tmp_path, text, match):
+    p = write(tmp_path, text)
+    outputs = ["f1", "f2"] if "f3" in text else None
+    with pytest.raises(ValueError, match=match):
+        cases.read_measurements(p, inputs=["mass_kg"], outputs=outputs)
+    with pytest.raises(ValueError, match="does not exist"):
+        cases.read_measurements(tmp_path / "nope.csv", inputs=["mass_kg"])

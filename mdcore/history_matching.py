@@ -1,0 +1,547 @@
+"""Bayesian history matching in waves (SPEC §5, paper Eq. 16).
+
+Implausibility of θ at observed input/output ``i``::
+
+    I_i(θ) = |z_i − E[y_i(θ)]| / sqrt(V_o,i + V_m,i + V[y_i(θ)])
+
+combined over all targets by the max (or 2nd / 3rd max). θ is not ruled out yet (NROY)
+when the combined ``I(θ) ≤ T``.
+
+Each wave fits an emulator to all simulator runs so far, scores candidates that are
+uniform in the previous NROY set, and keeps those with ``I ≤ T``. Candidates of wave
+``k > 1`` come from the previous wave's survivors, which are uniform in the previous NROY
+set, moved by a few random-walk Metropolis steps whose target is the uniform density on
+that set (accept a move iff it stays inside the box and is non-implausible under every
+earlier wave). The walk leaves the uniform distribution invariant, so the NROY fraction
+of the original box is estimated without bias by the chain rule
+``f_k = f_{k−1} · P(I_k ≤ T | θ ∈ NROY_{k−1})``.
+
+Examples
+--------
+>>> from mdcore import cases
+>>> from mdcore.history_matching import history_match_case
+>>> result = history_match_case(cases.load("beam-1d"), n_candidates=20_000, max_waves=2, seed=0)
+>>> result.status in {"converged", "max_waves"}
+True
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import Callable, Iterator
+
+import numpy as np
+import scipy.optimize
+import scipy.stats
+
+from ._validation import as_float_array, check_bounds, check_positive, choose
+from .emulator import Emulator, fit_emulator
+
+__all__ = ["RULES", "implausibility", "combine", "Wave", "HistoryMatchProblem",
+           "HistoryMatchResult", "setup", "next_wave", "iter_waves", "history_match",
+           "history_match_case", "case_problem", "replicate_summary"]
+
+#: Combiner rules: the k-th largest implausibility over all targets.
+RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
+RULED_OUT_HINT = ("nothing is non-implausible: every candidate θ has I > T. Raise V_m (the "
+                  "model-discrepancy variance) or the threshold T, or use the 2nd/3rd max rule.")
+
+
+def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
+    """Elementwise implausibility (Eq. 16).
+
+    Parameters
+    ----------
+    z : array_like
+        Observations, broadcastable against ``mean``.
+    mean, var : array_like
+        Emulator (or simulator) mean and variance; ``var ≥ 0``.
+    V_o, V_m : array_like
+        Observation and model-discrepancy variances (≥ 0), broadcastable.
+
+    Returns
+    -------
+    ndarray
+        ``|z − mean| / sqrt(V_o + V_m + var)``, broadcast shape.
+
+    Examples
+    --------
+    >>> float(implausibility(1.0, 0.0, 0.5, V_o=0.25, V_m=0.25))
+    1.0
+    """
+    z = as_float_array(z, "z", allow_empty=True)
+    mean = as_float_array(mean, "mean", allow_empty=True)
+    var = check_positive(as_float_array(var, "var", allow_empty=True), "var", strict=False)
+    V_o = check_positive(as_float_array(V_o, "V_o"), "V_o", strict=False)
+    V_m = check_positive(as_float_array(V_m, "V_m"), "V_m", strict=False)
+    total = V_o + V_m + var
+    if np.any(total <= 0):
+        raise ValueError("V_o + V_m + var must be positive for every target; received a zero. "
+                         "Give V_m > 0 or a positive observation variance.")
+    return np.abs(z - mean) / np.sqrt(total)
+
+
+def combine(I, rule: str = "max") -> np.ndarray:
+    """Combine implausibilities over targets (the last two axes: inputs × outputs).
+
+    Parameters
+    ----------
+    I : ndarray of shape (..., N, n_out)
+    rule : {"max", "2nd max", "3rd max"}
+
+    Returns
+    -------
+    ndarray of shape (...)
+
+    Examples
+    --------
+    >>> combine(np.array([[[1.0], [9.0], [4.0]]]), "2nd max")
+    array([4.])
+    """
+    choose(rule, "rule", RULES)
+    I = np.asarray(I, dtype=np.float64)
+    flat = I.reshape(I.shape[:-2] + (-1,))
+    k = RULES[rule]
+    if flat.shape[-1] < k:
+        raise ValueError(f"rule {rule!r} needs at least {k} targets; received {flat.shape[-1]}.")
+    return -np.partition(-flat, k - 1, axis=-1)[..., k - 1]
+
+
+def replicate_summary(X, z):
+    """Group repeated rows of X: distinct inputs, replicate means and sample variances.
+
+    Returns ``(X_unique (N_u, d_x), z_mean (N_u, n_out), z_var (N_u, n_out), counts (N_u,))``;
+    ``z_var`` is NaN where an input has a single observation.
+    """
+    X = as_float_array(X, "X", ndim=2)
+    z = as_float_array(z, "z", ndim=2)
+    if z.shape[0] != X.shape[0]:
+        raise ValueError(f"z must have one row per row of X; received X {X.shape} and z {z.shape}.")
+    Xu, inverse, counts = np.unique(X, axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.ravel()
+    zm = np.zeros((len(Xu), z.shape[1]))
+    np.add.at(zm, inverse, z)
+    zm /= counts[:, None]
+    ss = np.zeros_like(zm)
+    np.add.at(ss, inverse, (z - zm[inverse]) ** 2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        zv = np.where(counts[:, None] > 1, ss / (counts[:, None] - 1), np.nan)
+    return Xu, zm, zv, counts
+
+
+@dataclass(frozen=True, eq=False)
+class HistoryMatchProblem:
+    """A validated history-matching set-up; build it with :func:`setup`.
+
+    Attributes
+    ----------
+    simulate : callable
+        ``simulate(X, theta) -> (n_theta, N, n_out)``.
+    X : ndarray of shape (N_u, d_x)
+        Distinct observed inputs.
+    z : ndarray of shape (N_u, n_out)
+        Observations (replicate means).
+    V_o, V_m : ndarray of shape (N_u, n_out)
+    bounds : ndarray of shape (p, 2)
+    threshold : float
+    rule : str
+    n_runs, n_candidates, max_waves, mcmc_steps : int
+    initial_design : ndarray of shape (R0, p)
+    seed : int
+    """
+
+    simulate: Callable = field(repr=False)
+    X: np.ndarray
+    z: np.ndarray
+    V_o: np.ndarray
+    V_m: np.ndarray
+    bounds: np.ndarray
+    threshold: float
+    rule: str
+    n_runs: int
+    n_candidates: int
+    max_waves: int
+    initial_design: np.ndarray
+    seed: int
+    mcmc_steps: int = 4
+    convergence_ratio: float = 1.0
+
+    @property
+    def p(self) -> int:
+        return self.bounds.shape[0]
+
+
+@dataclass(frozen=True, eq=False)
+class Wave:
+    """One completed wave.
+
+    Attributes
+    ----------
+    index : int
+        1-based wave number.
+    candidates : ndarray of shape (M, p)
+        Scored candidates (uniform in the previous NROY set).
+    implausibility : ndarray of shape (M,)
+        Combined implausibility of each candidate.
+    nroy : ndarray of shape (K, p)
+        Candidates with ``I ≤ T`` (uniform in this wave's NROY set).
+    nroy_fraction : float
+        Estimated NROY volume as a fraction of the original prior box.
+    runs_theta : ndarray of shape (r, p)
+        Simulator runs added for this wave's emulator (wave 1: the initial design).
+    emulator : Emulator
+        Fitted to all runs so far.
+    max_var : ndarray of shape (n_out,)
+        Largest emulator variance at the retained points (NaN if none is retained).
+    var_threshold : ndarray of shape (n_out,)
+        Smallest ``V_o + V_m`` over the observed inputs (× ``convergence_ratio``);
+        converged when ``max_var`` is below it for every output.
+    status : str
+        ``"running"``, ``"converged"``, ``"max_waves"`` or ``"ruled_out"``.
+    message : str
+    seconds : float
+    """
+
+    index: int
+    candidates: np.ndarray
+    implausibility: np.ndarray
+    nroy: np.ndarray
+    nroy_fraction: float
+    runs_theta: np.ndarray
+    emulator: Emulator
+    max_var: np.ndarray
+    var_threshold: np.ndarray
+    status: str
+    message: str
+    seconds: float
+
+    @property
+    def done(self) -> bool:
+        """Whether the stopping rule ended the history match at this wave."""
+        return self.status != "running"
+
+
+def _as_int(value, name, minimum):
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer ≥ {minimum}; received {value!r}.")
+    return int(value)
+
+
+def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float = 3.0,
+          rule: str = "max", n_runs: int | None = None, n_candidates: int | None = None,
+          max_waves: int = 5, initial_design=None, seed: int = 0,
+          mcmc_steps: int = 4, convergence_ratio: float = 1.0) -> HistoryMatchProblem:
+    """Validate and assemble a history-matching problem.
+
+    Parameters
+    ----------
+    simulate : callable
+        ``simulate(X, theta) -> (n_theta, N, n_out)`` for any simulator.
+    X : ndarray of shape (N, d_x)
+        Observed inputs; repeated rows are replicates.
+    z : ndarray of shape (N, n_out)
+        Observations.
+    bounds : ndarray of shape (p, 2)
+        Prior box of θ.
+    V_m : float or ndarray of shape (n_out,) or (N_u, n_out)
+        Model-discrepancy variance, > 0.
+    V_o : float or ndarray, optional
+        Observation variance. Inputs with replicates use the replicate sample variance
+        (SPEC §5); ``V_o`` is required for inputs without replicates.
+    threshold : float, default=3
+        Implausibility cut-off T > 0 (Pukelsheim's 3σ rule).
+    rule : {"max", "2nd max", "3rd max"}, default="max"
+    n_runs : int, optional
+        Simulator runs added per wave (default ``max(10, 5 p)``).
+    n_candidates : int, optional
+        Candidates scored per wave (default ``50,000 · p``).
+    max_waves : int, default=5
+    initial_design : ndarray of shape (R0, p), optional
+        Runs of the first emulator (default: a Latin hypercube of ``max(10 p, n_runs)``).
+    seed : int, default=0
+    mcmc_steps : int, default=4
+        Uniform-target Metropolis steps that spread candidates through the NROY set.
+    convergence_ratio : float, default=1
+        Converged when the emulator variance at every retained point is below
+        ``convergence_ratio × (V_o + V_m)`` (SPEC §5 uses 1); smaller values keep refining.
+    """
+    if not callable(simulate):
+        raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
+                         f"received {type(simulate).__name__}.")
+    bounds = check_bounds(bounds)
+    p = bounds.shape[0]
+    X = as_float_array(X, "X", ndim=2)
+    z = as_float_array(z, "z")
+    if z.ndim == 1:
+        z = z[:, None]
+    if z.ndim != 2 or z.shape[0] != X.shape[0]:
+        raise ValueError(f"z must have shape (N, n_out) with N = {X.shape[0]} rows like X; "
+                         f"received {z.shape}.")
+    threshold = float(threshold)
+    if not np.isfinite(threshold) or threshold <= 0:
+        raise ValueError(f"threshold T must be a positive number; received {threshold!r}. "
+                         "T = 3 is the usual choice.")
+    choose(rule, "rule", RULES)
+    Xu, zm, zv, counts = replicate_summary(X, z)
+    n_out = z.shape[1]
+    V_m = check_positive(as_float_array(V_m, "V_m"), "V_m")
+    try:
+        V_m = np.broadcast_to(V_m, zm.shape).copy()
+    except ValueError:
+        raise ValueError(f"V_m must be a scalar, (n_out,) = ({n_out},) or (N_u, n_out) = "
+                         f"{zm.shape}; received shape {V_m.shape}.") from None
+    if V_o is not None:
+        V_o = check_positive(as_float_array(V_o, "V_o"), "V_o", strict=False)
+        try:
+            V_o = np.broadcast_to(V_o, zm.shape).copy()
+        except ValueError:
+            raise ValueError(f"V_o must be a scalar, (n_out,) or (N_u, n_out) = {zm.shape}; "
+                             f"received shape {V_o.shape}.") from None
+    has_rep = counts > 1
+    if V_o is None:
+        if not np.all(has_rep):
+            raise ValueError("V_o is required: some inputs have a single observation, so no "
+                             "replicate variance is available. Pass the noise variance as V_o.")
+        V_o = zv
+    else:
+        V_o = np.where(has_rep[:, None], zv, V_o)     # SPEC §5: replicate variance wins
+    n_runs = _as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1)
+    n_candidates = _as_int(50_000 * p if n_candidates is None else n_candidates,
+                           "n_candidates", 10)
+    max_waves = _as_int(max_waves, "max_waves", 1)
+    seed = _as_int(seed, "seed", 0)
+    if initial_design is None:
+        lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng([seed, 0]))
+        initial_design = scipy.stats.qmc.scale(lhs.random(max(10 * p, n_runs)),
+                                               bounds[:, 0], bounds[:, 1])
+    initial_design = as_float_array(initial_design, "initial_design", ndim=2)
+    if initial_design.shape[1] != p:
+        raise ValueError(f"initial_design must have shape (R0, {p}); received "
+                         f"{initial_design.shape}.")
+    convergence_ratio = float(convergence_ratio)
+    if not convergence_ratio > 0:
+        raise ValueError(f"convergence_ratio must be positive; received {convergence_ratio!r}.")
+    return HistoryMatchProblem(simulate, Xu, zm, V_o, V_m, bounds, threshold, rule, n_runs,
+                               n_candidates, max_waves, initial_design, seed,
+                               _as_int(mcmc_steps, "mcmc_steps", 0), convergence_ratio)
+
+
+def _score(problem: HistoryMatchProblem, emulator: Emulator, theta: np.ndarray):
+    """Combined implausibility (M,) and emulator variance (M, N_u, n_out) of candidates."""
+    pred = emulator.predict(problem.X, theta)
+    I = implausibility(problem.z, pred.mean, pred.var, V_o=problem.V_o, V_m=problem.V_m)
+    return combine(I, problem.rule), pred.var
+
+
+def _in_nroy(problem, waves, theta) -> np.ndarray:
+    """Whether each θ (M, p) is inside the box and non-implausible in every wave."""
+    b = problem.bounds
+    ok = np.all((theta >= b[:, 0]) & (theta <= b[:, 1]), axis=1)
+    for w in waves:
+        idx = np.nonzero(ok)[0]
+        if idx.size:
+            ok[idx] = _score(problem, w.emulator, theta[idx])[0] <= problem.threshold
+    return ok
+
+
+def _uniform_in_nroy(problem, waves, seeds: np.ndarray, n: int, rng) -> np.ndarray:
+    """``n`` points uniform in the NROY set of ``waves``, from uniform ``seeds`` (K, p).
+
+    Resamples the seeds, then runs ``mcmc_steps`` random-walk Metropolis steps with the
+    uniform density on the NROY set as target; the proposal covariance is the seeds'
+    covariance scaled by 2.38²/p (Gelman et al.), shrunk where few seeds exist.
+    """
+    p = problem.p
+    span = problem.bounds[:, 1] - problem.bounds[:, 0]
+    theta = seeds[rng.integers(0, len(seeds), size=n)]
+    if len(seeds) > p + 1:
+        cov = np.cov(seeds, rowvar=False).reshape(p, p) * (2.38**2 / p)
+    else:
+        cov = np.diag((0.05 * span) ** 2)
+    cov = cov + np.diag((1e-6 * span) ** 2)
+    chol = np.linalg.cholesky(cov)
+    for _ in range(problem.mcmc_steps):
+        prop = theta + rng.standard_normal((n, p)) @ chol.T
+        accept = _in_nroy(problem, waves, prop)
+        theta[accept] = prop[accept]
+    return theta
+
+
+def _maximin(pool: np.ndarray, existing: np.ndarray, n: int, span: np.ndarray, rng) -> np.ndarray:
+    """Greedy maximin subset of ``pool`` (K, p): each pick is farthest from runs so far."""
+    if len(pool) > 4000:
+        pool = pool[rng.choice(len(pool), 4000, replace=False)]
+    P, E = pool / span, existing / span
+    d = np.min(np.sum((P[:, None, :] - E[None, :, :]) ** 2, axis=-1), axis=1)
+    picks = []
+    for _ in range(min(n, len(pool))):
+        i = int(np.argmax(d))
+        picks.append(i)
+        d = np.minimum(d, np.sum((P - P[i]) ** 2, axis=1))
+        d[i] = -1.0
+    return pool[picks]
+
+
+def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
+    """Run the wave after ``previous`` (a tuple of :class:`Wave`, possibly empty).
+
+    Deterministic given ``problem.seed`` and the wave index, so stepping one wave at a
+    time and running to the end give identical results.
+    """
+    t0 = time.perf_counter()
+    k = len(previous) + 1
+    if previous and previous[-1].done:
+        raise ValueError(f"the history match already stopped at wave {k - 1} "
+                         f"({previous[-1].status}); start a new one to change settings.")
+    rng = np.random.default_rng([problem.seed, k])
+    span = problem.bounds[:, 1] - problem.bounds[:, 0]
+    if k == 1:
+        new_runs = problem.initial_design
+        old_theta = np.empty((0, problem.p))
+        old_y = np.empty((0,) + problem.z.shape)
+    else:
+        last = previous[-1]
+        em = last.emulator
+        old_theta, old_y = em.theta_train, em.y_train
+        new_runs = _maximin(last.nroy, old_theta, problem.n_runs, span, rng)
+    new_y = np.asarray(problem.simulate(problem.X, new_runs), dtype=np.float64)
+    if new_y.shape != (len(new_runs),) + problem.z.shape or not np.all(np.isfinite(new_y)):
+        raise ValueError(f"simulate returned shape {new_y.shape} (or non-finite values); "
+                         f"expected finite values of shape {(len(new_runs),) + problem.z.shape}.")
+    emulator = fit_emulator(problem.X, np.vstack([old_theta, new_runs]),
+                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng)
+    if k == 1:
+        candidates = problem.bounds[:, 0] + span * rng.uniform(size=(problem.n_candidates,
+                                                                      problem.p))
+        base_fraction = 1.0
+    else:
+        candidates = _uniform_in_nroy(problem, previous, previous[-1].nroy,
+                                      problem.n_candidates, rng)
+        base_fraction = previous[-1].nroy_fraction
+    I, var = _score(problem, emulator, candidates)
+    keep = I <= problem.threshold
+    nroy = candidates[keep]
+    fraction = base_fraction * float(np.mean(keep))       # chain rule, module docstring
+    threshold_var = problem.convergence_ratio * np.min(problem.V_o + problem.V_m, axis=0)
+    if nroy.shape[0]:
+        max_var = np.max(var[keep], axis=(0, 1))
+        converged = bool(np.all(max_var < threshold_var))
+    else:
+        max_var = np.full(problem.z.shape[1], np.nan)
+        converged = False
+    if not nroy.shape[0]:
+        status, message = "ruled_out", f"wave {k}: " + RULED_OUT_HINT
+    elif converged:
+        status = "converged"
+        message = (f"wave {k}: converged — the emulator variance is below V_o + V_m at every "
+                   f"retained point; NROY is {100 * fraction:.3g}% of the box.")
+    elif k >= problem.max_waves:
+        status = "max_waves"
+        message = (f"wave {k}: stopped at max_waves = {problem.max_waves}; NROY is "
+                   f"{100 * fraction:.3g}% of the box (emulator not yet below V_o + V_m).")
+    else:
+        status = "running"
+        message = f"wave {k}: NROY is {100 * fraction:.3g}% of the box."
+    return Wave(k, candidates, I, nroy, fraction, new_runs, emulator, max_var, threshold_var,
+                status, message, time.perf_counter() - t0)
+
+
+def iter_waves(problem: HistoryMatchProblem) -> Iterator[Wave]:
+    """Yield waves one at a time until the stopping rule ends the match."""
+    waves: tuple = ()
+    while not (waves and waves[-1].done):
+        waves += (next_wave(problem, waves),)
+        yield waves[-1]
+
+
+@dataclass(frozen=True, eq=False)
+class HistoryMatchResult:
+    """All waves of a history match.
+
+    Attributes
+    ----------
+    problem : HistoryMatchProblem
+    waves : tuple of Wave
+    """
+
+    problem: HistoryMatchProblem
+    waves: tuple
+
+    def __post_init__(self):
+        if not self.waves:
+            raise ValueError("a HistoryMatchResult needs at least one wave.")
+
+    @property
+    def status(self) -> str:
+        return self.waves[-1].status
+
+    @property
+    def message(self) -> str:
+        return self.waves[-1].message
+
+    @property
+    def nroy_fraction(self) -> list:
+        """NROY fraction of the original box after each wave."""
+        return [w.nroy_fraction for w in self.waves]
+
+    def samples(self, n: int, seed=None) -> np.ndarray:
+        """``n`` samples of θ, uniform in the final NROY set (the approximate posterior).
+
+        Raises
+        ------
+        ValueError
+            If the last wave ruled out everything.
+        """
+        n = _as_int(n, "n", 1)
+        last = self.waves[-1]
+        if last.nroy.shape[0] == 0:
+            raise ValueError(f"no θ samples: {last.message}")
+        return _uniform_in_nroy(self.problem, self.waves, last.nroy, n,
+                                np.random.default_rng(seed))
+
+    @cached_property
+    def theta_map(self) -> np.ndarray:
+        """Mode of a Gaussian KDE over 2,000 final NROY samples (seeded by the problem)."""
+        theta = self.samples(2000, seed=[self.problem.seed, 10_000])
+        b = self.problem.bounds
+        span = b[:, 1] - b[:, 0]
+        u = (theta - b[:, 0]) / span
+        if np.linalg.matrix_rank(np.cov(u, rowvar=False).reshape(self.problem.p, -1)) < self.problem.p:
+            return theta.mean(axis=0)
+        kde = scipy.stats.gaussian_kde(u.T)
+        start = u[int(np.argmax(kde(u.T)))]
+        res = scipy.optimize.minimize(lambda v: -kde(v[:, None])[0], start, method="Nelder-Mead",
+                                      bounds=[(0.0, 1.0)] * self.problem.p)
+        best = res.x if res.fun <= -kde(start[:, None])[0] else start
+        return b[:, 0] + span * best
+
+
+def history_match(simulate: Callable, X, z, bounds, **options) -> HistoryMatchResult:
+    """Run waves until converged, ``max_waves``, or everything is ruled out.
+
+    Takes the arguments of :func:`setup`. A history match that rules out everything is
+    not an exception: the result's ``status`` is ``"ruled_out"`` and its ``message``
+    suggests raising V_m or T.
+    """
+    problem = setup(simulate, X, z, bounds, **options)
+    return HistoryMatchResult(problem, tuple(iter_waves(problem)))
+
+
+def case_problem(case, **overrides) -> HistoryMatchProblem:
+    """A :class:`HistoryMatchProblem` for a :class:`~mdcore.cases.Case` with its defaults.
+
+    ``V_o`` defaults to the case's noise variance (replicates use their sample variance),
+    ``V_m`` to ``case.V_m`` and the initial design to ``case.initial_design``.
+    """
+    options = dict(V_o=case.noise_var, V_m=case.V_m, initial_design=case.initial_design,
+                   seed=case.seed)
+    options.update(overrides)
+    return setup(case.simulate, case.X_train, case.z_train, case.theta_bounds, **options)
+
+
+def history_match_case(case, **overrides) -> HistoryMatchResult:
+    """Run :func:`history_match` on a case study with its defaults (see :func:`case_problem`)."""
+    problem = case_problem(case, **overrides)
+    return HistoryMatchResult(problem, tuple(iter_waves(problem)))

@@ -1,0 +1,182 @@
+"""History matching: implausibility by hand, a closed-form toy, and beam-1d against SPEC §9."""
+
+import numpy as np
+import pytest
+
+from mdcore import cases, gp
+from mdcore.emulator import fit_emulator
+from mdcore.history_matching import (_in_nroy, combine, history_match, history_match_case,
+                                     implausibility, iter_waves, next_wave, replicate_summary,
+                                     setup)
+
+
+def test_implausibility_by_hand():
+    I = implausibility(np.array([1.0, 4.0]), np.array([0.0, 1.0]), np.array([0.5, 0.0]),
+                       V_o=0.25, V_m=np.array([0.25, 1 / 9 - 0.25 + 0.25]))
+    # |1−0|/sqrt(0.25+0.25+0.5) = 1;  |4−1|/sqrt(0.25 + 1/9) ...
+    np.testing.assert_allclose(I, [1.0, 3.0 / np.sqrt(0.25 + 1 / 9)])
+    np.testing.assert_allclose(implausibility(2.0, 1.0, 0.0, V_o=0.0, V_m=1 / 81), 9.0)
+
+
+def test_combiner_rules_by_hand():
+    I = np.array([[[1.0, 7.0], [9.0, 2.0], [4.0, 3.0]]])        # one θ, 3 inputs × 2 outputs
+    assert combine(I, "max")[0] == 9.0
+    assert combine(I, "2nd max")[0] == 7.0
+    assert combine(I, "3rd max")[0] == 4.0
+    with pytest.raises(ValueError, match="not a valid rule"):
+        combine(I, "median")
+    with pytest.raises(ValueError, match="needs at least 3 targets"):
+        combine(I[:, :1, :1], "3rd max")
+
+
+def test_replicates_use_mean_and_sample_variance():
+    X = np.array([[0.0], [0.0], [0.0], [1.0], [1.0]])
+    z = np.array([[1.0], [2.0], [3.0], [5.0], [7.0]])
+    Xu, zm, zv, counts = replicate_summary(X, z)
+    np.testing.assert_array_equal(Xu[:, 0], [0.0, 1.0])
+    np.testing.assert_allclose(zm[:, 0], [2.0, 6.0])
+    np.testing.assert_allclose(zv[:, 0], [1.0, 2.0])
+    prob = setup(lambda X, t: np.zeros((len(t), len(X), 1)), X, z, [[0, 1]], V_m=0.1)
+    np.testing.assert_allclose(prob.V_o[:, 0], [1.0, 2.0])
+
+
+def toy_simulator(X, theta):
+    """y = θ₁ sin(2πx) + θ₂ (closed form)."""
+    return (theta[:, 0, None] * np.sin(2 * np.pi * X[None, :, 0]) + theta[:, 1, None])[..., None]
+
+
+TOY_BOUNDS = np.array([[0.0, 2.0], [-1.0, 1.0]])
+TOY_TRUTH = np.array([1.2, 0.3])
+
+
+def toy_data():
+    X = np.linspace(0.05, 0.95, 8)[:, None]
+    rng = np.random.default_rng(0)
+    z = toy_simulator(X, TOY_TRUTH[None])[0] + 0.05 * rng.standard_normal((8, 1))
+    return X, z
+
+
+def test_toy_history_match_recovers_exact_nroy_region():
+    X, z = toy_data()
+    V_o, V_m = 0.0025, 0.01
+    result = history_match(toy_simulator, X, z, TOY_BOUNDS, V_o=V_o, V_m=V_m, n_runs=8,
+                           n_candidates=40_000, max_waves=3, convergence_ratio=1e-9, seed=1)
+    assert len(result.waves) == 3
+    fractions = result.nroy_fraction
+    assert all(b <= a + 1e-12 for a, b in zip(fractions, fractions[1:]))
+    for k in range(1, len(result.waves) + 1):     # the truth is NROY after every wave
+        assert _in_nroy(result.problem, result.waves[:k], TOY_TRUTH[None])[0]
+    # Exact NROY region on a dense grid with the exact simulator (emulator variance 0).
+    g1, g2 = np.meshgrid(np.linspace(0, 2, 301), np.linspace(-1, 1, 301), indexing="ij")
+    grid = np.column_stack([g1.ravel(), g2.ravel()])
+    I = combine(implausibility(z, toy_simulator(X, grid), 0.0, V_o=V_o, V_m=V_m))
+    exact = I <= 3.0
+    assert fractions[-1] == pytest.approx(exact.mean(), rel=0.10)
+    # Classification agrees on ≥ 97 % of the grid (disagreement only at the boundary).
+    final = _in_nroy(result.problem, result.waves, grid)
+    assert np.mean(final == exact) >= 0.97
+
+
+def test_stepping_matches_full_run_and_seed_is_reproducible():
+    X, z = toy_data()
+    kw = dict(V_o=0.0025, V_m=0.01, n_candidates=5000, max_waves=2, convergence_ratio=1e-9,
+              seed=5)
+    full = history_match(toy_simulator, X, z, TOY_BOUNDS, **kw)
+    prob = setup(toy_simulator, X, z, TOY_BOUNDS, **kw)
+    w1 = next_wave(prob)
+    w2 = next_wave(prob, (w1,))
+    np.testing.assert_array_equal(w2.nroy, full.waves[1].nroy)
+    np.testing.assert_array_equal(full.samples(50, seed=3), full.samples(50, seed=3))
+    assert [w.index for w in iter_waves(prob)] == [1, 2]
+    with pytest.raises(ValueError, match="already stopped"):
+        next_wave(prob, full.waves)
+
+
+def test_everything_ruled_out_is_a_status_not_a_crash():
+    X, z = toy_data()
+    z = z + 50.0                                      # far from anything the simulator makes
+    result = history_match(toy_simulator, X, z, TOY_BOUNDS, V_o=1e-6, V_m=1e-6, threshold=0.5,
+                           n_candidates=2000, seed=0)
+    assert result.status == "ruled_out"
+    assert "Raise V_m" in result.message and result.waves[-1].nroy.shape == (0, 2)
+    with pytest.raises(ValueError, match="no θ samples.*Raise V_m"):
+        result.samples(10)
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(threshold=0.0), "threshold T must be a positive number"),
+    (dict(threshold=-3.0), "threshold T must be a positive number"),
+    (dict(V_m=-0.1), "V_m must be positive"),
+    (dict(V_o=-1.0), "V_o must be non-negative"),
+    (dict(rule="4th max"), "not a valid rule"),
+    (dict(n_runs=0), "n_runs must be an integer"),
+])
+def test_bad_settings(kwargs, match):
+    X, z = toy_data()
+    opts = dict(V_o=0.0025, V_m=0.01)
+    opts.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        setup(toy_simulator, X, z, TOY_BOUNDS, **opts)
+
+
+def test_bad_data():
+    X, z = toy_data()
+    with pytest.raises(ValueError, match=r"lower < upper in every row; rows \[1\]"):
+        setup(toy_simulator, X, z, [[0, 2], [1, -1]], V_o=0.1, V_m=0.1)
+    with pytest.raises(ValueError, match="z must have shape \\(N, n_out\\) with N = 8"):
+        setup(toy_simulator, X, z[:5], TOY_BOUNDS, V_o=0.1, V_m=0.1)
+    with pytest.raises(ValueError, match="z contains 1 NaN"):
+        setup(toy_simulator, X, np.r_[z[:7], [[np.nan]]], TOY_BOUNDS, V_o=0.1, V_m=0.1)
+    with pytest.raises(ValueError, match="V_o is required"):
+        setup(toy_simulator, X, z, TOY_BOUNDS, V_m=0.1)
+
+
+def test_emulator_matches_dense_gp_and_interpolates_runs():
+    c = cases.load("beam-1d")
+    T, X = c.initial_design, c.X_train
+    y = c.simulate(X, T)
+    em = fit_emulator(X, T, y, c.theta_bounds, seed=0)
+    pred = em.predict(X, T)
+    np.testing.assert_allclose(pred.mean, y, atol=1e-3)          # nugget is tiny
+    # Dense reference: the same GP written as one (R·N)-point regression with the core.
+    g = em._gps[0]
+    Tu = (T - c.theta_bounds[:, 0]) / np.ptp(c.theta_bounds, axis=1)
+    Xu = (X - X.min()) / np.ptp(X)
+    F = np.column_stack([np.ones(325), np.tile(Xu, (25, 1)), np.repeat(Tu, 13, axis=0)])
+    res = y[..., 0].ravel() - F @ g.beta
+    th = np.array([[12.0, 55.0], [38.0, 68.0], [49.0, 88.0]])
+    Ts = (th - c.theta_bounds[:, 0]) / np.ptp(c.theta_bounds, axis=1)
+    dense = gp.predict(g.log_params, np.repeat(Tu, 13, axis=0), np.tile(Xu, (25, 1)), res,
+                       np.repeat(Ts, 13, axis=0), np.tile(Xu, (3, 1)))
+    Fs = np.column_stack([np.ones(39), np.tile(Xu, (3, 1)), np.repeat(Ts, 13, axis=0)])
+    got = em.predict(X, th)
+    np.testing.assert_allclose(got.mean.ravel(), dense.mean + Fs @ g.beta, atol=1e-7)
+    np.testing.assert_allclose(got.var.ravel(), dense.var, rtol=1e-6, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def beam1d_match():
+    c = cases.load("beam-1d", seed=0)
+    return c, history_match_case(c, n_candidates=50_000, max_waves=3, convergence_ratio=0.02,
+                                 seed=0)
+
+
+def test_beam1d_nroy_matches_exact_simulator(beam1d_match):
+    c, result = beam1d_match
+    rng = np.random.default_rng(1)
+    th = rng.uniform(c.theta_bounds[:, 0], c.theta_bounds[:, 1], (200_000, 2))
+    exact = combine(implausibility(c.z_train, c.simulate(c.X_train, th), 0.0,
+                                   V_o=c.noise_var, V_m=c.V_m)) <= 3
+    f_exact = exact.mean()
+    assert 0.19 <= f_exact <= 0.29                        # SPEC §9: a ridge of ≈ 24 %
+    f = result.nroy_fraction
+    assert abs(f[-1] - f_exact) <= abs(f[0] - f_exact) + 0.005   # approaches with waves
+    assert f[-1] == pytest.approx(f_exact, abs=0.02)
+    for k in range(1, len(result.waves) + 1):
+        assert _in_nroy(result.problem, result.waves[:k], c.theta_true[None])[0]
+    s = result.samples(4000, seed=0)
+    near = s[np.abs(s[:, 1] - 68.0) < 1.0, 0]                 # l_cr at E ≈ 68 GPa
+    assert 27.0 <= near.min() <= 33.0 and 39.0 <= near.max() <= 45.0
+    tm = result.theta_map
+    assert np.all(tm >= c.theta_bounds[:, 0]) and np.all(tm <= c.theta_bounds[:, 1])
+    assert _in_nroy(result.problem, result.waves, tm[None])[0]

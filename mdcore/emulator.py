@@ -26,8 +26,9 @@ from typing import NamedTuple
 import numpy as np
 import scipy.optimize
 
+from ._threads import single_threaded_blas
 from ._validation import as_float_array
-from .gp import LOG_2PI, matern32, scaled_sq_dist
+from .gp import LOG_2PI, SQRT3, matern32, scaled_sq_dist
 
 __all__ = ["Emulator", "EmulatorPrediction", "fit_emulator"]
 
@@ -67,15 +68,48 @@ def _design(Xu, Tu):
     return np.column_stack([np.ones(R * N), np.tile(Xu, (R, 1)), np.repeat(Tu, N, axis=0)])
 
 
+def _dm32_dlog_ell(A, ell):
+    """Matérn 3/2 factor and its derivatives w.r.t. each log ℓ_d: (n, n), (d, n, n).
+
+    ``∂m32/∂log ℓ_d = 3 exp(−√3 r) Δ_d² / ℓ_d²`` (as in :func:`mdcore.gp.nlml_and_gradient`).
+    """
+    r2 = scaled_sq_dist(A, A, ell)
+    e = np.exp(-SQRT3 * np.sqrt(r2))
+    D = np.stack([3.0 * e * (A[:, None, d] - A[None, :, d]) ** 2 / ell[d] ** 2
+                  for d in range(A.shape[1])]) if A.shape[1] else np.empty((0,) + r2.shape)
+    return matern32(r2), D
+
+
 def _kron_nlml(lp, Tu, Xu, res):
-    """NLML of the Kronecker GP; ``res`` (R, N) residuals."""
+    """NLML of the Kronecker GP and its analytic gradient; ``res`` (R, N) residuals.
+
+    With ``S_ab = σ_f² λ_a μ_b + σ_n²`` and ``P = Q_θᵀ Res Q_x``::
+
+        NLML = ½ Σ P²/S + ½ Σ log S + (RN/2) log 2π
+        ∂NLML/∂φ = ½ tr(K⁻¹ ∂K) − ½ αᵀ ∂K α,   α = vec(Q_θ (P/S) Q_xᵀ)
+    """
     p = Tu.shape[1]
     sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
-    lam, Qt = _eig(matern32(scaled_sq_dist(Tu, Tu, np.exp(lp[1:1 + p]))))
-    mu, Qx = _eig(matern32(scaled_sq_dist(Xu, Xu, np.exp(lp[1 + p:-1]))))
-    S = sf2 * np.outer(lam, mu) + sn2
-    proj = Qt.T @ res @ Qx
-    return 0.5 * np.sum(proj**2 / S) + 0.5 * np.sum(np.log(S)) + 0.5 * res.size * LOG_2PI
+    Kt, Dt = _dm32_dlog_ell(Tu, np.exp(lp[1:1 + p]))
+    Kx, Dx = _dm32_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
+    lam, Qt = _eig(Kt)
+    mu, Qx = _eig(Kx)
+    LM = np.outer(lam, mu)
+    S = sf2 * LM + sn2
+    Pa = (Qt.T @ res @ Qx) / S                                # α in the eigenbasis
+    f = 0.5 * np.sum(Pa * Pa * S) + 0.5 * np.sum(np.log(S)) + 0.5 * res.size * LOG_2PI
+    A0 = Qt @ Pa @ Qx.T
+    g = np.empty_like(lp)
+    g[0] = np.sum(sf2 * LM * (1.0 / S - Pa * Pa))
+    g[-1] = sn2 * np.sum(1.0 / S - Pa * Pa)
+    for d in range(p):
+        diag_t = np.einsum("ra,rs,sa->a", Qt, Dt[d], Qt)
+        g[1 + d] = 0.5 * sf2 * (np.sum(np.outer(diag_t, mu) / S) - np.sum(A0 * (Dt[d] @ A0 @ Kx)))
+    for d in range(Xu.shape[1]):
+        diag_x = np.einsum("ra,rs,sa->a", Qx, Dx[d], Qx)
+        g[1 + p + d] = 0.5 * sf2 * (np.sum(np.outer(lam, diag_x) / S)
+                                    - np.sum(A0 * (Kt @ A0 @ Dx[d])))
+    return f, g
 
 
 def _fit_one(Tu, Xu, y, rng, n_starts):
@@ -91,8 +125,8 @@ def _fit_one(Tu, Xu, y, rng, n_starts):
     starts = lo + (hi - lo) * rng.uniform(size=(n_starts, lo.size))
     starts[0] = np.r_[np.log(sd), np.full(p + d_x, np.log(0.5)), np.log(sd * 1e-3)]
     for x0 in starts:
-        r = scipy.optimize.minimize(_kron_nlml, x0, args=(Tu, Xu, res), method="L-BFGS-B",
-                                    bounds=list(zip(lo, hi)))
+        r = scipy.optimize.minimize(_kron_nlml, x0, args=(Tu, Xu, res), jac=True,
+                                    method="L-BFGS-B", bounds=list(zip(lo, hi)))
         if best is None or r.fun < best.fun:
             best = r
     lp = best.x
@@ -141,6 +175,7 @@ class Emulator:
     def _scale_theta(self, theta):
         return (theta - self.bounds[:, 0]) / (self.bounds[:, 1] - self.bounds[:, 0])
 
+    @single_threaded_blas
     def predict(self, X, theta) -> EmulatorPrediction:
         """Emulator mean and variance for every (θ, x) pair.
 
@@ -178,6 +213,7 @@ class Emulator:
         return EmulatorPrediction(mean, var)
 
 
+@single_threaded_blas
 def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulator:
     """Fit one GP emulator per output from full simulator sweeps.
 

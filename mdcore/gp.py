@@ -29,6 +29,7 @@ import numpy as np
 import scipy.linalg
 import scipy.optimize
 
+from ._threads import single_threaded_blas
 from ._validation import as_float_array, choose
 
 __all__ = [
@@ -448,6 +449,7 @@ def _train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> 
 # Public batched functions
 
 
+@single_threaded_blas
 def neg_log_marginal_likelihood(log_params, Y, X, z) -> np.ndarray:
     """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``.
 
@@ -498,6 +500,7 @@ def neg_log_marginal_likelihood(log_params, Y, X, z) -> np.ndarray:
     return out.reshape(prob.batch_shape)
 
 
+@single_threaded_blas
 def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
     """Posterior predictive moments of the latent GP (Eq. 7), batched.
 
@@ -670,6 +673,7 @@ def _qpso(objective: Callable, lo: np.ndarray, hi: np.ndarray, rng, n_particles:
     return pbest[g].copy(), float(pf[g]), n_particles * (n_iterations + 1)
 
 
+@single_threaded_blas
 def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, bounds=None,
                         method: str = "qpso", seed=None, n_particles: int = 40,
                         n_iterations: int = 120, n_starts: int = 8,

@@ -36,6 +36,7 @@ import numpy as np
 import scipy.optimize
 import scipy.stats
 
+from ._threads import single_threaded_blas
 from ._validation import as_float_array, check_bounds, check_positive, choose
 from .emulator import Emulator, fit_emulator
 
@@ -384,6 +385,7 @@ def _maximin(pool: np.ndarray, existing: np.ndarray, n: int, span: np.ndarray, r
     return pool[picks]
 
 
+@single_threaded_blas
 def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
     """Run the wave after ``previous`` (a tuple of :class:`Wave`, possibly empty).
 

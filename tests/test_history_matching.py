@@ -180,3 +180,17 @@ def test_beam1d_nroy_matches_exact_simulator(beam1d_match):
     tm = result.theta_map
     assert np.all(tm >= c.theta_bounds[:, 0]) and np.all(tm <= c.theta_bounds[:, 1])
     assert _in_nroy(result.problem, result.waves, tm[None])[0]
+
+
+def test_emulator_likelihood_and_gradient_match_dense_core(rng):
+    from mdcore.emulator import _kron_nlml
+    Tu, Xu, res = rng.uniform(size=(7, 2)), rng.uniform(size=(5, 1)), rng.normal(size=(7, 5))
+    lp = np.array([0.2, -0.5, 0.1, -0.3, -2.0])
+    f, g = _kron_nlml(lp, Tu, Xu, res)
+    dense = gp.neg_log_marginal_likelihood(lp, np.repeat(Tu, 5, axis=0), np.tile(Xu, (7, 1)),
+                                           res.ravel())
+    assert f == pytest.approx(float(dense), rel=1e-10)
+    h = 1e-6
+    fd = [(_kron_nlml(lp + h * e, Tu, Xu, res)[0] - _kron_nlml(lp - h * e, Tu, Xu, res)[0])
+          / (2 * h) for e in np.eye(5)]
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6)

@@ -27,7 +27,7 @@ import numpy as np
 import scipy.optimize
 
 from ._threads import single_threaded_blas
-from ._validation import as_float_array
+from ._validation import as_float_array, check_bounds
 from .gp import LOG_2PI, SQRT3, matern32, scaled_sq_dist
 
 __all__ = ["Emulator", "EmulatorPrediction", "fit_emulator"]
@@ -54,7 +54,12 @@ class _KronGP(NamedTuple):
     Q_t: np.ndarray          # (R, R)
     Q_x: np.ndarray          # (N, N)
     A: np.ndarray            # (R, N): σ_f² Q_θ (W ⊙ Q_θᵀ Res Q_x) Q_xᵀ
-    QW: np.ndarray           # (R, N): W = 1 / (σ_f² λ_a μ_b + σ_n²)
+    W: np.ndarray            # (R, N): 1 / (σ_f² λ_a μ_b + σ_n²)
+
+
+def _unit(A, lo, span):
+    """Scale inputs to the unit box: (A − lo) / span."""
+    return (A - lo) / span
 
 
 def _eig(K):
@@ -80,6 +85,21 @@ def _dm32_dlog_ell(A, ell):
     return matern32(r2), D
 
 
+def _kron_solve(lp, Tu, Xu, res):
+    """Eigen-solve of ``K = σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N).
+
+    Returns the factors, their log-ℓ derivatives, the eigenpairs, ``S_ab = σ_f² λ_a μ_b + σ_n²``
+    and ``α`` in the eigenbasis, ``(Q_θᵀ Res Q_x) / S``; shared by the likelihood and the fit.
+    """
+    p = Tu.shape[1]
+    Kt, Dt = _dm32_dlog_ell(Tu, np.exp(lp[1:1 + p]))
+    Kx, Dx = _dm32_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
+    lam, Qt = _eig(Kt)
+    mu, Qx = _eig(Kx)
+    S = np.exp(2 * lp[0]) * np.outer(lam, mu) + np.exp(2 * lp[-1])
+    return Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, S, (Qt.T @ res @ Qx) / S
+
+
 def _kron_nlml(lp, Tu, Xu, res):
     """NLML of the Kronecker GP and its analytic gradient; ``res`` (R, N) residuals.
 
@@ -90,17 +110,11 @@ def _kron_nlml(lp, Tu, Xu, res):
     """
     p = Tu.shape[1]
     sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
-    Kt, Dt = _dm32_dlog_ell(Tu, np.exp(lp[1:1 + p]))
-    Kx, Dx = _dm32_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
-    lam, Qt = _eig(Kt)
-    mu, Qx = _eig(Kx)
-    LM = np.outer(lam, mu)
-    S = sf2 * LM + sn2
-    Pa = (Qt.T @ res @ Qx) / S                                # α in the eigenbasis
+    Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, S, Pa = _kron_solve(lp, Tu, Xu, res)
     f = 0.5 * np.sum(Pa * Pa * S) + 0.5 * np.sum(np.log(S)) + 0.5 * res.size * LOG_2PI
     A0 = Qt @ Pa @ Qx.T
     g = np.empty_like(lp)
-    g[0] = np.sum(sf2 * LM * (1.0 / S - Pa * Pa))
+    g[0] = np.sum(sf2 * np.outer(lam, mu) * (1.0 / S - Pa * Pa))
     g[-1] = sn2 * np.sum(1.0 / S - Pa * Pa)
     for d in range(p):
         diag_t = np.einsum("ra,rs,sa->a", Qt, Dt[d], Qt)
@@ -130,12 +144,8 @@ def _fit_one(Tu, Xu, y, rng, n_starts):
         if best is None or r.fun < best.fun:
             best = r
     lp = best.x
-    sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
-    lam, Qt = _eig(matern32(scaled_sq_dist(Tu, Tu, np.exp(lp[1:1 + p]))))
-    mu, Qx = _eig(matern32(scaled_sq_dist(Xu, Xu, np.exp(lp[1 + p:-1]))))
-    W = 1.0 / (sf2 * np.outer(lam, mu) + sn2)
-    A = sf2 * Qt @ (W * (Qt.T @ res @ Qx)) @ Qx.T
-    return _KronGP(lp, beta, Qt, Qx, A, W)
+    *_, Qt, _, Qx, S, Pa = _kron_solve(lp, Tu, Xu, res)
+    return _KronGP(lp, beta, Qt, Qx, np.exp(2 * lp[0]) * Qt @ Pa @ Qx.T, 1.0 / S)
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,9 +182,6 @@ class Emulator:
         """Fitted log hyperparameters, shape (n_out, 2 + p + d_x), unit-scaled inputs."""
         return np.stack([g.log_params for g in self._gps])
 
-    def _scale_theta(self, theta):
-        return (theta - self.bounds[:, 0]) / (self.bounds[:, 1] - self.bounds[:, 0])
-
     @single_threaded_blas
     def predict(self, X, theta) -> EmulatorPrediction:
         """Emulator mean and variance for every (θ, x) pair.
@@ -195,10 +202,9 @@ class Emulator:
         if X.shape[1] != d_x or theta.shape[1] != p:
             raise ValueError(f"X must be (N, {d_x}) and theta (n_theta, {p}); received "
                              f"{X.shape} and {theta.shape}.")
-        Xu = (X - self._x_lo) / self._x_span
-        Tu = self._scale_theta(theta)
-        Xtr = (self.X_train - self._x_lo) / self._x_span
-        Ttr = self._scale_theta(self.theta_train)
+        t_lo, t_span = self.bounds[:, 0], self.bounds[:, 1] - self.bounds[:, 0]
+        Xu, Xtr = _unit(X, self._x_lo, self._x_span), _unit(self.X_train, self._x_lo, self._x_span)
+        Tu, Ttr = _unit(theta, t_lo, t_span), _unit(self.theta_train, t_lo, t_span)
         mean = np.empty((theta.shape[0], X.shape[0], self.n_out))
         var = np.empty_like(mean)
         for o, g in enumerate(self._gps):
@@ -209,7 +215,7 @@ class Emulator:
             mean[..., o] = (kt @ g.A @ kx.T) + lin[None, :] + (Tu @ g.beta[1 + d_x:])[:, None]
             U = (kt @ g.Q_t) ** 2
             V = (kx @ g.Q_x) ** 2
-            var[..., o] = np.maximum(sf2 - sf2**2 * (U @ g.QW @ V.T), 0.0)
+            var[..., o] = np.maximum(sf2 - sf2**2 * (U @ g.W @ V.T), 0.0)
         return EmulatorPrediction(mean, var)
 
 
@@ -238,7 +244,7 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulat
     X = as_float_array(X, "X", ndim=2)
     theta = as_float_array(theta, "theta", ndim=2)
     y = as_float_array(y, "y", ndim=3)
-    bounds = as_float_array(bounds, "bounds", ndim=2)
+    bounds = check_bounds(bounds)
     if y.shape[:2] != (theta.shape[0], X.shape[0]):
         raise ValueError(f"y must have shape (R, N, n_out) = ({theta.shape[0]}, {X.shape[0]}, "
                          f"n_out) to match theta {theta.shape} and X {X.shape}; received {y.shape}.")
@@ -247,7 +253,7 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulat
     rng = np.random.default_rng(seed)
     x_lo = X.min(axis=0)
     x_span = np.where(np.ptp(X, axis=0) > 0, np.ptp(X, axis=0), 1.0)
-    Xu = (X - x_lo) / x_span
-    Tu = (theta - bounds[:, 0]) / (bounds[:, 1] - bounds[:, 0])
+    Xu = _unit(X, x_lo, x_span)
+    Tu = _unit(theta, bounds[:, 0], bounds[:, 1] - bounds[:, 0])
     gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts) for o in range(y.shape[2]))
     return Emulator(X, theta, y, bounds, x_lo, x_span, gps)

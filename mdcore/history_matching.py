@@ -102,7 +102,7 @@ def combine(I, rule: str = "max") -> np.ndarray:
     array([4.])
     """
     choose(rule, "rule", RULES)
-    I = np.asarray(I, dtype=np.float64)
+    I = as_float_array(I, "I", min_ndim=2)
     flat = I.reshape(I.shape[:-2] + (-1,))
     k = RULES[rule]
     if flat.shape[-1] < k:

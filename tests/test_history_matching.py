@@ -27,6 +27,40 @@ def test_combiner_rules_by_hand():
         combine(I, "median")
     with pytest.raises(ValueError, match="needs at least 3 targets"):
         combine(I[:, :1, :1], "3rd max")
+    with pytest.raises(ValueError, match="I contains 1 NaN"):
+        combine(np.array([[[1.0], [np.nan]]]))
+    with pytest.raises(ValueError, match=r"I must have at least 2 dimension"):
+        combine(np.array([1.0, 2.0]))
+
+
+def test_implausibility_bad_input():
+    with pytest.raises(ValueError, match="mean contains 1 NaN"):
+        implausibility(1.0, np.nan, 0.1, V_o=0.1, V_m=0.1)
+    with pytest.raises(ValueError, match="var must be non-negative"):
+        implausibility(1.0, 0.0, -0.1, V_o=0.1, V_m=0.1)
+    with pytest.raises(ValueError, match="V_m is empty"):
+        implausibility(1.0, 0.0, 0.1, V_o=0.1, V_m=[])
+    with pytest.raises(ValueError, match="must be positive for every target"):
+        implausibility(1.0, 0.0, 0.0, V_o=0.0, V_m=0.0)
+
+
+def test_emulator_bad_input():
+    X = np.linspace(0, 1, 4)[:, None]
+    T = np.array([[0.2, 0.1], [0.8, -0.4], [1.5, 0.6]])
+    y = toy_simulator(X, T)
+    with pytest.raises(ValueError, match=r"y must have shape \(R, N, n_out\) = \(3, 4"):
+        fit_emulator(X, T, y[:2], TOY_BOUNDS)
+    with pytest.raises(ValueError, match=r"lower < upper in every row"):
+        fit_emulator(X, T, y, [[0, 2], [1, 1]])
+    with pytest.raises(ValueError, match="y contains 1 NaN"):
+        fit_emulator(X, T, np.where(np.arange(y.size).reshape(y.shape) == 0, np.nan, y),
+                     TOY_BOUNDS)
+    em = fit_emulator(X, T, y, TOY_BOUNDS, seed=0)
+    with pytest.raises(ValueError, match=r"theta \(n_theta, 2\)"):
+        em.predict(X, np.zeros((5, 3)))
+    with pytest.raises(ValueError, match="theta contains 1 NaN"):
+        em.predict(X, [[np.nan, 0.0]])
+    assert em.predict(X, np.empty((0, 2))).mean.shape == (0, 4, 1)
 
 
 def test_replicates_use_mean_and_sample_variance():
@@ -101,6 +135,14 @@ def test_everything_ruled_out_is_a_status_not_a_crash():
     assert "Raise V_m" in result.message and result.waves[-1].nroy.shape == (0, 2)
     with pytest.raises(ValueError, match="no θ samples.*Raise V_m"):
         result.samples(10)
+
+
+def test_samples_needs_a_positive_count():
+    X, z = toy_data()
+    result = history_match(toy_simulator, X, z, TOY_BOUNDS, V_o=0.0025, V_m=0.01,
+                           n_candidates=2000, max_waves=1, seed=0)
+    with pytest.raises(ValueError, match="n must be an integer ≥ 1"):
+        result.samples(0)
 
 
 @pytest.mark.parametrize("kwargs,match", [

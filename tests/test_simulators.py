@@ -113,3 +113,6 @@ def test_shear_building_batched_shapes_and_errors():
         natural_frequencies(71e9, 0.7, 2770.0)
     with pytest.raises(ValueError, match="added_mass must be non-negative"):
         natural_frequencies(71e9, 0.33, 2770.0, -0.1)
+    with pytest.raises(ValueError, match="rho contains 1 NaN"):
+        natural_frequencies(71e9, 0.33, np.nan)
+    assert natural_frequencies(np.empty(0), 0.33, 2770.0).shape == (0, 5)

@@ -1,14 +1,16 @@
-"""Command line: ``python -m mdcore {cases,history-match} ...``."""
+"""Command line: ``python -m mdcore {cases,history-match,reproduce} ...``."""
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 
 import numpy as np
 
 from . import cases
 from .history_matching import history_match_case
+from .reproduce import reproduce
 
 
 def _cmd_cases(args) -> int:
@@ -44,6 +46,40 @@ def _cmd_history_match(args) -> int:
     return 0 if result.status != "ruled_out" else 1
 
 
+def _fmt(values, spec):
+    return "—" if values is None else spec.format(values)
+
+
+def _cmd_reproduce(args) -> int:
+    result = reproduce(args.case, scenarios=args.scenarios, n_s=args.n_s, n_phi=args.n_phi,
+                       seed=args.seed, report=lambda line: print(line, flush=True))
+    case = cases.load(args.case, seed=args.seed)
+    hm = result["history_matching"]
+    theta = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
+                      zip(case.theta_names, hm["theta_map"], case.theta_units))
+    print(f"\n{case.title}\nhistory matching: {hm['waves']} wave(s), NROY "
+          f"{100 * hm['nroy_fraction'][-1]:.2f} %, θ_MAP: {theta}, truth in NROY: "
+          f"{hm['truth_nroy']}\nN_s = {result['n_s']}, N_φ = {result['n_phi']}, seed "
+          f"{result['seed']}\n")
+    head = (f"{'scenario':>8} {'output':>6} {'NMSE z %':>9} {'NMSE δ %':>9} {'MMD':>7} "
+            f"{'LPL':>9} {'cov z 3σ':>8} {'cov δ 3σ':>8} {'ESS':>9} {'seconds':>8}")
+    print(head)
+    for s, e in result["scenarios"].items():
+        for o, name in enumerate(case.output_names):
+            pick = (lambda key: None if e[key] is None else e[key][o])
+            print(f"{s:>8} {name:>6} {_fmt(pick('nmse_z'), '{:9.3f}'):>9} "
+                  f"{_fmt(pick('nmse_delta'), '{:9.3f}'):>9} {_fmt(pick('mmd'), '{:7.4f}'):>7} "
+                  f"{_fmt(pick('lpl'), '{:9.1f}'):>9} {_fmt(pick('coverage_z_3sd'), '{:8.2f}'):>8} "
+                  f"{_fmt(pick('coverage_delta_3sd'), '{:8.2f}'):>8} "
+                  f"{_fmt(e['ess_per_output'][o] if s == '3' else None, '{:9.1f}'):>9} "
+                  f"{e['seconds']:>8.2f}")
+    if args.json:
+        with open(args.json, "w", encoding="utf-8") as fh:
+            json.dump(result, fh, indent=2)
+        print(f"\nwrote {args.json}")
+    return 0
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m mdcore", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -56,9 +92,19 @@ def main(argv=None) -> int:
     hm.add_argument("--rule", default="max", choices=["max", "2nd max", "3rd max"])
     hm.add_argument("--v-m", type=float, default=None, help="model-discrepancy variance")
     hm.add_argument("--n-candidates", type=int, default=None)
+    rp = sub.add_parser("reproduce", help="history matching + discrepancy scenarios + metrics "
+                        "(the paper's Tables 1–3)")
+    rp.add_argument("case", choices=cases.names())
+    rp.add_argument("--scenarios", nargs="+", type=int, choices=[1, 2, 3], default=[1, 2, 3])
+    rp.add_argument("--n-s", type=int, default=None, help="θ samples (default: paper's 1000)")
+    rp.add_argument("--n-phi", type=int, default=None,
+                    help="hyperparameter samples per θ (default: paper's 500; beam-2d 1000)")
+    rp.add_argument("--seed", type=int, default=0)
+    rp.add_argument("--json", default=None, metavar="PATH", help="also write the numbers here")
     args = parser.parse_args(argv)
     try:
-        return {"cases": _cmd_cases, "history-match": _cmd_history_match}[args.command](args)
+        return {"cases": _cmd_cases, "history-match": _cmd_history_match,
+                "reproduce": _cmd_reproduce}[args.command](args)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -401,12 +401,34 @@ def _cholesky(K: np.ndarray, log: _JitterLog, n_cov: int | None = None):
 def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Forward substitution ``L⁻¹ B`` for (b, N, N) lower factors and (b, N, M) right sides."""
     out = np.empty(np.broadcast_shapes(L.shape[:-2], B.shape[:-2]) + B.shape[-2:])
+    out[...] = B
+    return _solve_lower_inplace(L, out)
+
+
+def _solve_lower_inplace(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """Overwrite ``B`` (b, N, M) with ``L⁻¹ B`` row by row (no temporaries of B's size)."""
     for i in range(L.shape[-1]):
-        acc = B[..., i, :]
         if i:
-            acc = acc - (L[..., i:i + 1, :i] @ out[..., :i, :])[..., 0, :]
-        out[..., i, :] = acc / L[..., i, i, None]
-    return out
+            B[:, i, :] -= (L[:, i:i + 1, :i] @ B[:, :i, :])[:, 0, :]
+        B[:, i, :] /= L[:, i, i, None]
+    return B
+
+
+_local = threading.local()
+
+
+def _workspace(name: str, shape: tuple) -> np.ndarray:
+    """A per-thread reusable float64 buffer of ``shape`` (contents undefined).
+
+    Fresh multi-megabyte arrays come from the OS page by page, and at GP-chunk sizes the
+    page faults cost more than the arithmetic; reusing one buffer per thread avoids them.
+    """
+    cache = _local.__dict__.setdefault("buffers", {})
+    size = int(np.prod(shape))
+    buf = cache.get(name)
+    if buf is None or buf.size < size:
+        buf = cache[name] = np.empty(size)
+    return buf[:size].reshape(shape)
 
 
 def _scaled_dist(D: np.ndarray, scale: np.ndarray) -> np.ndarray:
@@ -443,6 +465,54 @@ def _train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> 
         K[:, N, :N] = border
         K[:, N, N] = 2.0 * (border @ border) / sn2[:, 0] + 1.0
     return K
+
+
+def _scaled_cross_dist(A: np.ndarray, B: np.ndarray, scale: np.ndarray, out: np.ndarray,
+                       tmp: np.ndarray) -> np.ndarray:
+    """``out[b, n, m] = sqrt(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place.
+
+    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); ``out`` and ``tmp``
+    are (b, Na, Nb) work buffers. Writing into buffers avoids a fresh allocation per
+    element-wise step, which costs more than the arithmetic at these sizes.
+    """
+    d = A.shape[-1]
+    if d == 0:
+        out[...] = 0.0
+        return out
+    for k in range(d):
+        dst = out if k == 0 else tmp
+        np.subtract(A[:, :, None, k], B[:, None, :, k], out=dst)
+        dst *= scale[:, None, None, k]
+        if d == 1:
+            np.abs(out, out=out)
+            return out
+        dst *= dst
+        if k:
+            out += tmp
+    return np.sqrt(out, out=out)
+
+
+def _cross_cov(theta: np.ndarray, Ya: np.ndarray, Xa: np.ndarray, Yb: np.ndarray,
+               Xb: np.ndarray) -> np.ndarray:
+    """Flat-chunk cross-covariance: theta (b, P), Ya (b, Na, d_y), Xa (Na, d_x),
+    Yb (b, Nb, d_y), Xb (Nb, d_x) -> (b, Na, Nb); same values as :func:`kernel`.
+
+    The result lives in this thread's workspace: use it before the next call."""
+    b, d_y, d_x = theta.shape[0], Ya.shape[-1], Xa.shape[-1]
+    shape = (b, Ya.shape[-2], Xb.shape[0])
+    ry, rx, tmp = (_workspace(name, shape) for name in ("cross", "cross_x", "cross_tmp"))
+    _scaled_cross_dist(Ya, Yb, SQRT3 * np.exp(-theta[:, 1:1 + d_y]), ry, tmp)
+    _scaled_cross_dist(Xa[None], Xb[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]),
+                       rx, tmp)
+    # σ_f² (1 + a)(1 + b) e^{−a−b} = (1 + s + ab) exp(log σ_f² − s), s = a + b (Eq. 3)
+    np.add(ry, rx, out=tmp)
+    ry *= rx
+    ry += tmp
+    ry += 1.0
+    np.subtract(2.0 * theta[:, :1, None], tmp, out=tmp)
+    np.exp(tmp, out=tmp)
+    ry *= tmp
+    return ry
 
 
 # ---------------------------------------------------------------------------------------
@@ -558,7 +628,7 @@ def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
         Ys = _gather(Y_star, 2, batch, multi)
         L, ok = _cholesky(_train_cov(theta, Yc, prob.X, border=prob.z), log, n_cov=N)
         # Eq. 7 via V = L⁻¹ K_f* and w = L⁻¹ z: mean = Vᵀ w, var = k** − Σ V².
-        V = _solve_lower(L[:, :N, :N], kernel(theta, Yc, prob.X, Ys, X_star))
+        V = _solve_lower_inplace(L[:, :N, :N], _cross_cov(theta, Yc, prob.X, Ys, X_star))
         mean[sl] = np.einsum("bnm,bn->bm", V, L[:, N, :N])
         sf2 = np.exp(2.0 * theta[:, 0])
         var[sl] = np.maximum(sf2[:, None] - np.einsum("bnm,bnm->bm", V, V), 0.0)

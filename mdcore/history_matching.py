@@ -34,6 +34,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 import scipy.optimize
+import scipy.special
 import scipy.stats
 
 from ._threads import single_threaded_blas
@@ -503,21 +504,61 @@ class HistoryMatchResult:
         return _uniform_in_nroy(self.problem, self.waves, last.nroy, n,
                                 np.random.default_rng(seed))
 
+    def posterior_samples(self, n: int, seed=None) -> np.ndarray:
+        """``n`` samples of θ from the posterior ``p(θ | z)`` restricted to NROY, (n, p).
+
+        Sampling-importance-resampling: a pool of ``max(20 n, 20,000)`` uniform NROY
+        samples (the prior is uniform on the box) is resampled with replacement in
+        proportion to :meth:`log_likelihood` (normalised in log space). These are the
+        θ^(j) of the discrepancy scenarios (SPEC §1: θ^(j) ~ p(θ | z)); repeats are
+        possible when the likelihood is concentrated.
+        """
+        n = _as_int(n, "n", 1)
+        rng = np.random.default_rng(seed)
+        pool = self.samples(max(20 * n, 20_000), seed=rng)
+        ll = self.log_likelihood(pool)
+        w = np.exp(ll - scipy.special.logsumexp(ll))
+        return pool[rng.choice(pool.shape[0], size=n, p=w / w.sum())]
+
+    def log_likelihood(self, theta) -> np.ndarray:
+        """Gaussian log-likelihood behind the implausibility measure, shape (M,).
+
+        ``log p(z | θ) = −½ Σ_i [(z_i − E[y_i(θ)])² / s_i² + log 2π s_i²]``,
+        ``s_i² = V_o,i + V_m,i + V[y_i(θ)]``, with the final wave's emulator: the model that
+        Eq. 16 standardises by. θ (M, p) -> (M,).
+        """
+        theta = np.atleast_2d(as_float_array(theta, "theta"))
+        pred = self.waves[-1].emulator.predict(self.problem.X, theta)
+        s2 = self.problem.V_o + self.problem.V_m + pred.var
+        r2 = (self.problem.z - pred.mean) ** 2 / s2
+        return -0.5 * np.sum(r2 + np.log(2.0 * np.pi * s2), axis=(1, 2))
+
     @cached_property
     def theta_map(self) -> np.ndarray:
-        """Mode of a Gaussian KDE over 2,000 final NROY samples (seeded by the problem)."""
+        """θ_MAP: the maximiser of :meth:`log_likelihood` over the final NROY set.
+
+        The prior is uniform on the box and the posterior is restricted to NROY, so the
+        MAP is the most likely non-implausible θ. Found on 2,000 NROY samples (seeded by
+        the problem), then polished by Nelder–Mead, keeping the polish only if it stays
+        non-implausible. (The mode of the NROY samples' density would not do: the samples
+        are uniform on NROY, so their density has no informative mode.)
+        """
         theta = self.samples(2000, seed=[self.problem.seed, 10_000])
+        ll = self.log_likelihood(theta)
+        start = theta[int(np.argmax(ll))]
         b = self.problem.bounds
         span = b[:, 1] - b[:, 0]
-        u = (theta - b[:, 0]) / span
-        if np.linalg.matrix_rank(np.cov(u, rowvar=False).reshape(self.problem.p, -1)) < self.problem.p:
-            return theta.mean(axis=0)
-        kde = scipy.stats.gaussian_kde(u.T)
-        start = u[int(np.argmax(kde(u.T)))]
-        res = scipy.optimize.minimize(lambda v: -kde(v[:, None])[0], start, method="Nelder-Mead",
-                                      bounds=[(0.0, 1.0)] * self.problem.p)
-        best = res.x if res.fun <= -kde(start[:, None])[0] else start
-        return b[:, 0] + span * best
+
+        def objective(u):
+            return -float(self.log_likelihood(b[:, 0] + span * u)[0])
+
+        res = scipy.optimize.minimize(objective, (start - b[:, 0]) / span, method="Nelder-Mead",
+                                      bounds=[(0.0, 1.0)] * self.problem.p,
+                                      options=dict(xatol=1e-6, fatol=1e-9))
+        best = b[:, 0] + span * res.x
+        if -res.fun > ll.max() and _in_nroy(self.problem, self.waves, best[None])[0]:
+            return best
+        return start
 
 
 def history_match(simulate: Callable, X, z, bounds, **options) -> HistoryMatchResult:

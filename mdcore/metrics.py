@@ -1,0 +1,168 @@
+"""Metrics of SPEC §8: NMSE, MMD, LPL and band coverage.
+
+Every function takes column-wise data: ``(N,)`` for one output or ``(N, n_out)`` for
+several, and returns a float or an ``(n_out,)`` array accordingly.
+
+Examples
+--------
+>>> nmse([1.0, 2.0, 3.0], [1.0, 2.0, 4.0])      # 100 · 1 / (3 · 2/3)
+50.0
+>>> coverage([0.0, 1.0, 5.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], k=3)
+0.6666666666666666
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.stats import norm
+
+from ._validation import as_float_array, check_positive
+
+__all__ = ["nmse", "lpl", "coverage", "mmd"]
+
+
+def _columns(name: str, value, like: np.ndarray | None = None) -> np.ndarray:
+    arr = as_float_array(value, name, min_ndim=1)
+    if arr.ndim > 2:
+        raise ValueError(f"{name} must have shape (N,) or (N, n_out); received {arr.shape}.")
+    if like is not None and arr.shape != like.shape:
+        raise ValueError(f"{name} must have the same shape as the targets {like.shape}; "
+                         f"received {arr.shape}.")
+    return arr
+
+
+def _squeeze(out: np.ndarray, like: np.ndarray):
+    return float(np.ravel(out)[0]) if like.ndim == 1 else out
+
+
+def nmse(target, prediction):
+    """Normalised mean squared error in percent (SPEC §8).
+
+    ``100 / (N var(t)) Σ (t_i − t̂_i)²`` with the 1/N variance of the targets.
+
+    Parameters
+    ----------
+    target : ndarray of shape (N,) or (N, n_out)
+        Test observations z, or the noise-free true δ.
+    prediction : ndarray of the same shape
+        Predictive means.
+
+    Returns
+    -------
+    float or ndarray of shape (n_out,)
+    """
+    t = _columns("target", target)
+    p = _columns("prediction", prediction, t)
+    var = np.var(t, axis=0)
+    if np.any(var <= 0):
+        raise ValueError("target must vary (its variance is the NMSE's denominator); "
+                         "received a constant column.")
+    return _squeeze(100.0 * np.mean((t - p) ** 2, axis=0) / var, t)
+
+
+def lpl(target, mean, var):
+    """Log predictive likelihood ``Σ_i log N(z_i | E[z*_i], V[z*_i])`` (SPEC §8).
+
+    Parameters
+    ----------
+    target : ndarray of shape (N,) or (N, n_out)
+        Test observations.
+    mean, var : ndarray of the same shape
+        Predictive mean and variance of a new observation (including σ_n²).
+
+    Returns
+    -------
+    float or ndarray of shape (n_out,)
+    """
+    t = _columns("target", target)
+    m = _columns("mean", mean, t)
+    v = check_positive(_columns("var", var, t), "var")
+    return _squeeze(-0.5 * np.sum((t - m) ** 2 / v + np.log(2.0 * np.pi * v), axis=0), t)
+
+
+def coverage(target, mean, var, *, k: float = 3.0):
+    """Fraction of targets inside the ``mean ± k·sd`` band (SPEC §8).
+
+    Parameters
+    ----------
+    target : ndarray of shape (N,) or (N, n_out)
+    mean, var : ndarray of the same shape
+        Predictive mean and variance (non-negative).
+    k : float, default=3.0
+        Band half-width in standard deviations (the paper reports 2 and 3).
+
+    Returns
+    -------
+    float or ndarray of shape (n_out,)
+    """
+    t = _columns("target", target)
+    m = _columns("mean", mean, t)
+    v = check_positive(_columns("var", var, t), "var", strict=False)
+    if not np.isfinite(k) or k <= 0:
+        raise ValueError(f"k must be a positive number of standard deviations; received {k!r}.")
+    return _squeeze(np.mean(np.abs(t - m) <= k * np.sqrt(v), axis=0), t)
+
+
+def _groups(X, n: int) -> np.ndarray:
+    """Group label (n,) per row: equal rows of ``X`` are repeats of one test input."""
+    if X is None:
+        return np.arange(n)
+    X = as_float_array(X, "X", min_ndim=1)
+    if X.shape[0] != n:
+        raise ValueError(f"X must have one row per target (N = {n}); received {X.shape}.")
+    return np.unique(X.reshape(n, -1), axis=0, return_inverse=True)[1].ravel()
+
+
+def _mmd_one(a: np.ndarray, mu: float, s2: float) -> float:
+    """Biased MMD (square root) between points ``a`` and N(mu, s2), Gaussian kernel."""
+    r = a.size
+    q = max(r, 20)
+    # Median heuristic over the pooled sample: the observations plus q predictive quantiles.
+    pooled = np.concatenate([a, mu + np.sqrt(s2) * norm.ppf((np.arange(q) + 0.5) / q)])
+    diff = np.abs(pooled[:, None] - pooled[None, :])[np.triu_indices(pooled.size, 1)]
+    ell2 = max(float(np.median(diff)) ** 2, 1e-300)
+    kaa = np.mean(np.exp(-(a[:, None] - a[None, :]) ** 2 / (2.0 * ell2)))
+    # Closed-form Gaussian expectations of the kernel:
+    # E_y k(a, y) = sqrt(ℓ²/(ℓ²+s²)) exp(−(a−μ)²/(2(ℓ²+s²))), E k(y, y') = sqrt(ℓ²/(ℓ²+2s²)).
+    kay = np.mean(np.sqrt(ell2 / (ell2 + s2)) * np.exp(-(a - mu) ** 2 / (2.0 * (ell2 + s2))))
+    kyy = np.sqrt(ell2 / (ell2 + 2.0 * s2))
+    return float(np.sqrt(max(kaa - 2.0 * kay + kyy, 0.0)))
+
+
+def mmd(target, mean, var, *, X=None):
+    """Maximum mean discrepancy between observed repeats and the Gaussian predictive (SPEC §8).
+
+    Per test input, the biased MMD (its square root) between the ``r`` observed repeats and
+    ``N(E[z*], V[z*])`` with the Gaussian kernel ``exp(−(a − b)² / (2ℓ²))``, averaged over
+    the test inputs. The predictive side is exact (closed-form Gaussian integrals of the
+    kernel). ℓ is the median heuristic over a pooled sample: the repeats plus
+    ``max(r, 20)`` evenly spaced quantiles of the predictive (a deterministic stand-in for
+    predictive samples). SPEC §8: the paper's absolute values cannot be reproduced.
+
+    Parameters
+    ----------
+    target : ndarray of shape (N,) or (N, n_out)
+        Test observations; rows with equal ``X`` are repeats of one test input.
+    mean, var : ndarray of the same shape
+        Predictive mean and variance of a new observation at each row.
+    X : ndarray of shape (N, d_x), optional
+        Test inputs, to group repeats. Default: every row is its own input.
+
+    Returns
+    -------
+    float or ndarray of shape (n_out,)
+    """
+    t = _columns("target", target)
+    m = _columns("mean", mean, t)
+    v = check_positive(_columns("var", var, t), "var", strict=False)
+    groups = _groups(X, t.shape[0])
+    t2, m2, v2 = (a.reshape(t.shape[0], -1) for a in (t, m, v))
+    out = np.empty(t2.shape[1])
+    for o in range(t2.shape[1]):
+        vals = []
+        for g in np.unique(groups):
+            rows = groups == g
+            vals.append(_mmd_one(t2[rows, o], float(np.mean(m2[rows, o])),
+                                 float(np.mean(v2[rows, o]))))
+        out[o] = np.mean(vals)
+    return _squeeze(out, t)

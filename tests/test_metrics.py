@@ -1,0 +1,94 @@
+"""SPEC §8 metrics on tiny hand-computed cases, and MMD's closed form against quadrature."""
+
+import json
+
+import numpy as np
+import pytest
+from scipy import integrate
+from scipy.stats import norm
+
+from mdcore.metrics import coverage, lpl, mmd, nmse
+
+
+def test_nmse_by_hand():
+    # t = [1, 2, 3]: var (1/N) = 2/3; squared errors [0, 0, 1] -> 100 · (1/3) / (2/3) = 50
+    assert nmse([1.0, 2.0, 3.0], [1.0, 2.0, 4.0]) == pytest.approx(50.0)
+    two = nmse(np.array([[1.0, 0.0], [2.0, 2.0], [3.0, 4.0]]),
+               np.array([[1.0, 0.0], [2.0, 2.0], [4.0, 2.0]]))
+    np.testing.assert_allclose(two, [50.0, 100 * (4 / 3) / (8 / 3)])
+    with pytest.raises(ValueError, match="target must vary"):
+        nmse([1.0, 1.0], [1.0, 2.0])
+    with pytest.raises(ValueError, match="same shape as the targets"):
+        nmse([1.0, 2.0], [1.0])
+
+
+def test_lpl_by_hand():
+    # log N(1 | 0, 4) + log N(0 | 0, 1) = −½(1/4 + log 8π) − ½ log 2π
+    want = -0.5 * (0.25 + np.log(8 * np.pi)) - 0.5 * np.log(2 * np.pi)
+    assert lpl([1.0, 0.0], [0.0, 0.0], [4.0, 1.0]) == pytest.approx(want)
+    with pytest.raises(ValueError, match="var must be positive"):
+        lpl([1.0], [0.0], [0.0])
+
+
+def test_coverage_by_hand():
+    t, m, v = [0.0, 1.9, 2.1, 3.5], [0.0, 0.0, 0.0, 0.0], [1.0, 1.0, 1.0, 1.0]
+    assert coverage(t, m, v, k=2) == pytest.approx(0.5)        # 0 and 1.9 inside ±2
+    assert coverage(t, m, v, k=3) == pytest.approx(0.75)       # 3.5 outside ±3
+    with pytest.raises(ValueError, match="var must be non-negative"):
+        coverage([0.0], [0.0], [-1.0])
+    with pytest.raises(ValueError, match="k must be a positive"):
+        coverage([0.0], [0.0], [1.0], k=0)
+
+
+def _mmd_by_quadrature(a, mu, s2):
+    q = max(a.size, 20)
+    pooled = np.r_[a, mu + np.sqrt(s2) * norm.ppf((np.arange(q) + 0.5) / q)]
+    d = [abs(x - y) for i, x in enumerate(pooled) for y in pooled[i + 1:]]
+    ell = np.median(d)
+    k = lambda x, y: np.exp(-(x - y) ** 2 / (2 * ell * ell))
+    pdf = lambda y: norm.pdf(y, mu, np.sqrt(s2))
+    lim = (mu - 12 * np.sqrt(s2), mu + 12 * np.sqrt(s2))
+    kaa = np.mean([[k(x, y) for y in a] for x in a])
+    kay = np.mean([integrate.quad(lambda y: k(x, y) * pdf(y), *lim)[0] for x in a])
+    kyy = integrate.dblquad(lambda y, x: k(x, y) * pdf(x) * pdf(y), *lim, *lim)[0]
+    return np.sqrt(kaa - 2 * kay + kyy)
+
+
+def test_mmd_closed_form_matches_quadrature():
+    a = np.array([0.9, 1.05, 1.2])
+    got = mmd(a, np.full(3, 1.1), np.full(3, 0.02), X=np.zeros(3))
+    assert got == pytest.approx(_mmd_by_quadrature(a, 1.1, 0.02), rel=1e-6)
+    # two test inputs, repeats grouped by X; result is the average over inputs
+    b = np.array([2.0, 2.4])
+    got2 = mmd(np.r_[a, b], np.r_[np.full(3, 1.1), np.full(2, 2.1)],
+               np.r_[np.full(3, 0.02), np.full(2, 0.05)], X=np.r_[0, 0, 0, 1, 1.0])
+    want2 = 0.5 * (_mmd_by_quadrature(a, 1.1, 0.02) + _mmd_by_quadrature(b, 2.1, 0.05))
+    assert got2 == pytest.approx(want2, rel=1e-6)
+
+
+def test_mmd_grows_with_predictive_bias():
+    a = np.array([0.0, 0.1, -0.1, 0.05])
+    vals = [mmd(a, np.full(4, shift), np.full(4, 0.01), X=np.zeros(4)) for shift in (0, 0.2, 1)]
+    assert vals[0] < vals[1] < vals[2]
+    with pytest.raises(ValueError, match="one row per target"):
+        mmd(a, a, np.ones(4), X=np.zeros(3))
+
+
+def test_reproduce_cli_writes_the_documented_json(tmp_path, capsys):
+    from mdcore.cli import main
+    path = tmp_path / "out.json"
+    assert main(["reproduce", "beam-1d", "--n-s", "40", "--n-phi", "10", "--json",
+                 str(path)]) == 0
+    out = json.loads(path.read_text())
+    assert out["case"] == "beam-1d" and out["seed"] == 0
+    hm = out["history_matching"]
+    assert hm["truth_nroy"] is True and hm["status"] == "converged"
+    assert len(hm["nroy_fraction"]) == hm["waves"] and len(hm["theta_map"]) == 2
+    assert set(out["scenarios"]) == {"1", "2", "3"}
+    for s, e in out["scenarios"].items():
+        for key in ("nmse_z", "nmse_delta", "mmd", "lpl", "coverage_z_3sd",
+                    "coverage_delta_3sd"):
+            assert len(e[key]) == 1 and np.isfinite(e[key][0])
+        assert (e["ess"] is None) == (s != "3") and e["seconds"] > 0
+    table = capsys.readouterr().out
+    assert "NMSE z %" in table and "tip deflection" in table

@@ -472,20 +472,21 @@ def _scaled_cross_dist(A: np.ndarray, B: np.ndarray, scale: np.ndarray, out: np.
     """``out[b, n, m] = sqrt(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place.
 
     ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); ``out`` and ``tmp``
-    are (b, Na, Nb) work buffers. Writing into buffers avoids a fresh allocation per
-    element-wise step, which costs more than the arithmetic at these sizes.
+    are (b, Na, Nb) work buffers. The scale is applied to the (b, N, d) inputs, not to the
+    (b, Na, Nb) differences, and writing into buffers avoids a fresh allocation per
+    element-wise step, which at these sizes costs more than the arithmetic.
     """
     d = A.shape[-1]
     if d == 0:
         out[...] = 0.0
         return out
+    As, Bs = A * scale[:, None, :], B * scale[:, None, :]
+    if d == 1:
+        np.subtract(As[:, :, None, 0], Bs[:, None, :, 0], out=out)
+        return np.abs(out, out=out)
     for k in range(d):
         dst = out if k == 0 else tmp
-        np.subtract(A[:, :, None, k], B[:, None, :, k], out=dst)
-        dst *= scale[:, None, None, k]
-        if d == 1:
-            np.abs(out, out=out)
-            return out
+        np.subtract(As[:, :, None, k], Bs[:, None, :, k], out=dst)
         dst *= dst
         if k:
             out += tmp
@@ -502,8 +503,12 @@ def _cross_cov(theta: np.ndarray, Ya: np.ndarray, Xa: np.ndarray, Yb: np.ndarray
     shape = (b, Ya.shape[-2], Xb.shape[0])
     ry, rx, tmp = (_workspace(name, shape) for name in ("cross", "cross_x", "cross_tmp"))
     _scaled_cross_dist(Ya, Yb, SQRT3 * np.exp(-theta[:, 1:1 + d_y]), ry, tmp)
-    _scaled_cross_dist(Xa[None], Xb[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]),
-                       rx, tmp)
+    if d_x == 1:                      # |Δx| is shared by the chunk: one scaling pass
+        np.multiply(np.abs(Xa[:, None, 0] - Xb[None, :, 0]),
+                    SQRT3 * np.exp(-theta[:, 1 + d_y, None, None]), out=rx)
+    else:
+        _scaled_cross_dist(Xa[None], Xb[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]),
+                           rx, tmp)
     # σ_f² (1 + a)(1 + b) e^{−a−b} = (1 + s + ab) exp(log σ_f² − s), s = a + b (Eq. 3)
     np.add(ry, rx, out=tmp)
     ry *= rx

@@ -1,0 +1,254 @@
+"""Plotting functions: arrays in, HoloViews elements out (Bokeh backend).
+
+Nothing here computes a model; everything takes the numbers the state already holds.
+"""
+
+from __future__ import annotations
+
+import holoviews as hv
+import numpy as np
+
+#: Category10 (the wave colours repeat after ten waves).
+WAVE_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
+               "#7f7f7f", "#bcbd22", "#17becf"]
+SCENARIO_COLORS = {1: "#1f77b4", 2: "#ff7f0e", 3: "#2ca02c"}
+PLOT = dict(responsive=True, height=300, tools=["hover"], show_grid=True)
+
+
+def _label(name: str, unit: str) -> str:
+    return f"{name} [{unit}]" if unit and unit != "-" else name
+
+
+def data_overview(case, var_bar: np.ndarray, *, output: int = 0) -> hv.Layout:
+    """Paper Fig. 1: data with ±2√(V_o + V_m) bars, η(θ_true), and the true δ.
+
+    Parameters
+    ----------
+    case : mdcore.cases.Case
+    var_bar : ndarray of shape (n_out,)
+        ``V_o + V_m`` per output, output units squared.
+    output : int
+        Which output to show (1-D input cases); shear-5 shows every mode.
+    """
+    xname = _label(case.x_names[0], case.x_units[0])
+    if case.d_x == 2:
+        return _data_overview_2d(case, var_bar)
+    outputs = range(case.n_out) if case.n_out > 1 else [output]
+    lo, hi = case.X_train[:, 0].min(), case.X_train[:, 0].max()
+    lo, hi = min(lo, case.X_test[:, 0].min()), max(hi, case.X_test[:, 0].max())
+    xs = np.linspace(lo, hi, 201)[:, None]
+    sim = None if case.theta_true is None else case.simulate(xs, case.theta_true)[0]
+    delta = case.true_delta(xs)
+    panels = []
+    for o in outputs:
+        yname = _label(case.output_names[o], case.output_units[o])
+        bar = 2.0 * np.sqrt(var_bar[o])
+        train = hv.ErrorBars((case.X_train[:, 0], case.z_train[:, o], np.full(len(case.X_train), bar)),
+                             kdims=[xname], vdims=[yname, "±2σ"], label="train ±2√(V_o+V_m)")
+        pts = hv.Scatter((case.X_train[:, 0], case.z_train[:, o]), xname, yname,
+                         label="training data").opts(color="black", size=6)
+        test = hv.Scatter((case.X_test[:, 0], case.z_test[:, o]), xname, yname,
+                          label="test data").opts(color="grey", size=3, alpha=0.6)
+        layers = [train.opts(color="black", alpha=0.5), pts, test]
+        if sim is not None:
+            layers.append(hv.Curve((xs[:, 0], sim[:, o]), xname, yname,
+                                   label="simulator at true θ").opts(color="#d62728"))
+        overlay = hv.Overlay(layers).opts(title=f"{case.output_names[o]}: data and simulator",
+                                          legend_position="top_right", **PLOT)
+        panels.append(overlay)
+        if delta is not None:
+            panels.append(hv.Curve((xs[:, 0], delta[:, o]), xname,
+                                   _label("δ " + case.output_names[o], case.output_units[o]),
+                                   label="true δ").opts(color="#9467bd",
+                                                        title=f"true discrepancy δ, "
+                                                              f"{case.output_names[o]}", **PLOT))
+    return hv.Layout(panels).cols(2).opts(shared_axes=False)
+
+
+def _data_overview_2d(case, var_bar) -> hv.Layout:
+    x1 = _label(case.x_names[0], case.x_units[0])
+    x2 = _label(case.x_names[1], case.x_units[1])
+    yname = _label(case.output_names[0], case.output_units[0])
+    pts = hv.Points((case.X_train[:, 0], case.X_train[:, 1], case.z_train[:, 0]), [x1, x2],
+                    [yname]).opts(color=yname, cmap="viridis", size=9, colorbar=True,
+                                  title=f"training data (±2√(V_o+V_m) = "
+                                        f"±{2 * np.sqrt(var_bar[0]):.3g})", **PLOT)
+    n = 60
+    g1, g2 = np.meshgrid(np.linspace(*_span(case, 0), n), np.linspace(*_span(case, 1), n))
+    grid = np.column_stack([g1.ravel(), g2.ravel()])
+    delta = case.true_delta(grid)
+    panels = [pts]
+    if delta is not None:
+        panels.append(hv.Image((g1[0], g2[:, 0], delta[:, 0].reshape(n, n)), [x1, x2],
+                               "true δ").opts(cmap="RdBu_r", colorbar=True,
+                                              title="true discrepancy δ", **PLOT))
+    return hv.Layout(panels).cols(2).opts(shared_axes=False)
+
+
+def _span(case, d):
+    X = np.vstack([case.X_train, case.X_test])
+    return float(X[:, d].min()), float(X[:, d].max())
+
+
+def nroy_samples(waves, names, units, bounds, truth, upto: int, *, max_points: int = 1500):
+    """NROY samples of waves 1..upto in θ space, coloured by wave, with the true θ.
+
+    A histogram per wave for p = 1; pairwise scatter plots for p ≥ 2.
+    """
+    labels = [_label(n, u) for n, u in zip(names, units)]
+    p = len(labels)
+    shown = [w for w in waves if w.index <= upto]
+    rng = np.random.default_rng(0)
+    samples = []
+    for w in shown:
+        nroy = w.nroy
+        if nroy.shape[0] > max_points:
+            nroy = nroy[rng.choice(nroy.shape[0], max_points, replace=False)]
+        samples.append((w.index, nroy))
+    if p == 1:
+        hists = [hv.Histogram(np.histogram(s[:, 0], bins=40, range=tuple(bounds[0])),
+                              kdims=[labels[0]], label=f"wave {k}").opts(
+                                  alpha=0.5, color=WAVE_COLORS[(k - 1) % 10])
+                 for k, s in samples if s.shape[0]]
+        if truth is not None:
+            hists.append(hv.VLine(truth[0]).opts(color="black", line_dash="dashed"))
+        return hv.Overlay(hists).opts(title="NROY samples", **PLOT)
+    panels = []
+    for i in range(p):
+        for j in range(i + 1, p):
+            layers = [hv.Scatter((s[:, i], s[:, j]), labels[i], labels[j],
+                                 label=f"wave {k}").opts(color=WAVE_COLORS[(k - 1) % 10], size=3,
+                                                         alpha=0.5)
+                      for k, s in samples if s.shape[0]]
+            if truth is not None:
+                layers.append(hv.Scatter(([truth[i]], [truth[j]]), labels[i], labels[j],
+                                         label="true θ").opts(color="black", marker="x",
+                                                              size=14, line_width=3))
+            panels.append(hv.Overlay(layers).opts(
+                title=f"NROY samples: {names[i]} vs {names[j]}",
+                xlim=tuple(bounds[i]), ylim=tuple(bounds[j]), legend_position="top_right",
+                **PLOT))
+    return hv.Layout(panels).cols(min(3, len(panels))).opts(shared_axes=False)
+
+
+def implausibility_map(t1, t2, I, threshold, names, units, truth, wave_index):
+    """Combined implausibility over the θ plane for one wave, with the T contour."""
+    l1, l2 = (_label(n, u) for n, u in zip(names, units))
+    img = hv.Image((t1, t2, np.minimum(I, 3 * threshold)), [l1, l2], "implausibility").opts(
+        cmap="viridis_r", colorbar=True, clim=(0.0, 3 * threshold),
+        title=f"wave {wave_index}: implausibility (clipped at 3T; contour at T = {threshold:g})",
+        **PLOT)
+    contour = hv.operation.contours(hv.Image((t1, t2, I), [l1, l2], "I"),
+                                    levels=[threshold]).opts(color="white", line_width=2)
+    layers = [img, contour]
+    if truth is not None:
+        layers.append(hv.Scatter(([truth[0]], [truth[1]]), l1, l2, label="true θ").opts(
+            color="red", marker="x", size=14, line_width=3))
+    return hv.Overlay(layers)
+
+
+def nroy_fraction(waves) -> hv.Overlay:
+    """NROY fraction of the original box after each wave (percent)."""
+    k = [w.index for w in waves]
+    f = [100 * w.nroy_fraction for w in waves]
+    return (hv.Curve((k, f), "wave", "NROY [% of box]") *
+            hv.Scatter((k, f), "wave", "NROY [% of box]").opts(size=8)).opts(
+        title="NROY fraction per wave", xticks=k or None, **PLOT)
+
+
+def emulator_variance(waves, output_names) -> hv.Overlay:
+    """Largest emulator variance at retained points ÷ (V_o + V_m); converged below 1."""
+    k = [w.index for w in waves]
+    layers = [hv.HLine(1.0).opts(color="black", line_dash="dashed")]
+    ratios = np.array([[w.max_var[o] / w.var_threshold[o] for w in waves]
+                       for o in range(len(output_names))], dtype=float)
+    finite = ratios[np.isfinite(ratios) & (ratios > 0)]
+    lo = min(float(finite.min()) if finite.size else 1.0, 1.0) / 3
+    hi = max(float(finite.max()) if finite.size else 1.0, 1.0) * 3
+    for o, name in enumerate(output_names):
+        r = ratios[o].tolist()
+        layers.append(hv.Curve((k, r), "wave", "max var / (V_o + V_m)", label=name))
+        layers.append(hv.Scatter((k, r), "wave", "max var / (V_o + V_m)", label=name).opts(size=7))
+    return hv.Overlay(layers).opts(title="emulator variance vs V_o + V_m (converged below 1)",
+                                   logy=True, ylim=(lo, hi), xticks=k or None, **PLOT)
+
+
+def band_1d(x, mean, var, k, *, color, label, xname, yname) -> hv.Overlay:
+    """Mean ± k·sd band over a 1-D input."""
+    sd = k * np.sqrt(var)
+    return (hv.Area((x, mean - sd, mean + sd), xname, [yname, "upper"],
+                    label=f"{label} ±{k}σ").opts(color=color, alpha=0.25, line_alpha=0) *
+            hv.Curve((x, mean), xname, yname, label=f"{label} mean").opts(color=color))
+
+
+def discrepancy_1d(case, results, scenarios, k, output, quantity) -> list:
+    """Per scenario, one plot of z* (with data) or δ* (with the true δ), 1-D input."""
+    xname = _label(case.x_names[0], case.x_units[0])
+    unit = case.output_units[output]
+    plots = []
+    for s in scenarios:
+        r = results[s]
+        x = r.grid[:, 0]
+        if quantity == "z":
+            yname = _label(case.output_names[output], unit)
+            layers = [band_1d(x, r.on_grid.z_mean[:, output], r.on_grid.z_var[:, output], k,
+                              color=SCENARIO_COLORS[s], label=f"scenario {s}", xname=xname,
+                              yname=yname),
+                      hv.Scatter((case.X_test[:, 0], case.z_test[:, output]), xname, yname,
+                                 label="test data").opts(color="grey", size=3, alpha=0.6),
+                      hv.Scatter((case.X_train[:, 0], case.z_train[:, output]), xname, yname,
+                                 label="training data").opts(color="black", size=6)]
+            title = f"scenario {s}: bias-corrected {case.output_names[output]}"
+        else:
+            yname = _label("δ " + case.output_names[output], unit)
+            layers = [band_1d(x, r.on_grid.delta_mean[:, output], r.on_grid.delta_var[:, output],
+                              k, color=SCENARIO_COLORS[s], label=f"scenario {s}", xname=xname,
+                              yname=yname)]
+            truth = case.true_delta(r.grid)
+            if truth is not None:
+                layers.append(hv.Curve((x, truth[:, output]), xname, yname,
+                                       label="true δ").opts(color="black", line_dash="dashed"))
+            title = f"scenario {s}: discrepancy δ, {case.output_names[output]}"
+        plots.append(hv.Overlay(layers).opts(title=title, legend_position="top_right",
+                                             **PLOT))
+    return plots
+
+
+def discrepancy_2d(case, result, k, x2_slice) -> list:
+    """beam-2d: δ mean and band width on the (x₁, x₂) plane, and a slice at x₂."""
+    x1 = _label(case.x_names[0], case.x_units[0])
+    x2 = _label(case.x_names[1], case.x_units[1])
+    g = result.grid
+    u1, u2 = np.unique(g[:, 0]), np.unique(g[:, 1])
+    shape = (u2.size, u1.size)
+    mean = result.on_grid.delta_mean[:, 0].reshape(shape)
+    width = (2 * k * np.sqrt(result.on_grid.delta_var[:, 0])).reshape(shape)
+    s = result.scenario
+    img = hv.Image((u1, u2, mean), [x1, x2], "δ mean [mm]").opts(
+        cmap="RdBu_r", colorbar=True, title=f"scenario {s}: δ mean", **PLOT)
+    band = hv.Image((u1, u2, width), [x1, x2], f"band width ±{k}σ [mm]").opts(
+        cmap="magma", colorbar=True, title=f"scenario {s}: band width (±{k}σ)", **PLOT)
+    row = int(np.argmin(np.abs(u2 - x2_slice)))      # nearest grid row to the slice
+    xs = u1
+    var = result.on_grid.delta_var[:, 0].reshape(shape)
+    slice_plot = band_1d(xs, mean[row], var[row], k, color=SCENARIO_COLORS[s],
+                         label=f"scenario {s}", xname=x1, yname="δ [mm]")
+    truth = case.true_delta(np.column_stack([xs, np.full_like(xs, u2[row])]))
+    layers = [slice_plot]
+    if truth is not None:
+        layers.append(hv.Curve((xs, truth[:, 0]), x1, "δ [mm]", label="true δ").opts(
+            color="black", line_dash="dashed"))
+    return [img, band, hv.Overlay(layers).opts(
+        title=f"scenario {s}: slice at {case.x_names[1]} = {u2[row]:.4f} m",
+        legend_position="top_right", **PLOT)]
+
+
+def true_delta_2d(case) -> hv.Image:
+    """beam-2d: the true δ on the plotting grid (for comparison with the scenarios)."""
+    x1 = _label(case.x_names[0], case.x_units[0])
+    x2 = _label(case.x_names[1], case.x_units[1])
+    n = 60
+    g1, g2 = np.meshgrid(np.linspace(*_span(case, 0), n), np.linspace(*_span(case, 1), n))
+    delta = case.true_delta(np.column_stack([g1.ravel(), g2.ravel()]))
+    return hv.Image((g1[0], g2[:, 0], delta[:, 0].reshape(n, n)), [x1, x2], "δ mean [mm]").opts(
+        cmap="RdBu_r", colorbar=True, title="true δ", **PLOT)

@@ -1,0 +1,207 @@
+"""Views of the Model Discrepancy Explorer, built from an :class:`ExplorerState`.
+
+The views hold no results: they read the state, draw with :mod:`app.plots`, and turn
+button presses into calls of the state's methods.
+"""
+
+from __future__ import annotations
+
+import holoviews as hv
+import numpy as np
+import pandas as pd
+import panel as pn
+import param
+
+from . import plots
+from .state import ExplorerState
+
+SIDEBAR_WIDTH = 330
+
+
+def metrics_frame(case, results: dict) -> pd.DataFrame:
+    """One row per (scenario, output): NMSE z, NMSE δ, MMD, LPL, coverage, ESS, seconds."""
+    rows = []
+    for s in sorted(results):
+        r = results[s]
+        m = r.metrics
+        for o, name in enumerate(case.output_names):
+            pick = (lambda key: np.nan if m[key] is None else m[key][o])
+            rows.append({"scenario": s, "output": name, "NMSE z [%]": pick("nmse_z"),
+                         "NMSE δ [%]": pick("nmse_delta"), "MMD": pick("mmd"),
+                         "LPL": pick("lpl"), "cover z ±2σ": pick("coverage_z_2sd"),
+                         "cover z ±3σ": pick("coverage_z_3sd"),
+                         "cover δ ±2σ": pick("coverage_delta_2sd"),
+                         "cover δ ±3σ": pick("coverage_delta_3sd"),
+                         "ESS": float(r.model.ess[o]) if s == 3 else np.nan,
+                         "seconds": r.seconds})
+    return pd.DataFrame(rows)
+
+
+class ExplorerView(pn.viewable.Viewer):
+    """The whole page: controls on the left, tabs of plots on the right."""
+
+    state = param.ClassSelector(class_=ExplorerState)
+    quantity = param.Selector(objects=["z and δ", "δ", "z"], default="z and δ",
+                              label="Show")
+
+    def __init__(self, **params):
+        super().__init__(**params)
+        self.state.param.watch(self._notify_error, "n_errors")
+        self.state.param.watch(self._case_changed, "case_name")
+        self._case_changed()
+
+    # --- events ------------------------------------------------------------------------
+    def _notify_error(self, *_):
+        if pn.state.notifications is not None:
+            pn.state.notifications.error(self.state.error, duration=10_000)
+
+    def _case_changed(self, *_):
+        self.quantity = "δ" if self.state.case.n_out > 1 else "z and δ"
+
+    # --- controls ----------------------------------------------------------------------
+    def _controls(self):
+        s = self.state
+        w = pn.Param(s.param, parameters=["case_name"], show_name=False,
+                     widgets={"case_name": pn.widgets.Select})
+        hm = pn.Param(s.param, parameters=["v_m", "threshold", "rule", "n_runs", "n_candidates",
+                                           "max_waves", "convergence_ratio"], show_name=False,
+                      widgets={"v_m": {"type": pn.widgets.FloatInput, "step": 0.005},
+                               "threshold": {"type": pn.widgets.FloatInput, "step": 0.5},
+                               "rule": pn.widgets.RadioButtonGroup,
+                               "convergence_ratio": {"type": pn.widgets.FloatInput, "step": 0.1}})
+        next_btn = pn.widgets.Button(name="Next wave", button_type="primary")
+        conv_btn = pn.widgets.Button(name="Run to convergence", button_type="primary")
+        next_btn.on_click(lambda _: s.next_wave())
+        conv_btn.on_click(lambda _: s.run_to_convergence())
+        disc = pn.Param(s.param, parameters=["n_s", "n_phi", "paper_sizes", "scenarios", "band",
+                                             "seed"], show_name=False,
+                        widgets={"scenarios": pn.widgets.CheckButtonGroup,
+                                 "band": pn.widgets.RadioButtonGroup,
+                                 "n_s": pn.widgets.IntInput, "n_phi": pn.widgets.IntInput,
+                                 "seed": pn.widgets.IntInput})
+        run_btn = pn.widgets.Button(name="Run discrepancy", button_type="success")
+        run_btn.on_click(lambda _: s.run_discrepancy())
+        for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
+                         (run_btn, "run-discrepancy")):
+            b.css_classes = [label]
+        return pn.Column(
+            pn.pane.Markdown("## Model Discrepancy Explorer\nGardner et al., MSSP 2021: "
+                             "history matching, then GP discrepancy (scenarios 1–3)."),
+            w, self._case_info, pn.pane.Markdown("### History matching"), hm,
+            pn.Row(next_btn, conv_btn), pn.pane.Markdown("### Discrepancy"), disc, run_btn,
+            self._progress, width=SIDEBAR_WIDTH)
+
+    @param.depends("state.case")
+    def _case_info(self):
+        c = self.state.case
+        tag = "**SYNTHETIC** — " if c.synthetic and c.name == "shear-5" else ""
+        return pn.pane.Markdown(f"{tag}{c.description}", styles={"font-size": "0.85em"})
+
+    @param.depends("state.busy", "state.progress", "state.task")
+    def _progress(self):
+        s = self.state
+        if not s.busy:
+            return pn.pane.Markdown("Idle.", css_classes=["mdcore-idle"])
+        return pn.Column(pn.pane.Markdown(f"Running **{s.task}** …", css_classes=["mdcore-busy"]),
+                         pn.indicators.Progress(value=int(100 * s.progress), max=100,
+                                                sizing_mode="stretch_width"))
+
+    # --- tabs --------------------------------------------------------------------------
+    @param.depends("state.case", "state.v_m")
+    def data_view(self):
+        c = self.state.case
+        var_bar = np.mean(np.broadcast_to(c.noise_var + self.state.v_m_vector(), (1, c.n_out)),
+                          axis=0)
+        return pn.pane.HoloViews(plots.data_overview(c, var_bar), sizing_mode="stretch_width",
+                                 css_classes=["data-plot"])
+
+    @param.depends("state.status", "state.waves")
+    def status_view(self):
+        return pn.pane.Alert(self.state.status or "No waves yet.", alert_type=self._alert(),
+                             css_classes=["hm-status"])
+
+    def _alert(self):
+        w = self.state.waves
+        if not w:
+            return "info"
+        return {"converged": "success", "max_waves": "warning",
+                "ruled_out": "danger"}.get(w[-1].status, "info")
+
+    @param.depends("state.waves", "state.selected_wave", "state.implausibility_maps")
+    def waves_view(self):
+        s = self.state
+        c = s.case
+        if not s.waves:
+            return pn.pane.Markdown("Press **Next wave** to run the first wave.")
+        upto = s.selected_wave or len(s.waves)
+        objs = [plots.nroy_samples(s.waves, c.theta_names, c.theta_units, c.theta_bounds,
+                                   c.theta_true, upto)]
+        if upto in s.implausibility_maps:
+            t1, t2, I = s.implausibility_maps[upto]
+            objs.append(plots.implausibility_map(t1, t2, I, s.threshold, c.theta_names,
+                                                 c.theta_units, c.theta_true, upto))
+        shown = [w for w in s.waves if w.index <= upto]
+        summary = pn.Row(pn.pane.HoloViews(plots.nroy_fraction(shown), sizing_mode="stretch_width"),
+                         pn.pane.HoloViews(plots.emulator_variance(shown, c.output_names),
+                                           sizing_mode="stretch_width"))
+        return pn.Column(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
+                                             css_classes=["hm-plot"]) for o in objs], summary,
+                         sizing_mode="stretch_width")
+
+    @param.depends("state.waves")
+    def wave_selector(self):
+        n = len(self.state.waves)
+        if n < 2:
+            return pn.Spacer(height=0)
+        return pn.widgets.Player.from_param(self.state.param.selected_wave, start=1, end=n,
+                                            loop_policy="once", interval=800, name="Wave shown")
+
+    @param.depends("state.results", "state.band", "state.scenarios", "state.slice_x2", "quantity")
+    def discrepancy_view(self):
+        s = self.state
+        c = s.case
+        shown = [k for k in sorted(s.scenarios) if k in s.results]
+        if not shown:
+            return pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
+                                    css_classes=["disc-empty"])
+        k = int(s.band)
+        if c.d_x == 2:
+            rows = [pn.pane.HoloViews(plots.true_delta_2d(c), height=320, width=420)]
+            for sc in shown:
+                rows.append(pn.pane.HoloViews(
+                    hv.Layout(plots.discrepancy_2d(c, s.results[sc], k, s.slice_x2)).cols(3),
+                    sizing_mode="stretch_width", css_classes=["disc-plot"]))
+            slider = pn.widgets.FloatSlider.from_param(s.param.slice_x2, step=0.001)
+            return pn.Column(slider, *rows, sizing_mode="stretch_width")
+        quantities = {"z and δ": ["z", "δ"], "δ": ["δ"], "z": ["z"]}[self.quantity]
+        cells = []
+        for o in range(c.n_out):
+            for q in quantities:
+                cells += plots.discrepancy_1d(c, s.results, shown, k, o,
+                                              "z" if q == "z" else "delta")
+        layout = hv.Layout(cells).cols(len(shown))
+        return pn.pane.HoloViews(layout, sizing_mode="stretch_width", css_classes=["disc-plot"])
+
+    @param.depends("state.results", "state.scenarios")
+    def metrics_view(self):
+        s = self.state
+        shown = {k: v for k, v in s.results.items() if k in s.scenarios}
+        if not shown:
+            return pn.pane.Markdown("No scenario has run yet.")
+        df = metrics_frame(s.case, shown)
+        return pn.pane.DataFrame(df, index=False, float_format="{:.4g}".format,
+                                 sizing_mode="stretch_width", css_classes=["metrics-table"])
+
+    def __panel__(self):
+        hm_tab = pn.Column(self.status_view, self.wave_selector, self.waves_view,
+                           sizing_mode="stretch_width")
+        disc_tab = pn.Column(pn.widgets.RadioButtonGroup.from_param(self.param.quantity),
+                             self.discrepancy_view, sizing_mode="stretch_width")
+        metrics_tab = pn.Column(
+            pn.pane.Markdown("SPEC §8 metrics at the test inputs. NMSE in percent; coverage = "
+                             "share of test points (or of the true δ) inside the band."),
+            self.metrics_view, sizing_mode="stretch_width")
+        tabs = pn.Tabs(("Data", self.data_view), ("History matching", hm_tab),
+                       ("Discrepancy", disc_tab), ("Metrics", metrics_tab),
+                       dynamic=False, sizing_mode="stretch_width")
+        return pn.Row(self._controls(), tabs, sizing_mode="stretch_width")

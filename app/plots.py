@@ -128,6 +128,8 @@ def nroy_samples(waves, names, units, bounds, truth, upto: int, *, max_points: i
                 title=f"NROY samples: {names[i]} vs {names[j]}",
                 xlim=tuple(bounds[i]), ylim=tuple(bounds[j]), legend_position="top_right",
                 **PLOT))
+    if len(panels) == 1:
+        return panels[0]
     return hv.Layout(panels).cols(min(3, len(panels))).opts(shared_axes=False)
 
 
@@ -159,7 +161,8 @@ def nroy_fraction(waves) -> hv.Overlay:
 def emulator_variance(waves, output_names) -> hv.Overlay:
     """Largest emulator variance at retained points ÷ (V_o + V_m); converged below 1."""
     k = [w.index for w in waves]
-    layers = [hv.HLine(1.0).opts(color="black", line_dash="dashed")]
+    ylabel = "max var / (V_o + V_m)"
+    layers = [hv.HLine(1.0, kdims=["wave", ylabel]).opts(color="black", line_dash="dashed")]
     ratios = np.array([[w.max_var[o] / w.var_threshold[o] for w in waves]
                        for o in range(len(output_names))], dtype=float)
     finite = ratios[np.isfinite(ratios) & (ratios > 0)]
@@ -167,8 +170,8 @@ def emulator_variance(waves, output_names) -> hv.Overlay:
     hi = max(float(finite.max()) if finite.size else 1.0, 1.0) * 3
     for o, name in enumerate(output_names):
         r = ratios[o].tolist()
-        layers.append(hv.Curve((k, r), "wave", "max var / (V_o + V_m)", label=name))
-        layers.append(hv.Scatter((k, r), "wave", "max var / (V_o + V_m)", label=name).opts(size=7))
+        layers.append(hv.Curve((k, r), "wave", ylabel, label=name))
+        layers.append(hv.Scatter((k, r), "wave", ylabel, label=name).opts(size=7))
     return hv.Overlay(layers).opts(title="emulator variance vs V_o + V_m (converged below 1)",
                                    logy=True, ylim=(lo, hi), xticks=k or None, **PLOT)
 
@@ -176,7 +179,7 @@ def emulator_variance(waves, output_names) -> hv.Overlay:
 def band_1d(x, mean, var, k, *, color, label, xname, yname) -> hv.Overlay:
     """Mean ± k·sd band over a 1-D input."""
     sd = k * np.sqrt(var)
-    return (hv.Area((x, mean - sd, mean + sd), xname, [yname, "upper"],
+    return (hv.Area((x, mean - sd, mean + sd), xname, [yname, f"{yname} (upper)"],
                     label=f"{label} ±{k}σ").opts(color=color, alpha=0.25, line_alpha=0) *
             hv.Curve((x, mean), xname, yname, label=f"{label} mean").opts(color=color))
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -21,6 +22,7 @@ import param
 
 from mdcore import cases
 from mdcore.discrepancy import DiscrepancyModel, DiscrepancyPrediction, infer
+from mdcore.gp import NumericalWarning
 from mdcore.history_matching import (RULES, HistoryMatchResult, _score, case_problem,
                                      next_wave)
 from mdcore.reproduce import PAPER_SIZES, score
@@ -99,6 +101,8 @@ class ExplorerState(param.Parameterized):
     progress = param.Number(default=0.0, bounds=(0.0, 1.0))
     error = param.String(default="", doc="Last error message (shown as a notification).")
     n_errors = param.Integer(default=0, doc="Counts errors, so a repeated message still fires.")
+    notice = param.String(default="", doc="Last numerical warning (e.g. a low ESS).")
+    n_notices = param.Integer(default=0)
 
     def __init__(self, **params):
         self.background = params.pop("background", False)
@@ -196,6 +200,9 @@ class ExplorerState(param.Parameterized):
 
     def _report_error(self, message: str) -> None:
         self.param.update(error=message, n_errors=self.n_errors + 1)
+
+    def _report_notice(self, message: str) -> None:
+        self.param.update(notice=message, n_notices=self.n_notices + 1)
 
     # ------------------------------------------------------------------------------
     # History matching
@@ -324,9 +331,15 @@ class ExplorerState(param.Parameterized):
                 def sub(f, i=i):
                     report((i + 0.5 * f) / len(todo))
 
-                model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=s,
-                              theta_map=hm.theta_map, n_phi=n_phi, phi_prior=case.phi_prior,
-                              seed=seed, log_params_hat=hat if s == 2 else None, progress=sub)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", NumericalWarning)
+                    model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=s,
+                                  theta_map=hm.theta_map, n_phi=n_phi, phi_prior=case.phi_prior,
+                                  seed=seed, log_params_hat=hat if s == 2 else None,
+                                  progress=sub)
+                for w in caught:
+                    if issubclass(w.category, NumericalWarning):
+                        self.schedule(lambda m=str(w.message): self._report_notice(m))
                 if s == 1:
                     hat = model.log_params_hat
                 pred = model.predict(X_all, progress=lambda f, i=i: report((i + 0.5 + 0.5 * f)

@@ -47,6 +47,7 @@ class ExplorerView(pn.viewable.Viewer):
     def __init__(self, **params):
         super().__init__(**params)
         self.state.param.watch(self._notify_error, "n_errors")
+        self.state.param.watch(self._notify_warning, "n_notices")
         self.state.param.watch(self._case_changed, "case_name")
         self._case_changed()
 
@@ -54,6 +55,10 @@ class ExplorerView(pn.viewable.Viewer):
     def _notify_error(self, *_):
         if pn.state.notifications is not None:
             pn.state.notifications.error(self.state.error, duration=10_000)
+
+    def _notify_warning(self, *_):
+        if pn.state.notifications is not None:
+            pn.state.notifications.warning(self.state.notice, duration=10_000)
 
     def _case_changed(self, *_):
         self.quantity = "δ" if self.state.case.n_out > 1 else "z and δ"
@@ -69,8 +74,8 @@ class ExplorerView(pn.viewable.Viewer):
                                "threshold": {"type": pn.widgets.FloatInput, "step": 0.5},
                                "rule": pn.widgets.RadioButtonGroup,
                                "convergence_ratio": {"type": pn.widgets.FloatInput, "step": 0.1}})
-        next_btn = pn.widgets.Button(name="Next wave", button_type="primary")
-        conv_btn = pn.widgets.Button(name="Run to convergence", button_type="primary")
+        next_btn = pn.widgets.Button(label="Next wave", color="primary")
+        conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
         next_btn.on_click(lambda _: s.next_wave())
         conv_btn.on_click(lambda _: s.run_to_convergence())
         disc = pn.Param(s.param, parameters=["n_s", "n_phi", "paper_sizes", "scenarios", "band",
@@ -79,16 +84,16 @@ class ExplorerView(pn.viewable.Viewer):
                                  "band": pn.widgets.RadioButtonGroup,
                                  "n_s": pn.widgets.IntInput, "n_phi": pn.widgets.IntInput,
                                  "seed": pn.widgets.IntInput})
-        run_btn = pn.widgets.Button(name="Run discrepancy", button_type="success")
+        run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
         run_btn.on_click(lambda _: s.run_discrepancy())
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
         return pn.Column(
-            pn.pane.Markdown("## Model Discrepancy Explorer\nGardner et al., MSSP 2021: "
+            pn.pane.Markdown("### Model Discrepancy Explorer\nGardner et al., MSSP 2021: "
                              "history matching, then GP discrepancy (scenarios 1–3)."),
-            w, self._case_info, pn.pane.Markdown("### History matching"), hm,
-            pn.Row(next_btn, conv_btn), pn.pane.Markdown("### Discrepancy"), disc, run_btn,
+            w, self._case_info, pn.pane.Markdown("#### History matching"), hm,
+            pn.Row(next_btn, conv_btn), pn.pane.Markdown("#### Discrepancy"), disc, run_btn,
             self._progress, width=SIDEBAR_WIDTH)
 
     @param.depends("state.case")

@@ -119,9 +119,12 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     page.screenshot(path=str(ARTIFACTS / "04-metrics.png"))
 
     page.locator("select").first.select_option("shear-5")
-    page.wait_for_selector("text=SYNTHETIC", timeout=30_000)
+    page.wait_for_selector("text=/SYNTHETIC stand-in/", timeout=30_000)   # case-sensitive
+    page.wait_for_selector(".hm-status:has-text('Five-storey')", state="attached",
+                           timeout=30_000)
     tab(page, "Data")
     page.wait_for_selector(".data-plot canvas", timeout=30_000)
+    time.sleep(3.0)                                   # five modes take a moment to draw
     page.screenshot(path=str(ARTIFACTS / "05-shear5.png"))
 
     assert log.errors == []

@@ -12,7 +12,8 @@ def test_readme_example_runs():
     assert len(code.strip().splitlines()) <= 12
     namespace: dict = {}
     exec(compile(code, "README.md", "exec"), namespace)
-    assert namespace["nlml"].shape == (200,)
+    assert namespace["pred"].z_mean.shape == (200, 1)
+    assert namespace["nmse"](namespace["case"].z_test, namespace["pred"].z_mean)[0] < 3.0
 
 
 def test_ci_runs_the_readme_test_command_verbatim():

@@ -27,7 +27,7 @@ Examples
 >>> model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=2,
 ...               theta_map=case.theta_true, seed=0)
 >>> pred = model.predict(case.X_test)
->>> pred.delta_mean.shape, float(model.ess[0])
+>>> pred.delta_mean.shape, round(float(model.ess[0]), 6)
 ((200, 1), 3.0)
 """
 

@@ -31,6 +31,13 @@ def _columns(name: str, value, like: np.ndarray | None = None) -> np.ndarray:
     return arr
 
 
+def _predictive(target, mean, var, *, strict: bool):
+    """Checked (target, mean, var) columns; ``strict`` requires var > 0, else var ≥ 0."""
+    t = _columns("target", target)
+    return (t, _columns("mean", mean, t),
+            check_positive(_columns("var", var, t), "var", strict=strict))
+
+
 def _squeeze(out: np.ndarray, like: np.ndarray):
     return float(np.ravel(out)[0]) if like.ndim == 1 else out
 
@@ -74,9 +81,7 @@ def lpl(target, mean, var):
     -------
     float or ndarray of shape (n_out,)
     """
-    t = _columns("target", target)
-    m = _columns("mean", mean, t)
-    v = check_positive(_columns("var", var, t), "var")
+    t, m, v = _predictive(target, mean, var, strict=True)
     return _squeeze(-0.5 * np.sum((t - m) ** 2 / v + np.log(2.0 * np.pi * v), axis=0), t)
 
 
@@ -95,9 +100,7 @@ def coverage(target, mean, var, *, k: float = 3.0):
     -------
     float or ndarray of shape (n_out,)
     """
-    t = _columns("target", target)
-    m = _columns("mean", mean, t)
-    v = check_positive(_columns("var", var, t), "var", strict=False)
+    t, m, v = _predictive(target, mean, var, strict=False)
     if not np.isfinite(k) or k <= 0:
         raise ValueError(f"k must be a positive number of standard deviations; received {k!r}.")
     return _squeeze(np.mean(np.abs(t - m) <= k * np.sqrt(v), axis=0), t)
@@ -152,9 +155,7 @@ def mmd(target, mean, var, *, X=None):
     -------
     float or ndarray of shape (n_out,)
     """
-    t = _columns("target", target)
-    m = _columns("mean", mean, t)
-    v = check_positive(_columns("var", var, t), "var", strict=False)
+    t, m, v = _predictive(target, mean, var, strict=False)
     groups = _groups(X, t.shape[0])
     t2, m2, v2 = (a.reshape(t.shape[0], -1) for a in (t, m, v))
     out = np.empty(t2.shape[1])

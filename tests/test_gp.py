@@ -1,6 +1,5 @@
 """Batched GP core against a naive loop oracle, scikit-learn, and finite differences."""
 
-import warnings
 
 import numpy as np
 import pytest

@@ -57,6 +57,13 @@ def check_positive(arr: np.ndarray, name: str, *, strict: bool = True) -> np.nda
     return arr
 
 
+def as_int(value, name: str, minimum: int) -> int:
+    """Check that ``value`` is an integer (not a bool) ≥ ``minimum``; return it as int."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer ≥ {minimum}; received {value!r}.")
+    return int(value)
+
+
 def check_bounds(bounds, name: str = "bounds") -> np.ndarray:
     """Check a (p, 2) array of [lower, upper] rows with lower < upper."""
     b = as_float_array(bounds, name, ndim=2)

@@ -42,7 +42,7 @@ import numpy as np
 from scipy.special import logsumexp
 
 from . import gp
-from ._validation import as_float_array
+from ._validation import as_float_array, as_int
 from .gp import GaussianPrior, NumericalWarning
 
 __all__ = ["infer", "DiscrepancyModel", "DiscrepancyPrediction", "default_phi_prior",
@@ -399,7 +399,7 @@ def infer(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
         log_weights = np.full((n_out, S, 1), -np.log(S))
         prior = None
     else:
-        n_phi = _count(n_phi, "n_phi")
+        n_phi = as_int(n_phi, "n_phi", 1)
         prior = default_phi_prior(Y[0], X, z[:, 0]) if phi_prior is None else phi_prior
         phi = prior.sample(S * n_phi, seed=rng).reshape(S, n_phi, P)
         log_params = np.broadcast_to(phi, (n_out, S, n_phi, P))
@@ -432,9 +432,3 @@ def infer(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
                     "Increase n_phi, or centre phi_prior nearer the empirical-Bayes φ̂ "
                     "(scenario 1's log_params_hat).", LowESSWarning, stacklevel=2)
     return model
-
-
-def _count(value, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be an integer ≥ 1; received {value!r}.")
-    return int(value)

@@ -38,7 +38,7 @@ import scipy.special
 import scipy.stats
 
 from ._threads import single_threaded_blas
-from ._validation import as_float_array, check_bounds, check_positive, choose
+from ._validation import as_float_array, as_int, check_bounds, check_positive, choose
 from .emulator import Emulator, fit_emulator
 
 __all__ = ["RULES", "implausibility", "combine", "Wave", "HistoryMatchProblem",
@@ -225,12 +225,6 @@ class Wave:
         return self.status != "running"
 
 
-def _as_int(value, name, minimum):
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-        raise ValueError(f"{name} must be an integer ≥ {minimum}; received {value!r}.")
-    return int(value)
-
-
 def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float = 3.0,
           rule: str = "max", n_runs: int | None = None, n_candidates: int | None = None,
           max_waves: int = 5, initial_design=None, seed: int = 0,
@@ -309,11 +303,11 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         V_o = zv
     else:
         V_o = np.where(has_rep[:, None], zv, V_o)     # SPEC §5: replicate variance wins
-    n_runs = _as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1)
-    n_candidates = _as_int(50_000 * p if n_candidates is None else n_candidates,
+    n_runs = as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1)
+    n_candidates = as_int(50_000 * p if n_candidates is None else n_candidates,
                            "n_candidates", 10)
-    max_waves = _as_int(max_waves, "max_waves", 1)
-    seed = _as_int(seed, "seed", 0)
+    max_waves = as_int(max_waves, "max_waves", 1)
+    seed = as_int(seed, "seed", 0)
     if initial_design is None:
         lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng([seed, 0]))
         initial_design = scipy.stats.qmc.scale(lhs.random(max(10 * p, n_runs)),
@@ -327,7 +321,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         raise ValueError(f"convergence_ratio must be positive; received {convergence_ratio!r}.")
     return HistoryMatchProblem(simulate, Xu, zm, V_o, V_m, bounds, threshold, rule, n_runs,
                                n_candidates, max_waves, initial_design, seed,
-                               _as_int(mcmc_steps, "mcmc_steps", 0), convergence_ratio)
+                               as_int(mcmc_steps, "mcmc_steps", 0), convergence_ratio)
 
 
 def _score(problem: HistoryMatchProblem, emulator: Emulator, theta: np.ndarray):
@@ -497,7 +491,7 @@ class HistoryMatchResult:
         ValueError
             If the last wave ruled out everything.
         """
-        n = _as_int(n, "n", 1)
+        n = as_int(n, "n", 1)
         last = self.waves[-1]
         if last.nroy.shape[0] == 0:
             raise ValueError(f"no θ samples: {last.message}")
@@ -513,7 +507,7 @@ class HistoryMatchResult:
         θ^(j) of the discrepancy scenarios (SPEC §1: θ^(j) ~ p(θ | z)); repeats are
         possible when the likelihood is concentrated.
         """
-        n = _as_int(n, "n", 1)
+        n = as_int(n, "n", 1)
         rng = np.random.default_rng(seed)
         pool = self.samples(max(20 * n, 20_000), seed=rng)
         ll = self.log_likelihood(pool)

@@ -200,20 +200,21 @@ def split_log_params(log_params, d_y: int, d_x: int):
             np.exp(lp[..., 1 + d_y:1 + d_y + d_x]), np.exp(lp[..., -1]))
 
 
-def _separable_matern(log_sf2, ry, rx) -> np.ndarray:
+def _separable_matern(log_sf2, ry, rx, tmp=None) -> np.ndarray:
     """``σ_f² m32(r_y) m32(r_x)`` from distances already multiplied by √3 (Eq. 3).
 
     ``(1 + a)(1 + b) exp(−a − b) = (1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``:
-    one exp and no temporaries beyond two arrays. ``ry`` and ``rx`` broadcast.
+    one exp. The result overwrites ``ry`` (which must have the full broadcast shape;
+    ``rx`` may broadcast against it); ``tmp``, a buffer like ``ry``, is optional.
     """
-    s = ry + rx
-    out = ry * rx
-    out += s
-    out += 1.0
+    s = np.add(ry, rx, out=tmp)
+    ry *= rx
+    ry += s
+    ry += 1.0
     np.subtract(log_sf2, s, out=s)
     np.exp(s, out=s)
-    out *= s
-    return out
+    ry *= s
+    return ry
 
 
 def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
@@ -398,13 +399,6 @@ def _cholesky(K: np.ndarray, log: _JitterLog, n_cov: int | None = None):
     return L, ok
 
 
-def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Forward substitution ``L⁻¹ B`` for (b, N, N) lower factors and (b, N, M) right sides."""
-    out = np.empty(np.broadcast_shapes(L.shape[:-2], B.shape[:-2]) + B.shape[-2:])
-    out[...] = B
-    return _solve_lower_inplace(L, out)
-
-
 def _solve_lower_inplace(L: np.ndarray, B: np.ndarray) -> np.ndarray:
     """Overwrite ``B`` (b, N, M) with ``L⁻¹ B`` row by row (no temporaries of B's size)."""
     for i in range(L.shape[-1]):
@@ -509,15 +503,7 @@ def _cross_cov(theta: np.ndarray, Ya: np.ndarray, Xa: np.ndarray, Yb: np.ndarray
     else:
         _scaled_cross_dist(Xa[None], Xb[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]),
                            rx, tmp)
-    # σ_f² (1 + a)(1 + b) e^{−a−b} = (1 + s + ab) exp(log σ_f² − s), s = a + b (Eq. 3)
-    np.add(ry, rx, out=tmp)
-    ry *= rx
-    ry += tmp
-    ry += 1.0
-    np.subtract(2.0 * theta[:, :1, None], tmp, out=tmp)
-    np.exp(tmp, out=tmp)
-    ry *= tmp
-    return ry
+    return _separable_matern(2.0 * theta[:, :1, None], ry, rx, tmp)
 
 
 # ---------------------------------------------------------------------------------------

@@ -282,7 +282,10 @@ class DiscrepancyModel:
 
 
 def _prune(value) -> float:
-    p = float(value)
+    try:
+        p = float(value)
+    except (TypeError, ValueError):
+        p = np.nan
     if not np.isfinite(p) or p < 0 or p >= 1:
         raise ValueError(f"prune must be in [0, 1) (a fraction of the largest weight; 0 keeps "
                          f"every component); received {value!r}.")
@@ -375,9 +378,10 @@ def infer(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
 
     log_params_hat_arr, nlml_hat = None, None
     if scenario in (1, 2):
-        Y_map = Y[:1] if scenario == 1 else (Y[:1] if theta_map is None
-                                             else _simulate(simulate, X, theta_map[None], n_out))
-        Y_map = Y_map[0]
+        # y(X, θ_MAP): scenario 1's only sample; without θ_MAP (scenario 2 given φ̂) the
+        # first θ sample stands in for the nlml_hat report.
+        Y_map = Y[0] if scenario == 1 or theta_map is None else \
+            _simulate(simulate, X, theta_map[None], n_out)[0]
         if log_params_hat is not None:
             log_params_hat_arr = np.atleast_2d(as_float_array(log_params_hat, "log_params_hat"))
             if log_params_hat_arr.shape != (n_out, P):

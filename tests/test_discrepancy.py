@@ -190,15 +190,22 @@ def test_low_ess_warns_with_a_suggestion(toy):
     (dict(scenario=3, z=np.ones((5, 2))), "z must have shape"),
     (dict(scenario=3, phi_prior=GaussianPrior([0.0], [1.0])), "phi_prior must be a GaussianPrior"),
     (dict(scenario=3, prune=2.0), "prune must be in"),
+    (dict(scenario=3, prune="tiny"), "prune must be in"),
+    (dict(scenario=3, prune=np.nan), "prune must be in"),
+    (dict(scenario=3, X=np.ones((7, 1, 1))), "X must have 2 dimension"),
+    (dict(scenario=3, z=np.full((7, 2), np.nan)), "z contains 14 NaN"),
+    (dict(scenario=1, theta_map=[np.nan, 1.0]), "theta_map contains 1 NaN"),
+    (dict(scenario=2, theta_map=[1.0, 0.2], log_params_hat=np.ones((2, 3))),
+     r"log_params_hat must have shape \(n_out, P\) = \(2, 5\)"),
     (dict(scenario=2, theta_map=[1.0, 0.2, 3.0]), "p = 3 like theta_map"),
 ])
 @pytest.mark.filterwarnings("ignore::mdcore.discrepancy.LowESSWarning")
 def test_bad_input(toy, kwargs, match):
     X, z, theta, _, prior = toy
-    args = dict(theta_samples=theta, z=z, n_phi=2)
+    args = dict(theta_samples=theta, X=X, z=z, n_phi=2)
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
-        infer(toy_simulate, args.pop("theta_samples"), X, args.pop("z"), **args)
+        infer(toy_simulate, args.pop("theta_samples"), args.pop("X"), args.pop("z"), **args)
 
 
 def test_predict_bad_input(toy):

@@ -143,6 +143,14 @@ def test_samples_needs_a_positive_count():
                            n_candidates=2000, max_waves=1, seed=0)
     with pytest.raises(ValueError, match="n must be an integer ≥ 1"):
         result.samples(0)
+    with pytest.raises(ValueError, match="n must be an integer ≥ 1"):
+        result.posterior_samples(0)
+    with pytest.raises(ValueError, match="theta contains 1 NaN"):
+        result.log_likelihood(np.array([[np.nan, 0.5]]))
+    with pytest.raises(ValueError, match=r"theta \(n_theta, 2\)"):
+        result.log_likelihood(np.ones((2, 3)))
+    with pytest.raises(ValueError, match="theta is empty"):
+        result.log_likelihood(np.empty((0, 2)))
 
 
 @pytest.mark.parametrize("kwargs,match", [

@@ -66,6 +66,19 @@ def test_mmd_closed_form_matches_quadrature():
     assert got2 == pytest.approx(want2, rel=1e-6)
 
 
+@pytest.mark.parametrize("fn, args, match", [
+    (nmse, ([], []), "target is empty"),
+    (nmse, ([1.0, np.nan], [1.0, 2.0]), "target contains 1 NaN"),
+    (lpl, ([1.0, 2.0], [1.0, np.inf], [1.0, 1.0]), "mean contains 1 NaN"),
+    (coverage, (np.ones((2, 2, 2)),) * 3, r"shape \(N,\) or \(N, n_out\)"),
+    (mmd, ([1.0, 2.0], [1.0, 2.0], [np.nan, 1.0]), "var contains 1 NaN"),
+    (mmd, ([1.0, 2.0], [1.0, 2.0, 3.0], [1.0, 1.0]), "same shape as the targets"),
+])
+def test_bad_input(fn, args, match):
+    with pytest.raises(ValueError, match=match):
+        fn(*args)
+
+
 def test_mmd_grows_with_predictive_bias():
     a = np.array([0.0, 0.1, -0.1, 0.05])
     vals = [mmd(a, np.full(4, shift), np.full(4, 0.01), X=np.zeros(4)) for shift in (0, 0.2, 1)]

@@ -111,6 +111,7 @@ class ExplorerState(param.Parameterized):
         self._generation = 0
         self._problem = None
         self._problem_key = None
+        self._hm = None
         self._cache: dict = {}
         self._load_case()
 
@@ -279,7 +280,9 @@ class ExplorerState(param.Parameterized):
         """The current history match, or None before the first wave."""
         if not self.waves:
             return None
-        return HistoryMatchResult(self._problem, self.waves)
+        if self._hm is None or self._hm.waves is not self.waves:   # keeps θ_MAP cached
+            self._hm = HistoryMatchResult(self._problem, self.waves)
+        return self._hm
 
     # ------------------------------------------------------------------------------
     # Discrepancy
@@ -309,17 +312,18 @@ class ExplorerState(param.Parameterized):
         if hm.status == "ruled_out":
             self._report_error(hm.message)
             return
-        case = self.case
         todo = [s for s in sorted(self.scenarios) if self._key(s) not in self._cache]
-        keys = {s: self._key(s) for s in todo}
-        n_s, n_phi, seed = self.n_s, self.n_phi, self.seed
-        grid = plotting_grid(case)
-        hat = next((r.model.log_params_hat for k, r in self._cache.items()
-                    if k[0] == self._problem_key and k[1] == len(self.waves) and k[2] == 1),
-                   None)
         if not todo:
             self._refresh_results()
             return
+        case = self.case
+        keys = {s: self._key(s) for s in todo}
+        n_s, n_phi, seed = self.n_s, self.n_phi, self.seed
+        grid = plotting_grid(case)
+        # φ̂ depends on the match and the seed, not on N_s: reuse a cached scenario-1 fit.
+        same_fit = self._key(1)[:3] + self._key(1)[5:]
+        hat = next((r.model.log_params_hat for k, r in self._cache.items()
+                    if k[:3] + k[5:] == same_fit), None)
 
         def compute(report):
             nonlocal hat

@@ -73,15 +73,9 @@ def _data_overview_2d(case, var_bar) -> hv.Layout:
                     [yname]).opts(color=yname, cmap="viridis", size=9, colorbar=True,
                                   title=f"training data (±2√(V_o+V_m) = "
                                         f"±{2 * np.sqrt(var_bar[0]):.3g})", **PLOT)
-    n = 60
-    g1, g2 = np.meshgrid(np.linspace(*_span(case, 0), n), np.linspace(*_span(case, 1), n))
-    grid = np.column_stack([g1.ravel(), g2.ravel()])
-    delta = case.true_delta(grid)
     panels = [pts]
-    if delta is not None:
-        panels.append(hv.Image((g1[0], g2[:, 0], delta[:, 0].reshape(n, n)), [x1, x2],
-                               "true δ").opts(cmap="RdBu_r", colorbar=True,
-                                              title="true discrepancy δ", **PLOT))
+    if case.true_delta(case.X_train[:1]) is not None:
+        panels.append(true_delta_2d(case).opts(title="true discrepancy δ"))
     return hv.Layout(panels).cols(2).opts(shared_axes=False)
 
 

@@ -115,9 +115,7 @@ class ExplorerView(pn.viewable.Viewer):
     @param.depends("state.case", "state.v_m")
     def data_view(self):
         c = self.state.case
-        var_bar = np.mean(np.broadcast_to(c.noise_var + self.state.v_m_vector(), (1, c.n_out)),
-                          axis=0)
-        return pn.pane.HoloViews(plots.data_overview(c, var_bar), sizing_mode="stretch_width",
+        return pn.pane.HoloViews(plots.data_overview(c, c.noise_var + self.state.v_m_vector()), sizing_mode="stretch_width",
                                  css_classes=["data-plot"])
 
     @param.depends("state.status", "state.waves")

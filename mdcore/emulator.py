@@ -30,7 +30,7 @@ from ._threads import single_threaded_blas
 from ._validation import as_float_array, check_bounds
 from .gp import LOG_2PI, SQRT3, matern32, scaled_sq_dist
 
-__all__ = ["Emulator", "EmulatorPrediction", "fit_emulator"]
+__all__ = ["Emulator", "EmulatorAt", "EmulatorPrediction", "fit_emulator"]
 
 
 class EmulatorPrediction(NamedTuple):
@@ -217,6 +217,128 @@ class Emulator:
             V = (kx @ g.Q_x) ** 2
             var[..., o] = np.maximum(sf2 - sf2**2 * (U @ g.W @ V.T), 0.0)
         return EmulatorPrediction(mean, var)
+
+    def at(self, X) -> "EmulatorAt":
+        """The emulator's joint Gaussian at fixed inputs ``X`` as a function of θ.
+
+        Everything that does not depend on θ is computed here, once, so that
+        :meth:`EmulatorAt.moments` costs O(R² + R N + N² N_train) per θ (the Kennedy–
+        O'Hagan likelihood evaluates it at every MCMC step).
+
+        Parameters
+        ----------
+        X : ndarray of shape (N, d_x)
+            Inputs (original units); repeated rows are allowed.
+        """
+        X = as_float_array(X, "X", ndim=2)
+        d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
+        if X.shape[1] != d_x:
+            raise ValueError(f"X must have shape (N, {d_x}); received {X.shape}.")
+        Xu, Xtr = _unit(X, self._x_lo, self._x_span), _unit(self.X_train, self._x_lo, self._x_span)
+        lin, AK, V, prior = [], [], [], []
+        for g in self._gps:
+            kx = matern32(scaled_sq_dist(Xu, Xtr, np.exp(g.log_params[1 + p:-1])))  # (N, N_tr)
+            lin.append(g.beta[0] + Xu @ g.beta[1:1 + d_x])
+            AK.append(g.A @ kx.T)
+            V.append(kx @ g.Q_x)
+            prior.append(np.exp(2 * g.log_params[0]) * matern32(
+                scaled_sq_dist(Xu, Xu, np.exp(g.log_params[1 + p:-1]))))
+        return EmulatorAt(self, X, Xu, np.stack(lin), np.stack(AK), np.stack(V), np.stack(prior))
+
+
+@dataclass(frozen=True, eq=False)
+class EmulatorAt:
+    """Emulator moments at fixed inputs ``X``, for any θ; build with :meth:`Emulator.at`.
+
+    For output ``o`` with Kronecker GP ``σ_f² K_θ ⊗ K_x + σ_n² I`` (eigenpairs
+    ``Q_θ Λ Q_θᵀ``, ``Q_x M Q_xᵀ``, ``W = 1 / (σ_f² λ_a μ_b + σ_n²)``) the posterior of
+    the emulated simulator at ``(θ, X_A)`` and ``(θ, X_B)`` is, with
+    ``k_θ = m32(θ, Θ_train)``, ``V_A = m32(X_A, X_train) Q_x`` and
+    ``d(θ) = (k_θ Q_θ)² W`` (a length-N_train vector)::
+
+        m_η(X_A, θ)       = β₀ + βᵀ[x, θ] + k_θ A m32(X_A, X_train)ᵀ
+        Σ_η(X_A, X_B; θ)  = σ_f² m32(X_A, X_B) − σ_f⁴ V_A diag(d(θ)) V_Bᵀ
+
+    Only ``k_θ`` and ``d(θ)`` depend on θ. The diagonal of Σ_η equals
+    :meth:`Emulator.predict`'s ``var``.
+
+    Attributes
+    ----------
+    emulator : Emulator
+    X : ndarray of shape (N, d_x)
+    """
+
+    emulator: Emulator
+    X: np.ndarray
+    _Xu: np.ndarray
+    _lin: np.ndarray     # (n_out, N) x-part of the linear mean
+    _AK: np.ndarray      # (n_out, R, N)
+    _V: np.ndarray       # (n_out, N, N_train)
+    _prior: np.ndarray   # (n_out, N, N) σ_f² m32(X, X)
+
+    def _theta_terms(self, theta, check: bool = True):
+        """Unit-scaled θ (M, p), then per output k_θ (M, R) and d(θ) (M, N_train)."""
+        em = self.emulator
+        p = em.theta_train.shape[1]
+        if check:
+            theta = np.atleast_2d(as_float_array(theta, "theta"))
+            if theta.ndim != 2 or theta.shape[1] != p:
+                raise ValueError(f"theta must have shape (M, {p}); received {theta.shape}.")
+        t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
+        Tu, Ttr = _unit(theta, t_lo, t_span), _unit(em.theta_train, t_lo, t_span)
+        terms = []
+        for g in em._gps:
+            kt = matern32(scaled_sq_dist(Tu, Ttr, np.exp(g.log_params[1:1 + p])))
+            terms.append((kt, (kt @ g.Q_t) ** 2 @ g.W))
+        return Tu, terms
+
+    def moments(self, theta):
+        """Mean and covariance of the emulated simulator at ``X`` for each θ.
+
+        Parameters
+        ----------
+        theta : ndarray of shape (M, p) or (p,)
+
+        Returns
+        -------
+        mean : ndarray of shape (M, n_out, N)
+        cov : ndarray of shape (M, n_out, N, N)
+            ``Σ_η(X, X; θ)`` (output units squared).
+        """
+        return self._moments(*self._theta_terms(theta))
+
+    def _moments(self, Tu, terms, with_cov: bool = True):
+        """:meth:`moments` from unit-scaled θ and :meth:`_theta_terms` (no input checks);
+        ``cov`` is None unless ``with_cov``."""
+        d_x = self.X.shape[1]
+        M, (n_out, N) = Tu.shape[0], self._lin.shape
+        mean = np.empty((M, n_out, N))
+        cov = np.empty((M, n_out, N, N)) if with_cov else None
+        for o, (g, (kt, d)) in enumerate(zip(self.emulator._gps, terms)):
+            mean[:, o] = self._lin[o] + (Tu @ g.beta[1 + d_x:])[:, None] + kt @ self._AK[o]
+            if with_cov:
+                sf4 = np.exp(4 * g.log_params[0])
+                cov[:, o] = self._prior[o] - sf4 * ((self._V[o] * d[:, None, :]) @ self._V[o].T)
+        return mean, cov
+
+    def cross_cov(self, theta, other: "EmulatorAt"):
+        """``Σ_η(X_other, X; θ)``, shape (M, n_out, N_other, N), and the diagonal of
+        ``Σ_η(X_other, X_other; θ)``, shape (M, n_out, N_other)."""
+        if other.emulator is not self.emulator:
+            raise ValueError("other must come from the same emulator (Emulator.at).")
+        _, terms = self._theta_terms(theta)
+        p = self.emulator.theta_train.shape[1]
+        M = terms[0][0].shape[0]
+        n_out, N, N_o = self._lin.shape[0], self.X.shape[0], other.X.shape[0]
+        cross = np.empty((M, n_out, N_o, N))
+        diag = np.empty((M, n_out, N_o))
+        for o, (g, (_, d)) in enumerate(zip(self.emulator._gps, terms)):
+            sf2 = np.exp(2 * g.log_params[0])
+            kx = matern32(scaled_sq_dist(other._Xu, self._Xu, np.exp(g.log_params[1 + p:-1])))
+            Vd = other._V[o] * d[:, None, :]                               # (M, N_o, N_tr)
+            cross[:, o] = sf2 * kx - sf2**2 * (Vd @ self._V[o].T)
+            diag[:, o] = np.maximum(sf2 - sf2**2 * np.einsum("mij,ij->mi", Vd, other._V[o]), 0.0)
+        return cross, diag
 
 
 @single_threaded_blas

@@ -1,0 +1,507 @@
+"""Kennedy–O'Hagan hierarchical Bayesian baseline: θ and δ(x) inferred jointly (SPEC §7).
+
+For each output the observations at the N inputs X are modelled, given θ, as
+
+    z | θ, φ ~ N( m_η(X, θ),  Σ_η(X, X; θ) + K_δ(X, X; φ) + σ_n² I )
+
+with ``m_η`` and ``Σ_η`` the emulator's posterior mean and (full) covariance (SPEC §4) and
+``K_δ`` a zero-mean Matérn 3/2 GP over x with ``φ = [log σ_f, log ℓ_x,1 … log ℓ_x,d_x,
+log σ_n]`` (the SPEC §2 layout with no ``ℓ_y``). Outputs are independent given θ.
+
+1. φ by empirical Bayes on the prior-averaged marginal likelihood (SPEC §7)::
+
+       φ̂ = argmax_φ log (1/M) Σ_m p(z | θ_m, φ),   θ_m ~ p(θ) truncated to the bounds
+
+   (optionally times a hyperprior ``p(φ)``, i.e. type-II MAP, as scenarios 1–2 do).
+2. θ | z, φ̂ by adaptive Metropolis (:func:`mdcore.mcmc.adaptive_metropolis`) on the
+   Gaussian prior truncated to the box the emulator was built on.
+3. Per kept θ sample, the Gaussian conditional of ``δ*`` and ``z*`` given z::
+
+       δ*: mean K_δ(X*, X) C⁻¹ r,   var σ_f² − diag(K_δ(X*, X) C⁻¹ K_δ(X, X*))
+       z*: mean m_η(X*) + G C⁻¹ r,  var V_η(X*) + σ_f² + σ_n² − diag(G C⁻¹ Gᵀ)
+
+   with ``r = z − m_η(X, θ)``, ``C`` the covariance above and ``G = Σ_η(X*, X; θ) +
+   K_δ(X*, X)``; combined with equal weights (laws of total expectation and variance).
+
+Nothing that is fixed during sampling is recomputed per step: the emulator's x-parts come
+from :meth:`mdcore.emulator.Emulator.at` and ``K_δ + σ_n² I`` is built once.
+
+Examples
+--------
+>>> import numpy as np
+>>> from mdcore import cases
+>>> from mdcore.emulator import fit_emulator
+>>> from mdcore.koh import infer
+>>> case = cases.load("beam-1d")
+>>> y = case.simulate(case.X_train, case.initial_design)
+>>> em = fit_emulator(case.X_train, case.initial_design, y, case.theta_bounds, seed=0)
+>>> model = infer(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
+...               bounds=case.theta_bounds, n_iter=3000, burn_in=1000, seed=0)
+>>> model.predict(case.X_test).delta_mean.shape
+(200, 1)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+import warnings
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+from scipy.special import logsumexp
+
+from . import gp
+from ._validation import as_float_array, as_int, check_bounds
+from .discrepancy import DiscrepancyPrediction
+from .emulator import Emulator
+from .gp import GaussianPrior, NumericalWarning, matern32, scaled_sq_dist
+from .mcmc import Chain, adaptive_metropolis
+
+__all__ = ["KOHModel", "infer", "fit_phi", "N_ITER", "BURN_IN", "FAST"]
+
+#: The paper's chain: 150,000 iterations of which the first 50,000 are burn-in (SPEC §7).
+N_ITER, BURN_IN = 150_000, 50_000
+#: A short chain for interactive use (the app).
+FAST = {"n_iter": 20_000, "burn_in": 5_000}
+#: Prior θ draws averaged over in the empirical-Bayes objective.
+N_THETA_EB = 200
+#: θ samples (evenly spaced over the kept chain) used for predictions by default.
+N_PREDICT = 1000
+LOG_2PI = float(np.log(2 * np.pi))
+
+
+# ---------------------------------------------------------------------------------------
+# The simulator side: emulator (mean + covariance) or an exact simulator (covariance 0)
+
+class _ExactAt:
+    """:class:`mdcore.emulator.EmulatorAt`'s interface for a cheap exact simulator."""
+
+    def __init__(self, simulate: Callable, X: np.ndarray, n_out: int):
+        self.simulate, self.X, self.n_out = simulate, X, n_out
+
+    def _theta_terms(self, theta, check: bool = True):
+        return theta, None
+
+    def _moments(self, theta, terms, with_cov: bool = True):
+        y = np.asarray(self.simulate(self.X, theta), dtype=np.float64)
+        want = (theta.shape[0], self.X.shape[0], self.n_out)
+        if y.shape != want:
+            raise ValueError(f"simulate(X, theta) must return shape (n_theta, N, n_out) = "
+                             f"{want}; it returned {y.shape}.")
+        mean = np.ascontiguousarray(np.moveaxis(y, 2, 1))
+        cov = np.zeros(mean.shape + (self.X.shape[0],)) if with_cov else None
+        return mean, cov
+
+    def cross_cov(self, theta, other: "_ExactAt"):
+        M, N_o = theta.shape[0], other.X.shape[0]
+        return (np.zeros((M, self.n_out, N_o, self.X.shape[0])),
+                np.zeros((M, self.n_out, N_o)))
+
+
+def _at(model, X: np.ndarray, n_out: int):
+    if isinstance(model, Emulator):
+        return model.at(X)
+    return _ExactAt(model, X, n_out)
+
+
+def _k_delta(log_phi: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
+    """Discrepancy covariance ``σ_f² m32(r_x)`` per output: (n_out, Na, Nb)."""
+    ell = np.exp(log_phi[:, 1:-1])
+    return np.exp(2 * log_phi[:, 0])[:, None, None] * matern32(
+        scaled_sq_dist(Xa[None], Xb[None], ell))
+
+
+def _chol(C: np.ndarray, log: gp._JitterLog) -> np.ndarray:
+    """Batched lower Cholesky with the core's jitter ladder (NaN rows where it fails)."""
+    shape = C.shape
+    L, _ = gp._cholesky(C.reshape((-1,) + shape[-2:]), log)
+    return L.reshape(shape)
+
+
+def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``L⁻¹ B`` for (b, N, N) lower factors and (b, N, k) right-hand sides (B is overwritten).
+
+    A few matrices (one MCMC step): LAPACK per matrix; many: the core's row sweep, which
+    is vectorised over the batch.
+    """
+    if L.shape[0] > 8:
+        return gp._solve_lower_inplace(L, B)
+    for i in range(L.shape[0]):
+        B[i] = scipy.linalg.solve_triangular(L[i], B[i], lower=True, check_finite=False)
+    return B
+
+
+def _gauss_loglik(mean, cov, B, zT, log) -> np.ndarray:
+    """``Σ_o log N(z_o | mean_o, cov_o + B_o)`` for a batch: (M, n_out, N) … -> (M,)."""
+    L = _chol(cov + B, log)                                    # (M, n_out, N, N)
+    r = (zT - mean)[..., None]
+    a = _solve_lower(L.reshape((-1,) + L.shape[-2:]), r.reshape((-1,) + r.shape[-2:]))
+    a = a.reshape(mean.shape)
+    logdet = np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=(-2, -1))
+    ll = -0.5 * np.sum(a * a, axis=(-2, -1)) - logdet - 0.5 * mean[0].size * LOG_2PI
+    return np.where(np.isfinite(ll), ll, -np.inf)
+
+
+# ---------------------------------------------------------------------------------------
+# Inputs
+
+def _theta_prior(theta_prior, bounds: np.ndarray) -> GaussianPrior:
+    if isinstance(theta_prior, GaussianPrior):
+        mean, var = theta_prior.mean, theta_prior.var
+    else:
+        try:
+            mean, var = theta_prior
+        except (TypeError, ValueError):
+            raise ValueError("theta_prior must be a GaussianPrior or a (mean, var) pair of "
+                             f"length-p arrays; received {theta_prior!r}.") from None
+    mean = as_float_array(mean, "theta_prior mean", ndim=1)
+    var = as_float_array(var, "theta_prior var", ndim=1)
+    p = bounds.shape[0]
+    if mean.shape != (p,) or var.shape != (p,):
+        raise ValueError(f"theta_prior mean and var must each have p = {p} entries, one per "
+                         f"row of bounds; received {mean.shape} and {var.shape}.")
+    if np.any(var <= 0):
+        raise ValueError(f"theta_prior var must be positive (a variance per parameter, in "
+                         f"parameter units squared); received {var.tolist()}.")
+    return GaussianPrior(mean, var)
+
+
+def _sample_truncated(prior: GaussianPrior, bounds: np.ndarray, n: int, rng) -> np.ndarray:
+    """``n`` draws of the Gaussian prior restricted to the box, by rejection."""
+    out, tries = [], 0
+    while sum(len(o) for o in out) < n:
+        draw = prior.sample(max(4 * n, 1000), seed=rng)
+        inside = np.all((draw >= bounds[:, 0]) & (draw <= bounds[:, 1]), axis=1)
+        out.append(draw[inside])
+        tries += 1
+        if tries == 20 and not any(len(o) for o in out):
+            raise ValueError(f"the θ prior (mean {prior.mean.tolist()}, var "
+                             f"{prior.var.tolist()}) has almost no mass inside bounds "
+                             f"{bounds.tolist()}; centre the prior inside the box.")
+    return np.concatenate(out)[:n]
+
+
+def _log_phi(log_phi, n_out: int, d_x: int) -> np.ndarray:
+    lp = as_float_array(log_phi, "log_phi")
+    lp = np.broadcast_to(lp, (n_out, 2 + d_x)) if lp.shape in {(2 + d_x,), (n_out, 2 + d_x)} \
+        else None
+    if lp is None:
+        raise ValueError(f"log_phi must have shape (2 + d_x,) = ({2 + d_x},) or (n_out, 2 + d_x) "
+                         f"= ({n_out}, {2 + d_x}) ([log σ_f, log ℓ_x…, log σ_n]); received "
+                         f"{np.shape(log_phi)}.")
+    return np.array(lp)
+
+
+# ---------------------------------------------------------------------------------------
+# Empirical Bayes for φ
+
+def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
+            n_starts: int = 4, seed=None):
+    """φ̂ maximising the prior-averaged marginal likelihood (SPEC §7).
+
+    Parameters
+    ----------
+    at : EmulatorAt
+        The emulator at ``X`` (:meth:`mdcore.emulator.Emulator.at`), or the exact-simulator
+        equivalent used by :func:`infer`.
+    X : ndarray of shape (N, d_x)
+    z : ndarray of shape (N, n_out)
+    theta_draws : ndarray of shape (M, p)
+        Draws from the θ prior; the objective averages the likelihood over them.
+    phi_prior : GaussianPrior of size 2 + d_x, optional
+        Hyperprior on each output's φ (MAP instead of plain empirical Bayes).
+    n_starts : int, default=4
+        L-BFGS-B starts (the first at the hyperprior mean or the box centre).
+    seed : int or Generator, optional
+
+    Returns
+    -------
+    log_phi : ndarray of shape (n_out, 2 + d_x)
+    log_evidence : float
+        ``log (1/M) Σ_m p(z | θ_m, φ̂)``.
+    """
+    rng = np.random.default_rng(seed)
+    N, d_x = X.shape
+    n_out = z.shape[1]
+    P = 2 + d_x
+    mean, cov = at._moments(*at._theta_terms(theta_draws))       # fixed during the search
+    zT = z.T
+    resid = zT - mean.mean(axis=0)                                 # (n_out, N)
+    boxes = np.stack([gp.default_bounds(np.empty((N, 0)), X, resid[o]) for o in range(n_out)])
+    lo, hi = boxes[..., 0].ravel(), boxes[..., 1].ravel()
+    eye = np.eye(N)
+    log = gp._JitterLog()
+
+    def log_evidence(flat):
+        lp = flat.reshape(n_out, P)
+        B = _k_delta(lp, X, X) + np.exp(2 * lp[:, -1])[:, None, None] * eye
+        ll = _gauss_loglik(mean, cov, B, zT, log)
+        return float(logsumexp(ll) - np.log(ll.size))
+
+    def objective(flat):
+        f = -log_evidence(flat)
+        if phi_prior is not None:
+            f -= float(np.sum(phi_prior.logpdf(flat.reshape(n_out, P))))
+        return f if np.isfinite(f) else 1e300
+
+    starts = lo + (hi - lo) * rng.uniform(size=(max(n_starts, 1), lo.size))
+    starts[0] = np.clip(np.tile(phi_prior.mean, n_out), lo, hi) if phi_prior is not None \
+        else 0.5 * (lo + hi)
+    best = None
+    for x0 in starts:
+        res = scipy.optimize.minimize(objective, x0, method="L-BFGS-B",
+                                      bounds=list(zip(lo, hi)))
+        if best is None or res.fun < best.fun:
+            best = res
+    log.warn("KOH empirical Bayes")
+    return best.x.reshape(n_out, P), log_evidence(best.x)
+
+
+# ---------------------------------------------------------------------------------------
+# The fitted model
+
+@dataclass(frozen=True, eq=False)
+class KOHModel:
+    """A Kennedy–O'Hagan posterior; call :meth:`predict` for z* and δ*.
+
+    Attributes
+    ----------
+    scenario : str
+        ``"koh"`` (so the app and the CLI can treat it as a fourth column).
+    X : ndarray of shape (N, d_x)
+    z : ndarray of shape (N, n_out)
+    bounds : ndarray of shape (p, 2)
+        Box the θ prior is truncated to.
+    theta_prior : GaussianPrior
+        Gaussian prior of θ (mean and variance in parameter units).
+    log_phi : ndarray of shape (n_out, 2 + d_x)
+        Discrepancy hyperparameters ``[log σ_f, log ℓ_x…, log σ_n]`` per output.
+    log_evidence : float or None
+        Prior-averaged log marginal likelihood at ``log_phi`` (None when ``log_phi`` was
+        given).
+    chain : Chain
+        Adaptive-Metropolis output in parameter units: ``samples`` (n_kept, p), acceptance
+        rate, final proposal covariance, integrated autocorrelation times.
+    n_predict : int
+        θ samples (evenly spaced over the kept chain) used by :meth:`predict`.
+    seconds_phi, seconds : float
+        Time spent fitting φ and in :func:`infer` in total.
+    """
+
+    scenario: str
+    X: np.ndarray
+    z: np.ndarray
+    bounds: np.ndarray
+    theta_prior: GaussianPrior
+    log_phi: np.ndarray
+    log_evidence: float | None
+    chain: Chain
+    n_predict: int
+    seconds_phi: float
+    seconds: float
+    _model: object = dataclasses.field(repr=False)
+    _at: object = dataclasses.field(repr=False)
+
+    @property
+    def n_out(self) -> int:
+        return self.z.shape[1]
+
+    @property
+    def theta(self) -> np.ndarray:
+        """Kept θ samples, (n_kept, p)."""
+        return self.chain.samples
+
+    @property
+    def acceptance_rate(self) -> float:
+        return self.chain.acceptance_rate
+
+    @property
+    def iat(self) -> np.ndarray:
+        """Integrated autocorrelation time per parameter, (p,)."""
+        return self.chain.iat
+
+    @property
+    def ess(self) -> np.ndarray:
+        """MCMC effective sample size per parameter, (p,)."""
+        return self.chain.ess
+
+    def predict(self, X_star, *, n_samples: int | None = None,
+                progress: Callable[[float], None] | None = None) -> DiscrepancyPrediction:
+        """Bias-corrected prediction and discrepancy at ``X_star`` (SPEC §7).
+
+        Parameters
+        ----------
+        X_star : ndarray of shape (N*, d_x)
+        n_samples : int, optional
+            θ samples, evenly spaced over the kept chain (default :attr:`n_predict`;
+            capped at the chain length).
+        progress : callable, optional
+            Called with the fraction done after each block; raising cancels.
+
+        Returns
+        -------
+        DiscrepancyPrediction
+            Each field (N*, n_out); the z variance includes σ_n².
+        """
+        X_star = as_float_array(X_star, "X_star", ndim=2)
+        if X_star.shape[1] != self.X.shape[1]:
+            raise ValueError(f"X_star must have shape (N*, d_x) with d_x = {self.X.shape[1]} "
+                             f"like the training X; received {X_star.shape}.")
+        n = self.n_predict if n_samples is None else as_int(n_samples, "n_samples", 1)
+        kept = self.theta.shape[0]
+        idx = np.unique(np.linspace(0, kept - 1, min(n, kept)).round().astype(int))
+        theta = self.theta[idx]
+        at, at_s = self._at, _at(self._model, X_star, self.n_out)
+        lp = self.log_phi
+        N, M = self.X.shape[0], X_star.shape[0]
+        sf2, sn2 = np.exp(2 * lp[:, 0]), np.exp(2 * lp[:, -1])
+        B = _k_delta(lp, self.X, self.X) + sn2[:, None, None] * np.eye(N)
+        Kd_s = _k_delta(lp, X_star, self.X)                              # (n_out, M, N)
+        log = gp._JitterLog()
+        parts = np.empty((4, idx.size, self.n_out, M))
+        block = max(1, int(16 * 2**20 // (8 * self.n_out * (3 * M * N + N * N + 4 * M))))
+        for start in range(0, idx.size, block):
+            th = theta[start:start + block]
+            mean, cov = at._moments(*at._theta_terms(th, check=False))
+            mean_s, _ = at_s._moments(*at_s._theta_terms(th, check=False), with_cov=False)
+            cross, var_s = at.cross_cov(th, at_s)
+            L = _chol(cov + B, log)                                       # (b, n_out, N, N)
+            flat = L.reshape((-1, N, N))
+            a = _solve_lower(flat, (self.z.T - mean).reshape((-1, N, 1)))
+            G = _solve_lower(flat, np.swapaxes(cross + Kd_s, -1, -2).reshape(
+                (-1, N, M)).copy())
+            D = _solve_lower(flat, np.broadcast_to(
+                np.swapaxes(Kd_s, -1, -2), (th.shape[0],) + Kd_s.shape[:1] + (N, M)
+            ).reshape((-1, N, M)).copy())
+            shape = (th.shape[0], self.n_out, M)
+            sl = slice(start, start + th.shape[0])
+            parts[0, sl] = mean_s + np.einsum("bnm,bn->bm", G, a[..., 0]).reshape(shape)
+            parts[1, sl] = np.maximum(var_s + (sf2 + sn2)[:, None]
+                                      - np.sum(G * G, axis=1).reshape(shape), 0.0)
+            parts[2, sl] = np.einsum("bnm,bn->bm", D, a[..., 0]).reshape(shape)
+            parts[3, sl] = np.maximum(sf2[:, None] - np.sum(D * D, axis=1).reshape(shape), 0.0)
+            if progress is not None:
+                progress(min(1.0, (start + th.shape[0]) / idx.size))
+        log.warn("KOH prediction")
+        bad = ~np.all(np.isfinite(parts), axis=(0, 2, 3))
+        if np.all(bad):
+            raise ValueError("every KOH prediction failed to factorise; check log_phi.")
+        if np.any(bad):
+            warnings.warn(f"{int(bad.sum())} of {idx.size} θ samples could not be factorised "
+                          "and were left out of the prediction.", NumericalWarning, stacklevel=2)
+            parts = parts[:, ~bad]
+        # Equal weights: E = mean of the means, V = mean of the variances + variance of the means.
+        z_mean, d_mean = parts[0].mean(axis=0), parts[2].mean(axis=0)
+        z_var = parts[1].mean(axis=0) + parts[0].var(axis=0)
+        d_var = parts[3].mean(axis=0) + parts[2].var(axis=0)
+        return DiscrepancyPrediction(z_mean.T, z_var.T, d_mean.T, d_var.T)
+
+
+def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
+          phi_prior: GaussianPrior | None = None, n_iter: int = N_ITER,
+          burn_in: int = BURN_IN, n_theta_eb: int = N_THETA_EB, n_predict: int = N_PREDICT,
+          seed=None, progress: Callable[[float], None] | None = None) -> KOHModel:
+    """Kennedy–O'Hagan calibration: φ̂ by empirical Bayes, then θ by adaptive Metropolis.
+
+    Parameters
+    ----------
+    model : Emulator or callable
+        The emulator of SPEC §4 (its mean and covariance enter the likelihood), or an
+        exact ``simulate(X, theta) -> (n_theta, N, n_out)`` (no emulator variance).
+    X : ndarray of shape (N, d_x)
+        Observed inputs (repeated rows are replicates).
+    z : ndarray of shape (N, n_out) or (N,)
+        Observations.
+    theta_prior : GaussianPrior or (mean, var)
+        Gaussian prior of θ; ``var`` is a variance per parameter (beam-1d: l_cr ~ N(35, 10)
+        mm, E ~ N(70, 36) GPa). Truncated to ``bounds``.
+    bounds : ndarray of shape (p, 2)
+        Box of θ (the emulator is only trusted inside it).
+    log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
+        Fixed discrepancy hyperparameters; default: :func:`fit_phi`.
+    phi_prior : GaussianPrior of size 2 + d_x, optional
+        Hyperprior for :func:`fit_phi` (MAP); None is plain empirical Bayes.
+    n_iter, burn_in : int
+        Chain length and burn-in (the paper's 150,000 and 50,000; :data:`FAST` for the app).
+    n_theta_eb : int, default=200
+        Prior θ draws averaged over in the empirical-Bayes objective.
+    n_predict : int, default=1000
+        θ samples used by :meth:`KOHModel.predict`.
+    seed : int or Generator, optional
+    progress : callable, optional
+        Fraction done (0–1); if it raises, inference stops (use this to cancel).
+
+    Returns
+    -------
+    KOHModel
+    """
+    start = time.perf_counter()
+    bounds = check_bounds(bounds)
+    p = bounds.shape[0]
+    prior = _theta_prior(theta_prior, bounds)
+    X = as_float_array(X, "X", ndim=2)
+    z = as_float_array(z, "z")
+    z = z[:, None] if z.ndim == 1 else z
+    if z.ndim != 2 or z.shape[0] != X.shape[0]:
+        raise ValueError(f"z must have shape (N, n_out) with N = {X.shape[0]} rows like X; "
+                         f"received {z.shape}.")
+    n_out, d_x = z.shape[1], X.shape[1]
+    if isinstance(model, Emulator):
+        if model.theta_train.shape[1] != p or model.X_train.shape[1] != d_x \
+                or model.n_out != n_out:
+            raise ValueError(f"the emulator has p = {model.theta_train.shape[1]}, d_x = "
+                             f"{model.X_train.shape[1]}, n_out = {model.n_out}; the data and "
+                             f"bounds have p = {p}, d_x = {d_x}, n_out = {n_out}.")
+    elif not callable(model):
+        raise ValueError("model must be an Emulator or a callable simulate(X, theta); "
+                         f"received {type(model).__name__}.")
+    if phi_prior is not None and phi_prior.size != 2 + d_x:
+        raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
+                         f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
+    n_iter = as_int(n_iter, "n_iter", 2)
+    burn_in = as_int(burn_in, "burn_in", 0)
+    n_theta_eb = as_int(n_theta_eb, "n_theta_eb", 1)
+    n_predict = as_int(n_predict, "n_predict", 1)
+    rng = np.random.default_rng(seed)
+    at = _at(model, X, n_out)
+
+    draws = _sample_truncated(prior, bounds, n_theta_eb, rng)
+    if log_phi is None:
+        log_phi, log_evidence = fit_phi(at, X, z, draws, phi_prior=phi_prior, seed=rng)
+    else:
+        log_phi, log_evidence = _log_phi(log_phi, n_out, d_x), None
+    seconds_phi = time.perf_counter() - start
+    if progress is not None:
+        progress(0.05)
+
+    # Fixed during sampling: K_δ + σ_n² I, and z transposed to (n_out, N).
+    B = _k_delta(log_phi, X, X) + np.exp(2 * log_phi[:, -1])[:, None, None] * np.eye(X.shape[0])
+    zT = np.ascontiguousarray(z.T)
+    log = gp._JitterLog()
+    mu, sd = prior.mean, np.sqrt(prior.var)
+    lo_u, hi_u = (bounds[:, 0] - mu) / sd, (bounds[:, 1] - mu) / sd
+
+    def log_target(u):
+        """log p(z | θ, φ̂) + log p(θ) in standardised coordinates u = (θ − μ) / sd."""
+        if np.any(u < lo_u) or np.any(u > hi_u):
+            return -np.inf
+        theta = (mu + sd * u)[None]
+        mean, cov = at._moments(*at._theta_terms(theta, check=False))
+        return float(_gauss_loglik(mean, cov, B, zT, log)[0]) - 0.5 * float(u @ u)
+
+    # Start at the most probable of the prior draws (φ̂ is fixed now).
+    mean, cov = at._moments(*at._theta_terms(draws))
+    lp0 = _gauss_loglik(mean, cov, B, zT, log) + prior.logpdf(draws)
+    u0 = (draws[int(np.argmax(lp0))] - mu) / sd
+    report = None if progress is None else (lambda f: progress(0.05 + 0.95 * f))
+    chain = adaptive_metropolis(log_target, u0, n_iter=n_iter, burn_in=burn_in,
+                                seed=rng, progress=report)
+    log.warn("KOH likelihood")
+    chain = dataclasses.replace(chain, samples=mu + sd * chain.samples,
+                                proposal_cov=chain.proposal_cov * np.outer(sd, sd))
+    return KOHModel("koh", X, z, bounds, prior, log_phi, log_evidence, chain, n_predict,
+                    seconds_phi, time.perf_counter() - start, model, at)

@@ -10,7 +10,8 @@ import numpy as np
 
 from . import cases
 from .history_matching import history_match_case
-from .reproduce import reproduce
+from .koh import BURN_IN, N_ITER
+from .reproduce import METHODS, reproduce
 
 
 def _cmd_cases(args) -> int:
@@ -52,7 +53,8 @@ def _fmt(values, spec):
 
 def _cmd_reproduce(args) -> int:
     result = reproduce(args.case, scenarios=args.scenarios, n_s=args.n_s, n_phi=args.n_phi,
-                       seed=args.seed, report=lambda line: print(line, flush=True))
+                       n_iter=args.n_iter, burn_in=args.burn_in, seed=args.seed,
+                       report=lambda line: print(line, flush=True))
     case = cases.load(args.case, seed=args.seed)
     hm = result["history_matching"]
     theta = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
@@ -73,6 +75,14 @@ def _cmd_reproduce(args) -> int:
                   f"{_fmt(pick('coverage_delta_3sd'), '{:8.2f}'):>8} "
                   f"{_fmt(e['ess_per_output'][o] if s == '3' else None, '{:9.1f}'):>9} "
                   f"{e['seconds']:>8.2f}")
+    if "koh" in result["scenarios"]:
+        e = result["scenarios"]["koh"]
+        theta = ", ".join(f"{n} = {m:.4g} ± {sd:.2g} {u}" for n, m, sd, u in
+                          zip(case.theta_names, e["theta_mean"], e["theta_sd"], case.theta_units))
+        print(f"\nKOH chain: {e['n_iter']:,} iterations ({e['burn_in']:,} burn-in), acceptance "
+              f"{e['acceptance_rate']:.3f}, IAT {', '.join(f'{t:.1f}' for t in e['iat_per_parameter'])}"
+              f", ESS {', '.join(f'{t:,.0f}' for t in e['ess_per_parameter'])}\n"
+              f"KOH posterior θ: {theta}")
     if args.json:
         with open(args.json, "w", encoding="utf-8") as fh:
             json.dump(result, fh, indent=2)
@@ -95,10 +105,16 @@ def main(argv=None) -> int:
     rp = sub.add_parser("reproduce", help="history matching + discrepancy scenarios + metrics "
                         "(the paper's Tables 1–3)")
     rp.add_argument("case", choices=cases.names())
-    rp.add_argument("--scenarios", nargs="+", type=int, choices=[1, 2, 3], default=[1, 2, 3])
+    rp.add_argument("--scenarios", nargs="+", choices=list(METHODS), default=None,
+                    help="decoupled scenarios 1–3 and/or koh, the Kennedy–O'Hagan baseline "
+                    "(default: 1 2 3, plus koh for beam-1d)")
     rp.add_argument("--n-s", type=int, default=None, help="θ samples (default: paper's 1000)")
     rp.add_argument("--n-phi", type=int, default=None,
                     help="hyperparameter samples per θ (default: paper's 500; beam-2d 1000)")
+    rp.add_argument("--n-iter", type=int, default=N_ITER,
+                    help=f"KOH chain length (default: paper's {N_ITER:,})")
+    rp.add_argument("--burn-in", type=int, default=BURN_IN,
+                    help=f"KOH burn-in (default: paper's {BURN_IN:,})")
     rp.add_argument("--seed", type=int, default=0)
     rp.add_argument("--json", default=None, metavar="PATH", help="also write the numbers here")
     args = parser.parse_args(argv)

@@ -310,3 +310,27 @@ def test_predict_bad_input_and_cancel(toy):
         infer(_toy_simulate, TOY_X, TOY_G @ np.array([1.0, 0.0]), theta_prior=TOY_PRIOR,
               bounds=[[-5.0, 7.0], [-8.0, 8.0]], log_phi=TOY_PHI, n_iter=5000, burn_in=10,
               progress=cancel)
+
+
+def test_evidence_gradient_matches_finite_differences(beam):
+    import scipy.optimize
+    from mdcore import gp
+    from mdcore.koh import _EvidenceObjective
+    case, em = beam
+    X = np.column_stack([case.X_train[:, 0]])
+    draws = np.array([[30.0, 60.0], [38.0, 68.0], [45.0, 80.0]])
+    mean, cov = em.at(X).moments(draws)
+    prior = GaussianPrior([np.log(0.5), np.log(0.3), np.log(0.03)], [1.0, 1.0, 1.0])
+    for hyper in (None, prior):
+        obj = _EvidenceObjective(mean, cov, X, case.z_train.T, 1, hyper, gp._JitterLog())
+        x = np.log([0.4, 0.25, 0.05])
+        f, g = obj(x)
+        fd = scipy.optimize.approx_fprime(x, lambda v: obj(v)[0], 1e-6)
+        np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6)
+        # The value is minus the log of the prior-averaged likelihood (plus the hyperprior).
+        ref = -np.log(np.mean([np.exp(scipy.stats.multivariate_normal.logpdf(
+            case.z_train[:, 0], mean[m, 0], cov[m, 0] + 0.4**2 * _m32(X, X, np.array([0.25]))
+            + 0.05**2 * np.eye(len(X)))) for m in range(3)]))
+        if hyper is not None:
+            ref -= float(hyper.logpdf(x))
+        assert f == pytest.approx(ref, rel=1e-9)

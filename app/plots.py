@@ -11,7 +11,12 @@ import numpy as np
 #: Category10 (the wave colours repeat after ten waves).
 WAVE_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
                "#7f7f7f", "#bcbd22", "#17becf"]
-SCENARIO_COLORS = {1: "#1f77b4", 2: "#ff7f0e", 3: "#2ca02c"}
+SCENARIO_COLORS = {1: "#1f77b4", 2: "#ff7f0e", 3: "#2ca02c", "koh": "#d62728"}
+
+
+def scenario_label(s) -> str:
+    """"scenario 1" … "scenario 3", or "KOH" for the Kennedy–O'Hagan baseline."""
+    return "KOH" if s == "koh" else f"scenario {s}"
 PLOT = dict(responsive=True, height=300, tools=["hover"], show_grid=True)
 
 
@@ -189,23 +194,23 @@ def discrepancy_1d(case, results, scenarios, k, output, quantity) -> list:
         if quantity == "z":
             yname = _label(case.output_names[output], unit)
             layers = [band_1d(x, r.on_grid.z_mean[:, output], r.on_grid.z_var[:, output], k,
-                              color=SCENARIO_COLORS[s], label=f"scenario {s}", xname=xname,
+                              color=SCENARIO_COLORS[s], label=scenario_label(s), xname=xname,
                               yname=yname),
                       hv.Scatter((case.X_test[:, 0], case.z_test[:, output]), xname, yname,
                                  label="test data").opts(color="grey", size=3, alpha=0.6),
                       hv.Scatter((case.X_train[:, 0], case.z_train[:, output]), xname, yname,
                                  label="training data").opts(color="black", size=6)]
-            title = f"scenario {s}: bias-corrected {case.output_names[output]}"
+            title = f"{scenario_label(s)}: bias-corrected {case.output_names[output]}"
         else:
             yname = _label("δ " + case.output_names[output], unit)
             layers = [band_1d(x, r.on_grid.delta_mean[:, output], r.on_grid.delta_var[:, output],
-                              k, color=SCENARIO_COLORS[s], label=f"scenario {s}", xname=xname,
+                              k, color=SCENARIO_COLORS[s], label=scenario_label(s), xname=xname,
                               yname=yname)]
             truth = case.true_delta(r.grid)
             if truth is not None:
                 layers.append(hv.Curve((x, truth[:, output]), xname, yname,
                                        label="true δ").opts(color="black", line_dash="dashed"))
-            title = f"scenario {s}: discrepancy δ, {case.output_names[output]}"
+            title = f"{scenario_label(s)}: discrepancy δ, {case.output_names[output]}"
         plots.append(hv.Overlay(layers).opts(title=title, legend_position="top_right",
                                              **PLOT))
     return plots
@@ -222,21 +227,21 @@ def discrepancy_2d(case, result, k, x2_slice) -> list:
     width = (2 * k * np.sqrt(result.on_grid.delta_var[:, 0])).reshape(shape)
     s = result.scenario
     img = hv.Image((u1, u2, mean), [x1, x2], "δ mean [mm]").opts(
-        cmap="RdBu_r", colorbar=True, title=f"scenario {s}: δ mean", **PLOT)
+        cmap="RdBu_r", colorbar=True, title=f"{scenario_label(s)}: δ mean", **PLOT)
     band = hv.Image((u1, u2, width), [x1, x2], f"band width ±{k}σ [mm]").opts(
-        cmap="magma", colorbar=True, title=f"scenario {s}: band width (±{k}σ)", **PLOT)
+        cmap="magma", colorbar=True, title=f"{scenario_label(s)}: band width (±{k}σ)", **PLOT)
     row = int(np.argmin(np.abs(u2 - x2_slice)))      # nearest grid row to the slice
     xs = u1
     var = result.on_grid.delta_var[:, 0].reshape(shape)
     slice_plot = band_1d(xs, mean[row], var[row], k, color=SCENARIO_COLORS[s],
-                         label=f"scenario {s}", xname=x1, yname="δ [mm]")
+                         label=scenario_label(s), xname=x1, yname="δ [mm]")
     truth = case.true_delta(np.column_stack([xs, np.full_like(xs, u2[row])]))
     layers = [slice_plot]
     if truth is not None:
         layers.append(hv.Curve((xs, truth[:, 0]), x1, "δ [mm]", label="true δ").opts(
             color="black", line_dash="dashed"))
     return [img, band, hv.Overlay(layers).opts(
-        title=f"scenario {s}: slice at {case.x_names[1]} = {u2[row]:.4f} m",
+        title=f"{scenario_label(s)}: slice at {case.x_names[1]} = {u2[row]:.4f} m",
         legend_position="top_right", **PLOT)]
 
 
@@ -249,3 +254,32 @@ def true_delta_2d(case) -> hv.Image:
     delta = case.true_delta(np.column_stack([g1.ravel(), g2.ravel()]))
     return hv.Image((g1[0], g2[:, 0], delta[:, 0].reshape(n, n)), [x1, x2], "δ mean [mm]").opts(
         cmap="RdBu_r", colorbar=True, title="true δ", **PLOT)
+
+
+def koh_posterior(case, model) -> list:
+    """KOH: per parameter, the chain's histogram against the prior density and the truth.
+
+    A posterior that looks like the prior is the non-identifiability the paper warns of:
+    the GP discrepancy absorbs what θ should explain.
+    """
+    out = []
+    for j, (name, unit) in enumerate(zip(case.theta_names, case.theta_units)):
+        label = _label(name, unit)
+        samples = model.theta[:, j]
+        lo, hi = case.theta_bounds[j]
+        edges = np.linspace(lo, hi, 61)
+        density, _ = np.histogram(samples, bins=edges, density=True)
+        mu, var = model.theta_prior.mean[j], model.theta_prior.var[j]
+        x = np.linspace(lo, hi, 200)
+        prior = np.exp(-0.5 * (x - mu) ** 2 / var) / np.sqrt(2 * np.pi * var)
+        layers = [hv.Histogram((edges, density), kdims=[label], vdims=["density"],
+                               label="KOH posterior").opts(
+                      color=SCENARIO_COLORS["koh"], alpha=0.5, line_alpha=0),
+                  hv.Curve((x, prior), label, "density", label="prior").opts(
+                      color="black", line_dash="dotted")]
+        if case.theta_true is not None:
+            layers.append(hv.VLine(float(case.theta_true[j]), label="truth").opts(
+                color="black", line_width=2))
+        out.append(hv.Overlay(layers).opts(title=f"KOH posterior of {name}",
+                                           legend_position="top_right", **PLOT))
+    return out

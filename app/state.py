@@ -21,17 +21,27 @@ import numpy as np
 import param
 
 from mdcore import cases
+from mdcore import koh
 from mdcore.discrepancy import DiscrepancyModel, DiscrepancyPrediction, infer
 from mdcore.gp import NumericalWarning
 from mdcore.history_matching import (RULES, HistoryMatchResult, _score, case_problem,
                                      next_wave)
-from mdcore.reproduce import PAPER_SIZES, score
+from mdcore.reproduce import PAPER_SIZES, koh_phi_prior, score
 
 #: Defaults sized for a sub-second scenario 1–3 update on beam-1d (see bench/bench_app.py).
 DEFAULT_N_S, DEFAULT_N_PHI = 100, 50
 #: Resolution of the implausibility map (per axis) and of 2-D δ maps.
 MAP_RESOLUTION = 60
 GRID_2D = 30
+#: The columns of the Discrepancy tab: decoupled scenarios 1–3 and the KOH baseline.
+SCENARIOS = (1, 2, 3, "koh")
+#: KOH chain settings: the app's short chain and the paper's (SPEC §7).
+KOH_CHAINS = {"fast": koh.FAST, "paper": {"n_iter": koh.N_ITER, "burn_in": koh.BURN_IN}}
+
+
+def scenario_order(scenario) -> int:
+    """Sort key: 1, 2, 3, then "koh"."""
+    return SCENARIOS.index(scenario)
 
 
 class Superseded(Exception):
@@ -41,8 +51,8 @@ class Superseded(Exception):
 class ScenarioResult(NamedTuple):
     """One scenario's model, predictions on the plotting grid and at the test inputs."""
 
-    scenario: int
-    model: DiscrepancyModel
+    scenario: int | str            # 1, 2, 3 or "koh"
+    model: DiscrepancyModel | koh.KOHModel
     grid: np.ndarray               # (G, d_x) plotting inputs
     on_grid: DiscrepancyPrediction
     on_test: DiscrepancyPrediction
@@ -84,7 +94,12 @@ class ExplorerState(param.Parameterized):
     n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, None), label="N_s (θ samples)")
     n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, None), label="N_φ (φ per θ)")
     paper_sizes = param.Boolean(default=False, label="Paper sizes")
-    scenarios = param.ListSelector(default=[1, 2, 3], objects=[1, 2, 3], label="Scenarios")
+    scenarios = param.ListSelector(default=[1, 2, 3], objects=list(SCENARIOS), label="Scenarios",
+                                   doc="Decoupled scenarios 1–3 and the Kennedy–O'Hagan "
+                                       "baseline (koh), which calibrates θ and δ jointly.")
+    koh_chain = param.Selector(objects=list(KOH_CHAINS), default="fast", label="KOH chain",
+                               doc="fast: 20,000 iterations (5,000 burn-in); paper: 150,000 "
+                                   "(50,000 burn-in), about 25 s on beam-1d.")
     band = param.Selector(objects=[2, 3], default=3, label="Band (± k σ)")
     seed = param.Integer(default=0, bounds=(0, None), label="Seed")
     slice_x2 = param.Number(default=0.025, label="Slice at x₂",
@@ -287,7 +302,9 @@ class ExplorerState(param.Parameterized):
     # ------------------------------------------------------------------------------
     # Discrepancy
 
-    def _key(self, scenario: int) -> tuple:
+    def _key(self, scenario) -> tuple:
+        if scenario == "koh":                    # θ and φ come from KOH's own chain
+            return (self._problem_key, len(self.waves), scenario, self.koh_chain, 0, self.seed)
         return (self._problem_key, len(self.waves), scenario, self.n_s,
                 1 if scenario < 3 else self.n_phi, self.seed)
 
@@ -296,7 +313,7 @@ class ExplorerState(param.Parameterized):
         self.results = {s: self._cache[self._key(s)] for s in self.scenarios
                         if self._key(s) in self._cache}
 
-    @param.depends("n_s", "n_phi", "seed", "scenarios", watch=True)
+    @param.depends("n_s", "n_phi", "seed", "scenarios", "koh_chain", watch=True)
     def _discrepancy_settings_changed(self):
         self._refresh_results()
         if self.results.keys() != set(self.scenarios) and self.waves and self._cache:
@@ -312,13 +329,14 @@ class ExplorerState(param.Parameterized):
         if hm.status == "ruled_out":
             self._report_error(hm.message)
             return
-        todo = [s for s in sorted(self.scenarios) if self._key(s) not in self._cache]
+        todo = [s for s in sorted(self.scenarios, key=scenario_order)
+                if self._key(s) not in self._cache]
         if not todo:
             self._refresh_results()
             return
         case = self.case
         keys = {s: self._key(s) for s in todo}
-        n_s, n_phi, seed = self.n_s, self.n_phi, self.seed
+        n_s, n_phi, seed, chain = self.n_s, self.n_phi, self.seed, KOH_CHAINS[self.koh_chain]
         grid = plotting_grid(case)
         # φ̂ depends on the match and the seed, not on N_s: reuse a cached scenario-1 fit.
         same_fit = self._key(1)[:3] + self._key(1)[5:]
@@ -327,9 +345,18 @@ class ExplorerState(param.Parameterized):
 
         def compute(report):
             nonlocal hat
-            theta = hm.posterior_samples(n_s, seed=seed)
             X_all = np.vstack([grid, case.X_test])
+            G = grid.shape[0]
+            decoupled = [s for s in todo if s != "koh"]
+            theta = hm.posterior_samples(n_s, seed=seed) if decoupled else None
             done = []
+
+            def finish(s, model, pred, t0):
+                on_grid = DiscrepancyPrediction(*(a[:G] for a in pred))
+                on_test = DiscrepancyPrediction(*(a[G:] for a in pred))
+                done.append(ScenarioResult(s, model, grid, on_grid, on_test,
+                                           score(case, on_test), time.perf_counter() - t0))
+
             for i, s in enumerate(todo):
                 t0 = time.perf_counter()
 
@@ -338,10 +365,19 @@ class ExplorerState(param.Parameterized):
 
                 with warnings.catch_warnings(record=True) as caught:
                     warnings.simplefilter("always", NumericalWarning)
-                    model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=s,
-                                  theta_map=hm.theta_map, n_phi=n_phi, phi_prior=case.phi_prior,
-                                  seed=seed, log_params_hat=hat if s == 2 else None,
-                                  progress=sub)
+                    if s == "koh":
+                        if done:            # show scenarios 1–3 while the chain runs
+                            yield done
+                            done = []
+                        model = koh.infer(hm.waves[-1].emulator, case.X_train, case.z_train,
+                                          theta_prior=case.theta_prior, bounds=case.theta_bounds,
+                                          phi_prior=koh_phi_prior(case), seed=seed,
+                                          progress=sub, **chain)
+                    else:
+                        model = infer(case.simulate, theta, case.X_train, case.z_train,
+                                      scenario=s, theta_map=hm.theta_map, n_phi=n_phi,
+                                      phi_prior=case.phi_prior, seed=seed,
+                                      log_params_hat=hat if s == 2 else None, progress=sub)
                 for w in caught:
                     if issubclass(w.category, NumericalWarning):
                         self.schedule(lambda m=str(w.message): self._report_notice(m))
@@ -349,13 +385,8 @@ class ExplorerState(param.Parameterized):
                     hat = model.log_params_hat
                 pred = model.predict(X_all, progress=lambda f, i=i: report((i + 0.5 + 0.5 * f)
                                                                            / len(todo)))
-                G = grid.shape[0]
-                on_grid = DiscrepancyPrediction(*(a[:G] for a in pred))
-                on_test = DiscrepancyPrediction(*(a[G:] for a in pred))
-                seconds = time.perf_counter() - t0
-                done.append(ScenarioResult(s, model, grid, on_grid, on_test,
-                                           score(case, on_test), seconds))
-            yield done              # one update: every re-render of the plots costs ~0.3 s
+                finish(s, model, pred, t0)
+            yield done              # few updates: every re-render of the plots costs ~0.3 s
 
         def apply(done):
             for result in done:

@@ -13,26 +13,32 @@ import panel as pn
 import param
 
 from . import plots
-from .state import ExplorerState
+from .state import ExplorerState, scenario_order
 
 SIDEBAR_WIDTH = 330
 
 
 def metrics_frame(case, results: dict) -> pd.DataFrame:
-    """One row per (scenario, output): NMSE z, NMSE δ, MMD, LPL, coverage, ESS, seconds."""
+    """One row per (scenario, output): NMSE z, NMSE δ, MMD, LPL, coverage, ESS, seconds.
+
+    ESS is scenario 3's importance-sampling ESS per output, and for KOH the smallest MCMC
+    effective sample size over the parameters.
+    """
     rows = []
-    for s in sorted(results):
+    for s in sorted(results, key=scenario_order):
         r = results[s]
         m = r.metrics
         for o, name in enumerate(case.output_names):
             pick = (lambda key: np.nan if m[key] is None else m[key][o])
-            rows.append({"scenario": s, "output": name, "NMSE z [%]": pick("nmse_z"),
+            ess = float(r.model.ess[o]) if s == 3 else \
+                float(np.min(r.model.ess)) if s == "koh" else np.nan
+            rows.append({"scenario": plots.scenario_label(s), "output": name, "NMSE z [%]": pick("nmse_z"),
                          "NMSE δ [%]": pick("nmse_delta"), "MMD": pick("mmd"),
                          "LPL": pick("lpl"), "cover z ±2σ": pick("coverage_z_2sd"),
                          "cover z ±3σ": pick("coverage_z_3sd"),
                          "cover δ ±2σ": pick("coverage_delta_2sd"),
                          "cover δ ±3σ": pick("coverage_delta_3sd"),
-                         "ESS": float(r.model.ess[o]) if s == 3 else np.nan,
+                         "ESS": ess,
                          "seconds": r.seconds})
     return pd.DataFrame(rows)
 
@@ -78,9 +84,10 @@ class ExplorerView(pn.viewable.Viewer):
         conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
         next_btn.on_click(lambda _: s.next_wave())
         conv_btn.on_click(lambda _: s.run_to_convergence())
-        disc = pn.Param(s.param, parameters=["n_s", "n_phi", "paper_sizes", "scenarios", "band",
-                                             "seed"], show_name=False,
+        disc = pn.Param(s.param, parameters=["n_s", "n_phi", "paper_sizes", "scenarios",
+                                             "koh_chain", "band", "seed"], show_name=False,
                         widgets={"scenarios": pn.widgets.CheckButtonGroup,
+                                 "koh_chain": pn.widgets.RadioButtonGroup,
                                  "band": pn.widgets.RadioButtonGroup,
                                  "n_s": pn.widgets.IntInput, "n_phi": pn.widgets.IntInput,
                                  "seed": pn.widgets.IntInput})
@@ -91,7 +98,8 @@ class ExplorerView(pn.viewable.Viewer):
             b.css_classes = [label]
         return pn.Column(
             pn.pane.Markdown("### Model Discrepancy Explorer\nGardner et al., MSSP 2021: "
-                             "history matching, then GP discrepancy (scenarios 1–3)."),
+                             "history matching, then GP discrepancy (scenarios 1–3), "
+                             "against the joint Kennedy–O'Hagan baseline (koh)."),
             w, self._case_info, pn.pane.Markdown("#### History matching"), hm,
             pn.Row(next_btn, conv_btn), pn.pane.Markdown("#### Discrepancy"), disc, run_btn,
             self._progress, width=SIDEBAR_WIDTH)
@@ -163,7 +171,7 @@ class ExplorerView(pn.viewable.Viewer):
     def discrepancy_view(self):
         s = self.state
         c = s.case
-        shown = [k for k in sorted(s.scenarios) if k in s.results]
+        shown = [k for k in sorted(s.scenarios, key=scenario_order) if k in s.results]
         if not shown:
             return pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
                                     css_classes=["disc-empty"])
@@ -192,8 +200,24 @@ class ExplorerView(pn.viewable.Viewer):
         if not shown:
             return pn.pane.Markdown("No scenario has run yet.")
         df = metrics_frame(s.case, shown)
-        return pn.pane.DataFrame(df, index=False, float_format="{:.4g}".format,
-                                 sizing_mode="stretch_width", css_classes=["metrics-table"])
+        table = pn.pane.DataFrame(df, index=False, float_format="{:.4g}".format,
+                                  sizing_mode="stretch_width", css_classes=["metrics-table"])
+        if "koh" not in shown:
+            return table
+        m = shown["koh"].model
+        c = s.case
+        theta = ", ".join(f"{n} = {mu:.4g} ± {sd:.2g} {u}" for n, mu, sd, u in
+                          zip(c.theta_names, m.theta.mean(axis=0), m.theta.std(axis=0),
+                              c.theta_units))
+        summary = pn.pane.Markdown(
+            f"**KOH chain:** {m.chain.n_iter:,} iterations ({m.chain.burn_in:,} burn-in), "
+            f"acceptance {m.acceptance_rate:.2f}, integrated autocorrelation time "
+            f"{', '.join(f'{t:.1f}' for t in m.iat)}, ESS "
+            f"{', '.join(f'{e:,.0f}' for e in m.ess)}. Posterior θ: {theta}.",
+            css_classes=["koh-summary"])
+        post = pn.pane.HoloViews(hv.Layout(plots.koh_posterior(c, m)).cols(3),
+                                 sizing_mode="stretch_width", css_classes=["koh-plot"])
+        return pn.Column(table, summary, post, sizing_mode="stretch_width")
 
     def __panel__(self):
         hm_tab = pn.Column(self.status_view, self.wave_selector, self.waves_view,

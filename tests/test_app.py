@@ -219,3 +219,43 @@ def test_reused_phi_hat_follows_the_seed():
     np.testing.assert_array_equal(a.results[2].model.log_params_hat,
                                   b.results[2].model.log_params_hat)
     assert a.history_match is a.history_match                  # θ_MAP is not recomputed
+
+
+def test_koh_is_a_fourth_column(monkeypatch):
+    """KOH runs beside scenarios 1–3: its bands, its metrics row and its chain summary."""
+    from mdcore import koh
+    s = small_state()
+    v = ExplorerView(state=s)
+    s.run_to_convergence()
+    # A short chain keeps the test quick; the app's own default is koh.FAST.
+    monkeypatch.setitem(state_module.KOH_CHAINS, "fast", {"n_iter": 3000, "burn_in": 1000})
+    updates = []
+    s.param.watch(lambda e: updates.append(sorted(e.new, key=state_module.scenario_order)),
+                  "results")
+    s.scenarios = [1, "koh"]
+    s.run_discrepancy()
+    assert s.error == "" and list(s.results) == [1, "koh"]
+    assert [1] in updates                          # scenario 1 is shown before the chain ends
+    r = s.results["koh"]
+    assert isinstance(r.model, koh.KOHModel) and r.model.chain.n_iter == 3000
+    assert r.on_grid.delta_mean.shape == (r.grid.shape[0], 1)
+    assert np.all(np.isfinite(r.on_grid.z_var)) and np.all(r.on_grid.delta_var >= 0)
+    # Direct check of the plotted band against the model's own prediction.
+    ref = r.model.predict(r.grid)
+    np.testing.assert_allclose(r.on_grid.delta_mean, ref.delta_mean, atol=1e-12)
+    disc = glyph_data(render(v.discrepancy_view))
+    ys = [np.asarray(d[k]) for d in disc for k in d if k.startswith("δ tip deflection")]
+    assert any(y.shape == ref.delta_mean[:, 0].shape and np.allclose(y, ref.delta_mean[:, 0])
+               for y in ys)
+    table = metrics_frame(s.case, s.results)
+    assert list(table["scenario"]) == ["scenario 1", "KOH"]
+    assert table["ESS"].iloc[1] == pytest.approx(float(np.min(r.model.ess)))
+    metrics = v.metrics_view()
+    summary = [o for o in metrics.objects if "koh-summary" in o.css_classes][0]
+    assert "KOH chain" in summary.object and f"{r.model.acceptance_rate:.2f}" in summary.object
+    render(v.metrics_view)
+    # The chain setting is part of KOH's cache key only.
+    before = s.results[1]
+    s.scenarios = [1]
+    s.koh_chain = "paper"
+    assert s.results == {1: before} and s._key("koh") not in s._cache

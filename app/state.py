@@ -33,6 +33,8 @@ DEFAULT_N_S, DEFAULT_N_PHI = 100, 50
 #: Resolution of the implausibility map (per axis) and of 2-D δ maps.
 MAP_RESOLUTION = 60
 GRID_2D = 30
+#: Seconds between progress-bar updates sent to the browser.
+PROGRESS_INTERVAL = 0.25
 #: The columns of the Discrepancy tab: decoupled scenarios 1–3 and the KOH baseline.
 SCENARIOS = (1, 2, 3, "koh")
 #: KOH chain settings: the app's short chain and the paper's (SPEC §7).
@@ -182,9 +184,15 @@ class ExplorerState(param.Parameterized):
         def current() -> bool:
             return gen == self._generation
 
+        last = [0.0, -1.0]                               # time and fraction last shown
+
         def report(fraction: float) -> None:
             if not current():
                 raise Superseded
+            now = time.perf_counter()
+            if now - last[0] < PROGRESS_INTERVAL and fraction - last[1] < 0.1:
+                return                                   # at most ~4 updates a second
+            last[:] = now, fraction
             self.schedule(lambda: current() and self.param.update(progress=float(fraction)))
 
         def finish() -> None:

@@ -102,7 +102,7 @@ class ExplorerView(pn.viewable.Viewer):
                              "against the joint Kennedy–O'Hagan baseline (koh)."),
             w, self._case_info, pn.pane.Markdown("#### History matching"), hm,
             pn.Row(next_btn, conv_btn), pn.pane.Markdown("#### Discrepancy"), disc, run_btn,
-            self._progress, width=SIDEBAR_WIDTH)
+            self._progress_panel(), width=SIDEBAR_WIDTH)
 
     @param.depends("state.case")
     def _case_info(self):
@@ -110,14 +110,26 @@ class ExplorerView(pn.viewable.Viewer):
         tag = "**SYNTHETIC** — " if c.synthetic and c.name == "shear-5" else ""
         return pn.pane.Markdown(f"{tag}{c.description}", styles={"font-size": "0.85em"})
 
-    @param.depends("state.busy", "state.progress", "state.task")
-    def _progress(self):
-        s = self.state
-        if not s.busy:
-            return pn.pane.Markdown("Idle.", css_classes=["mdcore-idle"])
-        return pn.Column(pn.pane.Markdown(f"Running **{s.task}** …", css_classes=["mdcore-busy"]),
-                         pn.indicators.Progress(value=int(100 * s.progress), max=100,
-                                                sizing_mode="stretch_width"))
+    def _progress_panel(self):
+        """Busy line and progress bar, updated in place.
+
+        Replacing the widgets on each report made the browser re-lay-out the whole page
+        every time (seconds per report with eight plots on screen); changing two
+        properties does not.
+        """
+        text = pn.pane.Markdown("Idle.", css_classes=["mdcore-idle"])
+        bar = pn.indicators.Progress(value=0, max=100, visible=False,
+                                     sizing_mode="stretch_width")
+
+        def update(*_):
+            s = self.state
+            text.param.update(object=f"Running **{s.task}** …" if s.busy else "Idle.",
+                              css_classes=["mdcore-busy" if s.busy else "mdcore-idle"])
+            bar.param.update(visible=s.busy, value=int(100 * s.progress))
+
+        self.state.param.watch(update, ["busy", "progress", "task"])
+        update()
+        return pn.Column(text, bar, sizing_mode="stretch_width")
 
     # --- tabs --------------------------------------------------------------------------
     @param.depends("state.case", "state.v_m")

@@ -118,6 +118,15 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     assert "tip deflection" in text and text.count("tip deflection") == 3
     page.screenshot(path=str(ARTIFACTS / "04-metrics.png"))
 
+    page.get_by_role("button", name="koh", exact=True).click()     # the fourth column
+    page.wait_for_selector(".koh-summary:has-text('KOH chain')", timeout=90_000)
+    page.wait_for_selector(".koh-plot canvas", timeout=30_000)
+    assert page.locator(".metrics-table table").inner_text().count("tip deflection") == 4
+    page.screenshot(path=str(ARTIFACTS / "04b-koh-metrics.png"), full_page=True)
+    tab(page, "Discrepancy")
+    time.sleep(2.0)
+    page.screenshot(path=str(ARTIFACTS / "04c-koh-bands.png"), full_page=True)
+
     page.locator("select").first.select_option("shear-5")
     page.wait_for_selector("text=/SYNTHETIC stand-in/", timeout=30_000)   # case-sensitive
     page.wait_for_selector(".hm-status:has-text('Five-storey')", state="attached",

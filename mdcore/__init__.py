@@ -6,7 +6,8 @@ process and sampling-based approach", Mechanical Systems and Signal Processing (
 
 Modules: :mod:`mdcore.gp` (batched GP core), :mod:`mdcore.cases` (case studies),
 :mod:`mdcore.simulators`, :mod:`mdcore.emulator`, :mod:`mdcore.history_matching`,
-:mod:`mdcore.discrepancy`, :mod:`mdcore.koh`, :mod:`mdcore.metrics`.
+:mod:`mdcore.discrepancy`, :mod:`mdcore.koh` (with :mod:`mdcore.mcmc`),
+:mod:`mdcore.metrics`, :mod:`mdcore.reproduce`.
 """
 
 from .gp import NumericalWarning as NumericalWarning

@@ -16,7 +16,7 @@ import numpy as np
 
 from mdcore import cases, gp
 from mdcore.history_matching import history_match_case
-from mdcore.koh import _gauss_loglik, _k_delta, infer
+from mdcore.koh import _gauss_loglik, _noise_cov, infer
 from mdcore.reproduce import koh_phi_prior
 
 
@@ -43,7 +43,7 @@ def main():
     thetas = model.theta[rng.integers(0, model.theta.shape[0], args.ref_steps)]
     log = gp._JitterLog()
     ours, naive = np.empty(args.ref_steps), np.empty(args.ref_steps)
-    B = _k_delta(lp, X, X) + np.exp(2 * lp[:, -1])[:, None, None] * np.eye(len(X))
+    B = _noise_cov(lp, X)
     at = em.at(X)
     s = time.perf_counter()
     for i, th in enumerate(thetas):
@@ -53,7 +53,7 @@ def main():
     s = time.perf_counter()
     for i, th in enumerate(thetas):
         at_i = em.at(X)
-        B_i = _k_delta(lp, X, X) + np.exp(2 * lp[:, -1])[:, None, None] * np.eye(len(X))
+        B_i = _noise_cov(lp, X)
         mean, cov = at_i.moments(th[None])
         naive[i] = _gauss_loglik(mean, cov, B_i, zT, log)[0]
     per_naive = (time.perf_counter() - s) / args.ref_steps

@@ -58,7 +58,7 @@ from . import gp
 from ._validation import as_float_array, as_int, check_bounds
 from .discrepancy import DiscrepancyPrediction
 from .emulator import Emulator
-from .gp import GaussianPrior, NumericalWarning, matern32, scaled_sq_dist
+from .gp import GaussianPrior, NumericalWarning, matern32
 from .mcmc import Chain, adaptive_metropolis
 
 __all__ = ["KOHModel", "infer", "fit_phi", "N_ITER", "BURN_IN", "FAST"]
@@ -109,10 +109,18 @@ def _at(model, X: np.ndarray, n_out: int):
 
 
 def _k_delta(log_phi: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
-    """Discrepancy covariance ``σ_f² m32(r_x)`` per output: (n_out, Na, Nb)."""
-    ell = np.exp(log_phi[:, 1:-1])
-    return np.exp(2 * log_phi[:, 0])[:, None, None] * matern32(
-        scaled_sq_dist(Xa[None], Xb[None], ell))
+    """Discrepancy covariance ``σ_f² m32(r_x)`` per output: (n_out, Na, Nb).
+
+    The core's kernel with no ``y`` inputs (``d_y = 0`` gives exactly the KOH layout).
+    """
+    n_out = log_phi.shape[0]
+    return gp.kernel(log_phi, np.empty((n_out, Xa.shape[0], 0)), Xa,
+                     np.empty((n_out, Xb.shape[0], 0)), Xb)
+
+
+def _noise_cov(log_phi: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """``K_δ(X, X) + σ_n² I`` per output, (n_out, N, N): fixed once φ is."""
+    return _k_delta(log_phi, X, X) + np.exp(2 * log_phi[:, -1])[:, None, None] * np.eye(len(X))
 
 
 def _chol(C: np.ndarray, log: gp._JitterLog) -> np.ndarray:
@@ -407,7 +415,7 @@ class KOHModel:
         lp = self.log_phi
         N, M = self.X.shape[0], X_star.shape[0]
         sf2, sn2 = np.exp(2 * lp[:, 0]), np.exp(2 * lp[:, -1])
-        B = _k_delta(lp, self.X, self.X) + sn2[:, None, None] * np.eye(N)
+        B = _noise_cov(lp, self.X)
         Kd_s = _k_delta(lp, X_star, self.X)                              # (n_out, M, N)
         log = gp._JitterLog()
         parts = np.empty((4, idx.size, self.n_out, M))
@@ -527,7 +535,7 @@ def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
         progress(0.05)
 
     # Fixed during sampling: K_δ + σ_n² I, and z transposed to (n_out, N).
-    B = _k_delta(log_phi, X, X) + np.exp(2 * log_phi[:, -1])[:, None, None] * np.eye(X.shape[0])
+    B = _noise_cov(log_phi, X)
     zT = np.ascontiguousarray(z.T)
     log = gp._JitterLog()
     mu, sd = prior.mean, np.sqrt(prior.var)

@@ -326,7 +326,11 @@ class EmulatorAt:
         ``Σ_η(X_other, X_other; θ)``, shape (M, n_out, N_other)."""
         if other.emulator is not self.emulator:
             raise ValueError("other must come from the same emulator (Emulator.at).")
-        _, terms = self._theta_terms(theta)
+        return self._cross_cov(*self._theta_terms(theta), other)
+
+    def _cross_cov(self, Tu, terms, other: "EmulatorAt"):
+        """:meth:`cross_cov` from :meth:`_theta_terms` (no input checks). The θ-terms
+        belong to the emulator, so one evaluation serves every input set."""
         p = self.emulator.theta_train.shape[1]
         M = terms[0][0].shape[0]
         n_out, N, N_o = self._lin.shape[0], self.X.shape[0], other.X.shape[0]

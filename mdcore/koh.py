@@ -96,7 +96,7 @@ class _ExactAt:
         cov = np.zeros(mean.shape + (self.X.shape[0],)) if with_cov else None
         return mean, cov
 
-    def cross_cov(self, theta, other: "_ExactAt"):
+    def _cross_cov(self, theta, terms, other: "_ExactAt"):
         M, N_o = theta.shape[0], other.X.shape[0]
         return (np.zeros((M, self.n_out, N_o, self.X.shape[0])),
                 np.zeros((M, self.n_out, N_o)))
@@ -293,18 +293,31 @@ def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
     log_evidence : float
         ``log (1/M) Σ_m p(z | θ_m, φ̂)``.
     """
-    rng = np.random.default_rng(seed)
+    X = as_float_array(X, "X", ndim=2)
+    z = as_float_array(z, "z", ndim=2)
+    if z.shape[0] != X.shape[0] or at.X.shape != X.shape:
+        raise ValueError(f"at, X and z must describe the same N inputs: at.X {at.X.shape}, "
+                         f"X {X.shape}, z {z.shape} (z is (N, n_out)).")
+    if phi_prior is not None and phi_prior.size != 2 + X.shape[1]:
+        raise ValueError(f"phi_prior must have 2 + d_x = {2 + X.shape[1]} entries; received "
+                         f"{phi_prior.size}.")
+    mean, cov = at._moments(*at._theta_terms(theta_draws))
+    return _fit_phi(mean, cov, X, z, phi_prior, as_int(n_starts, "n_starts", 1),
+                    np.random.default_rng(seed))
+
+
+def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
+    """:func:`fit_phi` from the emulator moments at the prior draws, which stay fixed
+    during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N, N)."""
     N, d_x = X.shape
     n_out = z.shape[1]
     P = 2 + d_x
-    mean, cov = at._moments(*at._theta_terms(theta_draws))       # fixed during the search
-    zT = z.T
-    resid = zT - mean.mean(axis=0)                                 # (n_out, N)
+    resid = z.T - mean.mean(axis=0)                                # (n_out, N)
     boxes = np.stack([gp.default_bounds(np.empty((N, 0)), X, resid[o]) for o in range(n_out)])
     lo, hi = boxes[..., 0].ravel(), boxes[..., 1].ravel()
     log = gp._JitterLog()
     objective = _EvidenceObjective(mean, cov, X, z.T, n_out, phi_prior, log)
-    starts = lo + (hi - lo) * rng.uniform(size=(max(n_starts, 1), lo.size))
+    starts = lo + (hi - lo) * rng.uniform(size=(n_starts, lo.size))
     starts[0] = np.clip(np.tile(phi_prior.mean, n_out), lo, hi) if phi_prior is not None \
         else 0.5 * (lo + hi)
     best = None
@@ -422,9 +435,10 @@ class KOHModel:
         block = max(1, int(16 * 2**20 // (8 * self.n_out * (3 * M * N + N * N + 4 * M))))
         for start in range(0, idx.size, block):
             th = theta[start:start + block]
-            mean, cov = at._moments(*at._theta_terms(th, check=False))
-            mean_s, _ = at_s._moments(*at_s._theta_terms(th, check=False), with_cov=False)
-            cross, var_s = at.cross_cov(th, at_s)
+            Tu, terms = at._theta_terms(th, check=False)          # shared by X and X*
+            mean, cov = at._moments(Tu, terms)
+            mean_s, _ = at_s._moments(Tu, terms, with_cov=False)
+            cross, var_s = at._cross_cov(Tu, terms, at_s)
             L = _chol(cov + B, log)                                       # (b, n_out, N, N)
             flat = L.reshape((-1, N, N))
             a = _solve_lower(flat, (self.z.T - mean).reshape((-1, N, 1)))
@@ -526,8 +540,9 @@ def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
     at = _at(model, X, n_out)
 
     draws = _sample_truncated(prior, bounds, n_theta_eb, rng)
+    mean, cov = at._moments(*at._theta_terms(draws))     # for φ̂ and the starting point
     if log_phi is None:
-        log_phi, log_evidence = fit_phi(at, X, z, draws, phi_prior=phi_prior, seed=rng)
+        log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng)
     else:
         log_phi, log_evidence = _log_phi(log_phi, n_out, d_x), None
     seconds_phi = time.perf_counter() - start
@@ -550,7 +565,6 @@ def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
         return float(_gauss_loglik(mean, cov, B, zT, log)[0]) - 0.5 * float(u @ u)
 
     # Start at the most probable of the prior draws (φ̂ is fixed now).
-    mean, cov = at._moments(*at._theta_terms(draws))
     lp0 = _gauss_loglik(mean, cov, B, zT, log) + prior.logpdf(draws)
     u0 = (draws[int(np.argmax(lp0))] - mu) / sd
     report = None if progress is None else (lambda f: progress(0.05 + 0.95 * f))

@@ -82,3 +82,33 @@ def choose(value: str, name: str, options) -> str:
     if value not in options:
         raise ValueError(f"{value!r} is not a valid {name}. It must be one of {sorted(options)!r}.")
     return value
+
+
+def as_seed_int(seed, name: str = "seed") -> int:
+    """An integer seed from an int ≥ 0 or a ``numpy.random.Generator``.
+
+    Some functions derive independent streams from ``[seed, k]`` (a wave, a stage), which
+    needs an integer; a Generator is turned into one by drawing from it, so the result is
+    reproducible from the Generator's state.
+    """
+    if isinstance(seed, np.random.Generator):
+        return int(seed.integers(0, 2**63 - 1))
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ValueError(f"{name} must be an integer ≥ 0 or a numpy.random.Generator; "
+                         f"received {seed!r}.")
+    return int(seed)
+
+
+def as_outputs(z, n_rows: int, name: str = "z") -> np.ndarray:
+    """Observations as an (N, n_out) float array: ``(N,)`` is one output.
+
+    The one place where a vector of observations becomes a column, with the check that it
+    has one row per input.
+    """
+    arr = as_float_array(z, name, min_ndim=1)
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2 or arr.shape[0] != n_rows:
+        raise ValueError(f"{name} must have shape (N, n_out) with N = {n_rows} rows like X "
+                         f"(or (N,) for one output); received {arr.shape}.")
+    return arr

@@ -1,0 +1,213 @@
+"""Kernel maths of the discrepancy GP (SPEC §3, paper Eq. 3, corrected).
+
+The separable Matérn 3/2 kernel over simulator outputs ``y`` and inputs ``x``::
+
+    k((y, x), (y', x')) = σ_f² · m32(r_y) · m32(r_x),   m32(r) = (1 + √3 r) exp(−√3 r)
+
+The paper prints ``exp(+√3 r)``; the Matérn 3/2 kernel decays, so ``exp(−√3 r)`` is used.
+Hyperparameters travel as one log vector of length ``P = 2 + d_y + d_x`` (SPEC §2)::
+
+    [log σ_f, log ℓ_y,1 … log ℓ_y,d_y, log ℓ_x,1 … log ℓ_x,d_x, log σ_n]
+
+:func:`kernel` is the plain, broadcasting form; :func:`train_cov` and :func:`cross_cov` are
+the chunk kernels of :mod:`mdcore.gp` (flat batches, lower triangle only, reused buffers);
+:func:`matern32_and_dlog_ell` is the one place the kernel's derivative is written.
+
+Examples
+--------
+>>> import numpy as np
+>>> float(matern32(0.0)), round(float(matern32(1.0)), 6)
+(1.0, 0.483358)
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .linalg import workspace
+
+__all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "split_log_params",
+           "separable_matern", "kernel", "train_cov", "cross_cov"]
+
+SQRT3 = np.sqrt(3.0)
+
+
+def matern32(r2) -> np.ndarray:
+    """Matérn 3/2 correlation from squared scaled distance, ``(1 + √3 r) exp(−√3 r)``.
+
+    Parameters
+    ----------
+    r2 : ndarray
+        Squared scaled distances ``r²`` (any shape); tiny negative round-off is clipped.
+    """
+    r = np.sqrt(np.maximum(r2, 0.0))
+    return (1.0 + SQRT3 * r) * np.exp(-SQRT3 * r)
+
+
+def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
+    """Squared distance ``Σ_d (a_d − b_d)² / ℓ_d²`` between all rows of ``A`` and ``B``.
+
+    Shapes: ``A`` (..., Na, d), ``B`` (..., Nb, d), ``lengthscale`` (..., d) ->
+    (..., Na, Nb); leading dimensions broadcast. With ``d = 0`` the result is zeros.
+    """
+    A = np.asarray(A, dtype=np.float64)
+    B = np.asarray(B, dtype=np.float64)
+    inv = 1.0 / np.asarray(lengthscale, dtype=np.float64)
+    d = A.shape[-1]
+    shape = np.broadcast_shapes(A.shape[:-2], B.shape[:-2], inv.shape[:-1])
+    out = np.zeros(shape + (A.shape[-2], B.shape[-2]))
+    for k in range(d):  # loop over dimensions keeps memory at one (..., Na, Nb) array
+        s = inv[..., k, None]
+        diff = (A[..., :, k] * s)[..., :, None] - (B[..., :, k] * s)[..., None, :]
+        out += diff * diff
+    return out
+
+
+def matern32_and_dlog_ell(A, ell) -> tuple[np.ndarray, np.ndarray]:
+    """Matérn 3/2 correlation of the rows of ``A`` and its derivative in each ``log ℓ_d``.
+
+    ``∂m32/∂log ℓ_d = 3 exp(−√3 r) Δ_d² / ℓ_d²`` (with ``m32 = (1 + √3 r) e^{−√3 r}`` and
+    ``∂r/∂log ℓ_d = −Δ_d² / (ℓ_d² r)``). The one place this derivative is written: the
+    GP's analytic gradient (:func:`mdcore.gp.nlml_and_gradient`), the emulator's and the
+    Kennedy–O'Hagan evidence's all use it.
+
+    Parameters
+    ----------
+    A : ndarray of shape (n, d)
+    ell : ndarray of shape (d,)
+        Lengthscales (not logs).
+
+    Returns
+    -------
+    m32 : ndarray of shape (n, n)
+    dm32 : ndarray of shape (d, n, n)
+    """
+    A = np.asarray(A, dtype=np.float64)
+    ell = np.asarray(ell, dtype=np.float64)
+    r2 = scaled_sq_dist(A, A, ell)
+    e = np.exp(-SQRT3 * np.sqrt(r2))
+    D = np.stack([3.0 * e * (A[:, None, d] - A[None, :, d]) ** 2 / ell[d] ** 2
+                  for d in range(A.shape[1])]) if A.shape[1] else np.empty((0,) + r2.shape)
+    return matern32(r2), D
+
+
+def split_log_params(log_params, d_y: int, d_x: int):
+    """Split (..., P) log hyperparameters into natural-scale pieces.
+
+    Returns ``(sigma_f, ell_y, ell_x, sigma_n)`` with shapes (...), (..., d_y),
+    (..., d_x), (...).
+    """
+    lp = np.asarray(log_params, dtype=np.float64)
+    return (np.exp(lp[..., 0]), np.exp(lp[..., 1:1 + d_y]),
+            np.exp(lp[..., 1 + d_y:1 + d_y + d_x]), np.exp(lp[..., -1]))
+
+
+def separable_matern(log_sf2, ry, rx, tmp=None) -> np.ndarray:
+    """``σ_f² m32(r_y) m32(r_x)`` from distances already multiplied by √3 (Eq. 3).
+
+    ``(1 + a)(1 + b) exp(−a − b) = (1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``:
+    one exp. The result overwrites ``ry`` (which must have the full broadcast shape;
+    ``rx`` may broadcast against it); ``tmp``, a buffer like ``ry``, is optional.
+    """
+    s = np.add(ry, rx, out=tmp)
+    ry *= rx
+    ry += s
+    ry += 1.0
+    np.subtract(log_sf2, s, out=s)
+    np.exp(s, out=s)
+    ry *= s
+    return ry
+
+
+def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
+    """Cross-covariance ``σ_f² m32(r_y) m32(r_x)`` (Eq. 3), without the noise term.
+
+    Shapes: ``log_params`` (..., P); ``Ya`` (..., Na, d_y); ``Xa`` (Na, d_x);
+    ``Yb`` (..., Nb, d_y); ``Xb`` (Nb, d_x) -> (..., Na, Nb).
+    """
+    d_y, d_x = np.shape(Ya)[-1], np.shape(Xa)[-1]
+    sf, ly, lx, _ = split_log_params(log_params, d_y, d_x)
+    ry = SQRT3 * np.sqrt(scaled_sq_dist(Ya, Yb, ly))
+    rx = SQRT3 * np.sqrt(scaled_sq_dist(Xa, Xb, lx))
+    return separable_matern(2.0 * np.log(sf)[..., None, None], ry, rx)
+
+
+def _scaled_dist(D: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """``scale_b · sqrt(Σ_d D²/ℓ²)``-style distances (b, T) from differences D (b or 1, T, d)
+    and per-dimension factors ``scale`` (b, d) (``√3/ℓ`` here)."""
+    if D.shape[-1] == 1:                              # no square root needed in 1-D
+        return np.abs(D[..., 0]) * scale
+    if D.shape[-1] == 0:
+        return np.zeros((scale.shape[0], D.shape[-2]))
+    D2 = np.broadcast_to(D * D, (scale.shape[0],) + D.shape[-2:])
+    return np.sqrt(np.einsum("btd,bd->bt", D2, scale * scale))
+
+
+def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> np.ndarray:
+    """``K = K_ff + σ_n² I`` for a flat chunk: theta (b, P), Y (b, N, d_y) -> (b, N, N).
+
+    Only the lower triangle is filled (the upper one is zero): the Cholesky factorisation
+    and forward substitution read nothing else, and this halves the kernel work.
+    With ``border = z`` (N,) the result is the bordered (b, N+1, N+1) matrix
+    ``[[K, ·], [zᵀ, c]]`` with ``c = 2 zᵀz / σ_n² + 1 > zᵀ K⁻¹ z``: its Cholesky factor
+    carries ``L⁻¹ z`` in the last row, so the NLML needs no separate triangular solve.
+    """
+    b, N, d_y = Y.shape
+    n = N if border is None else N + 1
+    d_x = X.shape[1]
+    I, J = np.tril_indices(N)
+    ry = _scaled_dist(Y[:, I, :] - Y[:, J, :], SQRT3 * np.exp(-theta[:, 1:1 + d_y]))
+    rx = _scaled_dist((X[I] - X[J])[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]))
+    K = np.zeros((b, n, n))
+    K[:, I, J] = separable_matern(2.0 * theta[:, :1], ry, rx)
+    sn2 = np.exp(2.0 * theta[:, -1:])
+    K[:, np.arange(N), np.arange(N)] += sn2
+    if border is not None:
+        K[:, N, :N] = border
+        K[:, N, N] = 2.0 * (border @ border) / sn2[:, 0] + 1.0
+    return K
+
+
+def _scaled_cross_dist(A: np.ndarray, B: np.ndarray, scale: np.ndarray, out: np.ndarray,
+                       tmp: np.ndarray) -> np.ndarray:
+    """``out[b, n, m] = sqrt(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place.
+
+    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); ``out`` and ``tmp``
+    are (b, Na, Nb) work buffers. The scale is applied to the (b, N, d) inputs, not to the
+    (b, Na, Nb) differences, and writing into buffers avoids a fresh allocation per
+    element-wise step, which at these sizes costs more than the arithmetic.
+    """
+    d = A.shape[-1]
+    if d == 0:
+        out[...] = 0.0
+        return out
+    As, Bs = A * scale[:, None, :], B * scale[:, None, :]
+    if d == 1:
+        np.subtract(As[:, :, None, 0], Bs[:, None, :, 0], out=out)
+        return np.abs(out, out=out)
+    for k in range(d):
+        dst = out if k == 0 else tmp
+        np.subtract(As[:, :, None, k], Bs[:, None, :, k], out=dst)
+        dst *= dst
+        if k:
+            out += tmp
+    return np.sqrt(out, out=out)
+
+
+def cross_cov(theta: np.ndarray, Ya: np.ndarray, Xa: np.ndarray, Yb: np.ndarray,
+               Xb: np.ndarray) -> np.ndarray:
+    """Flat-chunk cross-covariance: theta (b, P), Ya (b, Na, d_y), Xa (Na, d_x),
+    Yb (b, Nb, d_y), Xb (Nb, d_x) -> (b, Na, Nb); same values as :func:`kernel`.
+
+    The result lives in this thread's workspace: use it before the next call."""
+    b, d_y, d_x = theta.shape[0], Ya.shape[-1], Xa.shape[-1]
+    shape = (b, Ya.shape[-2], Xb.shape[0])
+    ry, rx, tmp = (workspace(name, shape) for name in ("cross", "cross_x", "cross_tmp"))
+    _scaled_cross_dist(Ya, Yb, SQRT3 * np.exp(-theta[:, 1:1 + d_y]), ry, tmp)
+    if d_x == 1:                      # |Δx| is shared by the chunk: one scaling pass
+        np.multiply(np.abs(Xa[:, None, 0] - Xb[None, :, 0]),
+                    SQRT3 * np.exp(-theta[:, 1 + d_y, None, None]), out=rx)
+    else:
+        _scaled_cross_dist(Xa[None], Xb[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]),
+                           rx, tmp)
+    return separable_matern(2.0 * theta[:, :1, None], ry, rx, tmp)

@@ -2,7 +2,7 @@
 
 One emulator per output: a linear mean ``m = β₀ + βᵀ[x, θ]`` fitted by least squares,
 plus a zero-mean GP on the residuals with the core's separable Matérn 3/2 kernel
-(:func:`mdcore.gp.matern32` on each block; ARD lengthscales in θ and in x)::
+(:func:`mdcore.kernels.matern32` on each block; ARD lengthscales in θ and in x)::
 
     k((θ, x), (θ', x')) = σ_f² m32(r_θ) m32(r_x) + σ_n² δ
 
@@ -20,17 +20,37 @@ every training input costs two small matrix products.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import scipy.optimize
 
-from ._threads import single_threaded_blas
-from ._validation import as_float_array, check_bounds
-from .gp import LOG_2PI, SQRT3, matern32, scaled_sq_dist
+from .exceptions import ConvergenceWarning
+from .gp import LOG_2PI
+from .hyperfit import lbfgs_advice, lbfgs_converged
+from .kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist
+from .threads import single_threaded_blas
+from .validation import as_float_array, check_bounds
 
-__all__ = ["Emulator", "EmulatorAt", "EmulatorPrediction", "fit_emulator"]
+__all__ = ["Emulator", "EmulatorAt", "EmulatorPrediction", "KronGP", "ThetaTerms",
+           "fit_emulator"]
+
+
+class ThetaTerms(NamedTuple):
+    """The θ-dependent pieces of the emulator's posterior (:meth:`EmulatorAt.theta_terms`).
+
+    Attributes
+    ----------
+    unit : ndarray of shape (M, p)
+        θ scaled to the unit box.
+    per_output : tuple of (ndarray (M, R), ndarray (M, N_train))
+        Per output, ``k_θ = m32(θ, Θ_train)`` and ``d(θ) = (k_θ Q_θ)² W``.
+    """
+
+    unit: np.ndarray
+    per_output: tuple
 
 
 class EmulatorPrediction(NamedTuple):
@@ -46,8 +66,8 @@ class EmulatorPrediction(NamedTuple):
     var: np.ndarray
 
 
-class _KronGP(NamedTuple):
-    """One output's fitted Kronecker GP (unit-scaled inputs)."""
+class KronGP(NamedTuple):
+    """One output's fitted Kronecker GP (unit-scaled inputs; :attr:`Emulator.gps`)."""
 
     log_params: np.ndarray   # (P,) [log σ_f, log ℓ_θ (p), log ℓ_x (d_x), log σ_n]
     beta: np.ndarray         # (1 + d_x + p,) linear mean coefficients
@@ -73,18 +93,6 @@ def _design(Xu, Tu):
     return np.column_stack([np.ones(R * N), np.tile(Xu, (R, 1)), np.repeat(Tu, N, axis=0)])
 
 
-def _dm32_dlog_ell(A, ell):
-    """Matérn 3/2 factor and its derivatives w.r.t. each log ℓ_d: (n, n), (d, n, n).
-
-    ``∂m32/∂log ℓ_d = 3 exp(−√3 r) Δ_d² / ℓ_d²`` (as in :func:`mdcore.gp.nlml_and_gradient`).
-    """
-    r2 = scaled_sq_dist(A, A, ell)
-    e = np.exp(-SQRT3 * np.sqrt(r2))
-    D = np.stack([3.0 * e * (A[:, None, d] - A[None, :, d]) ** 2 / ell[d] ** 2
-                  for d in range(A.shape[1])]) if A.shape[1] else np.empty((0,) + r2.shape)
-    return matern32(r2), D
-
-
 def _kron_solve(lp, Tu, Xu, res):
     """Eigen-solve of ``K = σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N).
 
@@ -92,8 +100,8 @@ def _kron_solve(lp, Tu, Xu, res):
     and ``α`` in the eigenbasis, ``(Q_θᵀ Res Q_x) / S``; shared by the likelihood and the fit.
     """
     p = Tu.shape[1]
-    Kt, Dt = _dm32_dlog_ell(Tu, np.exp(lp[1:1 + p]))
-    Kx, Dx = _dm32_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
+    Kt, Dt = matern32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]))
+    Kx, Dx = matern32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
     lam, Qt = _eig(Kt)
     mu, Qx = _eig(Kx)
     S = np.exp(2 * lp[0]) * np.outer(lam, mu) + np.exp(2 * lp[-1])
@@ -126,7 +134,7 @@ def _kron_nlml(lp, Tu, Xu, res):
     return f, g
 
 
-def _fit_one(Tu, Xu, y, rng, n_starts):
+def _fit_one(Tu, Xu, y, rng, n_starts, output=0):
     """Fit one output: least-squares linear mean, then empirical Bayes for the GP."""
     F = _design(Xu, Tu)
     beta, *_ = np.linalg.lstsq(F, y.ravel(), rcond=None)
@@ -143,9 +151,14 @@ def _fit_one(Tu, Xu, y, rng, n_starts):
                                     method="L-BFGS-B", bounds=list(zip(lo, hi)))
         if best is None or r.fun < best.fun:
             best = r
+    if not lbfgs_converged(best, lo, hi):
+        warnings.warn(f"emulator fit, output {output}: the best of {n_starts} L-BFGS-B runs did "
+                      f"not converge ({best.message}; {lbfgs_advice(best)}); its "
+                      "predictions may be off. Add simulator runs (n_runs) or raise n_starts.",
+                      ConvergenceWarning, stacklevel=3)
     lp = best.x
     *_, Qt, _, Qx, S, Pa = _kron_solve(lp, Tu, Xu, res)
-    return _KronGP(lp, beta, Qt, Qx, np.exp(2 * lp[0]) * Qt @ Pa @ Qx.T, 1.0 / S)
+    return KronGP(lp, beta, Qt, Qx, np.exp(2 * lp[0]) * Qt @ Pa @ Qx.T, 1.0 / S)
 
 
 @dataclass(frozen=True, eq=False)
@@ -176,6 +189,15 @@ class Emulator:
     @property
     def n_out(self) -> int:
         return self.y_train.shape[2]
+
+    @property
+    def gps(self) -> tuple:
+        """The fitted Kronecker GP of each output (:class:`KronGP`, unit-scaled inputs)."""
+        return self._gps
+
+    def unit_x(self, X) -> np.ndarray:
+        """Inputs ``X`` (N, d_x) scaled as the emulator scales them (training range -> [0, 1])."""
+        return _unit(np.asarray(X, dtype=np.float64), self._x_lo, self._x_span)
 
     @property
     def log_params(self) -> np.ndarray:
@@ -218,7 +240,7 @@ class Emulator:
             var[..., o] = np.maximum(sf2 - sf2**2 * (U @ g.W @ V.T), 0.0)
         return EmulatorPrediction(mean, var)
 
-    def at(self, X) -> "EmulatorAt":
+    def at(self, X) -> EmulatorAt:
         """The emulator's joint Gaussian at fixed inputs ``X`` as a function of θ.
 
         Everything that does not depend on θ is computed here, once, so that
@@ -276,8 +298,13 @@ class EmulatorAt:
     _V: np.ndarray       # (n_out, N, N_train)
     _prior: np.ndarray   # (n_out, N, N) σ_f² m32(X, X)
 
-    def _theta_terms(self, theta, check: bool = True):
-        """Unit-scaled θ (M, p), then per output k_θ (M, R) and d(θ) (M, N_train)."""
+    def theta_terms(self, theta, *, check: bool = True) -> ThetaTerms:
+        """The θ-dependent pieces at ``theta`` (M, p), shared by every input set.
+
+        One evaluation serves :meth:`moments_at` and :meth:`cross_cov_at` of every
+        :class:`EmulatorAt` of the same emulator (an MCMC step, a prediction block).
+        ``check=False`` skips validating ``theta`` (hot loops that built it themselves).
+        """
         em = self.emulator
         p = em.theta_train.shape[1]
         if check:
@@ -290,7 +317,7 @@ class EmulatorAt:
         for g in em._gps:
             kt = matern32(scaled_sq_dist(Tu, Ttr, np.exp(g.log_params[1:1 + p])))
             terms.append((kt, (kt @ g.Q_t) ** 2 @ g.W))
-        return Tu, terms
+        return ThetaTerms(Tu, tuple(terms))
 
     def moments(self, theta):
         """Mean and covariance of the emulated simulator at ``X`` for each θ.
@@ -305,38 +332,39 @@ class EmulatorAt:
         cov : ndarray of shape (M, n_out, N, N)
             ``Σ_η(X, X; θ)`` (output units squared).
         """
-        return self._moments(*self._theta_terms(theta))
+        return self.moments_at(self.theta_terms(theta))
 
-    def _moments(self, Tu, terms, with_cov: bool = True):
-        """:meth:`moments` from unit-scaled θ and :meth:`_theta_terms` (no input checks);
-        ``cov`` is None unless ``with_cov``."""
+    def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
+        """:meth:`moments` from :meth:`theta_terms`; ``cov`` is None unless ``with_cov``."""
+        Tu, per_output = terms
         d_x = self.X.shape[1]
         M, (n_out, N) = Tu.shape[0], self._lin.shape
         mean = np.empty((M, n_out, N))
-        cov = np.empty((M, n_out, N, N)) if with_cov else None
-        for o, (g, (kt, d)) in enumerate(zip(self.emulator._gps, terms)):
+        cov = np.empty((M, n_out, N, N) if with_cov else (0,))
+        for o, (g, (kt, d)) in enumerate(zip(self.emulator._gps, per_output)):
             mean[:, o] = self._lin[o] + (Tu @ g.beta[1 + d_x:])[:, None] + kt @ self._AK[o]
             if with_cov:
                 sf4 = np.exp(4 * g.log_params[0])
                 cov[:, o] = self._prior[o] - sf4 * ((self._V[o] * d[:, None, :]) @ self._V[o].T)
-        return mean, cov
+        return mean, (cov if with_cov else None)
 
-    def cross_cov(self, theta, other: "EmulatorAt"):
+    def cross_cov(self, theta, other: EmulatorAt):
         """``Σ_η(X_other, X; θ)``, shape (M, n_out, N_other, N), and the diagonal of
         ``Σ_η(X_other, X_other; θ)``, shape (M, n_out, N_other)."""
+        return self.cross_cov_at(self.theta_terms(theta), other)
+
+    def cross_cov_at(self, terms: ThetaTerms, other: EmulatorAt):
+        """:meth:`cross_cov` from :meth:`theta_terms`. The θ-terms belong to the emulator,
+        so one evaluation serves every input set."""
         if other.emulator is not self.emulator:
             raise ValueError("other must come from the same emulator (Emulator.at).")
-        return self._cross_cov(*self._theta_terms(theta), other)
-
-    def _cross_cov(self, Tu, terms, other: "EmulatorAt"):
-        """:meth:`cross_cov` from :meth:`_theta_terms` (no input checks). The θ-terms
-        belong to the emulator, so one evaluation serves every input set."""
+        per_output = terms.per_output
         p = self.emulator.theta_train.shape[1]
-        M = terms[0][0].shape[0]
+        M = terms.unit.shape[0]
         n_out, N, N_o = self._lin.shape[0], self.X.shape[0], other.X.shape[0]
         cross = np.empty((M, n_out, N_o, N))
         diag = np.empty((M, n_out, N_o))
-        for o, (g, (_, d)) in enumerate(zip(self.emulator._gps, terms)):
+        for o, (g, (_, d)) in enumerate(zip(self.emulator._gps, per_output)):
             sf2 = np.exp(2 * g.log_params[0])
             kx = matern32(scaled_sq_dist(other._Xu, self._Xu, np.exp(g.log_params[1 + p:-1])))
             Vd = other._V[o] * d[:, None, :]                               # (M, N_o, N_tr)
@@ -373,7 +401,8 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulat
     bounds = check_bounds(bounds)
     if y.shape[:2] != (theta.shape[0], X.shape[0]):
         raise ValueError(f"y must have shape (R, N, n_out) = ({theta.shape[0]}, {X.shape[0]}, "
-                         f"n_out) to match theta {theta.shape} and X {X.shape}; received {y.shape}.")
+                         f"n_out) to match theta {theta.shape} and X {X.shape}; received "
+                         f"{y.shape}.")
     if bounds.shape != (theta.shape[1], 2):
         raise ValueError(f"bounds must have shape ({theta.shape[1]}, 2); received {bounds.shape}.")
     rng = np.random.default_rng(seed)
@@ -381,5 +410,5 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulat
     x_span = np.where(np.ptp(X, axis=0) > 0, np.ptp(X, axis=0), 1.0)
     Xu = _unit(X, x_lo, x_span)
     Tu = _unit(theta, bounds[:, 0], bounds[:, 1] - bounds[:, 0])
-    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts) for o in range(y.shape[2]))
+    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o) for o in range(y.shape[2]))
     return Emulator(X, theta, y, bounds, x_lo, x_span, gps)

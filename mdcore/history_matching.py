@@ -28,25 +28,38 @@ True
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Callable, Iterator
+from typing import NamedTuple
 
 import numpy as np
 import scipy.optimize
 import scipy.special
 import scipy.stats
 
-from ._threads import single_threaded_blas
-from ._validation import as_float_array, as_int, check_bounds, check_positive, choose
 from .emulator import Emulator, fit_emulator
+from .runs import run_simulator
+from .threads import single_threaded_blas
+from .validation import (
+    as_float_array,
+    as_int,
+    as_outputs,
+    as_seed_int,
+    check_bounds,
+    check_positive,
+    choose,
+)
 
-__all__ = ["RULES", "implausibility", "combine", "Wave", "HistoryMatchProblem",
+__all__ = ["RULES", "implausibility", "combine", "Score", "Wave", "HistoryMatchProblem",
            "HistoryMatchResult", "setup", "next_wave", "iter_waves", "history_match",
            "history_match_case", "case_problem", "replicate_summary"]
 
 #: Combiner rules: the k-th largest implausibility over all targets.
 RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
+#: Default largest share of a wave's simulator runs that may fail (and be dropped).
+MAX_FAILED_FRACTION = 0.5
 RULED_OUT_HINT = ("nothing is non-implausible: every candidate θ has I > T. Raise V_m (the "
                   "model-discrepancy variance) or the threshold T, or use the 2nd/3rd max rule.")
 
@@ -152,6 +165,14 @@ class HistoryMatchProblem:
     n_runs, n_candidates, max_waves, mcmc_steps : int
     initial_design : ndarray of shape (R0, p)
     seed : int
+    executor : concurrent.futures.Executor or None
+        Runs the simulator (see :func:`mdcore.runs.run_simulator`); None: in this process.
+    batch_size : int or None
+        θ per submitted batch of simulator runs.
+    timeout : float or None
+        Seconds after which a batch of simulator runs counts as failed.
+    max_failed_fraction : float
+        A wave whose share of failed simulator runs exceeds this is an error.
     """
 
     simulate: Callable = field(repr=False)
@@ -169,10 +190,58 @@ class HistoryMatchProblem:
     seed: int
     mcmc_steps: int = 4
     convergence_ratio: float = 1.0
+    executor: Executor | None = field(default=None, repr=False)
+    batch_size: int | None = None
+    timeout: float | None = None
+    max_failed_fraction: float = MAX_FAILED_FRACTION
 
     @property
     def p(self) -> int:
+        """Number of calibration parameters."""
         return self.bounds.shape[0]
+
+    def score(self, theta, emulator: Emulator) -> Score:
+        """Combined implausibility and emulator variance of ``theta`` under ``emulator``.
+
+        Parameters
+        ----------
+        theta : ndarray of shape (M, p)
+            Candidate parameters, in the case's units.
+        emulator : Emulator
+            A wave's emulator (:attr:`Wave.emulator`).
+
+        Returns
+        -------
+        Score
+            ``implausibility`` (M,), combined by :attr:`rule` over every observed input
+            and output (Eq. 16), and the emulator ``var`` (M, N_u, n_out).
+        """
+        theta = np.atleast_2d(as_float_array(theta, "theta"))
+        if theta.ndim != 2 or theta.shape[1] != self.p:
+            raise ValueError(f"theta must have shape (M, p) with p = {self.p}; received "
+                             f"{theta.shape}.")
+        pred = emulator.predict(self.X, theta)
+        I = implausibility(self.z, pred.mean, pred.var, V_o=self.V_o, V_m=self.V_m)
+        return Score(combine(I, self.rule), pred.var)
+
+    def implausibility(self, theta, emulator: Emulator) -> np.ndarray:
+        """Combined implausibility (Eq. 16) of ``theta`` (M, p) under ``emulator``, (M,)."""
+        return self.score(theta, emulator).implausibility
+
+
+class Score(NamedTuple):
+    """Implausibility of candidate θ under one emulator (:meth:`HistoryMatchProblem.score`).
+
+    Attributes
+    ----------
+    implausibility : ndarray of shape (M,)
+        Combined implausibility ``I(θ)`` (Eq. 16 and the problem's rule).
+    var : ndarray of shape (M, N_u, n_out)
+        Emulator variance ``V[y(θ)]`` at each observed input and output.
+    """
+
+    implausibility: np.ndarray
+    var: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -185,7 +254,7 @@ class Wave:
         1-based wave number.
     candidates : ndarray of shape (M, p)
         Scored candidates (uniform in the previous NROY set).
-    implausibility : ndarray of shape (M,)
+    candidate_implausibility : ndarray of shape (M,)
         Combined implausibility of each candidate.
     nroy : ndarray of shape (K, p)
         Candidates with ``I ≤ T`` (uniform in this wave's NROY set).
@@ -204,11 +273,16 @@ class Wave:
         ``"running"``, ``"converged"``, ``"max_waves"`` or ``"ruled_out"``.
     message : str
     seconds : float
+    problem : HistoryMatchProblem
+        The set-up the wave belongs to.
+    failures : tuple of mdcore.runs.Failure
+        Simulator runs of this wave that raised, timed out or returned NaN/inf (θ and
+        message); they were dropped, and ``runs_theta`` holds only the runs that succeeded.
     """
 
     index: int
     candidates: np.ndarray
-    implausibility: np.ndarray
+    candidate_implausibility: np.ndarray
     nroy: np.ndarray
     nroy_fraction: float
     runs_theta: np.ndarray
@@ -218,17 +292,32 @@ class Wave:
     status: str
     message: str
     seconds: float
+    problem: HistoryMatchProblem = field(repr=False)
+    failures: tuple = ()
 
     @property
     def done(self) -> bool:
         """Whether the stopping rule ended the history match at this wave."""
         return self.status != "running"
 
+    def implausibility(self, theta) -> np.ndarray:
+        """Combined implausibility (Eq. 16) of ``theta`` (M, p) under this wave's emulator.
+
+        Returns
+        -------
+        ndarray of shape (M,)
+            θ with a value ≤ the problem's threshold is non-implausible in this wave.
+        """
+        return self.problem.implausibility(theta, self.emulator)
+
 
 def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float = 3.0,
           rule: str = "max", n_runs: int | None = None, n_candidates: int | None = None,
-          max_waves: int = 5, initial_design=None, seed: int = 0,
-          mcmc_steps: int = 4, convergence_ratio: float = 1.0) -> HistoryMatchProblem:
+          max_waves: int = 5, initial_design=None, seed=0,
+          mcmc_steps: int = 4, convergence_ratio: float = 1.0,
+          executor: Executor | None = None, batch_size: int | None = None,
+          timeout: float | None = None,
+          max_failed_fraction: float = MAX_FAILED_FRACTION) -> HistoryMatchProblem:
     """Validate and assemble a history-matching problem.
 
     Parameters
@@ -256,12 +345,25 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     max_waves : int, default=5
     initial_design : ndarray of shape (R0, p), optional
         Runs of the first emulator (default: a Latin hypercube of ``max(10 p, n_runs)``).
-    seed : int, default=0
+    seed : int or numpy.random.Generator, default=0
+        Seeds every wave (wave k uses ``default_rng([seed, k])``); a Generator is turned
+        into an integer seed by one draw.
     mcmc_steps : int, default=4
         Uniform-target Metropolis steps that spread candidates through the NROY set.
     convergence_ratio : float, default=1
         Converged when the emulator variance at every retained point is below
         ``convergence_ratio × (V_o + V_m)`` (SPEC §5 uses 1); smaller values keep refining.
+    executor : concurrent.futures.Executor, optional
+        Runs the simulator runs of each wave (for example a ``ProcessPoolExecutor`` or a
+        Dask ``Client(...).get_executor()``); the results equal the serial run's.
+    batch_size : int, optional
+        θ per submitted task (default: one per task with an executor, all at once without).
+    timeout : float, optional
+        Seconds after which a batch of runs counts as failed.
+    max_failed_fraction : float, default=0.5
+        Failed runs (raised, timed out, NaN/inf) are dropped and reported on the wave; when
+        more than this share of a wave's runs fail (or all do), the wave is an error that
+        names the first failure.
     """
     if not callable(simulate):
         raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
@@ -269,12 +371,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     bounds = check_bounds(bounds)
     p = bounds.shape[0]
     X = as_float_array(X, "X", ndim=2)
-    z = as_float_array(z, "z")
-    if z.ndim == 1:
-        z = z[:, None]
-    if z.ndim != 2 or z.shape[0] != X.shape[0]:
-        raise ValueError(f"z must have shape (N, n_out) with N = {X.shape[0]} rows like X; "
-                         f"received {z.shape}.")
+    z = as_outputs(z, X.shape[0])
     threshold = float(threshold)
     if not np.isfinite(threshold) or threshold <= 0:
         raise ValueError(f"threshold T must be a positive number; received {threshold!r}. "
@@ -307,7 +404,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     n_candidates = as_int(50_000 * p if n_candidates is None else n_candidates,
                            "n_candidates", 10)
     max_waves = as_int(max_waves, "max_waves", 1)
-    seed = as_int(seed, "seed", 0)
+    seed = as_seed_int(seed)
     if initial_design is None:
         lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng([seed, 0]))
         initial_design = scipy.stats.qmc.scale(lhs.random(max(10 * p, n_runs)),
@@ -319,16 +416,22 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     convergence_ratio = float(convergence_ratio)
     if not convergence_ratio > 0:
         raise ValueError(f"convergence_ratio must be positive; received {convergence_ratio!r}.")
+    max_failed_fraction = float(max_failed_fraction)
+    if not 0.0 <= max_failed_fraction < 1.0:
+        raise ValueError(f"max_failed_fraction must be in [0, 1); received "
+                         f"{max_failed_fraction!r}.")
+    if executor is not None and not callable(getattr(executor, "submit", None)):
+        raise ValueError(f"executor must be a concurrent.futures.Executor (with submit); "
+                         f"received {type(executor).__name__}.")
+    if batch_size is not None:
+        batch_size = as_int(batch_size, "batch_size", 1)
+    if timeout is not None and not float(timeout) > 0:
+        raise ValueError(f"timeout must be a positive number of seconds; received {timeout!r}.")
     return HistoryMatchProblem(simulate, Xu, zm, V_o, V_m, bounds, threshold, rule, n_runs,
                                n_candidates, max_waves, initial_design, seed,
-                               as_int(mcmc_steps, "mcmc_steps", 0), convergence_ratio)
-
-
-def _score(problem: HistoryMatchProblem, emulator: Emulator, theta: np.ndarray):
-    """Combined implausibility (M,) and emulator variance (M, N_u, n_out) of candidates."""
-    pred = emulator.predict(problem.X, theta)
-    I = implausibility(problem.z, pred.mean, pred.var, V_o=problem.V_o, V_m=problem.V_m)
-    return combine(I, problem.rule), pred.var
+                               as_int(mcmc_steps, "mcmc_steps", 0), convergence_ratio,
+                               executor, batch_size, None if timeout is None else float(timeout),
+                               max_failed_fraction)
 
 
 def _in_nroy(problem, waves, theta) -> np.ndarray:
@@ -338,7 +441,7 @@ def _in_nroy(problem, waves, theta) -> np.ndarray:
     for w in waves:
         idx = np.nonzero(ok)[0]
         if idx.size:
-            ok[idx] = _score(problem, w.emulator, theta[idx])[0] <= problem.threshold
+            ok[idx] = problem.implausibility(theta[idx], w.emulator) <= problem.threshold
     return ok
 
 
@@ -403,10 +506,19 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
         em = last.emulator
         old_theta, old_y = em.theta_train, em.y_train
         new_runs = _maximin(last.nroy, old_theta, problem.n_runs, span, rng)
-    new_y = np.asarray(problem.simulate(problem.X, new_runs), dtype=np.float64)
-    if new_y.shape != (len(new_runs),) + problem.z.shape or not np.all(np.isfinite(new_y)):
-        raise ValueError(f"simulate returned shape {new_y.shape} (or non-finite values); "
-                         f"expected finite values of shape {(len(new_runs),) + problem.z.shape}.")
+    runs = run_simulator(problem.simulate, problem.X, new_runs, problem.z.shape[1],
+                         executor=problem.executor, batch_size=problem.batch_size,
+                         timeout=problem.timeout)
+    n_failed = len(runs.failures)
+    if n_failed and (n_failed == len(new_runs)
+                     or n_failed > problem.max_failed_fraction * len(new_runs)):
+        first = runs.failures[0]
+        raise ValueError(
+            f"wave {k}: {n_failed} of {len(new_runs)} simulator runs failed (at most "
+            f"{problem.max_failed_fraction:.0%} may); the first at θ = "
+            f"{np.array2string(first.theta, precision=4)}: {first.message}. Fix the simulator "
+            "or narrow the bounds to where it runs.")
+    new_runs, new_y = new_runs[runs.ok], runs.y
     emulator = fit_emulator(problem.X, np.vstack([old_theta, new_runs]),
                             np.concatenate([old_y, new_y]), problem.bounds, seed=rng)
     if k == 1:
@@ -417,7 +529,7 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
         candidates = _uniform_in_nroy(problem, previous, previous[-1].nroy,
                                       problem.n_candidates, rng)
         base_fraction = previous[-1].nroy_fraction
-    I, var = _score(problem, emulator, candidates)
+    I, var = problem.score(candidates, emulator)
     keep = I <= problem.threshold
     nroy = candidates[keep]
     fraction = base_fraction * float(np.mean(keep))       # chain rule, module docstring
@@ -441,8 +553,11 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
     else:
         status = "running"
         message = f"wave {k}: NROY is {100 * fraction:.3g}% of the box."
+    if n_failed:
+        message += (f" {n_failed} of {n_failed + len(new_runs)} simulator runs failed and were "
+                    f"dropped (first: {runs.failures[0].message}).")
     return Wave(k, candidates, I, nroy, fraction, new_runs, emulator, max_var, threshold_var,
-                status, message, time.perf_counter() - t0)
+                status, message, time.perf_counter() - t0, problem, runs.failures)
 
 
 def iter_waves(problem: HistoryMatchProblem) -> Iterator[Wave]:
@@ -483,8 +598,28 @@ class HistoryMatchResult:
         """NROY fraction of the original box after each wave."""
         return [w.nroy_fraction for w in self.waves]
 
-    def samples(self, n: int, seed=None) -> np.ndarray:
-        """``n`` samples of θ, uniform in the final NROY set (the approximate posterior).
+    def contains(self, theta) -> np.ndarray:
+        """Whether each θ is inside the prior box and non-implausible in every wave.
+
+        Parameters
+        ----------
+        theta : ndarray of shape (M, p) or (p,)
+
+        Returns
+        -------
+        ndarray of bool, shape (M,)
+        """
+        theta = np.atleast_2d(as_float_array(theta, "theta"))
+        if theta.ndim != 2 or theta.shape[1] != self.problem.p:
+            raise ValueError(f"theta must have shape (M, p) with p = {self.problem.p}; "
+                             f"received {theta.shape}.")
+        return _in_nroy(self.problem, self.waves, theta)
+
+    def nroy_samples(self, n: int, seed=None) -> np.ndarray:
+        """``n`` samples of θ, uniform in the final NROY set, shape (n, p).
+
+        These are not the posterior draws (see :meth:`posterior_samples`): the NROY set is
+        the support of the posterior, and these samples fill it evenly.
 
         Raises
         ------
@@ -509,7 +644,7 @@ class HistoryMatchResult:
         """
         n = as_int(n, "n", 1)
         rng = np.random.default_rng(seed)
-        pool = self.samples(max(20 * n, 20_000), seed=rng)
+        pool = self.nroy_samples(max(20 * n, 20_000), seed=rng)
         ll = self.log_likelihood(pool)
         w = np.exp(ll - scipy.special.logsumexp(ll))
         return pool[rng.choice(pool.shape[0], size=n, p=w / w.sum())]
@@ -537,7 +672,7 @@ class HistoryMatchResult:
         non-implausible. (The mode of the NROY samples' density would not do: the samples
         are uniform on NROY, so their density has no informative mode.)
         """
-        theta = self.samples(2000, seed=[self.problem.seed, 10_000])
+        theta = self.nroy_samples(2000, seed=[self.problem.seed, 10_000])
         ll = self.log_likelihood(theta)
         start = theta[int(np.argmax(ll))]
         b = self.problem.bounds
@@ -550,7 +685,7 @@ class HistoryMatchResult:
                                       bounds=[(0.0, 1.0)] * self.problem.p,
                                       options=dict(xatol=1e-6, fatol=1e-9))
         best = b[:, 0] + span * res.x
-        if -res.fun > ll.max() and _in_nroy(self.problem, self.waves, best[None])[0]:
+        if -res.fun > ll.max() and self.contains(best)[0]:
             return best
         return start
 

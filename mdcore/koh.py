@@ -31,11 +31,11 @@ Examples
 >>> import numpy as np
 >>> from mdcore import cases
 >>> from mdcore.emulator import fit_emulator
->>> from mdcore.koh import infer
+>>> from mdcore.koh import infer_koh
 >>> case = cases.load("beam-1d")
 >>> y = case.simulate(case.X_train, case.initial_design)
 >>> em = fit_emulator(case.X_train, case.initial_design, y, case.theta_bounds, seed=0)
->>> model = infer(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
+>>> model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
 ...               bounds=case.theta_bounds, n_iter=3000, burn_in=1000, seed=0)
 >>> model.predict(case.X_test).delta_mean.shape
 (200, 1)
@@ -46,22 +46,26 @@ from __future__ import annotations
 import dataclasses
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import scipy.linalg
 import scipy.optimize
 from scipy.special import logsumexp
 
-from . import gp
-from ._validation import as_float_array, as_int, check_bounds
 from .discrepancy import DiscrepancyPrediction
-from .emulator import Emulator
-from .gp import GaussianPrior, NumericalWarning, matern32
+from .emulator import Emulator, EmulatorAt, ThetaTerms
+from .exceptions import ConvergenceWarning, NumericalWarning
+from .hyperfit import default_bounds, lbfgs_advice, lbfgs_converged
+from .kernels import kernel, matern32_and_dlog_ell
+from .linalg import JitterLog, cholesky, solve_lower_inplace
 from .mcmc import Chain, adaptive_metropolis
+from .priors import GaussianPrior, ThetaPrior
+from .validation import as_float_array, as_int, as_outputs, check_bounds
 
-__all__ = ["KOHModel", "infer", "fit_phi", "N_ITER", "BURN_IN", "FAST"]
+__all__ = ["KOHModel", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
+           "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST"]
 
 #: The paper's chain: 150,000 iterations of which the first 50,000 are burn-in (SPEC §7).
 N_ITER, BURN_IN = 150_000, 50_000
@@ -77,16 +81,30 @@ LOG_2PI = float(np.log(2 * np.pi))
 # ---------------------------------------------------------------------------------------
 # The simulator side: emulator (mean + covariance) or an exact simulator (covariance 0)
 
-class _ExactAt:
-    """:class:`mdcore.emulator.EmulatorAt`'s interface for a cheap exact simulator."""
+class SimulatorAt:
+    """A cheap exact simulator at fixed inputs ``X``, with the protocol of
+    :class:`mdcore.emulator.EmulatorAt` (``theta_terms``, ``moments_at``, ``cross_cov_at``)
+    and no emulator covariance.
+
+    Parameters
+    ----------
+    simulate : callable
+        ``simulate(X, theta) -> (n_theta, N, n_out)``.
+    X : ndarray of shape (N, d_x)
+    n_out : int
+    """
 
     def __init__(self, simulate: Callable, X: np.ndarray, n_out: int):
         self.simulate, self.X, self.n_out = simulate, X, n_out
 
-    def _theta_terms(self, theta, check: bool = True):
-        return theta, None
+    def theta_terms(self, theta, *, check: bool = True) -> ThetaTerms:
+        """θ itself: an exact simulator has nothing to precompute."""
+        theta = np.atleast_2d(as_float_array(theta, "theta")) if check else theta
+        return ThetaTerms(theta, ())
 
-    def _moments(self, theta, terms, with_cov: bool = True):
+    def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
+        """``simulate`` at ``X`` for each θ, (M, n_out, N), and a zero covariance."""
+        theta = terms.unit
         y = np.asarray(self.simulate(self.X, theta), dtype=np.float64)
         want = (theta.shape[0], self.X.shape[0], self.n_out)
         if y.shape != want:
@@ -96,8 +114,9 @@ class _ExactAt:
         cov = np.zeros(mean.shape + (self.X.shape[0],)) if with_cov else None
         return mean, cov
 
-    def _cross_cov(self, theta, terms, other: "_ExactAt"):
-        M, N_o = theta.shape[0], other.X.shape[0]
+    def cross_cov_at(self, terms: ThetaTerms, other: SimulatorAt):
+        """Zero cross-covariance (M, n_out, N_other, N) and variance (M, n_out, N_other)."""
+        M, N_o = terms.unit.shape[0], other.X.shape[0]
         return (np.zeros((M, self.n_out, N_o, self.X.shape[0])),
                 np.zeros((M, self.n_out, N_o)))
 
@@ -105,7 +124,7 @@ class _ExactAt:
 def _at(model, X: np.ndarray, n_out: int):
     if isinstance(model, Emulator):
         return model.at(X)
-    return _ExactAt(model, X, n_out)
+    return SimulatorAt(model, X, n_out)
 
 
 def _k_delta(log_phi: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
@@ -114,19 +133,19 @@ def _k_delta(log_phi: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
     The core's kernel with no ``y`` inputs (``d_y = 0`` gives exactly the KOH layout).
     """
     n_out = log_phi.shape[0]
-    return gp.kernel(log_phi, np.empty((n_out, Xa.shape[0], 0)), Xa,
+    return kernel(log_phi, np.empty((n_out, Xa.shape[0], 0)), Xa,
                      np.empty((n_out, Xb.shape[0], 0)), Xb)
 
 
-def _noise_cov(log_phi: np.ndarray, X: np.ndarray) -> np.ndarray:
+def noise_cov(log_phi: np.ndarray, X: np.ndarray) -> np.ndarray:
     """``K_δ(X, X) + σ_n² I`` per output, (n_out, N, N): fixed once φ is."""
     return _k_delta(log_phi, X, X) + np.exp(2 * log_phi[:, -1])[:, None, None] * np.eye(len(X))
 
 
-def _chol(C: np.ndarray, log: gp._JitterLog) -> np.ndarray:
+def _chol(C: np.ndarray, log: JitterLog) -> np.ndarray:
     """Batched lower Cholesky with the core's jitter ladder (NaN rows where it fails)."""
     shape = C.shape
-    L, _ = gp._cholesky(C.reshape((-1,) + shape[-2:]), log)
+    L, _ = cholesky(C.reshape((-1,) + shape[-2:]), log)
     return L.reshape(shape)
 
 
@@ -137,13 +156,13 @@ def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
     is vectorised over the batch.
     """
     if L.shape[0] > 8:
-        return gp._solve_lower_inplace(L, B)
+        return solve_lower_inplace(L, B)
     for i in range(L.shape[0]):
         B[i] = scipy.linalg.solve_triangular(L[i], B[i], lower=True, check_finite=False)
     return B
 
 
-def _gauss_loglik(mean, cov, B, zT, log) -> np.ndarray:
+def gaussian_log_likelihood(mean, cov, B, zT, log) -> np.ndarray:
     """``Σ_o log N(z_o | mean_o, cov_o + B_o)`` for a batch: (M, n_out, N) … -> (M,)."""
     L = _chol(cov + B, log)                                    # (M, n_out, N, N)
     r = (zT - mean)[..., None]
@@ -157,51 +176,29 @@ def _gauss_loglik(mean, cov, B, zT, log) -> np.ndarray:
 # ---------------------------------------------------------------------------------------
 # Inputs
 
-def _theta_prior(theta_prior, bounds: np.ndarray) -> GaussianPrior:
-    if isinstance(theta_prior, GaussianPrior):
-        mean, var = theta_prior.mean, theta_prior.var
-    else:
+def _theta_prior(theta_prior, bounds: np.ndarray) -> ThetaPrior:
+    """The θ prior as a :class:`~mdcore.priors.ThetaPrior` of size p (from a pair too)."""
+    if not isinstance(theta_prior, ThetaPrior):
         try:
             mean, var = theta_prior
         except (TypeError, ValueError):
-            raise ValueError("theta_prior must be a GaussianPrior or a (mean, var) pair of "
+            raise ValueError("theta_prior must be a ThetaPrior or a (mean, var) pair of "
                              f"length-p arrays; received {theta_prior!r}.") from None
-    mean = as_float_array(mean, "theta_prior mean", ndim=1)
-    var = as_float_array(var, "theta_prior var", ndim=1)
+        theta_prior = ThetaPrior(mean, var)
     p = bounds.shape[0]
-    if mean.shape != (p,) or var.shape != (p,):
+    if theta_prior.size != p:
         raise ValueError(f"theta_prior mean and var must each have p = {p} entries, one per "
-                         f"row of bounds; received {mean.shape} and {var.shape}.")
-    if np.any(var <= 0):
-        raise ValueError(f"theta_prior var must be positive (a variance per parameter, in "
-                         f"parameter units squared); received {var.tolist()}.")
-    return GaussianPrior(mean, var)
-
-
-def _sample_truncated(prior: GaussianPrior, bounds: np.ndarray, n: int, rng) -> np.ndarray:
-    """``n`` draws of the Gaussian prior restricted to the box, by rejection."""
-    out, tries = [], 0
-    while sum(len(o) for o in out) < n:
-        draw = prior.sample(max(4 * n, 1000), seed=rng)
-        inside = np.all((draw >= bounds[:, 0]) & (draw <= bounds[:, 1]), axis=1)
-        out.append(draw[inside])
-        tries += 1
-        if tries == 20 and not any(len(o) for o in out):
-            raise ValueError(f"the θ prior (mean {prior.mean.tolist()}, var "
-                             f"{prior.var.tolist()}) has almost no mass inside bounds "
-                             f"{bounds.tolist()}; centre the prior inside the box.")
-    return np.concatenate(out)[:n]
+                         f"row of bounds; received {theta_prior.size}.")
+    return theta_prior
 
 
 def _log_phi(log_phi, n_out: int, d_x: int) -> np.ndarray:
     lp = as_float_array(log_phi, "log_phi")
-    lp = np.broadcast_to(lp, (n_out, 2 + d_x)) if lp.shape in {(2 + d_x,), (n_out, 2 + d_x)} \
-        else None
-    if lp is None:
+    if lp.shape not in {(2 + d_x,), (n_out, 2 + d_x)}:
         raise ValueError(f"log_phi must have shape (2 + d_x,) = ({2 + d_x},) or (n_out, 2 + d_x) "
                          f"= ({n_out}, {2 + d_x}) ([log σ_f, log ℓ_x…, log σ_n]); received "
                          f"{np.shape(log_phi)}.")
-    return np.array(lp)
+    return np.array(np.broadcast_to(lp, (n_out, 2 + d_x)))
 
 
 # ---------------------------------------------------------------------------------------
@@ -220,15 +217,14 @@ class _EvidenceObjective:
     def __init__(self, mean, cov, X, zT, n_out, phi_prior, log):
         self.cov, self.r = cov, zT - mean                          # (M, n_out, N[, N])
         self.X, self.n_out, self.prior, self.log = X, n_out, phi_prior, log
-        self.D2 = (X[:, None, :] - X[None, :, :]) ** 2              # (N, N, d_x)
 
     def _terms(self, flat):
         lp = flat.reshape(self.n_out, -1)
         N = self.X.shape[0]
         ell = np.exp(lp[:, 1:-1])
-        r2 = np.sum(self.D2[None] / ell[:, None, None, :] ** 2, axis=-1)   # (n_out, N, N)
+        m32, dm32 = zip(*(matern32_and_dlog_ell(self.X, e) for e in ell))
         sf2, sn2 = np.exp(2 * lp[:, 0]), np.exp(2 * lp[:, -1])
-        Kd = sf2[:, None, None] * matern32(r2)
+        Kd = sf2[:, None, None] * np.stack(m32)                          # (n_out, N, N)
         L = _chol(self.cov + Kd + sn2[:, None, None] * np.eye(N), self.log)
         M = L.shape[0]
         flatL = L.reshape((-1, N, N))
@@ -236,14 +232,15 @@ class _EvidenceObjective:
         ll = (-0.5 * np.sum(a[..., 0] ** 2, axis=-1).reshape(M, self.n_out)
               - np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)), axis=-1)
               - 0.5 * N * LOG_2PI).sum(axis=1)
-        return lp, ell, r2, sf2, sn2, Kd, flatL, a, np.where(np.isfinite(ll), ll, -np.inf)
+        return (lp, ell, np.stack(dm32), sf2, sn2, Kd, flatL, a,
+                np.where(np.isfinite(ll), ll, -np.inf))
 
     def log_evidence(self, flat) -> float:
         ll = self._terms(flat)[-1]
         return float(logsumexp(ll) - np.log(ll.size))
 
     def __call__(self, flat):
-        lp, ell, r2, sf2, sn2, Kd, flatL, a, ll = self._terms(flat)
+        lp, ell, dm32, sf2, sn2, Kd, flatL, a, ll = self._terms(flat)
         f = -(logsumexp(ll) - np.log(ll.size))
         if not np.isfinite(f):
             return 1e300, np.zeros_like(flat)
@@ -254,13 +251,11 @@ class _EvidenceObjective:
         alpha = np.swapaxes(Linv, -1, -2) @ a                           # C⁻¹ r
         Wm = (alpha @ np.swapaxes(alpha, -1, -2) - Cinv).reshape(M, self.n_out, N, N)
         Wbar = np.einsum("m,moij->oij", w, Wm)                          # weighted α αᵀ − C⁻¹
-        e = np.exp(-np.sqrt(3.0 * r2))
         g = np.empty_like(lp)
         g[:, 0] = np.einsum("oij,oij->o", Wbar, 2 * Kd)
         g[:, -1] = 2 * sn2 * np.einsum("oii->o", Wbar)
-        for d in range(ell.shape[1]):
-            dK = sf2[:, None, None] * 3 * e * self.D2[None, :, :, d] / ell[:, d, None, None] ** 2
-            g[:, 1 + d] = np.einsum("oij,oij->o", Wbar, dK)
+        for d in range(ell.shape[1]):                     # ∂K_δ/∂log ℓ_d = σ_f² ∂m32/∂log ℓ_d
+            g[:, 1 + d] = np.einsum("oij,oij->o", Wbar, sf2[:, None, None] * dm32[:, d])
         grad = -0.5 * g
         if self.prior is not None:
             f -= float(np.sum(self.prior.logpdf(lp)))
@@ -301,7 +296,7 @@ def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
     if phi_prior is not None and phi_prior.size != 2 + X.shape[1]:
         raise ValueError(f"phi_prior must have 2 + d_x = {2 + X.shape[1]} entries; received "
                          f"{phi_prior.size}.")
-    mean, cov = at._moments(*at._theta_terms(theta_draws))
+    mean, cov = at.moments_at(at.theta_terms(theta_draws))
     return _fit_phi(mean, cov, X, z, phi_prior, as_int(n_starts, "n_starts", 1),
                     np.random.default_rng(seed))
 
@@ -313,9 +308,9 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
     n_out = z.shape[1]
     P = 2 + d_x
     resid = z.T - mean.mean(axis=0)                                # (n_out, N)
-    boxes = np.stack([gp.default_bounds(np.empty((N, 0)), X, resid[o]) for o in range(n_out)])
+    boxes = np.stack([default_bounds(np.empty((N, 0)), X, resid[o]) for o in range(n_out)])
     lo, hi = boxes[..., 0].ravel(), boxes[..., 1].ravel()
-    log = gp._JitterLog()
+    log = JitterLog()
     objective = _EvidenceObjective(mean, cov, X, z.T, n_out, phi_prior, log)
     starts = lo + (hi - lo) * rng.uniform(size=(n_starts, lo.size))
     starts[0] = np.clip(np.tile(phi_prior.mean, n_out), lo, hi) if phi_prior is not None \
@@ -327,6 +322,10 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
         if best is None or res.fun < best.fun:
             best = res
     log.warn("KOH empirical Bayes")
+    if not lbfgs_converged(best, lo, hi):
+        warnings.warn(f"KOH empirical Bayes: the best of {n_starts} L-BFGS-B runs for φ̂ did "
+                      f"not converge ({best.message}; {lbfgs_advice(best)}); give "
+                      "phi_prior, or log_phi directly.", ConvergenceWarning, stacklevel=3)
     return best.x.reshape(n_out, P), objective.log_evidence(best.x)
 
 
@@ -345,7 +344,7 @@ class KOHModel:
     z : ndarray of shape (N, n_out)
     bounds : ndarray of shape (p, 2)
         Box the θ prior is truncated to.
-    theta_prior : GaussianPrior
+    theta_prior : ThetaPrior
         Gaussian prior of θ (mean and variance in parameter units).
     log_phi : ndarray of shape (n_out, 2 + d_x)
         Discrepancy hyperparameters ``[log σ_f, log ℓ_x…, log σ_n]`` per output.
@@ -365,15 +364,15 @@ class KOHModel:
     X: np.ndarray
     z: np.ndarray
     bounds: np.ndarray
-    theta_prior: GaussianPrior
+    theta_prior: ThetaPrior
     log_phi: np.ndarray
     log_evidence: float | None
     chain: Chain
     n_predict: int
     seconds_phi: float
     seconds: float
-    _model: object = dataclasses.field(repr=False)
-    _at: object = dataclasses.field(repr=False)
+    _model: Emulator | Callable = dataclasses.field(repr=False)
+    _at: EmulatorAt | SimulatorAt = dataclasses.field(repr=False)
 
     @property
     def n_out(self) -> int:
@@ -428,17 +427,17 @@ class KOHModel:
         lp = self.log_phi
         N, M = self.X.shape[0], X_star.shape[0]
         sf2, sn2 = np.exp(2 * lp[:, 0]), np.exp(2 * lp[:, -1])
-        B = _noise_cov(lp, self.X)
+        B = noise_cov(lp, self.X)
         Kd_s = _k_delta(lp, X_star, self.X)                              # (n_out, M, N)
-        log = gp._JitterLog()
+        log = JitterLog()
         parts = np.empty((4, idx.size, self.n_out, M))
         block = max(1, int(16 * 2**20 // (8 * self.n_out * (3 * M * N + N * N + 4 * M))))
         for start in range(0, idx.size, block):
             th = theta[start:start + block]
-            Tu, terms = at._theta_terms(th, check=False)          # shared by X and X*
-            mean, cov = at._moments(Tu, terms)
-            mean_s, _ = at_s._moments(Tu, terms, with_cov=False)
-            cross, var_s = at._cross_cov(Tu, terms, at_s)
+            terms = at.theta_terms(th, check=False)               # shared by X and X*
+            mean, cov = at.moments_at(terms)
+            mean_s, _ = at_s.moments_at(terms, with_cov=False)
+            cross, var_s = at.cross_cov_at(terms, at_s)
             L = _chol(cov + B, log)                                       # (b, n_out, N, N)
             flat = L.reshape((-1, N, N))
             a = _solve_lower(flat, (self.z.T - mean).reshape((-1, N, 1)))
@@ -471,7 +470,7 @@ class KOHModel:
         return DiscrepancyPrediction(z_mean.T, z_var.T, d_mean.T, d_var.T)
 
 
-def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
+def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
           phi_prior: GaussianPrior | None = None, n_iter: int = N_ITER,
           burn_in: int = BURN_IN, n_theta_eb: int = N_THETA_EB, n_predict: int = N_PREDICT,
           seed=None, progress: Callable[[float], None] | None = None) -> KOHModel:
@@ -486,7 +485,7 @@ def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
         Observed inputs (repeated rows are replicates).
     z : ndarray of shape (N, n_out) or (N,)
         Observations.
-    theta_prior : GaussianPrior or (mean, var)
+    theta_prior : ThetaPrior or (mean, var)
         Gaussian prior of θ; ``var`` is a variance per parameter (beam-1d: l_cr ~ N(35, 10)
         mm, E ~ N(70, 36) GPa). Truncated to ``bounds``.
     bounds : ndarray of shape (p, 2)
@@ -514,11 +513,7 @@ def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
     p = bounds.shape[0]
     prior = _theta_prior(theta_prior, bounds)
     X = as_float_array(X, "X", ndim=2)
-    z = as_float_array(z, "z")
-    z = z[:, None] if z.ndim == 1 else z
-    if z.ndim != 2 or z.shape[0] != X.shape[0]:
-        raise ValueError(f"z must have shape (N, n_out) with N = {X.shape[0]} rows like X; "
-                         f"received {z.shape}.")
+    z = as_outputs(z, X.shape[0])
     n_out, d_x = z.shape[1], X.shape[1]
     if isinstance(model, Emulator):
         if model.theta_train.shape[1] != p or model.X_train.shape[1] != d_x \
@@ -539,8 +534,8 @@ def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
     rng = np.random.default_rng(seed)
     at = _at(model, X, n_out)
 
-    draws = _sample_truncated(prior, bounds, n_theta_eb, rng)
-    mean, cov = at._moments(*at._theta_terms(draws))     # for φ̂ and the starting point
+    draws = prior.sample_in(bounds, n_theta_eb, seed=rng)
+    mean, cov = at.moments_at(at.theta_terms(draws))     # for φ̂ and the starting point
     if log_phi is None:
         log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng)
     else:
@@ -550,9 +545,9 @@ def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
         progress(0.05)
 
     # Fixed during sampling: K_δ + σ_n² I, and z transposed to (n_out, N).
-    B = _noise_cov(log_phi, X)
+    B = noise_cov(log_phi, X)
     zT = np.ascontiguousarray(z.T)
-    log = gp._JitterLog()
+    log = JitterLog()
     mu, sd = prior.mean, np.sqrt(prior.var)
     lo_u, hi_u = (bounds[:, 0] - mu) / sd, (bounds[:, 1] - mu) / sd
 
@@ -561,11 +556,11 @@ def infer(model, X, z, *, theta_prior, bounds, log_phi=None,
         if np.any(u < lo_u) or np.any(u > hi_u):
             return -np.inf
         theta = (mu + sd * u)[None]
-        mean, cov = at._moments(*at._theta_terms(theta, check=False))
-        return float(_gauss_loglik(mean, cov, B, zT, log)[0]) - 0.5 * float(u @ u)
+        mean, cov = at.moments_at(at.theta_terms(theta, check=False))
+        return float(gaussian_log_likelihood(mean, cov, B, zT, log)[0]) - 0.5 * float(u @ u)
 
     # Start at the most probable of the prior draws (φ̂ is fixed now).
-    lp0 = _gauss_loglik(mean, cov, B, zT, log) + prior.logpdf(draws)
+    lp0 = gaussian_log_likelihood(mean, cov, B, zT, log) + prior.logpdf(draws)
     u0 = (draws[int(np.argmax(lp0))] - mu) / sd
     report = None if progress is None else (lambda f: progress(0.05 + 0.95 * f))
     chain = adaptive_metropolis(log_target, u0, n_iter=n_iter, burn_in=burn_in,

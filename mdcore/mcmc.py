@@ -21,14 +21,20 @@ Examples
 from __future__ import annotations
 
 import time
+import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
-from ._validation import as_float_array, as_int
+from .exceptions import ConvergenceWarning
+from .validation import as_float_array, as_int
 
-__all__ = ["Chain", "adaptive_metropolis", "integrated_autocorr_time"]
+__all__ = ["Chain", "RELIABLE_TAUS", "adaptive_metropolis", "integrated_autocorr_time"]
+
+#: A chain is long enough to trust its IAT when it spans this many autocorrelation times
+#: (Foreman-Mackey et al., emcee: "more than 50 τ").
+RELIABLE_TAUS = 50
 
 
 @dataclass(frozen=True, eq=False)
@@ -63,6 +69,12 @@ class Chain:
     burn_in: int
     adapt_start: int
     seconds: float
+
+    @property
+    def reliable(self) -> bool:
+        """Whether the kept chain is longer than 50 autocorrelation times in every
+        coordinate (emcee's check): otherwise the IAT, and the ESS, are themselves unsure."""
+        return bool(np.all(self.samples.shape[0] > RELIABLE_TAUS * self.iat))
 
     @property
     def ess(self) -> np.ndarray:
@@ -203,7 +215,15 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
                 pass                                     # keep the previous proposal
         if progress is not None and t % every == 0:
             progress(t / n_iter)
-    return Chain(samples, log_p, float(accepted[1] / kept),
-                 float(accepted[0] / burn_in) if burn_in else float("nan"), L @ L.T,
-                 integrated_autocorr_time(samples), n_iter, burn_in, t0,
-                 time.perf_counter() - start)
+    chain = Chain(samples, log_p, float(accepted[1] / kept),
+                  float(accepted[0] / burn_in) if burn_in else float("nan"), L @ L.T,
+                  integrated_autocorr_time(samples), n_iter, burn_in, t0,
+                  time.perf_counter() - start)
+    if not chain.reliable:
+        tau = float(np.max(chain.iat))
+        warnings.warn(f"adaptive Metropolis: the {kept:,} kept steps are fewer than 50 "
+                      f"autocorrelation times (τ up to {tau:.1f}), so the IAT and ESS are "
+                      f"unreliable; raise n_iter to at least "
+                      f"{int(np.ceil(RELIABLE_TAUS * tau)) + burn_in:,}.",
+                      ConvergenceWarning, stacklevel=2)
+    return chain

@@ -3,11 +3,18 @@
 import numpy as np
 import pytest
 
-from mdcore import cases, gp
-from mdcore.emulator import fit_emulator
-from mdcore.history_matching import (_in_nroy, combine, history_match, history_match_case,
-                                     implausibility, iter_waves, next_wave, replicate_summary,
-                                     setup)
+from mdcore import cases
+from mdcore.history_matching import (
+    HistoryMatchResult,
+    combine,
+    history_match,
+    history_match_case,
+    implausibility,
+    iter_waves,
+    next_wave,
+    replicate_summary,
+    setup,
+)
 
 
 def test_implausibility_by_hand():
@@ -42,25 +49,6 @@ def test_implausibility_bad_input():
         implausibility(1.0, 0.0, 0.1, V_o=0.1, V_m=[])
     with pytest.raises(ValueError, match="must be positive for every target"):
         implausibility(1.0, 0.0, 0.0, V_o=0.0, V_m=0.0)
-
-
-def test_emulator_bad_input():
-    X = np.linspace(0, 1, 4)[:, None]
-    T = np.array([[0.2, 0.1], [0.8, -0.4], [1.5, 0.6]])
-    y = toy_simulator(X, T)
-    with pytest.raises(ValueError, match=r"y must have shape \(R, N, n_out\) = \(3, 4"):
-        fit_emulator(X, T, y[:2], TOY_BOUNDS)
-    with pytest.raises(ValueError, match=r"lower < upper in every row"):
-        fit_emulator(X, T, y, [[0, 2], [1, 1]])
-    with pytest.raises(ValueError, match="y contains 1 NaN"):
-        fit_emulator(X, T, np.where(np.arange(y.size).reshape(y.shape) == 0, np.nan, y),
-                     TOY_BOUNDS)
-    em = fit_emulator(X, T, y, TOY_BOUNDS, seed=0)
-    with pytest.raises(ValueError, match=r"theta \(n_theta, 2\)"):
-        em.predict(X, np.zeros((5, 3)))
-    with pytest.raises(ValueError, match="theta contains 1 NaN"):
-        em.predict(X, [[np.nan, 0.0]])
-    assert em.predict(X, np.empty((0, 2))).mean.shape == (0, 4, 1)
 
 
 def test_replicates_use_mean_and_sample_variance():
@@ -99,7 +87,7 @@ def test_toy_history_match_recovers_exact_nroy_region():
     fractions = result.nroy_fraction
     assert all(b <= a + 1e-12 for a, b in zip(fractions, fractions[1:]))
     for k in range(1, len(result.waves) + 1):     # the truth is NROY after every wave
-        assert _in_nroy(result.problem, result.waves[:k], TOY_TRUTH[None])[0]
+        assert HistoryMatchResult(result.problem, result.waves[:k]).contains(TOY_TRUTH)[0]
     # Exact NROY region on a dense grid with the exact simulator (emulator variance 0).
     g1, g2 = np.meshgrid(np.linspace(0, 2, 301), np.linspace(-1, 1, 301), indexing="ij")
     grid = np.column_stack([g1.ravel(), g2.ravel()])
@@ -107,7 +95,7 @@ def test_toy_history_match_recovers_exact_nroy_region():
     exact = I <= 3.0
     assert fractions[-1] == pytest.approx(exact.mean(), rel=0.10)
     # Classification agrees on ≥ 97 % of the grid (disagreement only at the boundary).
-    final = _in_nroy(result.problem, result.waves, grid)
+    final = result.contains(grid)
     assert np.mean(final == exact) >= 0.97
 
 
@@ -120,7 +108,7 @@ def test_stepping_matches_full_run_and_seed_is_reproducible():
     w1 = next_wave(prob)
     w2 = next_wave(prob, (w1,))
     np.testing.assert_array_equal(w2.nroy, full.waves[1].nroy)
-    np.testing.assert_array_equal(full.samples(50, seed=3), full.samples(50, seed=3))
+    np.testing.assert_array_equal(full.nroy_samples(50, seed=3), full.nroy_samples(50, seed=3))
     assert [w.index for w in iter_waves(prob)] == [1, 2]
     with pytest.raises(ValueError, match="already stopped"):
         next_wave(prob, full.waves)
@@ -134,7 +122,7 @@ def test_everything_ruled_out_is_a_status_not_a_crash():
     assert result.status == "ruled_out"
     assert "Raise V_m" in result.message and result.waves[-1].nroy.shape == (0, 2)
     with pytest.raises(ValueError, match="no θ samples.*Raise V_m"):
-        result.samples(10)
+        result.nroy_samples(10)
 
 
 def test_samples_needs_a_positive_count():
@@ -142,7 +130,7 @@ def test_samples_needs_a_positive_count():
     result = history_match(toy_simulator, X, z, TOY_BOUNDS, V_o=0.0025, V_m=0.01,
                            n_candidates=2000, max_waves=1, seed=0)
     with pytest.raises(ValueError, match="n must be an integer ≥ 1"):
-        result.samples(0)
+        result.nroy_samples(0)
     with pytest.raises(ValueError, match="n must be an integer ≥ 1"):
         result.posterior_samples(0)
     with pytest.raises(ValueError, match="theta contains 1 NaN"):
@@ -181,29 +169,6 @@ def test_bad_data():
         setup(toy_simulator, X, z, TOY_BOUNDS, V_m=0.1)
 
 
-def test_emulator_matches_dense_gp_and_interpolates_runs():
-    c = cases.load("beam-1d")
-    T, X = c.initial_design, c.X_train
-    y = c.simulate(X, T)
-    em = fit_emulator(X, T, y, c.theta_bounds, seed=0)
-    pred = em.predict(X, T)
-    np.testing.assert_allclose(pred.mean, y, atol=1e-3)          # nugget is tiny
-    # Dense reference: the same GP written as one (R·N)-point regression with the core.
-    g = em._gps[0]
-    Tu = (T - c.theta_bounds[:, 0]) / np.ptp(c.theta_bounds, axis=1)
-    Xu = (X - X.min()) / np.ptp(X)
-    F = np.column_stack([np.ones(325), np.tile(Xu, (25, 1)), np.repeat(Tu, 13, axis=0)])
-    res = y[..., 0].ravel() - F @ g.beta
-    th = np.array([[12.0, 55.0], [38.0, 68.0], [49.0, 88.0]])
-    Ts = (th - c.theta_bounds[:, 0]) / np.ptp(c.theta_bounds, axis=1)
-    dense = gp.predict(g.log_params, np.repeat(Tu, 13, axis=0), np.tile(Xu, (25, 1)), res,
-                       np.repeat(Ts, 13, axis=0), np.tile(Xu, (3, 1)))
-    Fs = np.column_stack([np.ones(39), np.tile(Xu, (3, 1)), np.repeat(Ts, 13, axis=0)])
-    got = em.predict(X, th)
-    np.testing.assert_allclose(got.mean.ravel(), dense.mean + Fs @ g.beta, atol=1e-7)
-    np.testing.assert_allclose(got.var.ravel(), dense.var, rtol=1e-6, atol=1e-12)
-
-
 @pytest.fixture(scope="module")
 def beam1d_match():
     c = cases.load("beam-1d", seed=0)
@@ -223,24 +188,49 @@ def test_beam1d_nroy_matches_exact_simulator(beam1d_match):
     assert abs(f[-1] - f_exact) <= abs(f[0] - f_exact) + 0.005   # approaches with waves
     assert f[-1] == pytest.approx(f_exact, abs=0.02)
     for k in range(1, len(result.waves) + 1):
-        assert _in_nroy(result.problem, result.waves[:k], c.theta_true[None])[0]
-    s = result.samples(4000, seed=0)
+        assert HistoryMatchResult(result.problem, result.waves[:k]).contains(c.theta_true)[0]
+    s = result.nroy_samples(4000, seed=0)
     near = s[np.abs(s[:, 1] - 68.0) < 1.0, 0]                 # l_cr at E ≈ 68 GPa
     assert 27.0 <= near.min() <= 33.0 and 39.0 <= near.max() <= 45.0
     tm = result.theta_map
     assert np.all(tm >= c.theta_bounds[:, 0]) and np.all(tm <= c.theta_bounds[:, 1])
-    assert _in_nroy(result.problem, result.waves, tm[None])[0]
+    assert result.contains(tm)[0]
 
 
-def test_emulator_likelihood_and_gradient_match_dense_core(rng):
-    from mdcore.emulator import _kron_nlml
-    Tu, Xu, res = rng.uniform(size=(7, 2)), rng.uniform(size=(5, 1)), rng.normal(size=(7, 5))
-    lp = np.array([0.2, -0.5, 0.1, -0.3, -2.0])
-    f, g = _kron_nlml(lp, Tu, Xu, res)
-    dense = gp.neg_log_marginal_likelihood(lp, np.repeat(Tu, 5, axis=0), np.tile(Xu, (7, 1)),
-                                           res.ravel())
-    assert f == pytest.approx(float(dense), rel=1e-10)
-    h = 1e-6
-    fd = [(_kron_nlml(lp + h * e, Tu, Xu, res)[0] - _kron_nlml(lp - h * e, Tu, Xu, res)[0])
-          / (2 * h) for e in np.eye(5)]
-    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-6)
+def test_public_scoring_matches_the_closed_form_and_the_waves():
+    """problem.score / Wave.implausibility / contains agree with Eq. 16 by hand."""
+    X, z = toy_data()
+    V_o, V_m = 0.0025, 0.01
+    result = history_match(toy_simulator, X, z, TOY_BOUNDS, V_o=V_o, V_m=V_m,
+                           n_candidates=4000, max_waves=2, convergence_ratio=1e-9, seed=2)
+    prob, wave = result.problem, result.waves[-1]
+    theta = np.array([[1.0, 0.0], [0.2, 0.9], [1.9, -0.9]])
+    pred = wave.emulator.predict(prob.X, theta)
+    by_hand = np.max(np.abs(prob.z - pred.mean) / np.sqrt(V_o + V_m + pred.var), axis=(1, 2))
+    np.testing.assert_allclose(wave.implausibility(theta), by_hand, rtol=1e-12)
+    score = prob.score(theta, wave.emulator)
+    np.testing.assert_allclose(score.implausibility, by_hand, rtol=1e-12)
+    np.testing.assert_array_equal(score.var, pred.var)
+    # The candidates' stored implausibility is the same function.
+    np.testing.assert_allclose(wave.implausibility(wave.candidates[:50]),
+                               wave.candidate_implausibility[:50], rtol=1e-12)
+    # contains = inside the box and I <= T in every wave.
+    inside = np.all([w.implausibility(theta) <= prob.threshold for w in result.waves], axis=0)
+    np.testing.assert_array_equal(result.contains(theta), inside)
+    assert not result.contains([5.0, 0.0])[0]                  # outside the prior box
+    with pytest.raises(ValueError, match=r"theta must have shape \(M, p\) with p = 2"):
+        result.contains(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="theta contains 1 NaN"):
+        prob.score([[np.nan, 0.0]], wave.emulator)
+
+
+def test_seed_accepts_a_generator():
+    X, z = toy_data()
+    kw = dict(V_o=0.0025, V_m=0.01, n_candidates=2000, max_waves=1)
+    a = history_match(toy_simulator, X, z, TOY_BOUNDS, seed=np.random.default_rng(7), **kw)
+    b = history_match(toy_simulator, X, z, TOY_BOUNDS, seed=np.random.default_rng(7), **kw)
+    np.testing.assert_array_equal(a.waves[0].nroy, b.waves[0].nroy)
+    assert a.problem.seed == b.problem.seed
+    for bad in (-1, 1.5, "0", True):
+        with pytest.raises(ValueError, match="seed must be an integer ≥ 0 or a numpy.random"):
+            history_match(toy_simulator, X, z, TOY_BOUNDS, seed=bad, **kw)

@@ -6,11 +6,11 @@ import scipy.stats
 
 from mdcore import cases
 from mdcore.emulator import fit_emulator
-from mdcore.gp import GaussianPrior, matern32
-from mdcore.koh import infer
-from mdcore.mcmc import adaptive_metropolis, integrated_autocorr_time
-from mdcore.reproduce import run_scenario, score
-
+from mdcore.kernels import matern32
+from mdcore.koh import infer_koh
+from mdcore.mcmc import adaptive_metropolis
+from mdcore.pipeline import Method, Settings, run_method, scores
+from mdcore.priors import GaussianPrior, ThetaPrior
 
 # ---------------------------------------------------------------------------------------
 # A naive dense reference for the emulator's joint posterior (no Kronecker algebra)
@@ -22,13 +22,13 @@ def _m32(A, B, ell):
 
 def naive_emulator_joint(em, o, theta, XA, XB):
     """Dense-GP mean at XA and covariance between XA and XB for one θ and output o."""
-    g = em._gps[o]
+    g = em.gps[o]
     p, d_x = em.theta_train.shape[1], em.X_train.shape[1]
     lp = g.log_params
     sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
     lt, lx = np.exp(lp[1:1 + p]), np.exp(lp[1 + p:-1])
     t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
-    xu = lambda X: (X - em._x_lo) / em._x_span      # noqa: E731
+    xu = em.unit_x
     Ttr = (em.theta_train - t_lo) / t_span
     Xtr = xu(em.X_train)
     R, N = Ttr.shape[0], Xtr.shape[0]
@@ -94,43 +94,12 @@ def test_emulator_at_bad_input(beam):
 
 
 # ---------------------------------------------------------------------------------------
-# Sampler diagnostics
-
-def test_iat_of_ar1_matches_closed_form():
-    rng = np.random.default_rng(3)
-    a, n = 0.8, 400_000
-    e = rng.standard_normal(n)
-    x = np.empty(n)
-    x[0] = e[0] / np.sqrt(1 - a * a)
-    for i in range(1, n):
-        x[i] = a * x[i - 1] + e[i]
-    tau = integrated_autocorr_time(np.column_stack([x, e]))
-    assert tau[0] == pytest.approx((1 + a) / (1 - a), rel=0.1)     # = 9
-    assert tau[1] == pytest.approx(1.0, abs=0.1)                   # white noise
-    assert integrated_autocorr_time(np.ones(50))[0] == 50          # never moved
-
-
-def test_mcmc_bad_input():
-    with pytest.raises(ValueError, match="burn_in must be smaller"):
-        adaptive_metropolis(lambda x: 0.0, [0.0], n_iter=10, burn_in=10)
-    with pytest.raises(ValueError, match=r"log_target\(x0\) must be finite"):
-        adaptive_metropolis(lambda x: -np.inf, [0.0], n_iter=10, burn_in=1)
-    with pytest.raises(ValueError, match="initial_cov must have shape"):
-        adaptive_metropolis(lambda x: 0.0, [0.0, 0.0], n_iter=10, burn_in=1,
-                            initial_cov=np.eye(3))
-    with pytest.raises(ValueError, match="n must be ≥ 2|n ≥ 2"):
-        integrated_autocorr_time([1.0])
-    with pytest.raises(ValueError, match="NaN"):
-        integrated_autocorr_time([1.0, np.nan, 2.0])
-
-
-# ---------------------------------------------------------------------------------------
 # Linear-Gaussian toy: simulator linear in θ, Gaussian prior, fixed φ -> Gaussian posterior
 
 TOY_X = np.linspace(0.0, 1.0, 9)[:, None]
 TOY_G = np.column_stack([1.0 + TOY_X[:, 0], np.sin(3 * TOY_X[:, 0])])   # η = G θ
 TOY_PHI = np.log([0.3, 0.4, 0.1])                                       # σ_f, ℓ_x, σ_n
-TOY_PRIOR = GaussianPrior(mean=np.array([1.0, -0.5]), var=np.array([0.5, 2.0]))
+TOY_PRIOR = ThetaPrior(mean=np.array([1.0, -0.5]), var=np.array([0.5, 2.0]))
 
 
 def _toy_simulate(X, theta):
@@ -153,7 +122,7 @@ def toy():
     z = TOY_G @ np.array([1.3, 0.2]) + 0.2 * np.sin(6 * TOY_X[:, 0]) \
         + 0.1 * rng.standard_normal(len(TOY_X))
     bounds = TOY_PRIOR.mean[:, None] + 15 * np.sqrt(TOY_PRIOR.var)[:, None] * [-1, 1]
-    model = infer(_toy_simulate, TOY_X, z, theta_prior=TOY_PRIOR, bounds=bounds,
+    model = infer_koh(_toy_simulate, TOY_X, z, theta_prior=TOY_PRIOR, bounds=bounds,
                   log_phi=TOY_PHI, n_iter=80_000, burn_in=20_000, seed=5)
     return model, _toy_posterior(z)
 
@@ -193,9 +162,9 @@ def test_reproducible_under_seed():
     kw = dict(theta_prior=TOY_PRIOR, bounds=[[-5.0, 7.0], [-8.0, 8.0]], log_phi=TOY_PHI,
               n_iter=600, burn_in=100)
     z = TOY_G @ np.array([1.0, 0.0])
-    a = infer(_toy_simulate, TOY_X, z, seed=4, **kw)
-    b = infer(_toy_simulate, TOY_X, z, seed=4, **kw)
-    c = infer(_toy_simulate, TOY_X, z, seed=5, **kw)
+    a = infer_koh(_toy_simulate, TOY_X, z, seed=4, **kw)
+    b = infer_koh(_toy_simulate, TOY_X, z, seed=4, **kw)
+    c = infer_koh(_toy_simulate, TOY_X, z, seed=5, **kw)
     np.testing.assert_array_equal(a.theta, b.theta)
     assert not np.array_equal(a.theta, c.theta)
 
@@ -205,7 +174,7 @@ def test_reproducible_under_seed():
 
 def test_predictions_match_dense_conditioning(beam):
     case, em = beam
-    model = infer(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
+    model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
                   bounds=case.theta_bounds, log_phi=[np.log(0.4), np.log(0.3), np.log(0.03)],
                   n_iter=300, burn_in=100, seed=1)
     Xs = np.array([[0.12], [0.41], [0.88]])
@@ -243,30 +212,29 @@ def test_beam1d_reduced_chain_contains_truth_and_predicts_z_like_the_decoupled_s
     hm = history_match_case(case, seed=0)
     pp = case.phi_prior
     hyper = GaussianPrior(np.r_[pp.mean[0], pp.mean[2:]], np.r_[pp.var[0], pp.var[2:]])
-    model = infer(hm.waves[-1].emulator, case.X_train, case.z_train,
+    model = infer_koh(hm.waves[-1].emulator, case.X_train, case.z_train,
                   theta_prior=case.theta_prior, bounds=case.theta_bounds, phi_prior=hyper,
                   n_iter=20_000, burn_in=5_000, seed=0)
     lo, hi = np.percentile(model.theta, [0.5, 99.5], axis=0)
     assert np.all((lo < case.theta_true) & (case.theta_true < hi)), (lo, hi)
-    koh = score(case, model.predict(case.X_test))
-    _, pred1, _ = run_scenario(case, hm, 1, n_s=50, n_phi=1, seed=0)
-    s1 = score(case, pred1)
-    assert koh["nmse_z"][0] < 1.25 * s1["nmse_z"][0], (koh["nmse_z"], s1["nmse_z"])
+    koh = scores(case, model.predict(case.X_test))
+    s1 = run_method(case, hm, Method.S1, Settings(n_s=50, n_phi=1), seed=0).metrics
+    assert koh.nmse_z[0] < 1.25 * s1.nmse_z[0], (koh.nmse_z, s1.nmse_z)
     # The paper's point (Table 1): joint inference learns a much worse δ.
-    assert koh["nmse_delta"][0] > 5 * s1["nmse_delta"][0], (koh["nmse_delta"], s1["nmse_delta"])
+    assert koh.nmse_delta[0] > 5 * s1.nmse_delta[0], (koh.nmse_delta, s1.nmse_delta)
 
 
 # ---------------------------------------------------------------------------------------
 # Bad input
 
 @pytest.mark.parametrize("kwargs, match", [
-    (dict(theta_prior=GaussianPrior([1.0, -0.5], [0.5, 2.0]), bounds=[[3.0, 1.0], [-5, 5]]),
+    (dict(theta_prior=ThetaPrior([1.0, -0.5], [0.5, 2.0]), bounds=[[3.0, 1.0], [-5, 5]]),
      "lower < upper"),
     (dict(theta_prior=([1.0, -0.5], [0.0, 2.0])), "theta_prior var must be positive"),
     (dict(theta_prior=([1.0, -0.5], [-1.0, 2.0])), "theta_prior var must be positive"),
     (dict(theta_prior=([np.nan, -0.5], [1.0, 2.0])), "theta_prior mean contains 1 NaN"),
     (dict(theta_prior=([1.0], [1.0])), "p = 2 entries"),
-    (dict(theta_prior="wide"), "GaussianPrior or a \\(mean, var\\) pair"),
+    (dict(theta_prior="wide"), "ThetaPrior or a \\(mean, var\\) pair"),
     (dict(theta_prior=([40.0, 40.0], [1e-4, 1e-4])), "almost no mass inside bounds"),
     (dict(z=np.full(9, np.nan)), "z contains 9 NaN"),
     (dict(z=np.zeros(8)), "z must have shape"),
@@ -283,13 +251,13 @@ def test_infer_bad_input(kwargs, match):
                 n_iter=200, burn_in=50, seed=0)
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
-        infer(args.pop("model"), args.pop("X"), args.pop("z"), **args)
+        infer_koh(args.pop("model"), args.pop("X"), args.pop("z"), **args)
 
 
 def test_emulator_dimensions_must_match_data(beam):
     case, em = beam
     with pytest.raises(ValueError, match="the emulator has p = 2"):
-        infer(em, case.X_train, case.z_train, theta_prior=([70.0], [36.0]),
+        infer_koh(em, case.X_train, case.z_train, theta_prior=([70.0], [36.0]),
               bounds=[[50.0, 90.0]], n_iter=10, burn_in=1)
 
 
@@ -307,25 +275,26 @@ def test_predict_bad_input_and_cancel(toy):
         raise Stop
 
     with pytest.raises(Stop):
-        infer(_toy_simulate, TOY_X, TOY_G @ np.array([1.0, 0.0]), theta_prior=TOY_PRIOR,
+        infer_koh(_toy_simulate, TOY_X, TOY_G @ np.array([1.0, 0.0]), theta_prior=TOY_PRIOR,
               bounds=[[-5.0, 7.0], [-8.0, 8.0]], log_phi=TOY_PHI, n_iter=5000, burn_in=10,
               progress=cancel)
 
 
 def test_evidence_gradient_matches_finite_differences(beam):
     import scipy.optimize
-    from mdcore import gp
+
     from mdcore.koh import _EvidenceObjective
+    from mdcore.linalg import JitterLog
     case, em = beam
     X = np.column_stack([case.X_train[:, 0]])
     draws = np.array([[30.0, 60.0], [38.0, 68.0], [45.0, 80.0]])
     mean, cov = em.at(X).moments(draws)
     prior = GaussianPrior([np.log(0.5), np.log(0.3), np.log(0.03)], [1.0, 1.0, 1.0])
     for hyper in (None, prior):
-        obj = _EvidenceObjective(mean, cov, X, case.z_train.T, 1, hyper, gp._JitterLog())
+        obj = _EvidenceObjective(mean, cov, X, case.z_train.T, 1, hyper, JitterLog())
         x = np.log([0.4, 0.25, 0.05])
         f, g = obj(x)
-        fd = scipy.optimize.approx_fprime(x, lambda v: obj(v)[0], 1e-6)
+        fd = scipy.optimize.approx_fprime(x, lambda v, obj=obj: obj(v)[0], 1e-6)
         np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6)
         # The value is minus the log of the prior-averaged likelihood (plus the hyperprior).
         ref = -np.log(np.mean([np.exp(scipy.stats.multivariate_normal.logpdf(

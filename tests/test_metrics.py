@@ -1,6 +1,5 @@
 """SPEC §8 metrics on tiny hand-computed cases, and MMD's closed form against quadrature."""
 
-import json
 
 import numpy as np
 import pytest
@@ -49,7 +48,7 @@ def _mmd_by_quadrature(a, mu, s2):
     pdf = lambda y: norm.pdf(y, mu, np.sqrt(s2))
     lim = (mu - 12 * np.sqrt(s2), mu + 12 * np.sqrt(s2))
     kaa = np.mean([[k(x, y) for y in a] for x in a])
-    kay = np.mean([integrate.quad(lambda y: k(x, y) * pdf(y), *lim)[0] for x in a])
+    kay = np.mean([integrate.quad(lambda y, x=x: k(x, y) * pdf(y), *lim)[0] for x in a])
     kyy = integrate.dblquad(lambda y, x: k(x, y) * pdf(x) * pdf(y), *lim, *lim)[0]
     return np.sqrt(kaa - 2 * kay + kyy)
 
@@ -85,42 +84,3 @@ def test_mmd_grows_with_predictive_bias():
     assert vals[0] < vals[1] < vals[2]
     with pytest.raises(ValueError, match="one row per target"):
         mmd(a, a, np.ones(4), X=np.zeros(3))
-
-
-def test_reproduce_cli_writes_the_documented_json(tmp_path, capsys):
-    from mdcore.cli import main
-    path = tmp_path / "out.json"
-    assert main(["reproduce", "beam-1d", "--n-s", "40", "--n-phi", "10", "--n-iter", "3000",
-                 "--burn-in", "1000", "--json", str(path)]) == 0
-    out = json.loads(path.read_text())
-    assert out["case"] == "beam-1d" and out["seed"] == 0
-    hm = out["history_matching"]
-    assert hm["truth_nroy"] is True and hm["status"] == "converged"
-    assert len(hm["nroy_fraction"]) == hm["waves"] and len(hm["theta_map"]) == 2
-    assert set(out["scenarios"]) == {"1", "2", "3", "koh"}      # KOH by default on beam-1d
-    keys = set(out["scenarios"]["1"])
-    for s, e in out["scenarios"].items():
-        assert keys <= set(e), (s, keys - set(e))
-        for key in ("nmse_z", "nmse_delta", "mmd", "lpl", "coverage_z_3sd",
-                    "coverage_delta_3sd"):
-            assert len(e[key]) == 1 and np.isfinite(e[key][0])
-        assert (e["ess"] is None) == (s in {"1", "2"}) and e["seconds"] > 0
-    koh = out["scenarios"]["koh"]
-    assert koh["n_iter"] == 3000 and koh["burn_in"] == 1000 and 0 < koh["acceptance_rate"] < 1
-    assert len(koh["ess_per_parameter"]) == 2 and koh["ess"] == min(koh["ess_per_parameter"])
-    table = capsys.readouterr().out
-    assert "NMSE z %" in table and "tip deflection" in table and "KOH chain" in table
-
-
-def test_reproduce_scenario_choice_and_bad_labels(capsys):
-    from mdcore.cli import main
-    from mdcore.reproduce import reproduce
-    out = reproduce("beam-2d", scenarios=[1, "koh"], n_s=10, n_phi=1, n_iter=600, burn_in=100)
-    assert list(out["scenarios"]) == ["1", "koh"]
-    assert set(reproduce("beam-2d", scenarios=["1"], n_s=5, n_phi=1)["scenarios"]) == {"1"}
-    with pytest.raises(ValueError, match="'kennedy' is not a valid scenario"):
-        reproduce("beam-1d", scenarios=["kennedy"])
-    with pytest.raises(ValueError, match="scenarios is empty"):
-        reproduce("beam-1d", scenarios=[])
-    with pytest.raises(SystemExit):
-        main(["reproduce", "beam-1d", "--scenarios", "4"])

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._validation import as_float_array
+from ..validation import as_float_array
 
 __all__ = ["ShearBuilding", "natural_frequencies"]
 
@@ -111,7 +111,8 @@ def natural_frequencies(E, nu, rho, added_mass=0.0, *, added_mass_floor: int = 4
                              f"{rocking_stiffness!r}.")
         hvec = L * np.arange(1, n + 1)
         Kh = K @ hvec
-        K = K - Kh[..., :, None] * Kh[..., None, :] / (rocking_stiffness + Kh @ hvec)[..., None, None]
+        denom = (rocking_stiffness + Kh @ hvec)[..., None, None]
+        K = K - Kh[..., :, None] * Kh[..., None, :] / denom
 
     s = 1.0 / np.sqrt(m)
     A = s[..., :, None] * K * s[..., None, :]     # M^{-1/2} K M^{-1/2}, symmetric

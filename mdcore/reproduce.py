@@ -1,189 +1,173 @@
-"""End-to-end runs of a case study: history matching, scenarios 1–3, the Kennedy–O'Hagan
-baseline ("koh"), and their metrics.
+"""End-to-end runs of a case study: history matching, then methods through the pipeline.
 
-This is what ``python -m mdcore reproduce`` runs and what the app's metrics table shows.
+This is what ``python -m mdcore reproduce`` runs: the paper's Tables 1–3 for one case.
+Every method goes through :func:`mdcore.pipeline.run_method`, as in the app.
 """
 
 from __future__ import annotations
 
-import time
-from typing import Callable
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from . import cases as _cases
-from . import koh as _koh
-from .discrepancy import DiscrepancyPrediction, infer
-from .gp import GaussianPrior
-from .history_matching import HistoryMatchResult, _in_nroy, history_match_case
-from .metrics import coverage, lpl, mmd, nmse
+from .discrepancy import DiscrepancyModel
+from .history_matching import HistoryMatchResult, history_match_case
+from .koh import KOHModel
+from .pipeline import Method, MethodResult, Progress, Settings, run_method
+from .validation import as_seed_int
 
-__all__ = ["PAPER_SIZES", "METHODS", "default_methods", "score", "run_scenario", "run_koh",
-           "koh_phi_prior", "reproduce"]
+__all__ = ["SCHEMA_VERSION", "CaseRun", "default_methods", "parse_methods", "reproduce",
+           "run_case"]
 
-#: The paper's (N_s, N_φ) per case study (SPEC §6).
-PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
-#: Everything ``reproduce`` can run: the decoupled scenarios and the KOH baseline.
-METHODS = ("1", "2", "3", "koh")
+#: Version of the JSON layout written by :meth:`CaseRun.to_dict`.
+SCHEMA_VERSION = 2
 
 
-def default_methods(name: str) -> tuple:
+def default_methods(name: str) -> tuple[Method, ...]:
     """Scenarios 1–3, plus KOH on beam-1d (the only case the paper runs it on)."""
-    return METHODS if name == "beam-1d" else METHODS[:3]
+    base = (Method.S1, Method.S2, Method.S3)
+    return base + (Method.KOH,) if name == "beam-1d" else base
 
 
-def _methods(values) -> list:
-    """Normalise scenario labels (1, "2", "koh") to sorted unique strings of METHODS."""
-    out = set()
-    for v in values:
-        label = str(v).strip().lower()
-        if label not in METHODS or isinstance(v, bool):
-            raise ValueError(f"{v!r} is not a valid scenario. It must be one of "
-                             f"{list(METHODS)} (1–3: decoupled scenarios, koh: the "
-                             "Kennedy–O'Hagan baseline).")
-        out.add(label)
+def parse_methods(values) -> tuple[Method, ...]:
+    """Methods from labels (1, "2", "koh", Method), unique and in the order 1, 2, 3, KOH."""
+    out = {Method.parse(v) for v in values}
     if not out:
-        raise ValueError(f"scenarios is empty; pick at least one of {list(METHODS)}.")
-    return sorted(out, key=METHODS.index)
+        raise ValueError(f"methods is empty; pick at least one of {[m.value for m in Method]}.")
+    return tuple(m for m in Method if m in out)
 
 
-def score(case, pred: DiscrepancyPrediction) -> dict:
-    """SPEC §8 metrics of a prediction at ``case.X_test``, per output.
+@dataclass(frozen=True, eq=False)
+class CaseRun:
+    """A history match and the methods run on it (:func:`reproduce`).
 
-    Returns
-    -------
-    dict
-        ``nmse_z, mmd, lpl, coverage_z_2sd, coverage_z_3sd`` as lists over outputs, and
-        ``nmse_delta, coverage_delta_2sd, coverage_delta_3sd`` (lists, or None when the
-        true δ is unknown).
+    Attributes
+    ----------
+    case : Case
+    hm : HistoryMatchResult
+    settings : Settings
+    seed : int
+    results : tuple of MethodResult
+        In the order 1, 2, 3, KOH.
     """
-    z = case.z_test
-    out = {"nmse_z": nmse(z, pred.z_mean), "mmd": mmd(z, pred.z_mean, pred.z_var, X=case.X_test),
-           "lpl": lpl(z, pred.z_mean, pred.z_var),
-           "coverage_z_2sd": coverage(z, pred.z_mean, pred.z_var, k=2),
-           "coverage_z_3sd": coverage(z, pred.z_mean, pred.z_var, k=3)}
-    delta = case.true_delta(case.X_test)
-    for key, k in (("nmse_delta", None), ("coverage_delta_2sd", 2), ("coverage_delta_3sd", 3)):
-        if delta is None:
-            out[key] = None
-        elif k is None:
-            out[key] = nmse(delta, pred.delta_mean)
-        else:
-            out[key] = coverage(delta, pred.delta_mean, pred.delta_var, k=k)
-    return {k: (None if v is None else np.asarray(v, dtype=float).tolist())
-            for k, v in out.items()}
+
+    case: _cases.Case
+    hm: HistoryMatchResult
+    settings: Settings
+    seed: int
+    results: tuple
+
+    @property
+    def truth_in_nroy(self) -> bool | None:
+        """Whether the data-generating θ is non-implausible (None where it is unknown)."""
+        t = self.case.theta_true
+        return None if t is None else bool(self.hm.contains(t)[0])
+
+    def to_dict(self) -> dict:
+        """The JSON layout of ``reproduce --json`` (see the README), versioned."""
+        s = self.settings
+        return {"schema_version": SCHEMA_VERSION, "case": self.case.name, "seed": self.seed,
+                "settings": {"n_s": s.n_s, "n_phi": s.n_phi, "n_iter": s.n_iter,
+                             "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal},
+                "history_matching": {"waves": len(self.hm.waves),
+                                     "nroy_fraction": self.hm.nroy_fraction,
+                                     "theta_map": self.hm.theta_map.tolist(),
+                                     "truth_nroy": self.truth_in_nroy,
+                                     "status": self.hm.status},
+                "methods": {r.method.value: _entry(r) for r in self.results}}
 
 
-def run_scenario(case, hm: HistoryMatchResult, scenario: int, *, n_s: int, n_phi: int,
-                 seed: int = 0, log_params_hat=None, progress: Callable | None = None):
-    """Infer one scenario on a case and predict at its test inputs.
-
-    Returns ``(model, prediction, seconds)``; seconds cover inference and prediction.
-    """
-    start = time.perf_counter()
-    theta = hm.posterior_samples(n_s, seed=seed)
-    model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=scenario,
-                  theta_map=hm.theta_map, n_phi=n_phi, phi_prior=case.phi_prior, seed=seed,
-                  log_params_hat=log_params_hat, progress=progress)
-    pred = model.predict(case.X_test)
-    return model, pred, time.perf_counter() - start
-
-
-def koh_phi_prior(case) -> GaussianPrior:
-    """The case's discrepancy prior without its ``ℓ_y`` entries: the KOH δ is a GP over x
-    only, ``[log σ_f, log ℓ_x…, log σ_n]``. Used as the hyperprior of KOH's φ̂, as
-    scenarios 1–2 use ``case.phi_prior`` for theirs (SPEC §7 leaves it to us)."""
-    keep = np.r_[0, np.arange(1 + case.n_out, case.phi_prior.size)]
-    return GaussianPrior(case.phi_prior.mean[keep], case.phi_prior.var[keep])
+def _entry(r: MethodResult) -> dict:
+    entry: dict = {"metrics": r.metrics.as_dict(), "importance": None, "chain": None,
+                   "warnings": list(r.warnings), "seconds": r.seconds}
+    if r.importance is not None:
+        entry["importance"] = {k: (list(v) if isinstance(v, tuple) else v)
+                               for k, v in r.importance.__dict__.items()}
+    if r.chain is not None and isinstance(r.model, KOHModel):
+        entry["chain"] = {k: (list(v) if isinstance(v, tuple) else v)
+                          for k, v in r.chain.__dict__.items()}
+        theta = r.model.theta
+        entry["posterior"] = {"theta_mean": theta.mean(axis=0).tolist(),
+                              "theta_sd": theta.std(axis=0).tolist(),
+                              "theta_interval_99": np.percentile(theta, [0.5, 99.5],
+                                                                 axis=0).T.tolist(),
+                              "log_phi": r.model.log_phi.tolist()}
+    return entry
 
 
-def run_koh(case, hm: HistoryMatchResult, *, n_iter: int = _koh.N_ITER,
-            burn_in: int = _koh.BURN_IN, seed: int = 0, progress: Callable | None = None):
-    """The Kennedy–O'Hagan baseline on a case with the history match's final emulator.
-
-    Returns ``(model, prediction, seconds)``; seconds cover inference and prediction.
-    """
-    start = time.perf_counter()
-    model = _koh.infer(hm.waves[-1].emulator, case.X_train, case.z_train,
-                       theta_prior=case.theta_prior, bounds=case.theta_bounds,
-                       phi_prior=koh_phi_prior(case), n_iter=n_iter, burn_in=burn_in,
-                       seed=seed, progress=progress)
-    pred = model.predict(case.X_test)
-    return model, pred, time.perf_counter() - start
-
-
-def reproduce(name: str, *, scenarios=None, n_s: int | None = None,
-              n_phi: int | None = None, n_iter: int = _koh.N_ITER,
-              burn_in: int = _koh.BURN_IN, seed: int = 0,
-              report: Callable | None = None) -> dict:
-    """History-match a case, run the scenarios, and score them (the ``reproduce`` command).
+def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed=0,
+              report: Callable[[str], None] | None = None,
+              progress: Progress | None = None) -> CaseRun:
+    """History-match a case, run the methods, and score them (the ``reproduce`` command).
 
     Parameters
     ----------
     name : str
-        Case study name.
-    scenarios : sequence of {1, 2, 3, "koh"}, optional
+        Case study name (:func:`mdcore.cases.names`).
+    methods : sequence of {1, 2, 3, "koh"} or Method, optional
         Default :func:`default_methods` (KOH is included for beam-1d).
-    n_s, n_phi : int, optional
-        Default: the paper's sizes (:data:`PAPER_SIZES`).
-    n_iter, burn_in : int
-        The KOH chain (default the paper's 150,000 and 50,000).
-    seed : int
+    settings : Settings, optional
+        Default: the paper's sizes (:meth:`Settings.paper`).
+    seed : int or numpy.random.Generator, default=0
         Seeds the case's noise, the history match, the θ samples, the φ draws and the
         KOH chain.
     report : callable, optional
         Called with a line of text as each stage finishes.
+    progress : callable, optional
+        ``progress(fraction, message)`` within each method (see :func:`run_method`).
 
     Returns
     -------
-    dict
-        The JSON layout of the ``reproduce`` command (see the README).
+    CaseRun
     """
     case = _cases.load(name, seed=seed)
-    methods = _methods(default_methods(name) if scenarios is None else scenarios)
-    n_s = PAPER_SIZES[name][0] if n_s is None else n_s
-    n_phi = PAPER_SIZES[name][1] if n_phi is None else n_phi
-    hm = history_match_case(case, seed=seed)
-    truth = None if case.theta_true is None else \
-        bool(_in_nroy(hm.problem, hm.waves, case.theta_true[None])[0])
-    result = {"case": name, "seed": seed, "n_s": n_s, "n_phi": n_phi,
-              "history_matching": {"waves": len(hm.waves), "nroy_fraction": hm.nroy_fraction,
-                                   "theta_map": hm.theta_map.tolist(), "truth_nroy": truth,
-                                   "status": hm.status},
-              "scenarios": {}}
+    return run_case(case, methods=default_methods(name) if methods is None else methods,
+                    settings=Settings.paper(name) if settings is None else settings,
+                    seed=case.seed, report=report, progress=progress)
+
+
+def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
+             settings: Settings | None = None, seed=0,
+             report: Callable[[str], None] | None = None, progress: Progress | None = None,
+             **history_matching) -> CaseRun:
+    """History-match any case (built-in or :func:`mdcore.case_file.load_case_file`), then
+    run the methods on it through :func:`mdcore.pipeline.run_method`.
+
+    Parameters
+    ----------
+    case : Case
+    methods : sequence of {1, 2, 3, "koh"} or Method, default=(1, 2, 3)
+    settings : Settings, optional
+        Default :meth:`Settings.paper` of the case's name.
+    seed : int or numpy.random.Generator, default=0
+        Seeds the history match, the θ samples, the φ draws and the KOH chain.
+    report, progress : callable, optional
+        As in :func:`reproduce`.
+    **history_matching
+        Options of :func:`mdcore.history_matching.setup` (``n_runs``, ``convergence_ratio``,
+        ``executor`` …).
+
+    Returns
+    -------
+    CaseRun
+    """
+    seed = as_seed_int(seed)
+    chosen = parse_methods(methods)
+    settings = Settings.paper(case.name) if settings is None else settings
+    hm = history_match_case(case, seed=seed, **history_matching)
     if report:
         report(hm.message)
-    log_params_hat = None
-    for label in methods:
-        if label == "koh":
-            model, pred, seconds = run_koh(case, hm, n_iter=n_iter, burn_in=burn_in, seed=seed)
-            entry = score(case, pred)
-            entry.update(_koh_summary(model))
-        else:
-            s = int(label)
-            model, pred, seconds = run_scenario(case, hm, s, n_s=n_s, n_phi=n_phi, seed=seed,
-                                                log_params_hat=log_params_hat)
-            if s == 1:
-                log_params_hat = model.log_params_hat
-            entry = score(case, pred)
-            entry["ess"] = float(np.min(model.ess)) if s == 3 else None
-            entry["ess_per_output"] = model.ess.tolist()
-            entry["skipped_mass"] = model.skipped_mass.tolist()
-        entry["seconds"] = seconds
-        result["scenarios"][label] = entry
+    if hm.status == "ruled_out":
+        raise ValueError(f"{case.name}: {hm.message}")
+    results: list[MethodResult] = []
+    for method in chosen:
+        hat = next((r.model.log_params_hat for r in results
+                    if r.method is Method.S1 and isinstance(r.model, DiscrepancyModel)), None)
+        result = run_method(case, hm, method, settings, seed=seed, log_params_hat=hat,
+                            progress=progress)
+        results.append(result)
         if report:
-            report(f"scenario {label}: {seconds:.2f} s")
-    return result
-
-
-def _koh_summary(model) -> dict:
-    """The KOH entry's extra keys; ``ess`` is the smallest MCMC ESS over the parameters."""
-    theta = model.theta
-    return {"ess": float(np.min(model.ess)), "ess_per_output": None,
-            "skipped_mass": [0.0] * model.n_out,
-            "n_iter": model.chain.n_iter, "burn_in": model.chain.burn_in,
-            "acceptance_rate": model.acceptance_rate,
-            "iat_per_parameter": model.iat.tolist(), "ess_per_parameter": model.ess.tolist(),
-            "theta_mean": theta.mean(axis=0).tolist(), "theta_sd": theta.std(axis=0).tolist(),
-            "theta_interval_99": np.percentile(theta, [0.5, 99.5], axis=0).T.tolist(),
-            "log_phi": model.log_phi.tolist()}
+            report(f"{method.label}: {result.seconds:.2f} s")
+    return CaseRun(case, hm, settings, seed, tuple(results))

@@ -1,0 +1,509 @@
+"""One typed pipeline from a history match to a scored method, for the API, the CLI and the app.
+
+SPEC §1: history matching (A) gives θ samples and θ_MAP; a *method* then learns the
+discrepancy (B) and predicts at the case's test inputs, and the prediction is scored
+(SPEC §8). The methods are the decoupled scenarios 1–3 (SPEC §6) and the Kennedy–O'Hagan
+baseline (SPEC §7, "KOH"). :func:`run_method` is the one place that wires a method to a
+case; :func:`mdcore.reproduce.reproduce` and the app both call it.
+
+Examples
+--------
+>>> from mdcore import cases
+>>> from mdcore.history_matching import history_match_case
+>>> from mdcore.pipeline import Method, Settings, run_method
+>>> case = cases.load("beam-1d", seed=0)
+>>> hm = history_match_case(case, n_candidates=20_000)
+>>> result = run_method(case, hm, Method.S2, Settings(n_s=50), seed=0)
+>>> result.method.label, result.importance is None, len(result.metrics.nmse_z)
+('Scenario 2', True, 1)
+"""
+
+from __future__ import annotations
+
+import enum
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from scipy.special import logsumexp
+
+from .cases import Case
+from .discrepancy import (
+    LOW_ESS,
+    PROPOSALS,
+    PRUNE,
+    DiscrepancyModel,
+    DiscrepancyPrediction,
+    infer_discrepancy,
+)
+from .exceptions import Cancelled
+from .history_matching import HistoryMatchResult
+from .importance import K_HAT_THRESHOLD
+from .koh import BURN_IN, FAST, N_ITER, KOHModel, infer_koh
+from .metrics import coverage, lpl, mmd, nmse
+from .priors import GaussianPrior
+from .validation import as_float_array, as_int, as_seed_int, choose
+
+__all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics",
+           "ChainDiagnostics", "MethodResult", "PAPER_SIZES", "run_method", "scores",
+           "koh_phi_prior"]
+
+#: The paper's (N_s, N_φ) per case study (SPEC §6).
+PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
+
+#: ``progress(fraction, message)``: fraction done in [0, 1] and what is running.
+Progress = Callable[[float, str], None]
+
+
+class Method(enum.Enum):
+    """A way to learn the discrepancy: the decoupled scenarios 1–3 or the KOH baseline.
+
+    Examples
+    --------
+    >>> Method.parse(3), Method.parse("koh").label
+    (<Method.S3: '3'>, 'KOH')
+    """
+
+    S1 = "1"
+    S2 = "2"
+    S3 = "3"
+    KOH = "koh"
+
+    @classmethod
+    def parse(cls, value) -> Method:
+        """A :class:`Method` from ``1``, ``"1"``, ``"koh"``, ``"KOH"`` or a Method."""
+        if isinstance(value, cls):
+            return value
+        label = None if isinstance(value, bool) else str(value).strip().lower()
+        for m in cls:
+            if m.value == label:
+                return m
+        raise ValueError(f"{value!r} is not a valid method. It must be one of "
+                         f"{[m.value for m in cls]} (1–3: the decoupled scenarios of SPEC §6; "
+                         "koh: the Kennedy–O'Hagan baseline of SPEC §7).")
+
+    @property
+    def label(self) -> str:
+        """Display name: "Scenario 1" … "Scenario 3", "KOH"."""
+        return "KOH" if self is Method.KOH else f"Scenario {self.value}"
+
+    @property
+    def scenario(self) -> int | None:
+        """The scenario number 1–3, or None for KOH."""
+        return None if self is Method.KOH else int(self.value)
+
+    def __str__(self) -> str:
+        return self.value
+
+
+class MethodKey(NamedTuple):
+    """The settings a method's result depends on (others are None); hashable, for caches."""
+
+    method: Method
+    n_s: int | None
+    n_phi: int | None
+    n_iter: int | None
+    burn_in: int | None
+    prune: float | None
+    proposal: str | None
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Sizes of the discrepancy methods, validated.
+
+    Parameters
+    ----------
+    n_s : int, default=1000
+        θ samples ``θ^(j) ~ p(θ | z)`` (scenarios 2 and 3).
+    n_phi : int, default=500
+        Hyperparameter samples per θ sample (scenario 3).
+    n_iter, burn_in : int, default=150,000 and 50,000
+        The KOH chain (SPEC §7).
+    prune : float, default=1e-12
+        Scenario 3 skips components whose weight is below ``prune × max`` when predicting
+        (the skipped mass is reported in :class:`ImportanceDiagnostics`).
+    proposal : {"prior", "adaptive"}, default="prior"
+        Scenario 3's φ proposal (:func:`mdcore.discrepancy.infer_discrepancy`).
+
+    Examples
+    --------
+    >>> key = Settings(n_s=10).key(Method.S2)
+    >>> key.n_s, key.n_phi, key.proposal
+    (10, None, None)
+    """
+
+    n_s: int = 1000
+    n_phi: int = 500
+    n_iter: int = N_ITER
+    burn_in: int = BURN_IN
+    prune: float = PRUNE
+    proposal: str = "prior"
+
+    def __post_init__(self):
+        for name, minimum in (("n_s", 1), ("n_phi", 1), ("n_iter", 2), ("burn_in", 0)):
+            object.__setattr__(self, name, as_int(getattr(self, name), name, minimum))
+        if self.burn_in >= self.n_iter:
+            raise ValueError(f"burn_in must be smaller than n_iter; received burn_in = "
+                             f"{self.burn_in}, n_iter = {self.n_iter}. Raise n_iter or lower "
+                             "burn_in (the paper: 150,000 and 50,000).")
+        try:
+            prune = float(self.prune)
+        except (TypeError, ValueError):
+            prune = np.nan
+        if not 0.0 <= prune < 1.0:
+            raise ValueError(f"prune must be in [0, 1) (a fraction of the largest weight; 0 "
+                             f"keeps every component); received {self.prune!r}.")
+        object.__setattr__(self, "prune", prune)
+        choose(self.proposal, "proposal", PROPOSALS)
+
+    @classmethod
+    def paper(cls, case_name: str) -> Settings:
+        """The paper's sizes for a built-in case (SPEC §6–7); other cases get beam-1d's."""
+        n_s, n_phi = PAPER_SIZES.get(case_name, PAPER_SIZES["beam-1d"])
+        return cls(n_s=n_s, n_phi=n_phi)
+
+    @classmethod
+    def interactive(cls) -> Settings:
+        """Small sizes for the app: N_s = 100, N_φ = 50, the 20,000-step KOH chain and the
+        adaptive φ proposal (docs/scenario3.md: it keeps the weights reliable at small N_φ)."""
+        return cls(n_s=100, n_phi=50, n_iter=FAST["n_iter"], burn_in=FAST["burn_in"],
+                   proposal="adaptive")
+
+    def key(self, method) -> MethodKey:
+        """The fields ``method``'s result depends on; the others are None."""
+        m = Method.parse(method)
+        return MethodKey(m,
+                         self.n_s if m in (Method.S2, Method.S3) else None,
+                         self.n_phi if m is Method.S3 else None,
+                         self.n_iter if m is Method.KOH else None,
+                         self.burn_in if m is Method.KOH else None,
+                         self.prune if m is Method.S3 else None,
+                         self.proposal if m is Method.S3 else None)
+
+
+@dataclass(frozen=True)
+class Metrics:
+    """SPEC §8 metrics of a prediction at the test inputs; each a tuple over outputs.
+
+    ``nmse_delta``, ``rmse_delta`` and the δ coverages are None when the true δ is unknown.
+    Beside SPEC §8: ``rmse_delta`` is the δ error in output units (NMSE divides by the
+    variance of the true δ over the test inputs, which is nearly zero where δ hardly varies,
+    as on shear-5), and ``sd_z``, ``sd_delta`` are the mean predictive standard deviations
+    (the band widths, output units).
+    """
+
+    nmse_z: tuple
+    mmd: tuple
+    lpl: tuple
+    coverage_z_2sd: tuple
+    coverage_z_3sd: tuple
+    nmse_delta: tuple | None
+    coverage_delta_2sd: tuple | None
+    coverage_delta_3sd: tuple | None
+    rmse_delta: tuple | None
+    sd_z: tuple
+    sd_delta: tuple
+
+    def as_dict(self) -> dict:
+        """Field -> list over outputs (or None), for JSON."""
+        return {k: None if v is None else list(v) for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class ImportanceDiagnostics:
+    """How well scenario 3's importance weights (Eq. 15) are spread, per output.
+
+    Attributes
+    ----------
+    ess : tuple of float
+        Effective sample size over the (θ, φ) pairs, ``1 / Σ w_jk²``, out of ``n_pairs``.
+    ess_phi : tuple of float
+        Effective sample size over φ given θ, averaged over θ with the θ marginal weights:
+        ``Σ_j w_j / Σ_k (w_jk / w_j)²``, ``w_j = Σ_k w_jk``; out of ``n_phi``.
+    skipped_mass : tuple of float
+        Weight the prediction skipped (below ``prune × max``).
+    k_hat : tuple of float
+        Pareto shape of the raw weights' tail (Vehtari et al.); above 0.7 unreliable.
+    n_pairs, n_phi : int
+    proposal : str
+        ``"prior"`` or ``"adaptive"``.
+    """
+
+    ess: tuple
+    ess_phi: tuple
+    skipped_mass: tuple
+    k_hat: tuple
+    n_pairs: int
+    n_phi: int
+    proposal: str
+
+    @property
+    def low(self) -> tuple:
+        """Per output, whether the weights are unreliable: ESS over pairs below
+        :data:`mdcore.discrepancy.LOW_ESS` or k̂ above 0.7."""
+        return tuple(e < LOW_ESS or k > K_HAT_THRESHOLD for e, k in zip(self.ess, self.k_hat))
+
+
+@dataclass(frozen=True)
+class ChainDiagnostics:
+    """The KOH chain (SPEC §7): acceptance, autocorrelation and effective sample size.
+
+    Attributes
+    ----------
+    acceptance_rate : float
+    iat, ess : tuple of float
+        Integrated autocorrelation time and ``n_kept / iat`` per parameter.
+    n_iter, burn_in : int
+    reliable : bool
+        Whether the chain is longer than 50 autocorrelation times in every parameter
+        (emcee's check); when not, the IAT and ESS are themselves uncertain.
+    """
+
+    acceptance_rate: float
+    iat: tuple
+    ess: tuple
+    n_iter: int
+    burn_in: int
+    reliable: bool
+
+
+@dataclass(frozen=True, eq=False)
+class MethodResult:
+    """One method run on one case (:func:`run_method`).
+
+    Attributes
+    ----------
+    method : Method
+    key : MethodKey
+        The settings the result depends on.
+    seed : int
+    model : DiscrepancyModel or KOHModel
+        The fitted model (call its ``predict`` for other inputs).
+    on_test : DiscrepancyPrediction
+        Prediction at ``case.X_test``, each field (N_test, n_out).
+    on_extra : DiscrepancyPrediction or None
+        Prediction at the ``X_extra`` given to :func:`run_method` (e.g. a plotting grid).
+    metrics : Metrics
+    importance : ImportanceDiagnostics or None
+        Scenario 3 only.
+    chain : ChainDiagnostics or None
+        KOH only.
+    warnings : tuple of str
+        What the diagnostics call for (low ESS, an unreliable chain), in words.
+    seconds : float
+        Inference and prediction time.
+    """
+
+    method: Method
+    key: MethodKey
+    seed: int
+    model: DiscrepancyModel | KOHModel
+    on_test: DiscrepancyPrediction
+    on_extra: DiscrepancyPrediction | None
+    metrics: Metrics
+    importance: ImportanceDiagnostics | None
+    chain: ChainDiagnostics | None
+    warnings: tuple
+    seconds: float
+
+
+def scores(case: Case, prediction: DiscrepancyPrediction) -> Metrics:
+    """SPEC §8 metrics of a prediction at ``case.X_test``, per output.
+
+    Parameters
+    ----------
+    case : Case
+    prediction : DiscrepancyPrediction
+        At ``case.X_test``; each field (N_test, n_out).
+    """
+    z = case.z_test
+    if prediction.z_mean.shape != z.shape:
+        raise ValueError(f"prediction must be at case.X_test: z_mean has shape "
+                         f"{prediction.z_mean.shape}, z_test {z.shape}.")
+
+    def tup(values) -> tuple:
+        return tuple(float(v) for v in np.atleast_1d(values))
+
+    delta = case.true_delta(case.X_test)
+    return Metrics(
+        nmse_z=tup(nmse(z, prediction.z_mean)),
+        mmd=tup(mmd(z, prediction.z_mean, prediction.z_var, X=case.X_test)),
+        lpl=tup(lpl(z, prediction.z_mean, prediction.z_var)),
+        coverage_z_2sd=tup(coverage(z, prediction.z_mean, prediction.z_var, k=2)),
+        coverage_z_3sd=tup(coverage(z, prediction.z_mean, prediction.z_var, k=3)),
+        nmse_delta=None if delta is None else tup(nmse(delta, prediction.delta_mean)),
+        coverage_delta_2sd=None if delta is None else tup(
+            coverage(delta, prediction.delta_mean, prediction.delta_var, k=2)),
+        coverage_delta_3sd=None if delta is None else tup(
+            coverage(delta, prediction.delta_mean, prediction.delta_var, k=3)),
+        rmse_delta=None if delta is None else tup(
+            np.sqrt(np.mean((delta - prediction.delta_mean) ** 2, axis=0))),
+        sd_z=tup(np.mean(np.sqrt(prediction.z_var), axis=0)),
+        sd_delta=tup(np.mean(np.sqrt(prediction.delta_var), axis=0)))
+
+
+def koh_phi_prior(case: Case) -> GaussianPrior:
+    """The case's discrepancy prior without its ``ℓ_y`` entries: the KOH δ is a GP over x
+    only, ``[log σ_f, log ℓ_x…, log σ_n]``. Used as the hyperprior of KOH's φ̂, as
+    scenarios 1–2 use ``case.phi_prior`` for theirs (SPEC §7 leaves it to us)."""
+    keep = np.r_[0, np.arange(1 + case.n_out, case.phi_prior.size)]
+    return GaussianPrior(case.phi_prior.mean[keep], case.phi_prior.var[keep])
+
+
+def importance_diagnostics(model: DiscrepancyModel) -> ImportanceDiagnostics:
+    """ESS over pairs and over φ of a scenario-3 model's normalised log weights (n_out, S, K)."""
+    lw = model.log_weights
+    n_out, S, K = lw.shape
+    lw_theta = logsumexp(lw, axis=2)                                   # log w_j (n_out, S)
+    # ESS_j over φ given θ_j: 1 / Σ_k (w_jk / w_j)², in log space.
+    with np.errstate(invalid="ignore"):
+        cond = lw - lw_theta[..., None]
+        log_ess_j = -logsumexp(2.0 * np.where(np.isfinite(cond), cond, -np.inf), axis=2)
+    ess_phi = np.sum(np.exp(lw_theta + np.where(np.isfinite(lw_theta), log_ess_j, 0.0)),
+                     axis=1)
+    return ImportanceDiagnostics(tuple(float(e) for e in model.ess),
+                                 tuple(float(e) for e in ess_phi),
+                                 tuple(float(m) for m in model.skipped_mass),
+                                 tuple(float(k) for k in np.broadcast_to(
+                                     np.nan if model.k_hat is None else model.k_hat, n_out)),
+                                 S * K, K,
+                                 str(model.proposal))
+
+
+def _chain_diagnostics(model: KOHModel) -> ChainDiagnostics:
+    chain = model.chain
+    return ChainDiagnostics(float(chain.acceptance_rate), tuple(float(t) for t in chain.iat),
+                            tuple(float(e) for e in chain.ess), int(chain.n_iter),
+                            int(chain.burn_in), bool(chain.reliable))
+
+
+def _advice(method: Method, settings: Settings, importance, chain) -> tuple:
+    """The warnings the diagnostics call for, each saying what to change."""
+    out = []
+    if importance is not None:
+        switch = " or switch to the adaptive proposal" if importance.proposal == "prior" else ""
+        for o, low in enumerate(importance.low):
+            if low:
+                out.append(f"{method.label}, output {o + 1}: the importance weights are "
+                           f"unreliable: {importance.ess[o]:.1f} effective (θ, φ) pairs of "
+                           f"{importance.n_pairs}, ESS over φ {importance.ess_phi[o]:.1f} of "
+                           f"{importance.n_phi}, Pareto k̂ {importance.k_hat[o]:.2f} (reliable: "
+                           f"≤ {K_HAT_THRESHOLD}); raise N_φ (now {settings.n_phi}) or N_s "
+                           f"(now {settings.n_s}){switch}.")
+    if chain is not None and not chain.reliable:
+        longest = max(chain.iat)
+        out.append(f"KOH: the chain is shorter than 50 autocorrelation times (τ up to "
+                   f"{longest:.1f} with {chain.n_iter - chain.burn_in:,} kept steps), so its "
+                   f"ESS is unreliable; raise n_iter to at least "
+                   f"{int(np.ceil(50 * longest)) + chain.burn_in:,}.")
+    return tuple(out)
+
+
+def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *, seed,
+               X_extra=None, log_params_hat=None, progress: Progress | None = None,
+               cancel: threading.Event | None = None) -> MethodResult:
+    """Learn the discrepancy of ``case`` by one method and score it (SPEC §6–8).
+
+    Parameters
+    ----------
+    case : Case
+        Data, simulator and priors (:func:`mdcore.cases.load`).
+    hm : HistoryMatchResult
+        A history match of ``case``; the decoupled scenarios draw θ from its posterior and
+        use its θ_MAP, KOH uses its final emulator.
+    method : Method, int or str
+        1, 2, 3 or "koh".
+    settings : Settings
+    seed : int or numpy.random.Generator
+        Seeds the θ draws, the φ̂ swarm, the φ draws and the KOH chain.
+    X_extra : ndarray of shape (M, d_x), optional
+        More inputs to predict at (for example a plotting grid): :attr:`MethodResult.on_extra`.
+    log_params_hat : ndarray of shape (n_out, P), optional
+        φ̂ of an earlier scenario-1 result on the same ``hm`` and ``seed``
+        (``result.model.log_params_hat``); scenario 2 then skips the refit, with the same
+        numbers.
+    progress : callable, optional
+        ``progress(fraction, message)`` as the work goes on.
+    cancel : threading.Event, optional
+        Checked between chunks of work; when set, the run stops with :class:`Cancelled`.
+
+    Returns
+    -------
+    MethodResult
+
+    Raises
+    ------
+    ValueError
+        For bad input, or a history match that ruled out everything.
+    Cancelled
+        When ``cancel`` is set.
+    """
+    start = time.perf_counter()
+    if not isinstance(case, Case):
+        raise ValueError(f"case must be an mdcore Case (mdcore.cases.load); received "
+                         f"{type(case).__name__}.")
+    if not isinstance(hm, HistoryMatchResult):
+        raise ValueError(f"hm must be a HistoryMatchResult (history_match_case); received "
+                         f"{type(hm).__name__}.")
+    if not isinstance(settings, Settings):
+        raise ValueError(f"settings must be a pipeline.Settings; received "
+                         f"{type(settings).__name__}.")
+    method = Method.parse(method)
+    if hm.problem.p != case.p or hm.problem.X.shape[1] != case.d_x:
+        raise ValueError(f"hm does not belong to {case.name}: it has p = {hm.problem.p} and "
+                         f"d_x = {hm.problem.X.shape[1]}; the case has p = {case.p} and "
+                         f"d_x = {case.d_x}.")
+    if hm.status == "ruled_out":
+        raise ValueError(f"the history match ruled out every θ, so there is nothing to "
+                         f"learn the discrepancy from: {hm.message}")
+    seed = as_seed_int(seed)
+    X_all = case.X_test
+    if X_extra is not None:
+        X_extra = as_float_array(X_extra, "X_extra", ndim=2)
+        if X_extra.shape[1] != case.d_x:
+            raise ValueError(f"X_extra must have shape (M, d_x) with d_x = {case.d_x}; "
+                             f"received {X_extra.shape}.")
+        X_all = np.vstack([X_extra, case.X_test])
+
+    def stage(lo: float, hi: float, message: str) -> Callable[[float], None]:
+        """A core progress callback mapped onto [lo, hi] that also checks ``cancel``."""
+        def report(fraction: float) -> None:
+            if cancel is not None and cancel.is_set():
+                raise Cancelled(f"{method.label} on {case.name} was cancelled.")
+            if progress is not None:
+                progress(lo + (hi - lo) * float(fraction), message)
+        return report
+
+    stage(0.0, 0.0, "starting")(0.0)
+    model: DiscrepancyModel | KOHModel
+    if method is Method.KOH:
+        model = infer_koh(hm.waves[-1].emulator, case.X_train, case.z_train,
+                          theta_prior=case.theta_prior, bounds=case.theta_bounds,
+                          phi_prior=koh_phi_prior(case), n_iter=settings.n_iter,
+                          burn_in=settings.burn_in, seed=seed,
+                          progress=stage(0.0, 0.9, "KOH: φ̂ and the θ chain"))
+    else:
+        theta = hm.posterior_samples(settings.n_s, seed=seed) if method is not Method.S1 \
+            else None
+        model = infer_discrepancy(
+            case.simulate, theta, case.X_train, case.z_train, scenario=method.scenario,
+            theta_map=hm.theta_map, n_phi=settings.n_phi, phi_prior=case.phi_prior, seed=seed,
+            log_params_hat=log_params_hat if method is Method.S2 else None,
+            prune=settings.prune, proposal=settings.proposal,
+            progress=stage(0.0, 0.5, f"{method.label}: fitting the discrepancy GP"))
+    pred = model.predict(X_all, progress=stage(0.9 if method is Method.KOH else 0.5, 1.0,
+                                               f"{method.label}: predicting"))
+    n_extra = 0 if X_extra is None else X_extra.shape[0]
+    on_extra = None if X_extra is None else DiscrepancyPrediction(*(a[:n_extra] for a in pred))
+    on_test = DiscrepancyPrediction(*(a[n_extra:] for a in pred))
+    importance = importance_diagnostics(model) if isinstance(model, DiscrepancyModel) \
+        and method is Method.S3 else None
+    chain = _chain_diagnostics(model) if isinstance(model, KOHModel) else None
+    return MethodResult(method, settings.key(method), seed, model, on_test, on_extra,
+                        scores(case, on_test), importance, chain,
+                        _advice(method, settings, importance, chain),
+                        time.perf_counter() - start)

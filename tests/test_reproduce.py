@@ -1,0 +1,83 @@
+"""reproduce: the numbers of beam-1d seed 0 are those recorded before the pipeline refactor,
+and the JSON layout carries every method's metrics and diagnostics."""
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mdcore.pipeline import Method, Settings
+from mdcore.reproduce import SCHEMA_VERSION, default_methods, parse_methods, reproduce
+
+#: Written by `reproduce("beam-1d", n_s=100, n_phi=50, n_iter=6000, burn_in=2000, seed=0)`
+#: at commit 77819a8, before the typed pipeline (old JSON layout).
+REFERENCE = Path(__file__).parent / "data" / "reproduce_beam1d_seed0_small.json"
+METRICS = ("nmse_z", "mmd", "lpl", "coverage_z_2sd", "coverage_z_3sd", "nmse_delta",
+           "coverage_delta_2sd", "coverage_delta_3sd")
+
+
+@pytest.fixture(scope="module")
+def run():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return reproduce("beam-1d", settings=Settings(n_s=100, n_phi=50, n_iter=6000,
+                                                      burn_in=2000), seed=0)
+
+
+def close(new, old):
+    np.testing.assert_allclose(np.asarray(new, dtype=float), np.asarray(old, dtype=float),
+                               rtol=1e-10, atol=1e-12)
+
+
+def test_numbers_unchanged_since_before_the_pipeline(run):
+    ref = json.loads(REFERENCE.read_text(encoding="utf-8"))
+    d = run.to_dict()
+    hm = d["history_matching"]
+    close(hm["theta_map"], ref["history_matching"]["theta_map"])
+    close(hm["nroy_fraction"], ref["history_matching"]["nroy_fraction"])
+    assert hm["waves"] == ref["history_matching"]["waves"]
+    assert hm["truth_nroy"] is ref["history_matching"]["truth_nroy"] is True
+    assert list(d["methods"]) == list(ref["scenarios"]) == ["1", "2", "3", "koh"]
+    for label, old in ref["scenarios"].items():
+        new = d["methods"][label]
+        for key in METRICS:
+            close(new["metrics"][key], old[key])
+    close(d["methods"]["3"]["importance"]["ess"], ref["scenarios"]["3"]["ess_per_output"])
+    close(d["methods"]["3"]["importance"]["skipped_mass"], ref["scenarios"]["3"]["skipped_mass"])
+    koh_new, koh_old = d["methods"]["koh"], ref["scenarios"]["koh"]
+    close(koh_new["chain"]["acceptance_rate"], koh_old["acceptance_rate"])
+    close(koh_new["chain"]["iat"], koh_old["iat_per_parameter"])
+    close(koh_new["chain"]["ess"], koh_old["ess_per_parameter"])
+    for key in ("theta_mean", "theta_sd", "theta_interval_99", "log_phi"):
+        close(koh_new["posterior"][key], koh_old[key])
+
+
+def test_json_layout_is_typed_and_versioned(run, tmp_path):
+    d = run.to_dict()
+    assert d["schema_version"] == SCHEMA_VERSION and d["case"] == "beam-1d" and d["seed"] == 0
+    assert d["settings"] == {"n_s": 100, "n_phi": 50, "n_iter": 6000, "burn_in": 2000,
+                             "prune": 1e-12, "proposal": "prior"}
+    for label in ("1", "2"):
+        assert d["methods"][label]["importance"] is None and d["methods"][label]["chain"] is None
+    assert d["methods"]["3"]["chain"] is None and d["methods"]["koh"]["importance"] is None
+    imp = d["methods"]["3"]["importance"]
+    assert imp["n_pairs"] == 100 * 50 and imp["n_phi"] == 50
+    assert 1.0 <= imp["ess_phi"][0] <= 50.0 and 1.0 <= imp["ess"][0] <= 5000.0
+    assert d["methods"]["koh"]["chain"]["reliable"] is True
+    path = tmp_path / "run.json"                              # round-trips through JSON
+    path.write_text(json.dumps(d), encoding="utf-8")
+    assert json.loads(path.read_text(encoding="utf-8")) == json.loads(json.dumps(d))
+
+
+def test_method_selection():
+    assert default_methods("beam-1d") == (Method.S1, Method.S2, Method.S3, Method.KOH)
+    assert default_methods("shear-5") == (Method.S1, Method.S2, Method.S3)
+    assert parse_methods(["koh", 2, "1", Method.S2]) == (Method.S1, Method.S2, Method.KOH)
+    with pytest.raises(ValueError, match="methods is empty"):
+        parse_methods([])
+    with pytest.raises(ValueError, match="'4' is not a valid method"):
+        parse_methods(["4"])
+    with pytest.raises(ValueError, match="'beam-3d' is not a valid case name"):
+        reproduce("beam-3d")

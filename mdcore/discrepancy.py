@@ -21,10 +21,10 @@ with ``V_f`` the latent GP variance. The sums are accumulated about a reference 
 Examples
 --------
 >>> from mdcore import cases
->>> from mdcore.discrepancy import infer
+>>> from mdcore.discrepancy import infer_discrepancy
 >>> case = cases.load("beam-1d")
 >>> theta = case.theta_true + [[0.0, 0.0], [1.0, -0.5], [-1.0, 0.5]]
->>> model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=2,
+>>> model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=2,
 ...               theta_map=case.theta_true, seed=0)
 >>> pred = model.predict(case.X_test)
 >>> pred.delta_mean.shape, round(float(model.ess[0]), 6)
@@ -35,20 +35,26 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 from scipy.special import logsumexp
 
 from . import gp
-from ._validation import as_float_array, as_int
-from .gp import GaussianPrior, NumericalWarning
+from .exceptions import LowESSWarning, NumericalWarning
+from .hyperfit import default_bounds, fit_hyperparameters
+from .importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis
+from .priors import GaussianPrior
+from .validation import as_float_array, as_int, as_outputs, choose
 
-__all__ = ["infer", "DiscrepancyModel", "DiscrepancyPrediction", "default_phi_prior",
-           "LowESSWarning", "SCENARIOS", "LOW_ESS"]
+__all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyPrediction", "default_phi_prior",
+           "LowESSWarning", "SCENARIOS", "PROPOSALS", "LOW_ESS"]
 
 SCENARIOS = (1, 2, 3)
+#: Scenario 3's φ proposals: the paper's prior draws, or adaptive importance sampling.
+PROPOSALS = ("prior", "adaptive")
 #: Scenario 3 warns when an output's effective sample size is below this.
 LOW_ESS = 30.0
 #: Default pruning level: components with normalised weight below ``PRUNE × max`` are
@@ -56,10 +62,6 @@ LOW_ESS = 30.0
 PRUNE = 1e-12
 #: Working-memory budget of one prediction block, in bytes.
 BLOCK_BYTES = 32 * 2**20
-
-
-class LowESSWarning(NumericalWarning):
-    """Scenario 3's importance weights rest on few samples (small effective sample size)."""
 
 
 class DiscrepancyPrediction(NamedTuple):
@@ -81,7 +83,7 @@ class DiscrepancyPrediction(NamedTuple):
 
 
 def default_phi_prior(Y, X, z) -> GaussianPrior:
-    """A weak prior on the log hyperparameters, centred in :func:`mdcore.gp.default_bounds`.
+    """A weak prior on the log hyperparameters, centred in :func:`mdcore.hyperfit.default_bounds`.
 
     Each log hyperparameter gets the midpoint of its data-scaled search box as mean and
     a standard deviation of a quarter of the box width, so ±2 sd spans the box
@@ -93,7 +95,7 @@ def default_phi_prior(Y, X, z) -> GaussianPrior:
     X : ndarray of shape (N, d_x)
     z : ndarray of shape (N,)
     """
-    b = gp.default_bounds(Y, X, z)
+    b = default_bounds(Y, X, z)
     return GaussianPrior(mean=b.mean(axis=1), var=((b[:, 1] - b[:, 0]) / 4.0) ** 2)
 
 
@@ -155,7 +157,12 @@ class DiscrepancyModel:
     phi_prior : GaussianPrior or None
         The prior scenario 3 sampled from.
     seconds : float
-        Time spent in :func:`infer`.
+        Time spent in :func:`infer_discrepancy`.
+    proposal : str or None
+        Scenario 3's φ proposal, ``"prior"`` (the paper's) or ``"adaptive"``.
+    k_hat : ndarray of shape (n_out,) or None
+        Scenario 3: Pareto shape of each output's raw importance weights (Vehtari et al.;
+        above 0.7 the mixture is unreliable).
     """
 
     scenario: int
@@ -171,6 +178,8 @@ class DiscrepancyModel:
     prune: float
     phi_prior: GaussianPrior | None
     seconds: float
+    proposal: str | None = None
+    k_hat: np.ndarray | None = None
 
     @property
     def n_out(self) -> int:
@@ -245,7 +254,7 @@ class DiscrepancyModel:
             w = np.exp(lw - logsumexp(lw))                  # renormalised over kept
             z_o = self.z[:, o]
 
-            def moments(sel):
+            def moments(sel, idx=idx, o=o, z_o=z_o):
                 j, k = np.divmod(idx[sel], K)
                 p = gp.predict(self.log_params[o][j, k], self.Y[j], self.X, z_o, Ys[j], X_star)
                 return p.mean, p.var, p.noise_var[:, None], Ys[j][..., o]
@@ -292,9 +301,68 @@ def _prune(value) -> float:
     return p
 
 
-def infer(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
+def _prior_proposal(Y, X, z, prior, n_phi, rng, progress):
+    """Scenario 3 as in the paper: φ^(j,k) ~ p(φ), shared by the outputs (common random
+    numbers); ``log w_jk = −NLML`` (Eq. 15), normalised jointly over (j, k) per output."""
+    n_out, S, P = z.shape[1], Y.shape[0], prior.size
+    phi = prior.sample(S * n_phi, seed=rng).reshape(S, n_phi, P)
+    log_params = np.broadcast_to(phi, (n_out, S, n_phi, P))
+    log_weights = np.empty((n_out, S, n_phi))
+    rows = max(1, 50_000 // n_phi)                      # ~50k pairs per progress step
+    steps = list(_blocks(S, rows))
+    for o in range(n_out):
+        for i, sl in enumerate(steps):
+            # Eq. 15: log w_jk = log p(z | y^(j), X, φ^(j,k)) = −NLML
+            log_weights[o, sl] = -gp.neg_log_marginal_likelihood(phi[sl], Y[sl, None], X, z[:, o])
+            if progress is not None:
+                progress((o * len(steps) + i + 1) / (n_out * len(steps)))
+        _normalise(log_weights[o], o)
+    return log_params, log_weights
+
+
+def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress):
+    """Scenario 3 with adaptive importance sampling of φ per output
+    (:func:`mdcore.importance.adaptive_importance_sampling`): the same budget of N_φ draws
+    per θ, drawn in stages from the prior and then from Student-t fits to the weighted
+    draws, with deterministic-mixture weights normalised jointly over (j, k)."""
+    n_out, S = z.shape[1], Y.shape[0]
+    log_params = np.empty((n_out, S, n_phi, prior.size))
+    log_weights = np.empty((n_out, S, n_phi))
+    for o in range(n_out):
+        def loglik(phi, o=o):
+            return -gp.neg_log_marginal_likelihood(phi, Y[:, None], X, z[:, o])   # Eq. 15
+
+        def report(f, o=o):
+            if progress is not None:
+                progress((o + f) / n_out)
+
+        try:
+            out = adaptive_importance_sampling(loglik, prior, S, n_phi, seed=rng,
+                                               progress=report)
+        except ValueError:
+            raise ValueError(_all_zero_message(o)) from None
+        log_params[o], log_weights[o] = out.samples, out.log_weights
+    return log_params, log_weights
+
+
+def _all_zero_message(o: int) -> str:
+    return (f"every scenario-3 component of output {o} has zero likelihood (no covariance "
+            "matrix could be factorised); check phi_prior, whose samples give "
+            "non-positive-definite covariances.")
+
+
+def _normalise(log_weights: np.ndarray, o: int) -> None:
+    """Normalise one output's log weights in place (logsumexp over all pairs = 0)."""
+    norm = logsumexp(log_weights)
+    if not np.isfinite(norm):
+        raise ValueError(_all_zero_message(o))
+    log_weights -= norm
+
+
+def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
           n_phi: int = 500, phi_prior: GaussianPrior | None = None, seed=None,
           log_params_hat=None, fit_options: dict | None = None, prune: float = PRUNE,
+          proposal: str = "prior",
           progress: Callable[[float], None] | None = None) -> DiscrepancyModel:
     """Infer the model discrepancy by one of the three scenarios of SPEC §6.
 
@@ -327,9 +395,16 @@ def infer(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
     log_params_hat : ndarray of shape (n_out, P), optional
         φ̂ from an earlier scenario-1 fit, to skip refitting (scenarios 1–2).
     fit_options : dict, optional
-        Extra keywords for :func:`mdcore.gp.fit_hyperparameters` (default QPSO + polish).
+        Extra keywords for :func:`mdcore.hyperfit.fit_hyperparameters` (default QPSO + polish).
     prune : float, default=1e-12
         See :attr:`DiscrepancyModel.prune`.
+    proposal : {"prior", "adaptive"}, default="prior"
+        Scenario 3's φ proposal. ``"prior"`` is the paper's: N_φ prior draws per θ, weighted
+        by the marginal likelihood. ``"adaptive"`` spends the same N_φ draws per θ in stages
+        (:func:`mdcore.importance.adaptive_importance_sampling`): a quarter from the prior,
+        then from Student-t fits to the weighted draws, with deterministic-mixture weights,
+        Pareto-smoothed (PSIS); it keeps far more effective samples where the likelihood
+        is narrow compared with the prior (beam-2d).
     progress : callable, optional
         Called with the fraction done in [0, 1]; raising from it cancels.
 
@@ -345,17 +420,13 @@ def infer(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
     start = time.perf_counter()
     scenario = _scenario(scenario)
     X = as_float_array(X, "X", ndim=2)
-    z = as_float_array(z, "z", min_ndim=1)
-    if z.ndim == 1:
-        z = z[:, None]
-    if z.ndim != 2 or z.shape[0] != X.shape[0]:
-        raise ValueError(f"z must have shape (N, n_out) with N = {X.shape[0]} rows like X "
-                         f"{X.shape}; received {z.shape}.")
+    z = as_outputs(z, X.shape[0])
     N, d_x = X.shape
     n_out = z.shape[1]
     P = 2 + n_out + d_x
     rng = np.random.default_rng(seed)
     prune = _prune(prune)
+    choose(proposal, "proposal", PROPOSALS)
     if phi_prior is not None and (not isinstance(phi_prior, GaussianPrior) or phi_prior.size != P):
         raise ValueError(f"phi_prior must be a GaussianPrior over P = 2 + n_out + d_x = {P} log "
                          f"hyperparameters ([log σ_f, log ℓ_y×{n_out}, log ℓ_x×{d_x}, log σ_n]); "
@@ -392,7 +463,7 @@ def infer(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
             for o in range(n_out):
                 # Eq. 8: empirical Bayes on {y(X, θ_MAP), X, z}
                 options = {"log_prior": phi_prior, **(fit_options or {})}
-                fits.append(gp.fit_hyperparameters(Y_map, X, z[:, o], seed=rng, **options))
+                fits.append(fit_hyperparameters(Y_map, X, z[:, o], seed=rng, **options))
                 if progress is not None:
                     progress((o + 1) / n_out)
             log_params_hat_arr = np.array([f.log_params for f in fits])
@@ -405,34 +476,25 @@ def infer(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
     else:
         n_phi = as_int(n_phi, "n_phi", 1)
         prior = default_phi_prior(Y[0], X, z[:, 0]) if phi_prior is None else phi_prior
-        phi = prior.sample(S * n_phi, seed=rng).reshape(S, n_phi, P)
-        log_params = np.broadcast_to(phi, (n_out, S, n_phi, P))
-        log_weights = np.empty((n_out, S, n_phi))
-        rows = max(1, 50_000 // n_phi)                      # ~50k pairs per progress step
-        steps = list(_blocks(S, rows))
-        for o in range(n_out):
-            for i, sl in enumerate(steps):
-                # Eq. 15: log w_jk = log p(z | y^(j), X, φ^(j,k)) = −NLML
-                log_weights[o, sl] = -gp.neg_log_marginal_likelihood(
-                    phi[sl], Y[sl, None], X, z[:, o])
-                if progress is not None:
-                    progress((o * len(steps) + i + 1) / (n_out * len(steps)))
-            norm = logsumexp(log_weights[o])
-            if not np.isfinite(norm):
-                raise ValueError(
-                    f"every scenario-3 component of output {o} has zero likelihood (no "
-                    "covariance matrix could be factorised); check phi_prior, whose samples "
-                    "give non-positive-definite covariances.")
-            log_weights[o] -= norm
+        if proposal == "prior":
+            log_params, log_weights = _prior_proposal(Y, X, z, prior, n_phi, rng, progress)
+        else:
+            log_params, log_weights = _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress)
+        k_hat = np.array([psis(log_weights[o].ravel()).k_hat for o in range(n_out)])
+        if proposal == "adaptive":      # Pareto-smoothed weights (Vehtari et al. 2024)
+            log_weights = np.stack([psis(log_weights[o].ravel()).log_weights.reshape(S, -1)
+                                    for o in range(n_out)])
     model = DiscrepancyModel(scenario, simulate, theta, Y, X, z, log_params, log_weights,
                              log_params_hat_arr, nlml_hat, prune, prior,
-                             time.perf_counter() - start)
+                             time.perf_counter() - start, proposal if scenario == 3 else None,
+                             k_hat if scenario == 3 else None)
     if scenario == 3:
-        for o, e in enumerate(model.ess):
-            if e < LOW_ESS:
+        switch = " or use proposal='adaptive'" if proposal == "prior" else ""
+        for o, (e, k) in enumerate(zip(model.ess, k_hat)):
+            if e < LOW_ESS or k > K_HAT_THRESHOLD:
                 warnings.warn(
-                    f"scenario 3, output {o}: effective sample size {e:.1f} of {S * n_phi} "
-                    f"pairs is below {LOW_ESS:g}, so the mixture rests on a few samples. "
-                    "Increase n_phi, or centre phi_prior nearer the empirical-Bayes φ̂ "
-                    "(scenario 1's log_params_hat).", LowESSWarning, stacklevel=2)
+                    f"scenario 3, output {o}: the importance weights are unreliable (ESS "
+                    f"{e:.1f} of {S * n_phi} pairs, Pareto k̂ = {k:.2f}; reliable needs ESS ≥ "
+                    f"{LOW_ESS:g} and k̂ ≤ {K_HAT_THRESHOLD}). Increase n_phi or N_s{switch}.",
+                    LowESSWarning, stacklevel=2)
     return model

@@ -3,16 +3,17 @@ between scenarios, pruning, and beam-1d at reduced sizes."""
 
 import warnings
 
+import naive_gp
 import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-import naive_gp
 from mdcore import cases
-from mdcore.discrepancy import LowESSWarning, infer
-from mdcore.gp import GaussianPrior
+from mdcore.discrepancy import infer_discrepancy
+from mdcore.exceptions import LowESSWarning
 from mdcore.history_matching import history_match_case
 from mdcore.metrics import coverage, nmse
+from mdcore.priors import GaussianPrior
 
 
 def toy_simulate(X, theta):
@@ -53,10 +54,10 @@ def naive_mixture(model, X_star, Ys):
     return out
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.discrepancy.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_scenario3_matches_naive_loop(toy):
     X, z, theta, _, prior = toy
-    model = infer(toy_simulate, theta, X, z, scenario=3, n_phi=5, phi_prior=prior, seed=1)
+    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=5, phi_prior=prior, seed=1)
     # weights: −NLML of every pair by the naive oracle, normalised jointly
     for o in range(2):
         lw = np.array([[-naive_gp.nlml(model.log_params[o, j, k], model.Y[j], X, z[:, o])
@@ -70,10 +71,10 @@ def test_scenario3_matches_naive_loop(toy):
     assert model.log_params.shape == (2, 4, 5, 5) and model.weights.sum() == pytest.approx(2.0)
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.discrepancy.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_mixture_moments_match_brute_force_sampling(toy):
     X, z, theta, _, prior = toy
-    model = infer(toy_simulate, theta, X, z, scenario=3, n_phi=3, phi_prior=prior, seed=2)
+    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=3, phi_prior=prior, seed=2)
     Xs = np.array([[0.25], [0.8]])
     pred = model.predict(Xs, prune=0)
     Ys = toy_simulate(Xs, theta)
@@ -105,9 +106,9 @@ def test_mixture_moments_match_brute_force_sampling(toy):
 
 def test_scenario2_with_map_samples_reproduces_scenario1(toy):
     X, z, _, truth, prior = toy
-    s1 = infer(toy_simulate, None, X, z, scenario=1, theta_map=truth, phi_prior=prior, seed=3)
+    s1 = infer_discrepancy(toy_simulate, None, X, z, scenario=1, theta_map=truth, phi_prior=prior, seed=3)
     same = np.repeat(truth[None], 6, axis=0)
-    s2 = infer(toy_simulate, same, X, z, scenario=2, theta_map=truth, phi_prior=prior, seed=3)
+    s2 = infer_discrepancy(toy_simulate, same, X, z, scenario=2, theta_map=truth, phi_prior=prior, seed=3)
     np.testing.assert_array_equal(s1.log_params_hat, s2.log_params_hat)   # same seed, same fit
     Xs = np.linspace(0, 1, 11)[:, None]
     for a, b in zip(s1.predict(Xs), s2.predict(Xs)):
@@ -115,18 +116,18 @@ def test_scenario2_with_map_samples_reproduces_scenario1(toy):
     assert s2.ess == pytest.approx([6.0, 6.0]) and s1.ess == pytest.approx([1.0, 1.0])
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.discrepancy.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_scenario3_with_concentrated_prior_approaches_scenario2(toy):
     """With φ pinned at φ̂, scenario 3 is scenario 2 with θ re-weighted by p(z | y^(j), φ̂):
     equal to scenario 2 when the θ samples are equally likely (here: identical)."""
     X, z, theta, truth, prior = toy
     Xs = np.linspace(0, 1, 11)[:, None]
     for thetas in (np.repeat(theta[:1], 3, axis=0), theta):
-        s2 = infer(toy_simulate, thetas, X, z, scenario=2, theta_map=truth, phi_prior=prior,
+        s2 = infer_discrepancy(toy_simulate, thetas, X, z, scenario=2, theta_map=truth, phi_prior=prior,
                    seed=4)
         for o in range(2):
             tight = GaussianPrior(mean=s2.log_params_hat[o], var=np.full(5, 1e-14))
-            s3 = infer(toy_simulate, thetas, X, z, scenario=3, n_phi=4, phi_prior=tight, seed=4)
+            s3 = infer_discrepancy(toy_simulate, thetas, X, z, scenario=3, n_phi=4, phi_prior=tight, seed=4)
             lw = -np.array([naive_gp.nlml(s2.log_params_hat[o], y, X, z[:, o]) for y in s2.Y])
             np.testing.assert_allclose(s3.weights[o].sum(axis=1), np.exp(lw - logsumexp(lw)),
                                        rtol=1e-5)
@@ -140,7 +141,7 @@ def test_pruning_matches_unpruned_and_reports_mass(toy):
     wide = GaussianPrior(mean=[0.0, 0.0, 0.0, -0.5, -2.5], var=[4.0, 4.0, 4.0, 4.0, 4.0])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model = infer(toy_simulate, theta, X, z, scenario=3, n_phi=400, phi_prior=wide, seed=5)
+        model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=400, phi_prior=wide, seed=5)
     assert np.all(model.skipped_mass > 0)                       # something was pruned
     assert np.all(model.skipped_mass <= 1e-12 * model.weights[0].size)
     assert np.all(model.n_components < model.weights[0].size)
@@ -149,13 +150,13 @@ def test_pruning_matches_unpruned_and_reports_mass(toy):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-8)
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.discrepancy.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_same_seed_same_numbers_and_progress(toy):
     X, z, theta, truth, prior = toy
     seen = []
-    a = infer(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, seed=7,
+    a = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, seed=7,
               progress=seen.append)
-    b = infer(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, seed=7)
+    b = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, seed=7)
     np.testing.assert_array_equal(a.log_weights, b.log_weights)
     assert seen == sorted(seen) and seen[-1] == 1.0
     seen.clear()
@@ -169,14 +170,14 @@ def test_same_seed_same_numbers_and_progress(toy):
         raise Stop
 
     with pytest.raises(Stop):
-        infer(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, progress=cancel)
+        infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, progress=cancel)
 
 
 def test_low_ess_warns_with_a_suggestion(toy):
     X, z, theta, _, _ = toy
     far = GaussianPrior(mean=[3.0, 3.0, 3.0, 3.0, -6.0], var=[9.0] * 5)
     with pytest.warns(LowESSWarning, match="Increase n_phi"):
-        infer(toy_simulate, theta, X, z, scenario=3, n_phi=20, phi_prior=far, seed=0)
+        infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=20, phi_prior=far, seed=0)
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -199,18 +200,18 @@ def test_low_ess_warns_with_a_suggestion(toy):
      r"log_params_hat must have shape \(n_out, P\) = \(2, 5\)"),
     (dict(scenario=2, theta_map=[1.0, 0.2, 3.0]), "p = 3 like theta_map"),
 ])
-@pytest.mark.filterwarnings("ignore::mdcore.discrepancy.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_bad_input(toy, kwargs, match):
     X, z, theta, _, prior = toy
     args = dict(theta_samples=theta, X=X, z=z, n_phi=2)
     args.update(kwargs)
     with pytest.raises(ValueError, match=match):
-        infer(toy_simulate, args.pop("theta_samples"), args.pop("X"), args.pop("z"), **args)
+        infer_discrepancy(toy_simulate, args.pop("theta_samples"), args.pop("X"), args.pop("z"), **args)
 
 
 def test_predict_bad_input(toy):
     X, z, theta, truth, prior = toy
-    model = infer(toy_simulate, theta, X, z, scenario=2, theta_map=truth, seed=0)
+    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=2, theta_map=truth, seed=0)
     with pytest.raises(ValueError, match=r"X_star must have shape \(N\*, d_x\) with d_x = 1"):
         model.predict(np.ones((3, 2)))
     with pytest.raises(ValueError, match="X_star contains 1 NaN"):
@@ -227,7 +228,7 @@ def beam1d():
 def test_beam1d_reduced_sizes(beam1d, scenario):
     case, hm = beam1d
     theta = hm.posterior_samples(200, seed=0)
-    model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=scenario,
+    model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=scenario,
                   theta_map=hm.theta_map, n_phi=50, phi_prior=case.phi_prior, seed=0)
     pred = model.predict(case.X_test)
     delta = case.true_delta(case.X_test)
@@ -236,3 +237,39 @@ def test_beam1d_reduced_sizes(beam1d, scenario):
     if scenario in (2, 3):
         assert nmse(delta, pred.delta_mean)[0] < 10.0
         assert coverage(delta, pred.delta_mean, pred.delta_var, k=3)[0] >= 0.9
+
+
+@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+def test_adaptive_proposal_agrees_with_a_long_prior_run_and_keeps_more_samples(rng):
+    """Same budget, same target (Eq. 15): the adaptive proposal's mixture is close to a
+    40,000-draw prior run, with far more effective samples than 800 prior draws."""
+    X = np.linspace(0, 1, 7)[:, None]
+    z = toy_simulate(X, np.array([1.0, 0.2]))[0] + 0.3 * np.cos(4 * X) \
+        + 0.05 * rng.normal(size=(7, 2))
+    theta = np.array([1.0, 0.2]) + 0.1 * rng.normal(size=(3, 2))
+    wide = GaussianPrior(mean=[0.0, 0.0, 0.0, -0.5, -2.5], var=[2.0] * 5)
+    Xs = np.linspace(0, 1, 5)[:, None]
+    ref_model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=40_000, phi_prior=wide,
+                      seed=1)
+    ref = ref_model.predict(Xs)
+    ada = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=800, phi_prior=wide, seed=2,
+                proposal="adaptive")
+    plain = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=800, phi_prior=wide, seed=2)
+    assert ada.proposal == "adaptive" and plain.proposal == "prior"
+    assert ada.log_params.shape == (2, 3, 800, 5)
+    np.testing.assert_allclose(logsumexp(ada.log_weights.reshape(2, -1), axis=1), 0.0,
+                               atol=1e-12)
+    p = ada.predict(Xs)
+    sd = np.sqrt(ref.delta_var)
+    assert np.max(np.abs(p.delta_mean - ref.delta_mean) / sd) < 0.2
+    np.testing.assert_allclose(np.sqrt(p.delta_var), sd, rtol=0.1)
+    # θ marginal weights agree with the long run's (the evidence of each θ).
+    np.testing.assert_allclose(np.exp(logsumexp(ada.log_weights, axis=2)),
+                               np.exp(logsumexp(ref_model.log_weights, axis=2)), atol=0.05)
+    assert np.all(ada.ess > 5 * plain.ess) and np.all(ada.k_hat < 0.7)
+    same = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=800, phi_prior=wide, seed=2,
+                 proposal="adaptive")
+    np.testing.assert_array_equal(same.log_weights, ada.log_weights)
+    with pytest.raises(ValueError, match="'amis' is not a valid proposal"):
+        infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=8, phi_prior=wide,
+              proposal="amis")

@@ -1,0 +1,406 @@
+"""Importance-sampling tools for scenario 3: ESS, Pareto smoothing (k̂) and Student-t proposals.
+
+Scenario 3 (SPEC §6, paper Eq. 15) weights (θ, φ) pairs by the GP marginal likelihood.
+Whether such weights can be trusted is judged by two numbers:
+
+- the effective sample size ``ESS = 1 / Σ w²`` of the normalised weights, and
+- the Pareto shape ``k̂`` of the weights' right tail (Vehtari, Simpson, Gelman, Yao & Gabry,
+  "Pareto smoothed importance sampling", JMLR 2024, Algorithm 1): below 0.7 the
+  importance-sampling estimate is reliable; above it, it is not, whatever the ESS says.
+
+Pareto smoothing (PSIS) replaces the largest ``M = min(0.2 S, 3 √(S / r_eff))`` weights by the
+expected order statistics of a generalised Pareto distribution fitted to them (with the
+Zhang & Stephens 2009 estimator and the weakly informative prior on k of Vehtari et al.),
+truncated at the largest raw weight.
+
+The adaptive proposal of scenario 3 draws φ from heavy-tailed multivariate Student-t
+distributions fitted to the weighted samples (:class:`StudentT`), in the spirit of
+population Monte Carlo / AMIS (Cornuet, Marin, Mira & Robert 2012).
+
+Examples
+--------
+>>> import numpy as np
+>>> rng = np.random.default_rng(0)
+>>> lw = rng.standard_normal(4000)              # light-tailed weights: reliable
+>>> result = psis(lw)
+>>> bool(result.k_hat < 0.5), round(float(np.exp(result.log_weights).sum()), 12)
+(True, 1.0)
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+from scipy.special import gammaln, logsumexp
+
+from .validation import as_float_array, as_int
+
+__all__ = ["K_HAT_THRESHOLD", "PSIS", "effective_sample_size", "psis",
+           "generalized_pareto_fit", "StudentT", "AdaptiveSample", "stage_sizes",
+           "adaptive_importance_sampling"]
+
+#: Above this Pareto shape the importance-sampling estimate is unreliable (Vehtari et al.).
+K_HAT_THRESHOLD = 0.7
+
+
+class PSIS(NamedTuple):
+    """Pareto-smoothed importance weights.
+
+    Attributes
+    ----------
+    log_weights : ndarray of shape (S,)
+        Smoothed, normalised log weights (``logsumexp`` is 0).
+    k_hat : float
+        Estimated Pareto shape of the raw weights' right tail (``inf`` when the tail has
+        five or fewer samples).
+    """
+
+    log_weights: np.ndarray
+    k_hat: float
+
+
+def effective_sample_size(log_weights, axis=None) -> np.ndarray:
+    """Kish's effective sample size ``(Σ w)² / Σ w²`` from unnormalised log weights.
+
+    Parameters
+    ----------
+    log_weights : ndarray
+        Log weights (``-inf`` for zero weight).
+    axis : int or tuple of int, optional
+        Axes summed over (default all).
+
+    Returns
+    -------
+    ndarray or float
+        Between 1 and the number of weights.
+
+    Examples
+    --------
+    >>> round(float(effective_sample_size(np.zeros(10))), 12)
+    10.0
+    """
+    lw = np.asarray(log_weights, dtype=np.float64)
+    return np.exp(2.0 * logsumexp(lw, axis=axis) - logsumexp(2.0 * lw, axis=axis))
+
+
+def generalized_pareto_fit(x) -> tuple[float, float]:
+    """Shape ``k`` and scale ``σ`` of a generalised Pareto distribution fitted to ``x``.
+
+    The Zhang & Stephens (2009) empirical-Bayes estimator: a posterior mean of
+    ``b = −k/σ`` over a grid of ``m = 30 + ⌊√n⌋`` values under a profile likelihood, then
+    ``k`` from ``b``, shrunk toward 0.5 by the weakly informative prior of Vehtari et al.
+    (a prior sample size of 10).
+
+    Parameters
+    ----------
+    x : ndarray of shape (n,)
+        Exceedances over the threshold, sorted ascending, all > 0; n ≥ 5.
+
+    Returns
+    -------
+    k, sigma : float
+    """
+    x = as_float_array(x, "x", ndim=1)
+    n = x.size
+    if n < 5 or np.any(x <= 0) or np.any(np.diff(x) < 0):
+        raise ValueError(f"x must be at least 5 positive values sorted ascending; received "
+                         f"{n} values with minimum {float(x.min()):.3g}.")
+    m = 30 + int(np.sqrt(n))
+    # Grid of b (Zhang & Stephens 2009, Eq. 6): centred near 1/x_max, spread by the quartile.
+    b = 1.0 - np.sqrt(m / (np.arange(1, m + 1) - 0.5))
+    b /= 3.0 * x[int(n / 4 + 0.5) - 1]
+    b += 1.0 / x[-1]
+    k = np.mean(np.log1p(-b[:, None] * x), axis=1)
+    profile = n * (np.log(-b / k) - k - 1.0)                   # profile log likelihood
+    with np.errstate(over="ignore"):                          # exp -> inf: weight 0
+        weights = 1.0 / np.sum(np.exp(profile[None, :] - profile[:, None]), axis=1)
+    keep = weights >= 10 * np.finfo(float).eps
+    weights, b = weights[keep], b[keep]
+    b_post = float(np.sum(b * weights / weights.sum()))
+    k_post = float(np.mean(np.log1p(-b_post * x)))
+    sigma = -k_post / b_post
+    k_post = (n * k_post + 10 * 0.5) / (n + 10)                # prior: 10 samples at k = 0.5
+    return k_post, sigma
+
+
+def _gp_quantiles(p: np.ndarray, k: float, sigma: float) -> np.ndarray:
+    """Quantiles of the generalised Pareto distribution at probabilities ``p`` in (0, 1)."""
+    if abs(k) < np.finfo(float).eps:
+        return -sigma * np.log1p(-p)
+    return sigma * np.expm1(-k * np.log1p(-p)) / k
+
+
+def psis(log_weights, *, r_eff: float = 1.0) -> PSIS:
+    """Pareto-smoothed importance sampling (Vehtari et al. 2024, Algorithm 1).
+
+    Parameters
+    ----------
+    log_weights : ndarray of shape (S,)
+        Unnormalised log importance weights; ``-inf`` is a zero weight.
+    r_eff : float, default=1
+        Relative efficiency of the draws (1 for independent draws).
+
+    Returns
+    -------
+    PSIS
+        Smoothed normalised log weights and ``k_hat``.
+    """
+    lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
+    if np.any(np.isnan(lw)) or np.any(lw == np.inf):
+        raise ValueError("log_weights must not contain NaN or +inf; a zero weight is -inf.")
+    if not np.any(np.isfinite(lw)):
+        raise ValueError("every weight is zero (all log_weights are -inf); nothing to smooth.")
+    S = lw.size
+    x = lw - np.max(lw)
+    tail = int(np.ceil(min(0.2 * S, 3.0 * np.sqrt(S / float(r_eff)))))
+    order = np.argsort(x)
+    cutoff = max(x[order[-tail - 1]] if tail < S else -np.inf, np.log(np.finfo(float).tiny))
+    idx = np.flatnonzero(x > cutoff)
+    k_hat = np.inf
+    if idx.size > 4:
+        by_size = idx[np.argsort(x[idx])]
+        exceed = np.exp(x[by_size]) - np.exp(cutoff)
+        k_hat, sigma = generalized_pareto_fit(exceed)
+        if np.isfinite(k_hat) and sigma > 0:
+            p = (np.arange(idx.size) + 0.5) / idx.size
+            x[by_size] = np.log(_gp_quantiles(p, k_hat, sigma) + np.exp(cutoff))
+            np.minimum(x, 0.0, out=x)                          # not above the largest raw
+    return PSIS(x - logsumexp(x), float(k_hat))
+
+
+@dataclass(frozen=True)
+class StudentT:
+    """A multivariate Student-t distribution: location, scale matrix and degrees of freedom.
+
+    Parameters
+    ----------
+    mean : ndarray of shape (P,)
+    scale : ndarray of shape (P, P)
+        Positive-definite scale matrix; the covariance is ``scale · df / (df − 2)``.
+    df : float
+        Degrees of freedom (> 2); small values give heavy tails.
+    """
+
+    mean: np.ndarray
+    scale: np.ndarray
+    df: float
+    _chol: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        mean = as_float_array(self.mean, "mean", ndim=1)
+        scale = as_float_array(self.scale, "scale", ndim=2)
+        if scale.shape != (mean.size, mean.size):
+            raise ValueError(f"scale must have shape (P, P) = ({mean.size}, {mean.size}); "
+                             f"received {scale.shape}.")
+        df = float(self.df)
+        if not df > 2.0 or not np.isfinite(df):
+            raise ValueError(f"df must be a finite number > 2 (finite variance); received "
+                             f"{self.df!r}.")
+        try:
+            chol = np.linalg.cholesky(0.5 * (scale + scale.T))
+        except np.linalg.LinAlgError:
+            raise ValueError("scale must be symmetric positive definite; its Cholesky "
+                             "factorisation failed.") from None
+        object.__setattr__(self, "mean", mean)
+        object.__setattr__(self, "scale", scale)
+        object.__setattr__(self, "df", df)
+        object.__setattr__(self, "_chol", chol)
+
+    @classmethod
+    def fit(cls, samples, log_weights, *, df: float = 5.0, inflate: float = 1.0,
+            floor=None) -> StudentT:
+        """Match a weighted sample's mean and covariance (moment fit).
+
+        Parameters
+        ----------
+        samples : ndarray of shape (n, P)
+        log_weights : ndarray of shape (n,)
+            Unnormalised; ``-inf`` is a zero weight.
+        df : float, default=5
+        inflate : float, default=1
+            Multiplies the covariance (> 1 widens the proposal).
+        floor : ndarray of shape (P,), optional
+            Smallest standard deviation per dimension (keeps a collapsed sample usable).
+        """
+        samples = as_float_array(samples, "samples", ndim=2)
+        lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
+        if lw.size != samples.shape[0] or np.any(np.isnan(lw)):
+            raise ValueError(f"log_weights must have one value per sample ({samples.shape[0]}) "
+                             f"and no NaN; received shape {lw.shape}.")
+        total = logsumexp(lw)
+        if not np.isfinite(total):
+            raise ValueError("every weight is zero; cannot fit a proposal.")
+        w = np.exp(lw - total)
+        mean = w @ samples
+        d = samples - mean
+        cov = (d * w[:, None]).T @ d * float(inflate)
+        if floor is not None:
+            sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
+            target = np.maximum(sd, as_float_array(floor, "floor", ndim=1))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.where(sd > 0, target / sd, 1.0)
+            cov = cov * np.outer(ratio, ratio)
+            cov[np.diag_indices_from(cov)] = np.maximum(np.diag(cov), target ** 2)
+        cov += 1e-12 * np.mean(np.diag(cov)) * np.eye(cov.shape[0])
+        return cls(mean, cov * (df - 2.0) / df, df)
+
+    @property
+    def size(self) -> int:
+        """Dimension ``P``."""
+        return self.mean.size
+
+    def logpdf(self, x) -> np.ndarray:
+        """Log density at ``x`` of shape (..., P); returns shape (...)."""
+        x = np.asarray(x, dtype=np.float64)
+        P, nu = self.size, self.df
+        d = (x - self.mean).reshape(-1, P)
+        u = np.linalg.solve(self._chol, d.T)                    # L⁻¹ (x − μ)
+        q = np.sum(u * u, axis=0)
+        log_det = 2.0 * np.sum(np.log(np.diag(self._chol)))
+        out = (gammaln(0.5 * (nu + P)) - gammaln(0.5 * nu) - 0.5 * P * np.log(nu * np.pi)
+               - 0.5 * log_det - 0.5 * (nu + P) * np.log1p(q / nu))
+        return out.reshape(x.shape[:-1])
+
+    def sample(self, n: int, seed=None) -> np.ndarray:
+        """``n`` draws, shape (n, P): ``μ + L g / √(χ²_ν / ν)``."""
+        n = as_int(n, "n", 1)
+        rng = np.random.default_rng(seed)
+        g = rng.standard_normal((n, self.size))
+        chi = rng.chisquare(self.df, size=n)
+        return self.mean + (g @ self._chol.T) / np.sqrt(chi / self.df)[:, None]
+
+
+#: Adaptive proposal: share of the budget drawn from the prior in the first stage,
+#: number of stages, Student-t degrees of freedom, and covariance inflation. Chosen on the
+#: three cases (N_s = 50–100, N_φ = 200 and 1000): against (0.25, 4 stages) and
+#: (0.1, 6 stages, inflation 2), these gave the largest ESS over φ on every case with
+#: k̂ < 0.4 (beam-2d at N_φ = 200: ESS over φ 102 against 21 and 83).
+FIRST_STAGE, N_STAGES, DF, INFLATE = 0.1, 8, 5.0, 1.5
+
+
+def stage_sizes(n: int, n_stages: int = N_STAGES) -> list[int]:
+    """Split a per-group budget ``n`` into stages: a tenth from the prior, the rest evenly.
+
+    Examples
+    --------
+    >>> stage_sizes(500), stage_sizes(3), stage_sizes(1)
+    ([50, 65, 65, 64, 64, 64, 64, 64], [1, 1, 1], [1])
+    """
+    n = as_int(n, "n", 1)
+    n_stages = max(1, min(as_int(n_stages, "n_stages", 1), n))
+    if n_stages == 1:
+        return [n]
+    first = min(n - (n_stages - 1), max(1, int(round(FIRST_STAGE * n))))
+    rest, k = n - first, n_stages - 1
+    return [first] + [rest // k + (1 if i < rest % k else 0) for i in range(k)]
+
+
+class AdaptiveSample(NamedTuple):
+    """Result of :func:`adaptive_importance_sampling`.
+
+    Attributes
+    ----------
+    samples : ndarray of shape (S, n, P)
+        Draws per group (stage by stage along the second axis).
+    log_weights : ndarray of shape (S, n)
+        Deterministic-mixture log weights, normalised jointly over all (group, draw) pairs.
+    log_likelihood : ndarray of shape (S, n)
+        ``log_likelihood(samples)`` as computed once per draw.
+    proposals : tuple of StudentT
+        The fitted proposals of stages 2, 3, … (stage 1 is the prior).
+    stage_sizes : tuple of int
+    """
+
+    samples: np.ndarray
+    log_weights: np.ndarray
+    log_likelihood: np.ndarray
+    proposals: tuple
+    stage_sizes: tuple
+
+
+def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarray],
+                                 prior, n_groups: int, n: int, *, seed=None,
+                                 n_stages: int = N_STAGES, df: float = DF,
+                                 inflate: float = INFLATE,
+                                 progress: Callable[[float], None] | None = None
+                                 ) -> AdaptiveSample:
+    """Adaptive multiple importance sampling (AMIS, Cornuet et al. 2012) of ``p(x | group)``.
+
+    For each of ``n_groups`` groups (scenario 3: the θ samples) the target is
+    ``log_likelihood(x, group) + log prior(x)``. Stage 1 draws from the prior; each later
+    stage fits a Student-t (:meth:`StudentT.fit`, heavy tails, covariance × ``inflate``) to
+    all weighted draws so far, pooled over the groups, and draws from it. Every draw is
+    then weighted against the mixture of all stages' proposals (deterministic-mixture
+    weights, all in log space)::
+
+        log w = log L(x) + log p(x) − log Σ_t (n_t / n) q_t(x)
+
+    and the weights are normalised jointly over groups and draws, so a group's total weight
+    estimates its marginal likelihood ``∫ L p dx`` (up to a common constant). With one
+    stage this is plain importance sampling from the prior.
+
+    Parameters
+    ----------
+    log_likelihood : callable
+        ``log_likelihood(x)`` with ``x`` of shape (S, m, P), row j for group j -> (S, m)
+        log likelihoods (``-inf`` allowed).
+    prior : object with ``sample(n, seed)``, ``logpdf(x)`` and ``var``
+        For example :class:`mdcore.priors.GaussianPrior`.
+    n_groups, n : int
+        Groups and draws per group (the total budget is ``n_groups × n``).
+    seed : int or Generator, optional
+    n_stages : int, default=8
+    df, inflate : float
+        The Student-t's degrees of freedom and covariance inflation.
+    progress : callable, optional
+        Fraction done after each stage; raising from it stops the sampling.
+
+    Returns
+    -------
+    AdaptiveSample
+    """
+    S = as_int(n_groups, "n_groups", 1)
+    sizes = stage_sizes(n, n_stages)
+    rng = np.random.default_rng(seed)
+    P = int(np.size(prior.var))
+    n_total = sum(sizes)
+    x = np.empty((S, n_total, P))
+    loglik = np.empty((S, n_total))
+    proposals: list = []
+    log_q: list = [prior.logpdf]
+    floor = 0.02 * np.sqrt(np.asarray(prior.var, dtype=np.float64))
+    col = 0
+    for t, n_t in enumerate(sizes):
+        if t == 0:
+            draws = prior.sample(S * n_t, seed=rng)
+        else:
+            lw = _mixture_log_weights(x[:, :col], loglik[:, :col], prior, log_q, sizes[:t])
+            q = StudentT.fit(x[:, :col].reshape(-1, P), lw.ravel(), df=df, inflate=inflate,
+                             floor=floor)
+            proposals.append(q)
+            log_q.append(q.logpdf)
+            draws = q.sample(S * n_t, seed=rng)
+        sl = slice(col, col + n_t)
+        x[:, sl] = draws.reshape(S, n_t, P)
+        loglik[:, sl] = log_likelihood(x[:, sl])
+        col += n_t
+        if progress is not None:
+            progress((t + 1) / len(sizes))
+    lw = _mixture_log_weights(x, loglik, prior, log_q, sizes)
+    total = logsumexp(lw)
+    if not np.isfinite(total):
+        raise ValueError("every adaptive importance weight is zero: the likelihood is zero "
+                         "at every draw; check the prior.")
+    return AdaptiveSample(x, lw - total, loglik, tuple(proposals), tuple(sizes))
+
+
+def _mixture_log_weights(x, loglik, prior, log_q, sizes) -> np.ndarray:
+    """``log L + log p − log Σ_t (n_t / n) q_t`` for draws ``x`` (S, m, P)."""
+    n = sum(sizes)
+    mix = logsumexp([np.log(n_t / n) + f(x) for f, n_t in zip(log_q, sizes)], axis=0)
+    with np.errstate(invalid="ignore"):
+        lw = loglik + prior.logpdf(x) - mix
+    return np.where(np.isnan(lw), -np.inf, lw)

@@ -1,0 +1,178 @@
+"""Importance-sampling tools: PSIS against arviz and known Pareto tails, ESS, Student-t."""
+
+import warnings
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from mdcore.importance import (
+    K_HAT_THRESHOLD,
+    StudentT,
+    effective_sample_size,
+    generalized_pareto_fit,
+    psis,
+)
+
+
+def pareto_log_weights(k, n, rng, sigma=1.0):
+    """Log of generalised-Pareto draws with shape k (the tail PSIS estimates)."""
+    u = rng.uniform(size=n)
+    return np.log(sigma * np.expm1(-k * np.log1p(-u)) / k)
+
+
+@pytest.mark.parametrize("kind", ["normal", "pareto-0.4", "pareto-0.9", "with-zeros"])
+def test_psis_matches_arviz(kind):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        az = pytest.importorskip("arviz")
+    rng = np.random.default_rng(3)
+    if kind == "normal":
+        lw = 2.0 * rng.standard_normal(3000)
+    elif kind.startswith("pareto"):
+        lw = pareto_log_weights(float(kind.split("-")[1]), 5000, rng)
+    else:
+        lw = rng.standard_normal(2000)
+        lw[::7] = -np.inf
+    ours = psis(lw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ref_lw, ref_k = az.psislw(lw.copy())
+    np.testing.assert_allclose(ours.k_hat, float(ref_k), rtol=1e-10)
+    finite = np.isfinite(ref_lw)
+    np.testing.assert_array_equal(np.isfinite(ours.log_weights), finite)
+    np.testing.assert_allclose(ours.log_weights[finite], np.asarray(ref_lw)[finite],
+                               rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("k", [0.2, 0.5, 0.9])
+def test_k_hat_recovers_a_known_pareto_tail(k):
+    rng = np.random.default_rng(11)
+    estimates = [psis(pareto_log_weights(k, 20_000, rng)).k_hat for _ in range(5)]
+    # The tail has M = 3 √S ≈ 424 samples; the estimator's sd is about (1 + k)/√M ≈ 0.07.
+    assert abs(np.mean(estimates) - k) < 0.08, estimates
+    assert (np.mean(estimates) > K_HAT_THRESHOLD) == (k > K_HAT_THRESHOLD)
+
+
+def test_psis_edge_cases_and_bad_input():
+    out = psis(np.zeros(3))                    # tail too short to fit: k̂ = inf, weights kept
+    assert out.k_hat == np.inf
+    np.testing.assert_allclose(np.exp(out.log_weights), 1 / 3)
+    with pytest.raises(ValueError, match="NaN or \\+inf"):
+        psis([0.0, np.nan, 1.0])
+    with pytest.raises(ValueError, match="every weight is zero"):
+        psis([-np.inf, -np.inf])
+    with pytest.raises(ValueError, match="log_weights must have 1 dimension"):
+        psis(np.zeros((3, 3)))
+    with pytest.raises(ValueError, match="at least 5 positive values sorted"):
+        generalized_pareto_fit([1.0, 2.0, 3.0])
+
+
+def test_generalized_pareto_fit_against_scipy_mle():
+    rng = np.random.default_rng(5)
+    x = np.sort(stats.genpareto(c=0.3, scale=2.0).rvs(20_000, random_state=rng))
+    k, sigma = generalized_pareto_fit(x)
+    c_mle, _, scale_mle = stats.genpareto.fit(x, floc=0.0)
+    assert abs(k - c_mle) < 0.03 and abs(sigma / scale_mle - 1) < 0.03
+    assert abs(k - 0.3) < 0.05 and abs(sigma - 2.0) < 0.1
+
+
+def test_effective_sample_size_closed_forms():
+    assert float(effective_sample_size(np.full(7, -3.0))) == pytest.approx(7.0, rel=1e-12)
+    w = np.array([0.5, 0.25, 0.25])
+    assert float(effective_sample_size(np.log(w))) == pytest.approx(1 / np.sum(w**2))
+    assert float(effective_sample_size([0.0, -np.inf, -np.inf])) == pytest.approx(1.0)
+    lw = np.log(np.array([[1.0, 1.0, 0.0], [1.0, 3.0, 0.0]]) + 1e-300)
+    np.testing.assert_allclose(effective_sample_size(lw, axis=1), [2.0, 1.6], rtol=1e-12)
+
+
+def test_student_t_density_sampling_and_fit():
+    mean = np.array([1.0, -2.0, 0.5])
+    A = np.array([[1.0, 0.3, 0.0], [0.3, 2.0, -0.4], [0.0, -0.4, 0.5]])
+    t = StudentT(mean, A, df=5.0)
+    x = np.random.default_rng(0).standard_normal((6, 3))
+    np.testing.assert_allclose(t.logpdf(x), stats.multivariate_t(mean, A, df=5).logpdf(x),
+                               rtol=1e-12)
+    draws = t.sample(200_000, seed=1)
+    np.testing.assert_array_equal(draws[:5], t.sample(200_000, seed=1)[:5])
+    cov = A * 5.0 / 3.0
+    se = np.sqrt(np.diag(cov) / 200_000)
+    assert np.all(np.abs(draws.mean(axis=0) - mean) < 5 * se)
+    np.testing.assert_allclose(np.cov(draws, rowvar=False), cov, atol=0.06)
+    # The moment fit reproduces the weighted mean and covariance exactly.
+    rng = np.random.default_rng(2)
+    s = rng.standard_normal((50, 3))
+    lw = rng.standard_normal(50)
+    w = np.exp(lw - np.log(np.sum(np.exp(lw))))
+    f = StudentT.fit(s, lw, df=4.0, inflate=2.0)
+    np.testing.assert_allclose(f.mean, w @ s, rtol=1e-12)
+    wcov = (s - w @ s).T @ ((s - w @ s) * w[:, None])
+    np.testing.assert_allclose(f.scale * 4.0 / 2.0, 2.0 * wcov, rtol=1e-9, atol=1e-12)
+    floored = StudentT.fit(s[:1].repeat(4, 0), np.zeros(4), df=4.0, floor=[0.1, 0.2, 0.3])
+    np.testing.assert_allclose(np.sqrt(np.diag(floored.scale) * 2.0), [0.1, 0.2, 0.3],
+                               rtol=1e-6)
+
+
+def test_student_t_bad_input():
+    with pytest.raises(ValueError, match=r"scale must have shape \(P, P\) = \(2, 2\)"):
+        StudentT([0.0, 0.0], np.eye(3), 5.0)
+    with pytest.raises(ValueError, match="df must be a finite number > 2"):
+        StudentT([0.0], [[1.0]], 2.0)
+    with pytest.raises(ValueError, match="symmetric positive definite"):
+        StudentT([0.0, 0.0], [[1.0, 2.0], [2.0, 1.0]], 5.0)
+    with pytest.raises(ValueError, match="mean contains 1 NaN"):
+        StudentT([np.nan], [[1.0]], 5.0)
+    with pytest.raises(ValueError, match="every weight is zero"):
+        StudentT.fit(np.zeros((3, 1)), np.full(3, -np.inf))
+    with pytest.raises(ValueError, match="one value per sample"):
+        StudentT.fit(np.zeros((3, 1)), np.zeros(2))
+    with pytest.raises(ValueError, match="n must be an integer ≥ 1"):
+        StudentT([0.0], [[1.0]], 5.0).sample(0)
+
+
+def test_stage_sizes():
+    from mdcore.importance import stage_sizes
+    assert stage_sizes(1000) == [100] + [129] * 4 + [128] * 3 and sum(stage_sizes(37)) == 37
+    assert stage_sizes(1000, 4) == [100, 300, 300, 300]
+    assert stage_sizes(3) == [1, 1, 1] and stage_sizes(2, 1) == [2]
+    with pytest.raises(ValueError, match="n must be an integer ≥ 1"):
+        stage_sizes(0)
+
+
+def test_adaptive_sampling_against_a_conjugate_gaussian():
+    """Groups j with prior x ~ N(0, v0 I) and likelihood N(y_j | x, r I): the posterior of
+    each group and the groups' marginal likelihoods N(y_j | 0, (v0 + r) I) are closed form."""
+    from mdcore.importance import adaptive_importance_sampling, stage_sizes
+    from mdcore.priors import GaussianPrior
+    P, v0, r = 3, 4.0, 0.05
+    y = np.array([[0.5, -1.0, 0.2], [0.6, -0.9, 0.1], [0.4, -1.2, 0.3]])
+    prior = GaussianPrior(np.zeros(P), np.full(P, v0))
+
+    def loglik(x):                                      # x (S, m, P)
+        return stats.multivariate_normal(np.zeros(P), r * np.eye(P)).logpdf(
+            x - y[:, None, :]).reshape(x.shape[:2])
+
+    out = adaptive_importance_sampling(loglik, prior, 3, 4000, seed=0)
+    assert out.samples.shape == (3, 4000, P) and out.stage_sizes == tuple(stage_sizes(4000))
+    np.testing.assert_allclose(np.exp(out.log_weights).sum(), 1.0, rtol=1e-12)
+    w = np.exp(out.log_weights)
+    evidence = stats.multivariate_normal(np.zeros(P), (v0 + r) * np.eye(P)).logpdf(y)
+    want = np.exp(evidence - np.log(np.sum(np.exp(evidence))))
+    np.testing.assert_allclose(w.sum(axis=1), want, rtol=0.08)    # ~3 sd at ESS ≈ 1000
+    post_var = 1.0 / (1.0 / v0 + 1.0 / r)
+    for j in range(3):
+        wj = w[j] / w[j].sum()
+        mean = wj @ out.samples[j]
+        np.testing.assert_allclose(mean, post_var * y[j] / r, atol=5 * np.sqrt(post_var / 500))
+        var = wj @ (out.samples[j] - mean) ** 2
+        np.testing.assert_allclose(var, post_var, rtol=0.15)
+    # The prior alone wastes almost every draw on this narrow posterior.
+    ess_adaptive = effective_sample_size(out.log_weights)
+    plain = adaptive_importance_sampling(loglik, prior, 3, 4000, seed=0, n_stages=1)
+    assert ess_adaptive > 1000 and ess_adaptive > 20 * effective_sample_size(plain.log_weights)
+    assert psis(out.log_weights.ravel()).k_hat < 0.7
+    same = adaptive_importance_sampling(loglik, prior, 3, 4000, seed=0)
+    np.testing.assert_array_equal(same.log_weights, out.log_weights)
+    with pytest.raises(ValueError, match="every adaptive importance weight is zero"):
+        adaptive_importance_sampling(lambda x: np.full(x.shape[:2], -np.inf), prior, 2, 8,
+                                     seed=0, n_stages=1)

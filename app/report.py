@@ -1,0 +1,258 @@
+"""A self-contained HTML report of a run: opens offline, every resource inline.
+
+The report holds the case, the settings, the history-matching waves, the bands of every
+method (z and δ at the test inputs), the metrics table and a metrics chart with the
+paper's values, and the warnings. Plots are Bokeh figures with BokehJS inlined
+(:class:`bokeh.resources.Resources` in ``inline`` mode), so the file needs no network.
+
+Examples
+--------
+>>> from mdcore import cases
+>>> from mdcore.pipeline import Settings
+>>> from mdcore.reproduce import run_case
+>>> run = run_case(cases.load("beam-1d"), methods=[1], settings=Settings(n_s=10),
+...                n_candidates=5000)
+>>> html = report_html(run)
+>>> "<script src=" in html, "Bokeh" in html
+(False, True)
+"""
+
+from __future__ import annotations
+
+import html as _html
+from pathlib import Path
+
+import numpy as np
+from bokeh.embed import file_html
+from bokeh.layouts import column, gridplot
+from bokeh.models import ColumnDataSource, Div, FactorRange, Whisker
+from bokeh.plotting import figure
+from bokeh.resources import Resources
+
+from mdcore.study import PAPER
+
+__all__ = ["report_html", "report_layout", "write_report"]
+
+COLORS = {"1": "#1f77b4", "2": "#ff7f0e", "3": "#2ca02c", "koh": "#d62728"}
+LABELS = {"1": "Scenario 1", "2": "Scenario 2", "3": "Scenario 3", "koh": "KOH"}
+
+
+def _unit(name: str, unit: str) -> str:
+    return f"{name} [{unit}]" if unit and unit != "-" else name
+
+
+def _esc(text) -> str:
+    return _html.escape(str(text))
+
+
+def _band_figure(case, result, o: int, quantity: str, k: float = 2.0):
+    """z or δ at the test inputs of a 1-D case: the ±kσ band, the mean, the data or truth."""
+    x = case.X_test[:, 0]
+    order = np.argsort(x, kind="stable")
+    p = result.on_test
+    mean = (p.z_mean if quantity == "z" else p.delta_mean)[order, o]
+    sd = np.sqrt((p.z_var if quantity == "z" else p.delta_var)[order, o])
+    label = LABELS[result.method.value]
+    yname = case.output_names[o] if quantity == "z" else f"δ {case.output_names[o]}"
+    fig = figure(height=260, sizing_mode="stretch_width",
+                 title=f"{label}: {yname} (±{k:g}σ)",
+                 x_axis_label=_unit(case.x_names[0], case.x_units[0]),
+                 y_axis_label=_unit(yname, case.output_units[o]))
+    src = ColumnDataSource({"x": x[order], "lo": mean - k * sd, "hi": mean + k * sd,
+                            "mean": mean})
+    fig.varea("x", "lo", "hi", source=src, fill_alpha=0.25,
+              fill_color=COLORS[result.method.value], legend_label=f"±{k:g}σ")
+    fig.line("x", "mean", source=src, color=COLORS[result.method.value], legend_label="mean")
+    if quantity == "z":
+        fig.scatter(case.X_train[:, 0], case.z_train[:, o], color="black", size=5,
+                    legend_label="training data")
+        fig.scatter(x, case.z_test[:, o], color="grey", size=3, alpha=0.6,
+                    legend_label="test data")
+    else:
+        truth = case.true_delta(case.X_test)
+        if truth is not None:
+            fig.line(x[order], truth[order, o], color="black", line_dash="dashed",
+                     legend_label="true δ")
+    fig.legend.location = "top_left"
+    fig.legend.label_text_font_size = "8pt"
+    return fig
+
+
+def _residual_figure(case, result, o: int):
+    """Any input dimension: predicted δ ± 2σ against the test point index."""
+    p = result.on_test
+    i = np.arange(case.X_test.shape[0])
+    fig = figure(height=260, sizing_mode="stretch_width",
+                 title=f"{LABELS[result.method.value]}: δ {case.output_names[o]} at the test "
+                       "inputs (±2σ)", x_axis_label="test input index",
+                 y_axis_label=_unit(f"δ {case.output_names[o]}", case.output_units[o]))
+    sd = np.sqrt(p.delta_var[:, o])
+    src = ColumnDataSource({"i": i, "m": p.delta_mean[:, o], "lo": p.delta_mean[:, o] - 2 * sd,
+                            "hi": p.delta_mean[:, o] + 2 * sd})
+    fig.add_layout(Whisker(source=src, base="i", lower="lo", upper="hi"))
+    fig.scatter("i", "m", source=src, color=COLORS[result.method.value], size=4)
+    truth = case.true_delta(case.X_test)
+    if truth is not None:
+        fig.scatter(i, truth[:, o], color="black", marker="x", size=5, legend_label="true δ")
+    return fig
+
+
+def _nroy_figure(run):
+    """NROY fraction of the prior box after each wave."""
+    f = run.hm.nroy_fraction
+    waves = [str(w.index) for w in run.hm.waves]
+    fig = figure(height=240, sizing_mode="stretch_width", x_range=waves,
+                 title="History matching: NROY fraction of the box per wave",
+                 x_axis_label="wave", y_axis_label="NROY fraction")
+    fig.vbar(x=waves, top=f, width=0.6, color="#4c72b0")
+    return fig
+
+
+def _theta_figure(run):
+    """Final-wave NROY samples in the first two θ (a histogram for one θ), θ_MAP marked."""
+    case, hm = run.case, run.hm
+    last = hm.waves[-1].nroy
+    if case.p == 1:
+        hist, edges = np.histogram(last[:, 0], bins=30)
+        fig = figure(height=240, sizing_mode="stretch_width",
+                     title="Final NROY samples", x_axis_label=_unit(case.theta_names[0],
+                                                                    case.theta_units[0]))
+        fig.quad(top=hist, bottom=0, left=edges[:-1], right=edges[1:], alpha=0.6)
+        fig.scatter([hm.theta_map[0]], [0], size=10, color="red", legend_label="θ_MAP")
+        return fig
+    fig = figure(height=240, sizing_mode="stretch_width", title="Final NROY samples",
+                 x_axis_label=_unit(case.theta_names[0], case.theta_units[0]),
+                 y_axis_label=_unit(case.theta_names[1], case.theta_units[1]))
+    pick = last[:: max(1, len(last) // 2000)]
+    fig.scatter(pick[:, 0], pick[:, 1], size=2, alpha=0.4, legend_label="NROY")
+    fig.scatter([hm.theta_map[0]], [hm.theta_map[1]], size=10, color="red",
+                legend_label="θ_MAP")
+    if case.theta_true is not None:
+        fig.scatter([case.theta_true[0]], [case.theta_true[1]], size=10, marker="x",
+                    color="black", legend_label="true θ")
+    return fig
+
+
+def _metrics_figure(run, metric: str, title: str):
+    """A metric per method and output, with the paper's value where it has one."""
+    case = run.case
+    paper = PAPER.get(case.name, {}).get(metric, {})
+    factors, ours, ref = [], [], []
+    for r in run.results:
+        values = getattr(r.metrics, metric)
+        if values is None:
+            continue
+        for o, name in enumerate(case.output_names):
+            factors.append((LABELS[r.method.value], name))
+            ours.append(values[o])
+            ref.append(paper.get(r.method.value, np.nan) if case.n_out == 1 else np.nan)
+    if not factors:
+        return None
+    fig = figure(height=260, sizing_mode="stretch_width", x_range=FactorRange(*factors),
+                 title=title + " (log scale)", y_axis_label="%", y_axis_type="log")
+    fig.vbar(x=factors, top=ours, bottom=min(min(ours), np.nanmin(ref + [np.inf])) / 3,
+             width=0.7, color="#4c72b0", legend_label="this run")
+    if np.any(np.isfinite(ref)):
+        keep = [i for i, v in enumerate(ref) if np.isfinite(v)]
+        fig.scatter([factors[i] for i in keep], [ref[i] for i in keep], size=12,
+                    marker="diamond", color="#dd8452", legend_label="paper")
+    fig.xaxis.major_label_orientation = 0.6
+    fig.add_layout(fig.legend[0], "right")
+    return fig
+
+
+def _table(headers, rows) -> str:
+    head = "".join(f"<th>{_esc(h)}</th>" for h in headers)
+    body = "".join("<tr>" + "".join(f"<td>{_esc(c)}</td>" for c in row) + "</tr>" for row in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _fmt(v, spec="{:.4g}") -> str:
+    return "—" if v is None or (isinstance(v, float) and not np.isfinite(v)) else spec.format(v)
+
+
+class _InlineBokehOnly(Resources):
+    """BokehJS inlined, without other libraries' scripts.
+
+    Bokeh's resources add the ``__javascript__`` of every model class registered in the process,
+    used or not. Once the app has imported Panel that includes a ``static/extensions/...``
+    script tag, which a file opened from disk cannot load. The report holds only Bokeh models.
+    """
+
+    def _collect_external_resources(self, resource_attr):
+        return []
+
+    def clone(self, *, components=None):
+        return _InlineBokehOnly(mode="inline", components=components or list(self.components))
+
+
+def report_html(run) -> str:
+    """The report of a :class:`mdcore.reproduce.CaseRun` as one self-contained HTML page."""
+    case = run.case
+    return file_html(report_layout(run), resources=_InlineBokehOnly(mode="inline"),
+                     title=f"mdcore report: {case.name}")
+
+
+def report_layout(run):
+    """The report's Bokeh layout: text, tables, and the figures (see :func:`report_html`)."""
+    case, hm, s = run.case, run.hm, run.settings
+    style = ("<style>body{font-family:sans-serif;max-width:1100px;margin:auto}"
+             "table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;"
+             "padding:2px 6px;text-align:right}.warn{color:#a00}</style>")
+    theta_map = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
+                          zip(case.theta_names, hm.theta_map, case.theta_units))
+    intro = (f"{style}<h1>{_esc(case.title)}</h1><p>{_esc(case.description)}</p>"
+             f"<h2>Settings</h2>" + _table(
+                 ["seed", "N_s", "N_φ", "φ proposal", "KOH chain", "threshold T", "rule"],
+                 [[run.seed, s.n_s, s.n_phi, s.proposal, f"{s.n_iter:,} ({s.burn_in:,} burn-in)",
+                   f"{hm.problem.threshold:g}", hm.problem.rule]])
+             + "<h2>History matching</h2>" + _table(
+                 ["wave", "NROY % of box", "runs", "failed runs", "status"],
+                 [[w.index, f"{100 * w.nroy_fraction:.3g}", len(w.runs_theta), len(w.failures),
+                   w.status] for w in hm.waves])
+             + f"<p>{_esc(hm.message)}</p><p>θ_MAP: {_esc(theta_map)}; truth in NROY: "
+               f"{_esc(run.truth_in_nroy)}</p>")
+    rows = []
+    for r in run.results:
+        m, imp = r.metrics, r.importance
+        for o, name in enumerate(case.output_names):
+            def pick(v, o=o):
+                return None if v is None else v[o]
+            rows.append([r.method.label, name, _fmt(m.nmse_z[o]), _fmt(pick(m.nmse_delta)),
+                         _fmt(pick(m.rmse_delta)), _fmt(m.mmd[o]), _fmt(m.lpl[o], "{:.1f}"),
+                         _fmt(m.coverage_z_2sd[o], "{:.2f}"),
+                         _fmt(pick(m.coverage_delta_2sd), "{:.2f}"),
+                         _fmt(None if imp is None else imp.ess[o], "{:,.1f}"),
+                         _fmt(None if imp is None else imp.k_hat[o], "{:.2f}"),
+                         _fmt(r.seconds, "{:.2f}")])
+    metrics = "<h2>Metrics at the test inputs</h2>" + _table(
+        ["method", "output", "NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cover z ±2σ",
+         "cover δ ±2σ", "ESS pairs", "k̂", "seconds"], rows)
+    notes = [w for r in run.results for w in r.warnings]
+    warn = "<h2>Warnings</h2>" + ("".join(f"<p class='warn'>{_esc(w)}</p>" for w in notes)
+                                  if notes else "<p>None.</p>")
+    figs = [_nroy_figure(run), _theta_figure(run)]
+    for metric, title in (("nmse_z", "NMSE of z [%]"), ("nmse_delta", "NMSE of δ [%]")):
+        f = _metrics_figure(run, metric, title)
+        if f is not None:
+            figs.append(f)
+    bands = []
+    for r in run.results:
+        for o in range(case.n_out):
+            if case.d_x == 1:
+                bands += [_band_figure(case, r, o, "z"), _band_figure(case, r, o, "δ")]
+            else:
+                bands.append(_residual_figure(case, r, o))
+    layout = column(Div(text=intro + metrics + warn, sizing_mode="stretch_width"),
+                    gridplot(figs, ncols=2, sizing_mode="stretch_width"),
+                    Div(text="<h2>Bands at the test inputs</h2>"),
+                    gridplot(bands, ncols=2, sizing_mode="stretch_width"),
+                    sizing_mode="stretch_width")
+    return layout
+
+
+def write_report(run, path) -> Path:
+    """Write :func:`report_html` to ``path``; returns the path."""
+    path = Path(path)
+    path.write_text(report_html(run), encoding="utf-8")
+    return path

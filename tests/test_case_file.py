@@ -1,0 +1,163 @@
+"""Own cases from TOML + CSV + a simulator: the worked example, and malformed files."""
+
+import textwrap
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mdcore.case_file import CaseFileError, load_case_file
+
+EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "beam_lab"
+
+SIMULATOR = '''
+import numpy as np
+
+def linear(X, theta):
+    theta = np.atleast_2d(theta)
+    return (theta[:, :1] * X[None, :, 0] + theta[:, 1:2])[..., None]
+
+def wrong_shape(X, theta):
+    return np.zeros((len(X),))
+
+def broken(X, theta):
+    raise RuntimeError("licence server unreachable")
+'''
+
+CSV = """# a line of provenance
+x,y,test
+0.0,0.10,0
+0.0,0.12,0
+0.5,0.61,0
+0.5,0.59,0
+1.0,1.11,0
+1.0,1.09,0
+0.25,0.35,1
+0.75,0.86,1
+"""
+
+TOML = """
+name = "line"
+[data]
+file = "data.csv"
+inputs = ["x"]
+outputs = ["y"]
+test_column = "test"
+[simulator]
+function = "toy_sim:linear"
+path = "."
+[[parameters]]
+name = "slope"
+lower = 0.0
+upper = 2.0
+[[parameters]]
+name = "intercept"
+lower = -1.0
+upper = 1.0
+[history_matching]
+V_m = [0.01]
+"""
+
+
+@pytest.fixture
+def folder(tmp_path):
+    (tmp_path / "toy_sim.py").write_text(SIMULATOR, encoding="utf-8")
+    (tmp_path / "data.csv").write_text(CSV, encoding="utf-8")
+    return tmp_path
+
+
+def write(folder, toml=TOML, csv=None):
+    path = folder / "case.toml"
+    path.write_text(textwrap.dedent(toml), encoding="utf-8")
+    if csv is not None:
+        (folder / "data.csv").write_text(csv, encoding="utf-8")
+    return path
+
+
+def test_a_valid_case_file_builds_a_case(folder):
+    case = load_case_file(write(folder))
+    assert case.name == "line" and case.theta_names == ("slope", "intercept")
+    assert case.X_train.shape == (6, 1) and case.X_test.shape == (2, 1)
+    np.testing.assert_allclose(case.z_test[:, 0], [0.35, 0.86])
+    # No noise_var given: the pooled replicate variance (each pair differs by 0.02).
+    np.testing.assert_allclose(case.noise_var, [0.0002], rtol=1e-9)
+    np.testing.assert_allclose(case.theta_prior.mean, [1.0, 0.0])
+    np.testing.assert_allclose(case.theta_prior.var, [0.25, 0.25])
+    assert case.theta_true is None and case.true_delta(case.X_test) is None
+    np.testing.assert_allclose(case.simulate(case.X_test, [[1.0, 0.1]])[0, :, 0], [0.35, 0.85])
+    assert case.initial_design.shape == (20, 2) and not case.stand_in
+
+
+def test_the_worked_example_runs_end_to_end(tmp_path):
+    from mdcore.export import write_tables
+    from mdcore.pipeline import Settings
+    from mdcore.reproduce import run_case
+    case = load_case_file(EXAMPLE / "beam_lab.toml")
+    assert case.theta_names == ("E", "w0") and case.X_test.shape == (9, 1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run = run_case(case, settings=Settings(n_s=40, n_phi=40, proposal="adaptive"))
+    assert run.truth_in_nroy is True
+    assert all(r.metrics.nmse_z[0] < 1.0 for r in run.results)     # z within 1 % NMSE
+    nroy, pred = write_tables(run, tmp_path)
+    lines = pred.read_text(encoding="utf-8").splitlines()
+    assert lines[1].startswith("method,output,position_m [m],z_observed")
+    assert len(lines) == 2 + 3 * 9
+    assert nroy.read_text(encoding="utf-8").splitlines()[1] == "wave,E [GPa],w0 [mm],implausibility"
+
+
+BAD = [
+    ("missing file", lambda f: f / "nope.toml", "does not exist"),
+    ("not TOML", lambda f: write(f, "name = [unclosed"), "not valid TOML"),
+    ("bad name", lambda f: write(f, TOML.replace('name = "line"', 'name = "a b"')),
+     r"name must be a string matching"),
+    ("no [data]", lambda f: write(f, TOML.replace("[data]", "[datum]")),
+     r"data must be a table \(\[data\]\)"),
+    ("missing CSV column", lambda f: write(f, TOML.replace('outputs = ["y"]', 'outputs = ["w"]')),
+     r"column\(s\) \['w'\] not found"),
+    ("non-numeric cell", lambda f: write(f, csv=CSV.replace("0.59", "n/a")),
+     r"data.csv line 6, column 'y': 'n/a' is not a number"),
+    ("bad test flag", lambda f: write(f, csv=CSV.replace("0.86,1", "0.86,2")),
+     r"column 'test' must be 0 \(training row\) or 1"),
+    ("no test rows", lambda f: write(f, csv=CSV.replace(",1\n", ",0\n")),
+     "at least one training row .* and one test row"),
+    ("noise needed", lambda f: write(f, csv=CSV.replace("1.0,1.09,0\n", "")),
+     "noise_var is required"),
+    ("bad noise", lambda f: write(f, TOML.replace('test_column = "test"',
+                                                  'test_column = "test"\nnoise_var = [-1.0]')),
+     r"\[data\] noise_var must be a list of 1 positive numbers"),
+    ("bad import path", lambda f: write(f, TOML.replace("toy_sim:linear", "toy_sim.linear")),
+     "must look like 'package.module:function'"),
+    ("no module", lambda f: write(f, TOML.replace("toy_sim:linear", "nosuchmod:linear")),
+     "cannot import module 'nosuchmod'"),
+    ("no function", lambda f: write(f, TOML.replace("toy_sim:linear", "toy_sim:quadratic")),
+     "has no function 'quadratic'"),
+    ("wrong shape", lambda f: write(f, TOML.replace("toy_sim:linear", "toy_sim:wrong_shape")),
+     r"must return shape \(n_theta, N, n_out\) = \(1, 2, 1\)"),
+    ("simulator raises", lambda f: write(f, TOML.replace("toy_sim:linear", "toy_sim:broken")),
+     "failed at the centre of the parameter box .* licence server unreachable"),
+    ("upper <= lower", lambda f: write(f, TOML.replace("upper = 2.0", "upper = -2.0")),
+     r"\[parameters 1\] upper must be greater than lower = 0"),
+    ("no parameters", lambda f: write(f, TOML.split("[[parameters]]")[0]
+                                      + "[history_matching]\nV_m = [0.01]\n"),
+     r"\[\[parameters\]\] must be one or more tables"),
+    ("duplicate names", lambda f: write(f, TOML.replace('name = "intercept"', 'name = "slope"')),
+     "names must be distinct"),
+    ("V_m size", lambda f: write(f, TOML.replace("V_m = [0.01]", "V_m = [0.01, 0.02]")),
+     r"\[history_matching\] V_m must be a list of 1 positive numbers"),
+    ("V_m text", lambda f: write(f, TOML.replace("V_m = [0.01]", 'V_m = "small"')),
+     r"V_m must be a list of 1 positive numbers .*; found 'small'"),
+    ("partial truth", lambda f: write(f, TOML.replace("upper = 2.0", "upper = 2.0\ntrue = 1.0")),
+     "true must be given for every parameter or for none"),
+]
+
+
+@pytest.mark.parametrize("kind, make, match", BAD, ids=[b[0] for b in BAD])
+def test_malformed_case_files_name_the_problem(folder, kind, make, match):
+    path = make(folder)
+    with pytest.raises(CaseFileError, match=match) as info:
+        load_case_file(path)
+    assert isinstance(info.value, ValueError)
+    if kind != "missing file":
+        assert str(path.parent) in str(info.value) or "data.csv" in str(info.value)

@@ -1,0 +1,85 @@
+"""The command line: the reproduce table and JSON, method choice, bad input."""
+
+import json
+
+import numpy as np
+import pytest
+
+from mdcore.cli import main
+
+
+def test_reproduce_writes_the_documented_json(tmp_path, capsys):
+    path = tmp_path / "out.json"
+    assert main(["reproduce", "beam-1d", "--n-s", "40", "--n-phi", "10", "--n-iter", "3000",
+                 "--burn-in", "1000", "--json", str(path)]) == 0
+    out = json.loads(path.read_text())
+    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 2
+    assert out["settings"]["n_s"] == 40 and out["settings"]["n_phi"] == 10
+    hm = out["history_matching"]
+    assert hm["truth_nroy"] is True and hm["status"] == "converged"
+    assert len(hm["nroy_fraction"]) == hm["waves"] and len(hm["theta_map"]) == 2
+    assert list(out["methods"]) == ["1", "2", "3", "koh"]      # KOH by default on beam-1d
+    for label, e in out["methods"].items():
+        for key in ("nmse_z", "nmse_delta", "mmd", "lpl", "coverage_z_3sd",
+                    "coverage_delta_3sd"):
+            assert len(e["metrics"][key]) == 1 and np.isfinite(e["metrics"][key][0])
+        assert (e["importance"] is None) == (label != "3") and e["seconds"] > 0
+        assert (e["chain"] is None) == (label != "koh")
+    chain = out["methods"]["koh"]["chain"]
+    assert chain["n_iter"] == 3000 and chain["burn_in"] == 1000
+    assert 0 < chain["acceptance_rate"] < 1 and len(chain["ess"]) == 2
+    table = capsys.readouterr().out
+    assert "NMSE z %" in table and "tip deflection" in table and "KOH chain" in table
+    header = next(line for line in table.splitlines() if "NMSE z %" in line)
+    rows = [line for line in table.splitlines() if "tip deflection" in line]
+    assert len(rows) == 4 and all(len(r) == len(header) for r in rows)   # aligned columns
+    s1 = next(r for r in rows if r.split()[0] == "1")
+    assert s1.split()[-3:-1] == ["—", "—"]         # no ESS for scenario 1: a dash, never NaN
+    assert "nan" not in table.lower()
+
+
+def test_method_choice_and_bad_labels(capsys):
+    assert main(["reproduce", "beam-2d", "--scenarios", "1", "koh", "--n-s", "10",
+                 "--n-phi", "1", "--n-iter", "600", "--burn-in", "100"]) == 0
+    table = capsys.readouterr().out
+    assert "KOH chain: 600 iterations" in table
+    with pytest.raises(SystemExit):
+        main(["reproduce", "beam-1d", "--scenarios", "4"])
+    assert main(["reproduce", "beam-1d", "--n-s", "0"]) == 2
+    assert "n_s must be an integer ≥ 1" in capsys.readouterr().err
+    assert main(["reproduce", "beam-1d", "--n-iter", "100", "--burn-in", "100"]) == 2
+    assert "burn_in must be smaller than n_iter" in capsys.readouterr().err
+
+
+def test_history_match_and_cases(capsys):
+    assert main(["cases"]) == 0
+    listing = capsys.readouterr().out
+    assert all(name in listing for name in ("beam-1d", "beam-2d", "shear-5"))
+    assert main(["history-match", "beam-1d", "--n-candidates", "5000"]) == 0
+    out = capsys.readouterr().out
+    assert "θ_MAP: l_cr = " in out and "NROY %" in out
+    assert main(["history-match", "beam-1d", "--v-m", "1e-6", "--n-candidates", "2000",
+                 "--threshold", "0.5"]) == 1               # everything ruled out: exit 1
+    assert "Raise V_m" in capsys.readouterr().out
+    assert main(["history-match", "beam-1d", "--threshold", "0"]) == 2
+    assert "threshold T must be a positive number" in capsys.readouterr().err
+
+
+def test_run_own_case_file_writes_tables_and_json(tmp_path, capsys):
+    from pathlib import Path
+    example = Path(__file__).resolve().parent.parent / "examples" / "beam_lab" / "beam_lab.toml"
+    out = tmp_path / "out"
+    assert main(["run", str(example), "--n-s", "20", "--n-phi", "10", "--scenarios", "1", "3",
+                 "--csv", str(out), "--json", str(tmp_path / "run.json")]) == 0
+    table = capsys.readouterr().out
+    assert "beam-lab" not in table or "deflection_mm" in table
+    assert (out / "nroy.csv").exists() and (out / "predictions.csv").exists()
+    d = json.loads((tmp_path / "run.json").read_text())
+    assert d["case"] == "beam-lab" and list(d["methods"]) == ["1", "3"]
+    assert d["methods"]["1"]["metrics"]["nmse_delta"] is None      # δ unknown: null, not NaN
+    # Exit codes: 2 for bad input (a malformed file), 1 for a failure (an unwritable path).
+    assert main(["run", str(tmp_path / "missing.toml")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert main(["run", str(example), "--n-s", "5", "--n-phi", "2", "--scenarios", "1",
+                 "--json", str(tmp_path / "no" / "such" / "dir.json")]) == 1
+    assert "FileNotFoundError" in capsys.readouterr().err

@@ -1,0 +1,364 @@
+"""Issue 15's speed table, for the rows the compiled GP kernels cover, in one run.
+
+Usage: python bench/bench_speed.py [--quick] [--rows beam-1d beam-2d shear-5 app]
+                                   [--sklearn-pairs 300] [--no-jit]
+
+Rows: scenario 3 at the paper's sizes (beam-1d 1000 × 500, beam-2d 1000 × 1000, shear-5
+1000 × 500 on all 5 outputs), weights of every pair plus the mixture prediction at the
+case's test inputs; and scenario 3 at the app's default sizes (100 × 50) on every case.
+For each row:
+
+- ``numpy``: the library path (``discrepancy.infer`` + ``DiscrepancyModel.predict``) on
+  the NumPy reference kernels of :mod:`mdcore.gp`;
+- ``numba``: the same library calls with the two GP functions served by
+  :mod:`mdcore.compiled` (``gp.predict`` semantics: the per-pair moments are stored, and
+  the caller gathers ``Y[j]``, ``Y*[j]`` per pair, so nothing is shared between pairs);
+- ``fused``: the compiled weights, then the prediction step fused with the mixture sums
+  (:func:`mdcore.compiled.mixture_sums`: pairs index the θ rows, the per-row input
+  differences are reused, and no per-pair moments are stored);
+- ``sklearn``: one ``GaussianProcessRegressor`` per pair (fixed hyperparameters,
+  ``optimizer=None``): ``fit`` (which computes the log marginal likelihood) for every pair
+  and ``predict(return_std=True)`` for the pairs the prediction keeps, timed on
+  ``--sklearn-pairs`` random pairs of each kind and extrapolated. scikit-learn has no
+  per-dimension kernels, so it uses an ARD Matérn 3/2 over [y, x]: the same cost, not
+  the same kernel;
+- ``bound``: the arithmetic of the row, exponentials at the machine's measured exp rate and
+  flops at its measured dgemm rate, spread over all cores (formula in :func:`work`);
+- ``cpu/cor``: the fused run's process CPU time over the cores, what it would take on
+  idle cores (on a shared machine the wall clock also counts others' turns);
+- agreement: the largest difference of the compiled predictions from the NumPy ones,
+  relative to each field's largest magnitude, and the largest |Δ log w| over the pairs
+  the prediction keeps.
+
+``--quick`` runs the NumPy path and the agreement check on a tenth of the θ samples and
+extrapolates its time by pair counts. The JIT section times ``warm_up()`` in fresh
+processes with an empty and then a filled numba cache. Peak memory is the process's peak
+resident set size so far (``ru_maxrss``), so it only grows down the table. Figures only:
+the machine may be shared, so the load average is printed; nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+import warnings
+
+import numpy as np
+from scipy.special import logsumexp
+
+from mdcore import cases, compiled, discrepancy, gp
+from mdcore.history_matching import history_match_case
+
+PAPER = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
+APP = (100, 50)
+infer = getattr(discrepancy, "infer_discrepancy", None) or discrepancy.infer
+
+
+# ---------------------------------------------------------------------------------------
+# The machine
+
+
+def cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
+def best_of(fn, repeat=5) -> float:
+    """Shortest of ``repeat`` wall-clock timings (the least disturbed by other load)."""
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return min(times)
+
+
+def machine_rates():
+    """Single-core exp rate (NumPy's and the compiled kernels') and dgemm flop rate."""
+    from threadpoolctl import threadpool_limits
+
+    x = -np.random.default_rng(0).uniform(0.0, 20.0, 2**20)
+    out = np.empty_like(x)
+    np_exp = best_of(lambda: np.exp(x, out=out)) / x.size
+    from mdcore import _compiled_kernels as k
+
+    n = 4096
+    q, e = np.ones(n), x[:n].copy()
+    tb, ib = np.empty(n), np.empty(n, dtype=np.int64)
+    k._qexp(q, e, out[:n], tb, ib)
+
+    def many():
+        for _ in range(256):
+            k._qexp(q, e, out[:n], tb, ib)
+
+    q_exp = best_of(many) / (256 * n)
+    a, b = np.random.rand(128, 128), np.random.rand(128, 400)
+    c = np.empty((128, 400))
+    with threadpool_limits(1, user_api="blas"):
+        np.dot(a, b, out=c)
+        t = best_of(lambda: [np.dot(a, b, out=c) for _ in range(20)])
+    flops = 20 * 2 * 128 * 128 * 400 / t
+    return {"numpy_exp_s": np_exp, "compiled_exp_s": q_exp, "exp_s": min(np_exp, q_exp),
+            "flop_s": 1.0 / flops, "cores": cores()}
+
+
+def work(N, d_y, d_x, M, pairs, kept):
+    """Exponentials and flops of scenario 3: NLML on ``pairs`` pairs, prediction on
+    ``kept`` pairs (each also refactorises), at M test points.
+
+    Per pair, NLML: N(N−1)/2 kernel exps (the diagonal is σ_f²) and N logs; flops: the
+    kernel entries, N(N−1)/2 × (3(d_y + d_x) + 6), and the bordered Cholesky, (N+1)³/3.
+    Prediction adds N·M exps and N·M × (3(d_y + d_x) + 6) flops for K_f*, N²·M for the
+    triangular solve (N²M/2 multiply-adds) and 4·N·M + 8·M for the moments and sums.
+    """
+    d = d_y + d_x
+    ex_n = N * (N - 1) / 2 + N
+    fl_n = N * (N - 1) / 2 * (3 * d + 6) + (N + 1) ** 3 / 3 + 3 * N
+    ex_p = N * M
+    fl_p = N * M * (3 * d + 6) + N * N * M + 4 * N * M + 8 * M
+    return (pairs + kept) * ex_n + kept * ex_p, (pairs + kept) * fl_n + kept * fl_p
+
+
+# ---------------------------------------------------------------------------------------
+# The paths
+
+
+@contextlib.contextmanager
+def numba_gp():
+    """Serve gp.neg_log_marginal_likelihood and gp.predict from mdcore.compiled."""
+    saved = gp.neg_log_marginal_likelihood, gp.predict
+
+    def nlml(log_params, Y, X, z):
+        return compiled.nlml(log_params, Y, X, z)
+
+    def predict(log_params, Y, X, z, Y_star, X_star):
+        return gp.GPPrediction(*compiled.predict(log_params, Y, X, z, Y_star, X_star))
+
+    gp.neg_log_marginal_likelihood, gp.predict = nlml, predict
+    try:
+        yield
+    finally:
+        gp.neg_log_marginal_likelihood, gp.predict = saved
+
+
+def fused_predict(model, X_star):
+    """DiscrepancyModel.predict (same pruning, renormalisation and reference component)
+    with the per-pair moments and the mixture sums fused in one compiled pass."""
+    Ys = model.simulate(X_star, model.theta)                         # (S, M, n_out)
+    K = model.log_params.shape[2]
+    M = X_star.shape[0]
+    out = np.empty((4, M, model.n_out))
+    for o in range(model.n_out):
+        lw_all = model.log_weights[o].ravel()
+        cut = lw_all.max() + np.log(model.prune) if model.prune > 0 else -np.inf
+        idx = np.flatnonzero(np.isfinite(lw_all) & (lw_all >= cut))
+        lw = lw_all[idx]
+        w = np.exp(lw - logsumexp(lw))
+        j, k = np.divmod(idx, K)
+        theta = model.log_params[o][j, k]
+        z_o = model.z[:, o]
+        ref = int(np.argmax(w))
+        m0 = compiled.predict(theta[ref], model.Y[j[ref]], model.X, z_o, Ys[j[ref]], X_star)[0]
+        cz, cd = m0, m0 - Ys[j[ref], :, o]
+        s = compiled.mixture_sums(theta, model.Y, j, model.X, z_o, Ys, Ys[..., o], w, X_star,
+                                  cz, cd)
+        acc = s.acc
+        out[0, :, o] = cz + acc[0]
+        out[1, :, o] = np.maximum(acc[2] - acc[0] ** 2, 0.0)
+        out[2, :, o] = cd + acc[1]
+        out[3, :, o] = np.maximum(acc[3] - acc[1] ** 2, 0.0)
+    return discrepancy.DiscrepancyPrediction(out[0], out[1], out[2], out[3])
+
+
+def library(case, theta, n_phi, fused=False):
+    """(model, prediction, infer seconds, predict seconds, CPU seconds) of the library path.
+
+    CPU seconds (all threads of the process) say what the run would take on idle cores:
+    on a shared machine the wall clock also counts the time other processes held them.
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        c0, t0 = time.process_time(), time.perf_counter()
+        model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=3,
+                      n_phi=n_phi, phi_prior=case.phi_prior, seed=0)
+        t1 = time.perf_counter()
+        pred = fused_predict(model, case.X_test) if fused else model.predict(case.X_test)
+        t2, c2 = time.perf_counter(), time.process_time()
+    return model, pred, t1 - t0, t2 - t1, c2 - c0
+
+
+def kept_log_weight_gap(model, ref) -> float:
+    """Largest |Δ log w| over the pairs the prediction keeps (the reference's pruning).
+
+    Below the pruning level some covariances are singular to working precision (σ_f ≫
+    σ_n); their NLML is rounding noise in either path and carries no weight.
+    """
+    gap = 0.0
+    for o in range(ref.n_out):
+        lw, lc = ref.log_weights[o].ravel(), model.log_weights[o].ravel()
+        keep = lw >= lw.max() + np.log(ref.prune)
+        gap = max(gap, float(np.max(np.abs(lw[keep] - lc[keep]))))
+    return gap
+
+
+def agreement(pred, ref) -> float:
+    """Largest difference over the four fields, relative to each field's largest value."""
+    worst = 0.0
+    for a, b in zip(pred, ref):
+        scale = np.max(np.abs(b), axis=0)
+        worst = max(worst, float(np.max(np.abs(a - b) / np.where(scale > 0, scale, 1.0))))
+    return worst
+
+
+def sklearn_seconds(case, theta, model, n_sample, rng):
+    """Extrapolated seconds of a scikit-learn per-pair loop doing the same work."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    y_train = model.Y
+    y_test = case.simulate(case.X_test, theta)
+    K = model.log_params.shape[2]
+
+    def regressor(o, flat):
+        j, k = divmod(int(flat), K)
+        p = np.exp(model.log_params[o][j, k])
+        kern = (ConstantKernel(p[0] ** 2) * Matern(length_scale=p[1:-1], nu=1.5)
+                + WhiteKernel(p[-1] ** 2))
+        reg = GaussianProcessRegressor(kern, optimizer=None, alpha=0.0)
+        return reg, j
+
+    pairs = model.log_weights[0].size
+    total = 0.0
+    for o in range(model.n_out):
+        fit_idx = rng.choice(pairs, size=min(n_sample, pairs), replace=False)
+        t = time.perf_counter()
+        for flat in fit_idx:
+            reg, j = regressor(o, flat)
+            reg.fit(np.column_stack([y_train[j], case.X_train]), case.z_train[:, o])
+        total += (time.perf_counter() - t) / fit_idx.size * pairs
+        lw = model.log_weights[o].ravel()
+        kept = np.flatnonzero(lw >= lw.max() + np.log(model.prune))
+        pred_idx = rng.choice(kept, size=min(n_sample, kept.size), replace=False)
+        fitted = []
+        for flat in pred_idx:
+            reg, j = regressor(o, flat)
+            fitted.append((reg.fit(np.column_stack([y_train[j], case.X_train]),
+                                   case.z_train[:, o]), j))
+        t = time.perf_counter()
+        for reg, j in fitted:
+            reg.predict(np.column_stack([y_test[j], case.X_test]), return_std=True)
+        total += (time.perf_counter() - t) / pred_idx.size * kept.size
+    return total
+
+
+# ---------------------------------------------------------------------------------------
+# Rows
+
+
+def row(name, sizes, rates, args, rng):
+    case = cases.load(name)
+    n_s, n_phi = sizes
+    hm = history_match_case(case, seed=0)
+    theta = hm.posterior_samples(n_s, seed=0)
+    N, d_x = case.X_train.shape
+    n_out = case.z_train.shape[1]
+    M = case.X_test.shape[0]
+
+    compiled.warm_up()
+    library(case, theta[:2], 2)                         # first-call costs out of the way
+    with numba_gp():
+        library(case, theta[:2], 2, fused=True)
+        model_n, pred_n, inf_n, pre_n, _ = library(case, theta, n_phi)
+        _, pred_f, inf_f, pre_f, cpu_f = library(case, theta, n_phi, fused=True)
+    kept = int(np.sum(model_n.n_components))
+    pairs = n_out * n_s * n_phi
+
+    sub = max(1, n_s // 10) if args.quick and n_s > 100 else n_s
+    model_r, pred_r, inf_r, pre_r, _ = library(case, theta[:sub], n_phi)
+    scale_inf, scale_pre = n_s / sub, kept / max(1, int(np.sum(model_r.n_components)))
+    numpy_s = inf_r * scale_inf + pre_r * scale_pre
+    if sub == n_s:
+        agree = max(agreement(pred_n, pred_r), agreement(pred_f, pred_r))
+        agree_w = kept_log_weight_gap(model_n, model_r)
+    else:                      # compare on the subset the NumPy path ran on
+        with numba_gp():
+            model_c, pred_c, _, _, _ = library(case, theta[:sub], n_phi)
+            pred_cf = fused_predict(model_c, case.X_test)
+        agree = max(agreement(pred_c, pred_r), agreement(pred_cf, pred_r))
+        agree_w = kept_log_weight_gap(model_c, model_r)
+
+    sk = (sklearn_seconds(case, theta, model_n, args.sklearn_pairs, rng)
+          if args.sklearn_pairs else np.nan)
+    exps, flops = work(N, n_out, d_x, M, pairs, kept)
+    bound = (exps * rates["exp_s"] + flops * rates["flop_s"]) / rates["cores"]
+    numba_s, fused_s = inf_n + pre_n, inf_f + pre_f
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    label = f"S3 {name} {n_s}×{n_phi}" + (f" ×{n_out} outputs" if n_out > 1 else "")
+    print(f"{label:<28} {pairs:>9,} {kept:>9,} {numpy_s:>8.2f}{'*' if sub < n_s else ' '}"
+          f" {numba_s:>7.2f} {fused_s:>7.2f} {cpu_f / rates['cores']:>7.2f} {sk:>9.1f}"
+          f" {numpy_s / fused_s:>6.1f}x {sk / fused_s:>7.0f}x {bound:>7.3f}"
+          f" {fused_s / bound:>6.1f}x {agree:>8.1e} {agree_w:>8.1e} {peak:>6.0f}", flush=True)
+    print(f"{'':<28} {'':>9} {'':>9}   (numpy: weights {inf_r * scale_inf:.2f} + predict "
+          f"{pre_r * scale_pre:.2f}; numba: {inf_n:.2f} + {pre_n:.2f}; fused: {inf_f:.2f} + "
+          f"{pre_f:.2f}; {exps / 1e9:.2f} G exps, {flops / 1e9:.1f} Gflop)", flush=True)
+
+
+def jit_times():
+    """warm_up() in a fresh process: empty numba cache (cold), then filled (warm)."""
+    code = ("import time; t = time.perf_counter(); from mdcore import compiled; "
+            "w = compiled.warm_up(); print(w, time.perf_counter() - t)")
+    with tempfile.TemporaryDirectory() as cache:
+        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+        out = []
+        for _ in range(2):
+            res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                                 text=True, check=True)
+            out.append(tuple(float(v) for v in res.stdout.split()))
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="NumPy path on a tenth of the θ samples, extrapolated")
+    ap.add_argument("--rows", nargs="+", default=["beam-1d", "beam-2d", "shear-5", "app"])
+    ap.add_argument("--sklearn-pairs", type=int, default=300)
+    ap.add_argument("--no-jit", action="store_true", help="skip the cold/warm JIT timing")
+    args = ap.parse_args()
+    rng = np.random.default_rng(1)
+
+    print(f"cores {cores()}, compiled threads {compiled.num_threads()}, load average "
+          f"{os.getloadavg()[0]:.1f} at start")
+    if not args.no_jit:
+        (cold_w, cold_t), (warm_w, warm_t) = jit_times()
+        print(f"JIT: warm_up() in a fresh process, empty cache {cold_w:.1f} s (process "
+              f"{cold_t:.1f} s); cache filled {warm_w:.2f} s (process {warm_t:.2f} s)")
+    rates = machine_rates()
+    print(f"machine (1 core): exp {rates['numpy_exp_s'] * 1e9:.2f} ns (NumPy), "
+          f"{rates['compiled_exp_s'] * 1e9:.2f} ns (compiled); dgemm "
+          f"{1e-9 / rates['flop_s']:.1f} Gflop/s; bound uses the faster exp × "
+          f"{rates['cores']} cores")
+    print(f"peak RSS before the rows: "
+          f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB\n")
+    print(f"{'row':<28} {'pairs':>9} {'kept':>9} {'numpy s':>9} {'numba s':>7} {'fused s':>7}"
+          f" {'cpu/cor':>7} {'sklearn s':>9} {'np/fu':>7} {'sk/fu':>8} {'bound s':>7}"
+          f" {'fu/bd':>7} {'Δ pred':>8} {'Δ log w':>8} {'RSS MB':>6}")
+    for r in args.rows:
+        if r == "app":
+            for name in PAPER:
+                row(name, APP, rates, args, rng)
+        else:
+            row(r, PAPER[r], rates, args, rng)
+    print("\n* NumPy time extrapolated from a tenth of the θ samples (--quick).")
+    print("Not covered by these kernels: KOH 150,000 iterations; one history-matching wave "
+          "of 10⁵ candidates (the emulator and KOH steps are not compiled yet).")
+    print(f"load average {os.getloadavg()[0]:.1f} at end")
+
+
+if __name__ == "__main__":
+    main()

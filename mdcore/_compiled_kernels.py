@@ -1,0 +1,634 @@
+"""Numba kernels behind :mod:`mdcore.compiled` (imported lazily; needs numba).
+
+Nothing here validates input. :mod:`mdcore.compiled` passes C-contiguous float64/int64
+arrays of fixed rank to the one public kernel, :func:`pair_range`, so it compiles exactly
+one signature, and ``cache=True`` keeps it on disk between processes. The kernel is serial
+and releases the GIL; :mod:`mdcore.compiled` runs ranges of pairs on its own threads.
+
+One (hyperparameter, Y) pair is the unit of work. Per pair a kernel builds the bordered
+training matrix ``[[K_ff + σ_n² I, z], [zᵀ, c]]`` with ``c = 2 zᵀz / σ_n² + 1`` (the same
+matrix as the NumPy path), factorises it with the SPEC §3 jitter ladder and reads the NLML
+(Eq. 9) off the factor, whose last column holds ``L⁻¹ z``. Prediction (Eq. 7) builds
+``K_f*`` in column tiles, solves ``V = L⁻¹ K_f*`` and accumulates ``mean = Vᵀ L⁻¹ z`` and
+``Σ V²`` per column. Nothing of size pairs × N × N is ever formed.
+
+Layout, chosen so that every hot loop is a flat loop from index 0 (which LLVM vectorises;
+numba's negative-index handling of ``a[i + t]`` would stop it):
+
+- the bordered matrix and its factor are stored packed, upper triangle by rows: entry
+  (i, j ≥ i) of the n × n matrix at ``i n − i(i − 1)/2 + j − i``;
+- input differences ``|Δ|`` (one dimension) or ``Δ²`` (per dimension, several) are
+  computed once in the same packed order: for X once per call, for Y once per Y row
+  (pairs that share a Y row, like scenario 3's N_φ draws per θ, reuse them);
+- a range of pairs allocates its small work buffers once and runs its pairs in order.
+
+The kernel ``σ_f² (1 + √3 r_y) e^{−√3 r_y} (1 + √3 r_x) e^{−√3 r_x}`` (SPEC §3, Eq. 3) is
+evaluated like the NumPy path, as ``(1 + s + a b) exp(log σ_f² − s)`` with ``a = √3 r_y``,
+``b = √3 r_x``, ``s = a + b``: one exponential per entry. That exponential (:func:`_qexp`)
+is branch-free so that the compiler vectorises it; it is within 1 ulp of the exact value.
+When y and x are both one-dimensional, K_f* needs no exponential per entry at all
+(:func:`_cross_1d`).
+"""
+
+from __future__ import annotations
+
+import math
+from decimal import Decimal, localcontext
+
+import numpy as np
+from numba import njit
+
+SQRT3 = math.sqrt(3.0)
+LOG_2PI = math.log(2.0 * math.pi)
+#: Entries per tile of K_f* (N × test points): the tile and its solve stay in cache.
+TILE_ENTRIES = 8192
+
+
+def _exp_constants():
+    """Constants of :func:`_qexp`, computed to 60 digits and rounded once."""
+    with localcontext() as ctx:
+        ctx.prec = 60
+        ln2 = Decimal(2).ln()
+        hi = np.array(float(ln2 / 32))
+        hi = float((hi.view(np.int64) & ~np.int64(2**27 - 1)).view(np.float64))
+        lo = float(ln2 / 32 - Decimal(hi))
+        table = np.array([float(Decimal(2) ** (Decimal(j) / 32)) for j in range(32)])
+        return float(32 / ln2), hi, lo, table
+
+
+# exp(x) = 2^(k/32) · exp(r): k = round(32 x / ln 2), r = x − k ln2/32 with ln2/32 split in
+# two (Cody–Waite; the high part has 26 significant bits, so k · high is exact); 2^(k/32) =
+# 2^⌊k/32⌋ · T[k mod 32] from a correctly rounded table; exp(r) − 1 by its degree-6 Taylor
+# polynomial, whose truncation error (ln2/64)^7 / 7! ≈ 4e-18 is far below half an ulp. k is
+# read off the bits of 32 x / ln 2 + 1.5·2^52 and 2^⌊k/32⌋ is built from exponent bits.
+_INV_LN2_32, _LN2_32_HI, _LN2_32_LO, _EXP2_TABLE = _exp_constants()
+_SHIFT = 6755399441055744.0                      # 1.5 · 2^52
+_SHIFT_BITS = int(np.array(_SHIFT).view(np.int64))
+# Outside [_LO, _HI] (subnormal or overflowing results, NaN) the C library's exp is used.
+_LO = -708.0
+_HI = 709.0
+_C3, _C4, _C5, _C6 = (1.0 / math.factorial(i) for i in range(3, 7))
+
+#: Every kernel: on-disk cache, IEEE semantics (no fast-math), GIL released, and NumPy's
+#: floating-point error model (x/0 gives inf, as in the NumPy path).
+_jit = njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
+
+@_jit
+def _qexp(q, e, out, tb, ib):
+    """``out = q · exp(e)`` elementwise (1-D, same length); ``tb`` (float64) and ``ib``
+    (int64) are scratch at least as long. ``out`` must not alias ``q`` or ``e``.
+
+    Four passes, so that the arithmetic ones vectorise: k; the table look-up (a scalar
+    gather, which would stop the vectorisation of the polynomial pass); the polynomial;
+    and, only if some argument is outside [_LO, _HI] or NaN, the C library's exp there.
+    """
+    n = e.size
+    bad = 0
+    for i in range(n):
+        x = e[i]
+        bad += not (x >= _LO and x <= _HI)
+        v = min(max(x, _LO), _HI)
+        tb[i] = v * _INV_LN2_32 + _SHIFT             # 1.5·2^52 + k in the low bits
+    tbi = tb.view(np.int64)
+    t = ib.view(np.float64)
+    for i in range(n):
+        t[i] = _EXP2_TABLE[(tbi[i] - _SHIFT_BITS) & 31]        # 2^((k mod 32)/32)
+    scale = out.view(np.int64)
+    for i in range(n):
+        scale[i] = (((tbi[i] - _SHIFT_BITS) >> 5) + 1023) << 52   # bits of 2^⌊k/32⌋
+    for i in range(n):
+        v = min(max(e[i], _LO), _HI)
+        k = tb[i] - _SHIFT
+        r = (v - k * _LN2_32_HI) - k * _LN2_32_LO
+        p = _C6 * r + _C5
+        p = p * r + _C4
+        p = p * r + _C3
+        p = p * r + 0.5
+        p = p * r + 1.0
+        p = p * r                                    # exp(r) − 1
+        out[i] = q[i] * ((t[i] + t[i] * p) * out[i])
+    if bad:
+        for i in range(n):
+            v = e[i]
+            if not (v >= _LO and v <= _HI):
+                out[i] = q[i] * math.exp(v)
+
+
+# ---------------------------------------------------------------------------------------
+# Input differences, computed once and reused by every pair that shares the inputs
+
+
+@_jit
+def _packed_diffs(A, n, out):
+    """Differences of the rows of ``A`` (N, d) in the packed upper order of an n × n
+    matrix (n ≥ N; entries with a column ≥ N are 0). ``out`` (d, n(n+1)/2) receives
+    ``|Δ|`` when d = 1 and ``Δ²`` per dimension otherwise."""
+    N, d = A.shape
+    out[:, :] = 0.0
+    p = 0
+    for i in range(n):
+        for j in range(i, n):
+            if j < N:
+                for k in range(d):
+                    diff = A[i, k] - A[j, k]
+                    out[k, p] = abs(diff) if d == 1 else diff * diff
+            p += 1
+
+
+@_jit
+def _tile(N, M):
+    """Test points per tile: about :data:`TILE_ENTRIES` entries, at least 16 points."""
+    return max(1, min(M, max(16, TILE_ENTRIES // N)))
+
+
+@_jit
+def _tiled_diffs(A, B, out):
+    """Differences between the rows of ``A`` (N, d) and of ``B`` (M, d), by tiles of
+    ``tile = out.shape[2] // N`` rows of B: ``out[c, k]`` (n_tiles, d, N·tile) holds tile c
+    as an (N, nt) row-major block. The signed ``Δ = a − b`` when d = 1 (its sign picks the
+    factor in :func:`_cross_1d`), ``Δ²`` per dimension otherwise."""
+    N, d = A.shape
+    M = B.shape[0]
+    tile = out.shape[2] // N
+    for c in range(out.shape[0]):
+        m0 = c * tile
+        nt = min(tile, M - m0)
+        for k in range(d):
+            blk = out[c, k]
+            for i in range(N):
+                a = A[i, k]
+                row = blk[i * nt:(i + 1) * nt]
+                for t in range(nt):
+                    diff = a - B[m0 + t, k]
+                    row[t] = diff if d == 1 else diff * diff
+
+
+@_jit
+def _scaled_dist(D, s, out):
+    """``out = √(Σ_k D_k s_k²)`` (``|D_0| · s_0`` in one dimension, 0 in none): the scaled
+    distances ``√3 r`` from the differences of :func:`_packed_diffs`/:func:`_tiled_diffs`
+    (the NumPy path's formula: ``|Δ| · √3/ℓ``, or ``√(Σ Δ² (√3/ℓ)²)``). Reads the first
+    ``out.size`` entries of each row of ``D`` (d, ≥ n)."""
+    d = s.size
+    n = out.size
+    if d == 0:
+        out[:] = 0.0
+    elif d == 1:
+        s0 = s[0]
+        d0 = D[0]
+        for p in range(n):
+            out[p] = abs(d0[p]) * s0
+    else:
+        s2 = s[0] * s[0]
+        d0 = D[0]
+        for p in range(n):
+            out[p] = d0[p] * s2
+        for k in range(1, d):
+            s2 = s[k] * s[k]
+            dk = D[k]
+            for p in range(n):
+                out[p] += dk[p] * s2
+        for p in range(n):
+            out[p] = math.sqrt(out[p])
+
+
+@_jit
+def _matern_entries(Dy, Dx, sy, sx, log_sf2, W, out):
+    """``out = σ_f² m32(r_y) m32(r_x)`` (Eq. 3) for the entries whose differences are
+    ``Dy``, ``Dx`` (d, n) (any packed or tiled layout); ``W`` is the workspace."""
+    wa, wb, wq, we, tb, ib = W
+    n = out.size
+    ra = wa[:n]
+    rb = wb[:n]
+    q = wq[:n]
+    e = we[:n]
+    _scaled_dist(Dy, sy, ra)
+    _scaled_dist(Dx, sx, rb)
+    for p in range(n):
+        a = ra[p]
+        b = rb[p]
+        s = a + b
+        q[p] = a * b + s + 1.0                       # (1 + a)(1 + b)
+        e[p] = log_sf2 - s
+    _qexp(q, e, out, tb, ib)
+
+
+#: Largest ``√3 h / ℓ`` (h: half the range of a one-dimensional input, about its centre)
+#: for which :func:`_cross_1d` factorises the exponentials: the arguments ``±√3 u/ℓ`` then
+#: carry an absolute rounding error below 2 · 8 · 2⁻⁵³ ≈ 1.8e-15, so every factor, and the
+#: product, stays within about 16 ulp of ``exp(−√3 |u − v| / ℓ)``.
+SEPARABLE_LIMIT = 8.0
+
+
+@_jit
+def _cross_1d(Dy, Dx, sy, sx, sf2, Etr, Ete, W, out, N, nt):
+    """K_f* (Eq. 3) for one-dimensional y and x without an exponential per entry.
+
+    In one dimension ``exp(−s |u − v|)`` is ``exp(−s u′) exp(s v′)`` when ``u ≥ v`` and
+    ``exp(s u′) exp(−s v′)`` otherwise, with ``u′, v′`` centred inputs; so N + nt
+    exponentials per dimension (and as many divisions) replace N · nt. ``Etr`` (4, N) and
+    ``Ete`` (4, ≥ nt) hold ``[e^{s_y u′}, e^{−s_y u′}, e^{s_x u′}, e^{−s_x u′}]`` of the
+    training and of the tile's test points; ``Dy``, ``Dx`` are the signed differences
+    ``u − v`` (:func:`_tiled_diffs`). Writes the (N, nt) tile into ``out``.
+    """
+    wa, wb, _, _, _, _ = W
+    ra = wa[:nt]
+    rb = wb[:nt]
+    s_y = sy[0]
+    s_x = sx[0]
+    py, qy, px, qx = Ete[0][:nt], Ete[1][:nt], Ete[2][:nt], Ete[3][:nt]
+    for i in range(N):
+        dy = Dy[0, i * nt:(i + 1) * nt]
+        dx = Dx[0, i * nt:(i + 1) * nt]
+        o = out[i * nt:(i + 1) * nt]
+        Py, Qy, Px, Qx = Etr[0, i], Etr[1, i], Etr[2, i], Etr[3, i]
+        for t in range(nt):
+            ra[t] = abs(dy[t]) * s_y
+            rb[t] = abs(dx[t]) * s_x
+        for t in range(nt):          # both factors loaded, then selected: vectorises
+            a = ra[t]
+            b = rb[t]
+            ey_pos = Qy * py[t]
+            ey_neg = Py * qy[t]
+            ex_pos = Qx * px[t]
+            ex_neg = Px * qx[t]
+            ey = ey_pos if dy[t] >= 0.0 else ey_neg
+            ex = ex_pos if dx[t] >= 0.0 else ex_neg
+            o[t] = (a * b + (a + b) + 1.0) * (sf2 * (ey * ex))
+
+
+@_jit
+def _signed_exps(u1, s1, u2, s2, E, W):
+    """``E = [e^{s1 u1}, e^{−s1 u1}, e^{s2 u2}, e^{−s2 u2}]`` (4, ≥ n) for vectors of
+    length n, with one call of :func:`_qexp` (the negative ones as reciprocals)."""
+    wa, wb, wq, we, tb, ib = W
+    n = u1.size
+    q = wq[:2 * n]
+    e = we[:2 * n]
+    out = wa[:2 * n]
+    for i in range(n):
+        e[i] = s1 * u1[i]
+        e[n + i] = s2 * u2[i]
+    q[:] = 1.0
+    _qexp(q, e, out, tb, ib)
+    e1, e2, e3, e4 = E[0], E[1], E[2], E[3]
+    for i in range(n):
+        e1[i] = out[i]
+        e2[i] = 1.0 / out[i]
+        e3[i] = out[n + i]
+        e4[i] = 1.0 / out[n + i]
+
+
+@_jit
+def _centred(a, b, out_a, out_b):
+    """``a``, ``b`` (1-D) minus the centre of their joint range; returns the half range."""
+    lo = min(a.min(), b.min()) if b.size else a.min()
+    hi = max(a.max(), b.max()) if b.size else a.max()
+    c = 0.5 * (lo + hi)
+    for i in range(a.size):
+        out_a[i] = a[i] - c
+    for i in range(b.size):
+        out_b[i] = b[i] - c
+    return 0.5 * (hi - lo)
+
+
+@_jit
+def _workspace(n_entries):
+    """Scratch of :func:`_matern_entries` for up to ``n_entries`` entries."""
+    return (np.empty(n_entries), np.empty(n_entries), np.empty(n_entries),
+            np.empty(n_entries), np.empty(n_entries), np.empty(n_entries, dtype=np.int64))
+
+
+# ---------------------------------------------------------------------------------------
+# Bordered training matrix and its Cholesky factor (packed upper storage)
+
+
+@_jit
+def _unpack_scales(theta, d_y, d_x, sy, sx):
+    for k in range(d_y):
+        sy[k] = SQRT3 * math.exp(-theta[1 + k])      # √3 / ℓ_y
+    for k in range(d_x):
+        sx[k] = SQRT3 * math.exp(-theta[1 + d_y + k])
+
+
+@_jit
+def _train_matrix(theta, DYp, DXp, z, sy, sx, W, A):
+    """The bordered ``[[K_ff + σ_n² I, z], [zᵀ, 2 zᵀz/σ_n² + 1]]``, packed, into ``A``.
+
+    The diagonal comes out of :func:`_matern_entries` as ``σ_f²`` (zero distance);
+    the border entries are overwritten.
+    """
+    N = z.size
+    n = N + 1
+    _unpack_scales(theta, sy.size, sx.size, sy, sx)
+    _matern_entries(DYp, DXp, sy, sx, 2.0 * theta[0], W, A)
+    sn2 = math.exp(2.0 * theta[theta.size - 1])
+    zz = 0.0
+    off = 0
+    for i in range(N):
+        A[off] += sn2
+        A[off + N - i] = z[i]
+        zz += z[i] * z[i]
+        off += n - i
+    A[off] = 2.0 * zz / sn2 + 1.0
+
+
+@_jit
+def _cholesky_packed(A, R, n, n_cov, jitter):
+    """``RᵀR = A + jitter · I_{n_cov}`` for packed upper ``A`` (n × n), into packed ``R``.
+
+    Row by row (left-looking, four earlier rows per pass: every update is a contiguous
+    vector operation). Returns False at the first pivot that is not positive or is NaN,
+    LAPACK ``potrf``'s failure test.
+    """
+    R[:] = A
+    off_j = 0
+    for j in range(n):
+        m = n - j
+        rj = R[off_j:off_j + m]
+        if j < n_cov:
+            rj[0] += jitter
+        k = 0
+        off_k = 0                                    # offset of row k
+        while k + 4 <= j:
+            o0 = off_k + j - k
+            o1 = off_k + (n - k) + j - k - 1
+            o2 = o1 + (n - k - 1) - 1
+            o3 = o2 + (n - k - 2) - 1
+            l0, l1, l2, l3 = R[o0], R[o1], R[o2], R[o3]
+            v0 = R[o0:o0 + m]
+            v1 = R[o1:o1 + m]
+            v2 = R[o2:o2 + m]
+            v3 = R[o3:o3 + m]
+            for t in range(m):
+                rj[t] -= (l0 * v0[t] + l1 * v1[t]) + (l2 * v2[t] + l3 * v3[t])
+            off_k += 4 * (n - k) - 6
+            k += 4
+        while k < j:
+            o0 = off_k + j - k
+            l0 = R[o0]
+            v0 = R[o0:o0 + m]
+            for t in range(m):
+                rj[t] -= l0 * v0[t]
+            off_k += n - k
+            k += 1
+        piv = rj[0]
+        if not piv > 0.0:
+            return False
+        d = math.sqrt(piv)
+        rj[0] = d
+        inv = 1.0 / d
+        for t in range(1, m):
+            rj[t] *= inv
+        off_j += m
+    return True
+
+
+@_jit
+def _factor(A, R, N, ladder):
+    """Cholesky of the packed bordered matrix ``A`` into ``R``, with the jitter ladder.
+
+    When the plain factorisation fails, ``ladder[t] × mean(diag K)`` (SPEC §3) is added
+    to the N covariance diagonal entries (not to the border), step by step, until one
+    works. Returns ``(ok, step)``: the step that worked, 0.0 without jitter, the last one
+    tried on failure.
+    """
+    n = N + 1
+    scale = 0.0
+    step = 0.0
+    for t in range(-1, ladder.size):                 # t = −1: the plain factorisation
+        if t == 0:
+            off = 0
+            for i in range(N):
+                scale += A[off]
+                off += n - i
+            scale /= N
+        step = 0.0 if t < 0 else ladder[t]
+        if _cholesky_packed(A, R, n, N, step * scale):
+            return True, step
+    return False, step
+
+
+@_jit
+def _nlml_from_factor(R, N):
+    """Eq. 9 from the bordered factor: ``½ Σ (L⁻¹z)² + Σ log L_ii + (N/2) log 2π``."""
+    n = N + 1
+    ww = 0.0
+    logdet = 0.0
+    off = 0
+    for i in range(N):
+        w = R[off + N - i]
+        ww += w * w
+        logdet += math.log(R[off])
+        off += n - i
+    return 0.5 * ww + logdet + 0.5 * N * LOG_2PI
+
+
+# ---------------------------------------------------------------------------------------
+# Prediction
+
+
+@_jit
+def _moments(R, N, theta, sy, sx, DYc, DXc, W, Vbuf, Lt, mean, var, S1):
+    """Predictive mean and latent variance (Eq. 7) of one factorised pair.
+
+    ``R`` is the packed bordered factor, ``DYc``/``DXc`` (n_tiles, d, N·tile) the tiled
+    training-minus-test differences (:func:`_tiled_diffs`), ``Lt`` an (N, N + 1) scratch.
+    ``S1 = (half_ranges, y_train, y_test, x_train, x_test, Etr, Ete)`` serves the separable
+    one-dimensional case (:func:`_cross_1d`): centred inputs and their half ranges
+    ``[h_y, h_x]`` (NaN when y or x is not one-dimensional). Writes ``mean`` and ``var`` (M,).
+    """
+    n = N + 1
+    M = mean.size
+    log_sf2 = 2.0 * theta[0]
+    sf2 = math.exp(log_sf2)
+    half, ytr, yte, xtr, xte, Etr, Ete = S1
+    separable = sy[0] * half[0] <= SEPARABLE_LIMIT and sx[0] * half[1] <= SEPARABLE_LIMIT \
+        if sy.size == 1 and sx.size == 1 else False
+    if separable:
+        _signed_exps(ytr, sy[0], xtr, sx[0], Etr, W)
+    # L = Rᵀ unpacked by rows, with L⁻¹z in the last column (contiguous loops below)
+    off = 0
+    for k in range(N):
+        for j in range(k, N):
+            Lt[j, k] = R[off + j - k]
+        Lt[k, N] = R[off + N - k]
+        off += n - k
+    tile = DXc.shape[2] // N
+    for m0 in range(0, M, tile):
+        nt = min(tile, M - m0)
+        V = Vbuf[:N * nt]
+        if separable:
+            _signed_exps(yte[m0:m0 + nt], sy[0], xte[m0:m0 + nt], sx[0], Ete, W)
+            _cross_1d(DYc[m0 // tile], DXc[m0 // tile], sy, sx, sf2, Etr, Ete, W, V, N, nt)
+        else:
+            _matern_entries(DYc[m0 // tile], DXc[m0 // tile], sy, sx, log_sf2, W, V)
+        mo = mean[m0:m0 + nt]
+        vo = var[m0:m0 + nt]
+        mo[:] = 0.0
+        vo[:] = 0.0
+        for i in range(N):                    # V = L⁻¹ K_f* row by row, 4 rows per pass
+            vi = V[i * nt:(i + 1) * nt]
+            li = Lt[i]
+            k = 0
+            while k + 4 <= i:
+                l0, l1, l2, l3 = li[k], li[k + 1], li[k + 2], li[k + 3]
+                v0 = V[k * nt:(k + 1) * nt]
+                v1 = V[(k + 1) * nt:(k + 2) * nt]
+                v2 = V[(k + 2) * nt:(k + 3) * nt]
+                v3 = V[(k + 3) * nt:(k + 4) * nt]
+                for t in range(nt):
+                    vi[t] -= (l0 * v0[t] + l1 * v1[t]) + (l2 * v2[t] + l3 * v3[t])
+                k += 4
+            while k < i:
+                l0 = li[k]
+                v0 = V[k * nt:(k + 1) * nt]
+                for t in range(nt):
+                    vi[t] -= l0 * v0[t]
+                k += 1
+            inv = 1.0 / li[i]
+            w = li[N]
+            for t in range(nt):
+                v = vi[t] * inv
+                vi[t] = v
+                mo[t] += v * w                        # mean = Vᵀ L⁻¹z
+                vo[t] += v * v
+        for t in range(nt):
+            vo[t] = max(sf2 - vo[t], 0.0)             # k** − Σ V²
+
+
+@_jit
+def _separable_space(X, Xstar, d_y, nt):
+    """Buffers of the separable path, ``(half, y_train, y_test, x_train, x_test, Etr, Ete)``,
+    with x centred already; ``half = [h_y, h_x]``, NaN (never separable) unless y and x are
+    one-dimensional."""
+    N, d_x = X.shape
+    M = Xstar.shape[0]
+    half = np.full(2, np.nan)
+    xtr, xte = np.zeros(N), np.zeros(M)
+    if d_y == 1 and d_x == 1 and N > 0:
+        half[1] = _centred(X[:, 0], Xstar[:, 0], xtr, xte)
+    return (half, np.zeros(N), np.zeros(M), xtr, xte, np.empty((4, N)), np.empty((4, nt)))
+
+
+@_jit
+def _separable_y(S1, Yj, Ys):
+    """Centre the one-dimensional y of a new (training, test) pair of rows into ``S1``."""
+    half, ytr, yte = S1[0], S1[1], S1[2]
+    if Yj.shape[1] == 1 and not math.isnan(half[1]):
+        half[0] = _centred(Yj[:, 0], Ys[:, 0], ytr, yte)
+
+
+# ---------------------------------------------------------------------------------------
+# Public batched kernels
+
+
+#: Modes of :func:`pair_range`.
+NLML, PREDICT, MIXTURE = 0, 1, 2
+
+
+@_jit
+def pair_range(mode, b0, b1, theta, Y, y_index, X, z, Ystar, s_index, ystar_out, weight,
+               Xstar, cz, cd, ladder, nlml, mean, var, noise, jitter, failed, dropped, acc):
+    """Pairs ``b0 ≤ b < b1`` of ``(theta[b], Y[y_index[b]])``: NLML (Eq. 9) and, by mode, more.
+
+    One serial kernel (the GIL released) for the three jobs; :mod:`mdcore.compiled` runs
+    ranges of pairs on its threads. One kernel keeps the one-off compile time down.
+
+    Parameters
+    ----------
+    mode : int
+        :data:`NLML`: the NLML only. :data:`PREDICT`: also the predictive mean and latent
+        variance (Eq. 7) at ``(Ystar[s_index[b]], Xstar)``. :data:`MIXTURE`: also the
+        weighted mixture sums of scenarios 2–3 (Eq. 13/15) about a reference component,
+        added to ``acc`` (4, M): with ``w = weight[b]``, mean ``μ``, latent variance ``v``,
+        noise ``σ_n²``, ``y* = ystar_out[s_index[b]]``, ``dz = μ − cz`` and
+        ``dd = μ − y* − cd``::
+
+            acc[0] += w dz,  acc[1] += w dd,  acc[2] += w (v + σ_n² + dz²),
+            acc[3] += w (v + dd²)
+
+        leaving out (``dropped``) pairs that fail to factorise or have non-finite moments.
+    theta : (B, P); Y : (B_y, N, d_y); y_index : (B,) int64; X : (N, d_x); z : (N,)
+    Ystar : (B_s, M, d_y); s_index : (B,) int64; ystar_out : (B_s, M); weight : (B,)
+    Xstar : (M, d_x); cz, cd : (M,); ladder : (L,) relative jitter steps
+        Inputs a mode does not use may be empty (M = 0 for the NLML).
+    nlml, noise, jitter, failed, dropped : (B,); mean, var : (B, M) for PREDICT, else any
+        Outputs, written at the pairs of the range. ``jitter[b]`` is the ladder step that
+        worked (0 if none was needed; for a failed pair the last step tried); a failed pair
+        has NLML ``+inf`` and NaN moments.
+    """
+    N, d_x = X.shape
+    d_y = Y.shape[2]
+    M = Xstar.shape[0] if mode != NLML else 0
+    n = N + 1
+    T = n * (n + 1) // 2
+    nt = _tile(N, M)
+    n_tiles = (M + nt - 1) // nt
+    DXp = np.empty((d_x, T))
+    _packed_diffs(X, n, DXp)
+    DXc = np.empty((n_tiles, d_x, N * nt))
+    _tiled_diffs(X, Xstar[:M], DXc)
+    A = np.empty(T)
+    R = np.empty(T)
+    DYp = np.empty((d_y, T))
+    DYc = np.empty((n_tiles, d_y, N * nt))
+    sy = np.empty(d_y)
+    sx = np.empty(d_x)
+    W = _workspace(max(T, N * nt, 2 * max(N, nt)))
+    Vbuf = np.empty(N * nt)
+    Lt = np.empty((N, n))
+    S1 = _separable_space(X, Xstar[:M], d_y, nt)
+    mu = np.empty(M)
+    v = np.empty(M)
+    a0, a1, a2, a3 = acc[0], acc[1], acc[2], acc[3]
+    last, cross_j, cross_s = -1, -1, -1
+    for b in range(b0, b1):
+        th = theta[b]
+        noise[b] = math.exp(2.0 * th[th.size - 1])
+        jitter[b] = 0.0
+        failed[b] = False
+        dropped[b] = False
+        j = y_index[b]
+        if j != last:
+            _packed_diffs(Y[j], n, DYp)
+            last = j
+        _train_matrix(th, DYp, DXp, z, sy, sx, W, A)
+        ok, step = _factor(A, R, N, ladder)
+        jitter[b] = step
+        if not ok:
+            failed[b] = True
+            dropped[b] = True
+            nlml[b] = np.inf
+            if mode == PREDICT:
+                mean[b, :] = np.nan
+                var[b, :] = np.nan
+            continue
+        nlml[b] = _nlml_from_factor(R, N)
+        if mode == NLML:
+            continue
+        s = s_index[b]
+        if s != cross_s or j != cross_j:
+            _tiled_diffs(Y[j], Ystar[s], DYc)
+            _separable_y(S1, Y[j], Ystar[s])
+            cross_j, cross_s = j, s
+        if mode == PREDICT:
+            _moments(R, N, th, sy, sx, DYc, DXc, W, Vbuf, Lt, mean[b], var[b], S1)
+            continue
+        _moments(R, N, th, sy, sx, DYc, DXc, W, Vbuf, Lt, mu, v, S1)
+        finite = True
+        for m in range(M):
+            finite &= math.isfinite(mu[m]) and math.isfinite(v[m])
+        if not finite:
+            dropped[b] = True
+            continue
+        w = weight[b]
+        sn2 = noise[b]
+        ys = ystar_out[s]
+        for m in range(M):
+            dz = mu[m] - cz[m]
+            dd = mu[m] - ys[m] - cd[m]
+            a0[m] += w * dz
+            a1[m] += w * dd
+            a2[m] += w * (v[m] + sn2 + dz * dz)             # total variance of z*
+            a3[m] += w * (v[m] + dd * dd)                   # latent variance goes to δ

@@ -1,0 +1,467 @@
+"""Compiled (numba) GP kernels: the fast path beside the NumPy reference (SPEC §3, §6).
+
+The functions here compute what :func:`mdcore.gp.neg_log_marginal_likelihood` and
+:func:`mdcore.gp.predict` compute (Eqs. 7 and 9), with the same bordered Cholesky, the same
+jitter ladder and the same warnings, but fused per (hyperparameter, Y) pair: kernel build
+(Eq. 3), Cholesky, triangular solves, NLML and predictive moments run in small per-thread
+buffers, with no pairs × N × N temporaries. :func:`mixture_sums` goes one step further for
+scenarios 2–3 and accumulates the mixture sums of Eq. 13/15 directly, so the per-pair
+moments are never stored.
+
+numba is optional. Nothing here imports it until a kernel is first needed (or
+:func:`warm_up` is called); :func:`available` says whether it can be. Inputs are assumed
+validated by the caller (:mod:`mdcore.gp` checks shapes and finiteness first).
+
+Compile cost
+    Kernels are compiled once per machine and cached on disk (numba ``cache=True``, next
+    to this file, or in ``NUMBA_CACHE_DIR``); a later process only loads them.
+    :func:`warm_up` loads (or compiles) every kernel on tiny inputs;
+    :func:`warm_up_in_background` does it in a daemon thread, for the app and the CLI to
+    call at start-up.
+
+Threads
+    The kernel is serial and releases the GIL. A call is split into pieces (ranges of
+    pairs, about 0.05 s of work each) that run on one process-wide pool of
+    :func:`num_threads` threads (``MDCORE_NUM_THREADS`` if set, else every core). Every
+    caller (app sessions, jobs) queues its pieces on that same pool, so the process never
+    runs more compute threads than that, and concurrent calls take turns piece by piece.
+    numba's own threading layer is not used (no OpenMP team, no nested parallelism), and
+    the kernel calls no BLAS, so the BLAS thread limit does not concern it.
+
+Examples
+--------
+>>> import numpy as np
+>>> from mdcore import compiled
+>>> X = np.linspace(0, 1, 5)[:, None]; Y = np.sin(3 * X); z = (Y + X)[:, 0]
+>>> lp = np.array([[0.0, 0.0, 0.0, -2.0], [0.5, 0.0, 0.0, -2.0]])
+>>> compiled.nlml(lp, Y, X, z).shape  # doctest: +SKIP
+(2,)
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+import threading
+import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
+
+import numpy as np
+
+__all__ = [
+    "THREADS_ENV",
+    "MixtureSums",
+    "available",
+    "mixture_sums",
+    "nlml",
+    "nlml_batch",
+    "num_threads",
+    "predict",
+    "predict_batch",
+    "warm_up",
+    "warm_up_in_background",
+]
+
+#: Environment variable limiting the compute threads of mdcore (a positive integer).
+THREADS_ENV = "MDCORE_NUM_THREADS"
+#: Work of one piece (a kernel call on a range of pairs), in flops: about 0.05 s.
+LAUNCH_FLOPS = 2e8
+#: Pieces a large call is split into, for load balance across the compute threads.
+PIECES = 32
+#: Fewest pairs in a piece.
+MIN_PIECE = 64
+
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+_POOL_LOCK = threading.Lock()
+_kernels_module = None
+
+
+def available() -> bool:
+    """Whether numba can be imported (the compiled path can run)."""
+    if _kernels_module is not None:
+        return True
+    try:
+        return importlib.util.find_spec("numba") is not None
+    except (ImportError, ValueError):        # e.g. sys.modules["numba"] = None
+        return False
+
+
+def _kernels():
+    """The kernel module, imported on first use (the import may compile or load cache)."""
+    global _kernels_module
+    if _kernels_module is None:
+        try:
+            from . import _compiled_kernels
+        except ImportError as exc:
+            raise ImportError(
+                "the compiled GP path needs numba (pip install 'numba>=0.60'); "
+                f"importing it failed ({exc}). Use backend='numpy' instead.") from exc
+        _kernels_module = _compiled_kernels
+    return _kernels_module
+
+
+def cores() -> int:
+    """Cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:            # not on Linux
+        return os.cpu_count() or 1
+
+
+def num_threads() -> int:
+    """Compute threads of the compiled path: ``MDCORE_NUM_THREADS`` if set, else all cores."""
+    raw = os.environ.get(THREADS_ENV, "").strip()
+    if not raw:
+        return cores()
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"{THREADS_ENV} must be a positive integer (the number of compute "
+                         f"threads); received {raw!r}. Unset it to use every core.")
+    return n
+
+
+def _pool(n: int) -> ThreadPoolExecutor:
+    """The process-wide pool of ``n`` compute threads (one per distinct ``n``)."""
+    with _POOL_LOCK:
+        pool = _POOLS.get(n)
+        if pool is None:
+            pool = _POOLS[n] = ThreadPoolExecutor(max_workers=n,
+                                                  thread_name_prefix="mdcore-compiled")
+        return pool
+
+
+def _pieces(B: int, N: int, d: int, M: int = 0) -> list[tuple[int, int]]:
+    """Ranges of pairs: at most about :data:`LAUNCH_FLOPS` of work each, and about
+    :data:`PIECES` of them for load balance. They depend on the problem size only (not on
+    the thread count), so sums over pieces are reproducible."""
+    per_pair = N**3 / 3.0 + N * N * (d + 12.0) + M * (N * N + N * (d + 12.0))
+    size = max(MIN_PIECE, min(-(-B // PIECES), int(LAUNCH_FLOPS / per_pair)))
+    return [(b0, min(B, b0 + size)) for b0 in range(0, B, size)]
+
+
+def _in_pieces(work, pieces):
+    """``[work(b0, b1) for (b0, b1) in pieces]``, on the compute threads.
+
+    Every call (every app session, every job) queues its pieces on the same pool, so the
+    process never runs more than :func:`num_threads` compute threads and concurrent calls
+    take turns piece by piece. A single piece runs in the calling thread.
+    """
+    if len(pieces) == 1:
+        return [work(*pieces[0])]
+    n = num_threads()
+    if n == 1:
+        return [work(*p) for p in pieces]
+    futures = [_pool(n).submit(work, *p) for p in pieces]
+    return [f.result() for f in futures]
+
+
+def _reference():
+    """``(JitterLog class, JITTER_LADDER)`` of the NumPy path, read at call time."""
+    try:
+        from . import linalg as ref  # after the gp split (issue 14)
+        log_cls = ref.JitterLog
+    except (ImportError, AttributeError):
+        from . import gp as ref
+        log_cls = ref._JitterLog
+    return log_cls, np.asarray(ref.JITTER_LADDER, dtype=np.float64).reshape(-1)
+
+
+def _record(jitter_log, jitter: np.ndarray, failed: np.ndarray) -> None:
+    """Add a launch's jitter outcome to ``jitter_log`` exactly as the NumPy ``_cholesky`` does."""
+    jittered = (jitter > 0.0) & ~failed
+    n_failed = int(np.count_nonzero(failed))
+    n_jittered = int(np.count_nonzero(jittered))
+    if n_failed or n_jittered:
+        jitter_log.record(n_jittered, n_failed, float(np.max(jitter[jittered], initial=0.0)))
+
+
+def _contiguous(a, dtype=np.float64) -> np.ndarray:
+    """C-contiguous and writeable (numba types read-only arrays apart: one signature)."""
+    a = np.ascontiguousarray(a, dtype=dtype)
+    return a if a.flags.writeable else a.copy()
+
+
+def _flatten(log_params, Y, batch):
+    """Flat ``theta (B, P)``, ``Y (B_y, N, d_y)`` and ``y_index (B,)`` for a batch."""
+    P = log_params.shape[-1]
+    theta = _contiguous(np.broadcast_to(log_params, batch + (P,)).reshape(-1, P))
+    y_flat, y_index = _flat_rows(Y, batch)
+    return theta, y_flat, y_index
+
+
+def _flat_rows(A, batch):
+    """``A`` (..., n, d) as (B_a, n, d) and the row of every batch element, (B,) int64."""
+    lead = A.shape[:-2]
+    n_rows = int(np.prod(lead, dtype=np.int64))
+    flat = _contiguous(A.reshape((n_rows,) + A.shape[-2:]))
+    index = np.broadcast_to(np.arange(n_rows).reshape(lead), batch)
+    return flat, _contiguous(index.reshape(-1), np.int64)
+
+
+# ---------------------------------------------------------------------------------------
+# Flat kernels
+
+
+def _run(mode, theta, Y, y_index, X, z, Y_star, s_index, y_star_out, weight, X_star, cz,
+         cd, ladder):
+    """:func:`mdcore._compiled_kernels.pair_range` over all pairs, piece by piece.
+
+    Returns ``[nlml, mean, var, noise_var, jitter, failed, dropped, acc]``; the mixture sums
+    ``acc`` of the pieces are added in piece order.
+    """
+    k = _kernels()
+    theta, Y, X, z, Y_star, y_star_out, weight, X_star, cz, cd, ladder = map(
+        _contiguous, (theta, Y, X, z, Y_star, y_star_out, weight, X_star, cz, cd, ladder))
+    y_index = _contiguous(y_index, np.int64)
+    s_index = _contiguous(s_index, np.int64)
+    B, N = theta.shape[0], X.shape[0]
+    M = 0 if mode == k.NLML else X_star.shape[0]
+    rows = B if mode == k.PREDICT else 0
+    nlml, noise, jitter = np.empty(B), np.empty(B), np.empty(B)
+    failed, dropped = np.empty(B, dtype=bool), np.empty(B, dtype=bool)
+    mean, var = np.empty((rows, M)), np.empty((rows, M))
+
+    def work(b0, b1):
+        acc = np.zeros((4, M))
+        k.pair_range(mode, b0, b1, theta, Y, y_index, X, z, Y_star, s_index, y_star_out,
+                     weight, X_star, cz, cd, ladder, nlml, mean, var, noise, jitter, failed,
+                     dropped, acc)
+        return acc
+
+    accs = _in_pieces(work, _pieces(B, N, Y.shape[2] + X.shape[1], M))
+    acc = np.zeros((4, M))
+    for part in accs:                                 # fixed order: reproducible
+        acc += part
+    return [nlml, mean, var, noise, jitter, failed, dropped, acc]
+
+
+def nlml_batch(theta, Y, y_index, X, z, ladder):
+    """NLML (Eq. 9) of pairs ``(theta[b], Y[y_index[b]])``, flat and unchecked.
+
+    Parameters
+    ----------
+    theta : ndarray of shape (B, P)
+        Log hyperparameters, SPEC §2 layout.
+    Y : ndarray of shape (B_y, N, d_y)
+    y_index : int ndarray of shape (B,)
+        Row of ``Y`` for every pair, in ``[0, B_y)``.
+    X : ndarray of shape (N, d_x)
+    z : ndarray of shape (N,)
+    ladder : ndarray of shape (L,)
+        Relative jitter steps (``JITTER_LADDER``).
+
+    Returns
+    -------
+    nlml, jitter, failed : ndarray of shape (B,)
+        ``jitter`` is the ladder step that worked (0 when none was needed); a failed pair
+        has NLML ``+inf``.
+    """
+    Y, X = np.asarray(Y, dtype=np.float64), np.asarray(X, dtype=np.float64)
+    none = np.zeros(0)                               # no test points
+    out = _run(_kernels().NLML, theta, Y, y_index, X, z, np.zeros((1, 0, Y.shape[2])),
+               y_index, np.zeros((1, 0)), np.zeros(len(y_index)), np.zeros((0, X.shape[1])),
+               none, none, ladder)
+    return out[0], out[4], out[5]
+
+
+def predict_batch(theta, Y, y_index, X, z, Y_star, s_index, X_star, ladder):
+    """Predictive moments (Eq. 7) of pairs at ``(Y_star[s_index[b]], X_star)``, unchecked.
+
+    Parameters as :func:`nlml_batch`, plus ``Y_star`` (B_s, M, d_y), ``s_index`` (B,) and
+    ``X_star`` (M, d_x).
+
+    Returns
+    -------
+    mean, var : ndarray of shape (B, M)
+        Predictive mean and latent variance; NaN for a pair that could not be factorised.
+    noise_var : ndarray of shape (B,)
+    jitter, failed : ndarray of shape (B,)
+    """
+    Y_star = np.asarray(Y_star, dtype=np.float64)
+    M = Y_star.shape[1]
+    out = _run(_kernels().PREDICT, theta, Y, y_index, X, z, Y_star, s_index,
+               np.zeros((Y_star.shape[0], M)), np.zeros(len(y_index)), X_star, np.zeros(M),
+               np.zeros(M), ladder)
+    return out[1], out[2], out[3], out[4], out[5]
+
+
+# ---------------------------------------------------------------------------------------
+# Batched functions with the broadcasting of mdcore.gp
+
+
+def nlml(log_params, Y, X, z, *, jitter_log=None) -> np.ndarray:
+    """Compiled :func:`mdcore.gp.neg_log_marginal_likelihood` on validated input.
+
+    Parameters
+    ----------
+    log_params : ndarray of shape (..., P)
+    Y : ndarray of shape (..., N, d_y)
+        Leading dimensions broadcast with those of ``log_params``.
+    X : ndarray of shape (N, d_x)
+    z : ndarray of shape (N,)
+    jitter_log : JitterLog, optional
+        Receives the jitter counts (``record(jittered, failed, max_jitter)``); the caller
+        then warns. Without it this function warns itself, with the NumPy path's text.
+
+    Returns
+    -------
+    ndarray of shape (...)
+        NLML of every broadcast batch element; ``+inf`` where the covariance stayed
+        non-positive-definite after the jitter ladder.
+    """
+    log_cls, ladder = _reference()
+    own = jitter_log is None
+    jitter_log = log_cls() if own else jitter_log
+    log_params, Y = np.asarray(log_params, np.float64), np.asarray(Y, np.float64)
+    batch = np.broadcast_shapes(log_params.shape[:-1], Y.shape[:-2])
+    theta, y_flat, y_index = _flatten(log_params, Y, batch)
+    out, jitter, failed = nlml_batch(theta, y_flat, y_index, X, z, ladder)
+    _record(jitter_log, jitter, failed)
+    if own:
+        jitter_log.warn("neg_log_marginal_likelihood")
+    return out.reshape(batch)
+
+
+def predict(log_params, Y, X, z, Y_star, X_star, *, jitter_log=None):
+    """Compiled :func:`mdcore.gp.predict` on validated input.
+
+    Parameters as :func:`mdcore.gp.predict`; ``Y_star`` (..., M, d_y) broadcasts with the
+    batch of ``log_params`` and ``Y``. ``jitter_log`` as in :func:`nlml`.
+
+    Returns
+    -------
+    mean, var : ndarray of shape (..., M)
+        Predictive mean and latent variance (Eq. 7); NaN for a matrix that could not be
+        factorised.
+    noise_var : ndarray of shape (...)
+    """
+    log_cls, ladder = _reference()
+    own = jitter_log is None
+    jitter_log = log_cls() if own else jitter_log
+    log_params, Y = np.asarray(log_params, np.float64), np.asarray(Y, np.float64)
+    Y_star = np.asarray(Y_star, np.float64)
+    batch = np.broadcast_shapes(log_params.shape[:-1], Y.shape[:-2], Y_star.shape[:-2])
+    theta, y_flat, y_index = _flatten(log_params, Y, batch)
+    M = Y_star.shape[-2]
+    s_flat, s_index = _flat_rows(Y_star, batch)
+    mean, var, noise, jitter, failed = predict_batch(
+        theta, y_flat, y_index, X, z, s_flat, s_index, X_star, ladder)
+    _record(jitter_log, jitter, failed)
+    if own:
+        jitter_log.warn("predict")
+    return (mean.reshape(batch + (M,)), var.reshape(batch + (M,)), noise.reshape(batch))
+
+
+class MixtureSums(NamedTuple):
+    """Result of :func:`mixture_sums`.
+
+    Attributes
+    ----------
+    acc : ndarray of shape (4, M)
+        ``Σ w dz``, ``Σ w dd``, ``Σ w (v + σ_n² + dz²)``, ``Σ w (v + dd²)`` over the
+        pairs that were kept.
+    dropped : bool ndarray of shape (B,)
+        Pairs left out: not factorisable, or with non-finite moments.
+    """
+
+    acc: np.ndarray
+    dropped: np.ndarray
+
+
+def mixture_sums(log_params, Y, y_index, X, z, Y_star, y_star_out, weight, X_star, cz, cd,
+                 *, jitter_log=None) -> MixtureSums:
+    """Fused predict-and-accumulate of scenarios 2–3 (Eq. 13/15), validated input.
+
+    For pair b (``θ = log_params[b]`` on ``Y[y_index[b]]``, test outputs
+    ``Y_star[y_index[b]]``, weight ``w = weight[b]``) with predictive mean ``μ`` and
+    latent variance ``v`` at ``X_star`` (Eq. 7), noise ``σ_n²`` and
+    ``y* = y_star_out[y_index[b]]``, and with ``dz = μ − cz``, ``dd = μ − y* − cd`` about
+    a reference component's ``cz``, ``cd`` (M,)::
+
+        acc = Σ_b w · [dz, dd, v + σ_n² + dz², v + dd²]
+
+    Parameters
+    ----------
+    log_params : ndarray of shape (B, P)
+    Y : ndarray of shape (S, N, d_y)
+    y_index : int ndarray of shape (B,)
+    X : ndarray of shape (N, d_x)
+    z : ndarray of shape (N,)
+    Y_star : ndarray of shape (S, M, d_y)
+    y_star_out : ndarray of shape (S, M)
+        The simulator output whose discrepancy is inferred, at ``X_star``.
+    weight : ndarray of shape (B,)
+    X_star : ndarray of shape (M, d_x)
+    cz, cd : ndarray of shape (M,)
+    jitter_log : JitterLog, optional
+        As in :func:`nlml`; without it jitter is reported as a ``predict`` warning.
+
+    Returns
+    -------
+    MixtureSums
+    """
+    log_cls, ladder = _reference()
+    own = jitter_log is None
+    jitter_log = log_cls() if own else jitter_log
+    out = _run(_kernels().MIXTURE, log_params, Y, y_index, X, z, Y_star, y_index, y_star_out,
+               weight, X_star, cz, cd, ladder)
+    acc, jitter, failed, dropped = out[7], out[4], out[5], out[6]
+    _record(jitter_log, jitter, failed)
+    if own:
+        jitter_log.warn("predict")
+    return MixtureSums(acc, dropped)
+
+
+# ---------------------------------------------------------------------------------------
+# Warm-up
+
+
+def warm_up() -> float:
+    """Load (or, the first time on a machine, compile) every kernel; returns seconds.
+
+    Runs the kernel once on a tiny problem, so that later calls start at full speed.
+    Safe to call from several threads; numba compiles the kernel once.
+    """
+    start = time.perf_counter()
+    k = _kernels()
+    X = np.linspace(0.0, 1.0, 3)[:, None]
+    Y = np.stack([np.sin(3.0 * X), np.cos(2.0 * X)])           # (2, 3, 1)
+    z = np.array([0.1, -0.2, 0.3])
+    theta = np.array([[0.0, 0.0, -1.0, -2.0], [0.1, 0.2, -0.5, -3.0]])
+    index = np.array([0, 1], dtype=np.int64)
+    ladder = np.array([1e-10])
+    Xs = np.array([[0.25], [0.75]])
+    Ys = np.ascontiguousarray(Y[:, :2])
+    acc = np.zeros((4, 2))
+    out = [np.empty(2), np.empty((0, 2)), np.empty((0, 2)), np.empty(2), np.empty(2),
+           np.empty(2, dtype=bool), np.empty(2, dtype=bool)]
+    k.pair_range(k.MIXTURE, 0, 2, theta, Y, index, X, z, Ys, index,
+                 np.ascontiguousarray(Ys[..., 0]), np.array([0.5, 0.5]), Xs, np.zeros(2),
+                 np.zeros(2), ladder, *out, acc)
+    return time.perf_counter() - start
+
+
+def warm_up_in_background() -> threading.Thread | None:
+    """Start :func:`warm_up` in a daemon thread; ``None`` when numba is not installed.
+
+    A compiled call made meanwhile waits for the compilation instead of repeating it.
+    """
+    if not available():
+        return None
+    thread = threading.Thread(target=_quiet_warm_up, name="mdcore-warm-up", daemon=True)
+    thread.start()
+    return thread
+
+
+def _quiet_warm_up() -> None:
+    try:
+        warm_up()
+    except Exception as exc:  # noqa: BLE001 - reported, and the first real call retries
+        warnings.warn(f"the compiled GP kernels could not be prepared in the background "
+                      f"({type(exc).__name__}: {exc}); the first compiled call will try "
+                      "again and raise if it fails.", RuntimeWarning, stacklevel=1)

@@ -1,0 +1,312 @@
+"""The compiled (numba) GP path against the NumPy reference path of mdcore.gp.
+
+The reference is the public NumPy implementation (itself tested against naive loops and
+scikit-learn in test_gp.py). Agreement is to 1e-10 relative: NLML values directly; the
+predictive mean relative to its largest magnitude and the latent variance relative to
+σ_f² (a variance near a training point is a difference of O(σ_f²) numbers, so it has
+absolute, not relative, accuracy). Jitter and failure flags and the NumericalWarnings must
+be identical, and a NaN is never returned without a warning.
+"""
+
+import subprocess
+import sys
+import threading
+import warnings
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba")
+
+import naive_gp
+
+from mdcore import compiled, gp
+
+try:  # the module whose JITTER_LADDER the NumPy path reads (gp before the split)
+    from mdcore import linalg as ladder_home
+except ImportError:
+    ladder_home = gp
+
+RTOL = 1e-10
+
+
+def random_problem(rng, N, d_y, d_x, batch=(), n_y=()):
+    X = rng.uniform(size=(N, d_x))
+    z = rng.normal(size=N)
+    Y = rng.normal(size=n_y + (N, d_y))
+    lp = rng.normal(scale=0.4, size=batch + (2 + d_y + d_x,))
+    lp[..., -1] = rng.uniform(-3, -1, size=batch)
+    return lp, Y, X, z
+
+
+def jitter_messages(record):
+    return [str(w.message) for w in record if "covariance matrix" in str(w.message)]
+
+
+def both(fn_ref, fn_new, *args):
+    """Results and jitter warnings of the NumPy and the compiled call."""
+    out = []
+    for fn in (fn_ref, fn_new):
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
+            res = fn(*args)
+        out.append((res, jitter_messages(rec)))
+    return out
+
+
+def assert_close(got, want, scale):
+    """``|got − want| ≤ RTOL (|want| + scale)`` elementwise, NaN where ``want`` is NaN."""
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    ok = np.isnan(want) | (np.abs(got - want) <= RTOL * (np.abs(want) + scale))
+    assert np.all(ok), f"max difference {np.nanmax(np.abs(got - want))}"
+
+
+def assert_moments_close(got, want, lp):
+    """Mean relative to its largest magnitude per batch element; variance relative to σ_f²."""
+    mean, var, noise = got
+    sf2 = np.broadcast_to(np.exp(2.0 * lp[..., 0]), want.noise_var.shape)[..., None]
+    assert_close(mean, want.mean, np.nanmax(np.abs(want.mean), axis=-1, keepdims=True,
+                                            initial=0.0))
+    assert_close(var, want.var, sf2)
+    np.testing.assert_allclose(noise, want.noise_var, rtol=1e-15)
+
+
+@pytest.mark.parametrize("N", [1, 13, 64])
+@pytest.mark.parametrize("d_x", [1, 2])
+@pytest.mark.parametrize("d_y", [0, 1, 5])
+def test_nlml_and_predict_match_numpy_path(rng, N, d_y, d_x):
+    lp, Y, X, z = random_problem(rng, N, d_y, d_x, batch=(5, 1), n_y=(3,))
+    (ref, ref_w), (new, new_w) = both(gp.neg_log_marginal_likelihood, compiled.nlml, lp, Y, X, z)
+    assert new.shape == ref.shape == (5, 3)
+    np.testing.assert_allclose(new, ref, rtol=RTOL)
+    assert new_w == ref_w == []
+    Xs = rng.uniform(size=(70, d_x))                        # two tiles of test points
+    Ys = rng.normal(size=(3, 70, d_y))
+    (p_ref, _), (p_new, _) = both(gp.predict, compiled.predict, lp, Y, X, z, Ys, Xs)
+    assert p_new[0].shape == p_ref.mean.shape == (5, 3, 70)
+    assert_moments_close(p_new, p_ref, lp)
+
+
+@pytest.mark.parametrize("log_ell", [1.0, -4.0])
+def test_separable_one_dimensional_path(rng, log_ell):
+    """One-dimensional y and x far from the origin: with long length scales K_f* is built
+    from per-point exponentials (√3 h/ℓ ≤ SEPARABLE_LIMIT), with short ones per entry."""
+    lp, Y, X, z = random_problem(rng, 13, 1, 1, batch=(6,), n_y=(6,))
+    X, Y = X + 1e3, Y - 50.0
+    lp[:, 1:3] = log_ell + 0.3 * rng.normal(size=(6, 2))
+    Xs = X[0] + rng.uniform(-1.0, 2.0, size=(90, 1))
+    Ys = Y[:, :1] + rng.normal(size=(6, 90, 1))
+    p = compiled.predict(lp, Y, X, z, Ys, Xs)
+    assert_moments_close(p, gp.predict(lp, Y, X, z, Ys, Xs), lp)
+
+
+def test_scenario_3_and_fitting_layouts(rng):
+    """phi (S, K, P) against Y (S, 1, N, d_y), and particles (n, P) against one Y."""
+    lp, Y, X, z = random_problem(rng, 13, 1, 1, batch=(4, 6), n_y=(4, 1))
+    np.testing.assert_allclose(compiled.nlml(lp, Y, X, z),
+                               gp.neg_log_marginal_likelihood(lp, Y, X, z), rtol=RTOL)
+    particles = lp.reshape(-1, lp.shape[-1])
+    np.testing.assert_allclose(compiled.nlml(particles, Y[0, 0], X, z),
+                               gp.neg_log_marginal_likelihood(particles, Y[0, 0], X, z), rtol=RTOL)
+    one = compiled.nlml(particles[0], Y[0, 0], X, z)
+    assert one.shape == () and one == pytest.approx(naive_gp.nlml(particles[0], Y[0, 0], X, z),
+                                                    rel=1e-9)
+
+
+def test_predict_with_separate_test_batch_and_no_test_points(rng):
+    lp, Y, X, z = random_problem(rng, 9, 2, 1, batch=(3,))
+    Ys = rng.normal(size=(2, 1, 5, 2))                      # broadcasts to (2, 3)
+    Xs = rng.uniform(size=(5, 1))
+    p = compiled.predict(lp, Y, X, z, Ys, Xs)
+    assert_moments_close(p, gp.predict(lp, Y, X, z, Ys, Xs), lp)
+    mean, var, noise = compiled.predict(lp, Y, X, z, Ys[..., :0, :], Xs[:0])
+    assert mean.shape == var.shape == (2, 3, 0) and noise.shape == (2, 3)
+
+
+def duplicated_points(rng, N=20):
+    """Two problems on data whose first two points coincide. With σ_f = 1 and σ_n = e^-40
+    the second Cholesky pivot is exactly 1 − 1 = 0, a deterministic failure that jitter
+    (1e-10 × mean diagonal) repairs, unless the jitter is below the diagonal's ulp; the
+    second is well conditioned."""
+    X = rng.uniform(size=(N, 1))
+    X[1] = X[0]
+    Y = rng.normal(size=(N, 1))
+    Y[1] = Y[0]
+    z = rng.normal(size=N)
+    lp = np.array([[0.0, 0.3, -1.0, -40.0], [0.2, 0.1, -1.5, -2.0]])
+    return lp, Y, X, z
+
+
+def test_jitter_matches_numpy_path(rng):
+    lp, Y, X, z = duplicated_points(rng)
+    (ref, ref_w), (new, new_w) = both(gp.neg_log_marginal_likelihood, compiled.nlml, lp, Y, X, z)
+    assert np.all(np.isfinite(ref))
+    np.testing.assert_allclose(new, ref, rtol=RTOL)
+    assert len(ref_w) == 1 and "added jitter up to 1.0e-10" in ref_w[0]
+    assert new_w == ref_w
+    Xs, Ys = X[:6] + 0.01, Y[:6]
+    (p_ref, ref_w), (p_new, new_w) = both(gp.predict, compiled.predict, lp, Y, X, z, Ys, Xs)
+    assert new_w == ref_w and len(new_w) == 1
+    assert_moments_close(p_new, p_ref, lp)
+
+
+@pytest.mark.parametrize("ladder", [(), (1e-300,)])
+def test_failure_matches_numpy_path(rng, monkeypatch, ladder):
+    """No jitter step, or one below the diagonal's ulp: the duplicated-point matrix stays
+    singular in both paths; NLML +inf, predictions NaN, the same warnings."""
+    monkeypatch.setattr(ladder_home, "JITTER_LADDER", ladder)
+    lp, Y, X, z = duplicated_points(rng)
+    (ref, ref_w), (new, new_w) = both(gp.neg_log_marginal_likelihood, compiled.nlml, lp, Y, X, z)
+    assert ref[0] == new[0] == np.inf
+    assert new[1] == pytest.approx(ref[1], rel=RTOL)
+    assert new_w == ref_w and "stayed non-positive-definite" in new_w[-1]
+    (p_ref, ref_w), (p_new, new_w) = both(gp.predict, compiled.predict, lp, Y, X, z, Y[:3],
+                                          X[:3])
+    assert new_w == ref_w and "predictions are NaN" in new_w[-1]
+    assert_moments_close(p_new, p_ref, lp)
+    assert np.all(np.isnan(p_new[0][0])) and np.all(np.isnan(p_new[1][0]))
+
+
+def test_nan_is_never_silent(rng, monkeypatch):
+    monkeypatch.setattr(ladder_home, "JITTER_LADDER", ())
+    lp, Y, X, z = duplicated_points(rng)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        value = compiled.nlml(lp, Y, X, z)
+        mean, var, _ = compiled.predict(lp, Y, X, z, Y[:3], X[:3])
+    assert not np.any(np.isnan(value))
+    assert np.any(np.isnan(mean)) and np.any(np.isnan(var))
+    assert any("predictions are NaN" in m for m in jitter_messages(rec))
+
+
+def numpy_mixture_sums(lp, Y, j, X, z, Ys, out, w, Xs, cz, cd):
+    p = gp.predict(lp, Y[j], X, z, Ys[j], Xs)
+    dz = p.mean - cz
+    dd = p.mean - Ys[j][..., out] - cd
+    return np.stack([w @ dz, w @ dd, w @ (p.var + p.noise_var[:, None] + dz * dz),
+                     w @ (p.var + dd * dd)])
+
+
+def test_mixture_sums_match_numpy_accumulation(rng):
+    S, K, N, M = 5, 40, 13, 70
+    lp, Y, X, z = random_problem(rng, N, 2, 1, batch=(S * K,), n_y=(S,))
+    j = np.repeat(np.arange(S), K)
+    Ys = rng.normal(size=(S, M, 2))
+    Xs = rng.uniform(size=(M, 1))
+    w = rng.dirichlet(np.ones(S * K))
+    ref_p = gp.predict(lp[0], Y[0], X, z, Ys[0], Xs)
+    cz, cd = ref_p.mean, ref_p.mean - Ys[0, :, 1]
+    got = compiled.mixture_sums(lp, Y, j, X, z, Ys, Ys[..., 1], w, Xs, cz, cd)
+    want = numpy_mixture_sums(lp, Y, j, X, z, Ys, 1, w, Xs, cz, cd)
+    assert not np.any(got.dropped)
+    np.testing.assert_allclose(got.acc, want, rtol=RTOL, atol=RTOL * np.abs(want).max())
+
+
+def test_mixture_sums_drop_unfactorisable_pairs(rng, monkeypatch):
+    monkeypatch.setattr(ladder_home, "JITTER_LADDER", ())
+    lp, Y, X, z = duplicated_points(rng)
+    lp = lp[[1, 0, 1]]
+    Yb = np.stack([Y, Y])
+    j = np.array([0, 1, 1])
+    w = np.array([0.2, 0.3, 0.5])
+    Xs, Ys = X[:4] + 0.01, np.stack([Y[:4], Y[:4]])
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        got = compiled.mixture_sums(lp, Yb, j, X, z, Ys, Ys[..., 0], w, Xs, np.zeros(4),
+                                    np.zeros(4))
+    np.testing.assert_array_equal(got.dropped, [False, True, False])
+    keep = np.array([0, 2])
+    want = numpy_mixture_sums(lp[keep], Yb, j[keep], X, z, Ys, 0, w[keep], Xs, np.zeros(4),
+                              np.zeros(4))
+    np.testing.assert_allclose(got.acc, want, rtol=RTOL, atol=RTOL * np.abs(want).max())
+    assert any("stayed non-positive-definite" in m for m in jitter_messages(rec))
+
+
+def test_results_do_not_depend_on_threads_and_pieces_only_reorder_sums(rng, monkeypatch):
+    lp, Y, X, z = random_problem(rng, 13, 1, 1, batch=(3000,), n_y=(30,))
+    j = np.repeat(np.arange(30), 100)
+    Xs = rng.uniform(size=(20, 1))
+    Ys = rng.normal(size=(30, 20, 1))
+    w = np.full(3000, 1 / 3000)
+    args = (lp, Y, j, X, z, Ys, Ys[..., 0], w, Xs, np.zeros(20), np.zeros(20))
+    whole = compiled.nlml(lp, Y[j], X, z)
+    acc = compiled.mixture_sums(*args).acc
+    monkeypatch.setenv(compiled.THREADS_ENV, "1")
+    np.testing.assert_array_equal(compiled.nlml(lp, Y[j], X, z), whole)
+    np.testing.assert_array_equal(compiled.mixture_sums(*args).acc, acc)
+    monkeypatch.setattr(compiled, "LAUNCH_FLOPS", 1.0)          # 64 pairs per piece
+    np.testing.assert_array_equal(compiled.nlml(lp, Y[j], X, z), whole)
+    np.testing.assert_allclose(compiled.mixture_sums(*args).acc, acc, rtol=0,
+                               atol=1e-13 * np.abs(acc).max())
+
+
+def test_concurrent_calls_from_threads(rng):
+    problems = [random_problem(rng, 13, 1, 1, batch=(2000,)) for _ in range(3)]
+    want = [gp.neg_log_marginal_likelihood(*p) for p in problems]
+    got = [None] * 3
+
+    def work(i):
+        got[i] = compiled.nlml(*problems[i])
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    for g, w in zip(got, want):
+        np.testing.assert_allclose(g, w, rtol=RTOL)
+
+
+def test_thread_limit_from_environment(monkeypatch):
+    monkeypatch.setenv(compiled.THREADS_ENV, "1")
+    assert compiled.num_threads() == 1
+    monkeypatch.setenv(compiled.THREADS_ENV, "two")
+    with pytest.raises(ValueError, match="MDCORE_NUM_THREADS must be a positive integer"):
+        compiled.num_threads()
+    monkeypatch.delenv(compiled.THREADS_ENV)
+    assert compiled.num_threads() >= 1
+
+
+def test_exponential_within_one_ulp():
+    from mdcore import _compiled_kernels as k
+
+    rng = np.random.default_rng(0)
+    x = np.concatenate([rng.uniform(-760, 720, 100_000), rng.uniform(-2, 2, 100_000),
+                        [0.0, -0.0, np.nan, np.inf, -np.inf, -708.0, 709.0, -708.5, 709.5,
+                         -745.2, 709.9]])
+    out = np.empty_like(x)
+    k._qexp(np.ones_like(x), x, out, np.empty_like(x), np.empty(x.size, dtype=np.int64))
+    with np.errstate(over="ignore"):
+        ref = np.exp(x)
+    normal = np.isfinite(ref) & (ref > np.finfo(float).tiny)
+    assert np.max(np.abs(out[normal] - ref[normal]) / np.spacing(ref[normal])) <= 1.0
+    np.testing.assert_array_equal(out[~normal], ref[~normal])
+
+
+def test_warm_up_compiles_the_one_kernel_signature():
+    from mdcore import _compiled_kernels as k
+
+    assert compiled.available()
+    assert compiled.warm_up() >= 0.0
+    assert len(k.pair_range.signatures) == 1, k.pair_range.signatures
+
+
+def test_package_runs_without_numba():
+    """With numba unimportable, mdcore imports, the NumPy path runs, and the compiled path
+    says what is missing."""
+    code = """
+import sys
+sys.modules["numba"] = None
+import numpy as np
+from mdcore import compiled, gp
+assert not compiled.available() and compiled.warm_up_in_background() is None
+X = np.linspace(0, 1, 5)[:, None]
+print(float(gp.neg_log_marginal_likelihood([0.0, 0.0, 0.0, -2.0], np.sin(3 * X), X, X[:, 0])))
+try:
+    compiled.warm_up()
+except ImportError as exc:
+    print("ImportError:", exc)
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, check=True).stdout
+    assert "ImportError: the compiled GP path needs numba" in out

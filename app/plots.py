@@ -8,16 +8,14 @@ from __future__ import annotations
 import holoviews as hv
 import numpy as np
 
+from mdcore.pipeline import Method
+
 #: Category10 (the wave colours repeat after ten waves).
 WAVE_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
                "#7f7f7f", "#bcbd22", "#17becf"]
-SCENARIO_COLORS = {1: "#1f77b4", 2: "#ff7f0e", 3: "#2ca02c", "koh": "#d62728"}
-
-
-def scenario_label(s) -> str:
-    """"scenario 1" … "scenario 3", or "KOH" for the Kennedy–O'Hagan baseline."""
-    return "KOH" if s == "koh" else f"scenario {s}"
-PLOT = dict(responsive=True, height=300, tools=["hover"], show_grid=True)
+METHOD_COLORS = {Method.S1: "#1f77b4", Method.S2: "#ff7f0e", Method.S3: "#2ca02c",
+                 Method.KOH: "#d62728"}
+PLOT = {"responsive": True, "height": 300, "min_width": 200, "tools": ["hover"], "show_grid": True}
 
 
 def _label(name: str, unit: str) -> str:
@@ -48,7 +46,8 @@ def data_overview(case, var_bar: np.ndarray, *, output: int = 0) -> hv.Layout:
     for o in outputs:
         yname = _label(case.output_names[o], case.output_units[o])
         bar = 2.0 * np.sqrt(var_bar[o])
-        train = hv.ErrorBars((case.X_train[:, 0], case.z_train[:, o], np.full(len(case.X_train), bar)),
+        train = hv.ErrorBars((case.X_train[:, 0], case.z_train[:, o],
+                              np.full(len(case.X_train), bar)),
                              kdims=[xname], vdims=[yname, "±2σ"], label="train ±2√(V_o+V_m)")
         pts = hv.Scatter((case.X_train[:, 0], case.z_train[:, o]), xname, yname,
                          label="training data").opts(color="black", size=6)
@@ -183,65 +182,71 @@ def band_1d(x, mean, var, k, *, color, label, xname, yname) -> hv.Overlay:
             hv.Curve((x, mean), xname, yname, label=f"{label} mean").opts(color=color))
 
 
-def discrepancy_1d(case, results, scenarios, k, output, quantity) -> list:
-    """Per scenario, one plot of z* (with data) or δ* (with the true δ), 1-D input."""
+def discrepancy_1d(case, grid, results, methods, k, output, quantity) -> list:
+    """Per method, one plot of z* (with data) or δ* (with the true δ), 1-D input.
+
+    ``grid`` (G, 1) are the inputs of each result's ``on_extra`` prediction.
+    """
     xname = _label(case.x_names[0], case.x_units[0])
     unit = case.output_units[output]
+    x = grid[:, 0]
+    truth = case.true_delta(grid)
     plots = []
-    for s in scenarios:
-        r = results[s]
-        x = r.grid[:, 0]
+    for s in methods:
+        on_grid = results[s].on_extra
         if quantity == "z":
             yname = _label(case.output_names[output], unit)
-            layers = [band_1d(x, r.on_grid.z_mean[:, output], r.on_grid.z_var[:, output], k,
-                              color=SCENARIO_COLORS[s], label=scenario_label(s), xname=xname,
+            layers = [band_1d(x, on_grid.z_mean[:, output], on_grid.z_var[:, output], k,
+                              color=METHOD_COLORS[s], label=s.label, xname=xname,
                               yname=yname),
                       hv.Scatter((case.X_test[:, 0], case.z_test[:, output]), xname, yname,
                                  label="test data").opts(color="grey", size=3, alpha=0.6),
                       hv.Scatter((case.X_train[:, 0], case.z_train[:, output]), xname, yname,
                                  label="training data").opts(color="black", size=6)]
-            title = f"{scenario_label(s)}: bias-corrected {case.output_names[output]}"
+            title = f"{s.label}: bias-corrected {case.output_names[output]}"
         else:
             yname = _label("δ " + case.output_names[output], unit)
-            layers = [band_1d(x, r.on_grid.delta_mean[:, output], r.on_grid.delta_var[:, output],
-                              k, color=SCENARIO_COLORS[s], label=scenario_label(s), xname=xname,
+            layers = [band_1d(x, on_grid.delta_mean[:, output], on_grid.delta_var[:, output],
+                              k, color=METHOD_COLORS[s], label=s.label, xname=xname,
                               yname=yname)]
-            truth = case.true_delta(r.grid)
             if truth is not None:
                 layers.append(hv.Curve((x, truth[:, output]), xname, yname,
                                        label="true δ").opts(color="black", line_dash="dashed"))
-            title = f"{scenario_label(s)}: discrepancy δ, {case.output_names[output]}"
+            title = f"{s.label}: discrepancy δ, {case.output_names[output]}"
         plots.append(hv.Overlay(layers).opts(title=title, legend_position="top_right",
                                              **PLOT))
     return plots
 
 
-def discrepancy_2d(case, result, k, x2_slice) -> list:
-    """beam-2d: δ mean and band width on the (x₁, x₂) plane, and a slice at x₂."""
+def discrepancy_2d(case, grid, result, k, x2_slice) -> list:
+    """beam-2d: δ mean and band width on the (x₁, x₂) plane, and a slice at x₂.
+
+    ``grid`` (G, 2) is the square grid of ``result.on_extra`` (x₁ fastest).
+    """
     x1 = _label(case.x_names[0], case.x_units[0])
     x2 = _label(case.x_names[1], case.x_units[1])
-    g = result.grid
-    u1, u2 = np.unique(g[:, 0]), np.unique(g[:, 1])
+    u1, u2 = np.unique(grid[:, 0]), np.unique(grid[:, 1])
     shape = (u2.size, u1.size)
-    mean = result.on_grid.delta_mean[:, 0].reshape(shape)
-    width = (2 * k * np.sqrt(result.on_grid.delta_var[:, 0])).reshape(shape)
-    s = result.scenario
+    on_grid = result.on_extra
+    mean = on_grid.delta_mean[:, 0].reshape(shape)
+    width = (2 * k * np.sqrt(on_grid.delta_var[:, 0])).reshape(shape)
+    s = result.method
     img = hv.Image((u1, u2, mean), [x1, x2], "δ mean [mm]").opts(
-        cmap="RdBu_r", colorbar=True, title=f"{scenario_label(s)}: δ mean", **PLOT)
+        cmap="RdBu_r", colorbar=True, title=f"{s.label}: δ mean", **PLOT)
     band = hv.Image((u1, u2, width), [x1, x2], f"band width ±{k}σ [mm]").opts(
-        cmap="magma", colorbar=True, title=f"{scenario_label(s)}: band width (±{k}σ)", **PLOT)
+        cmap="magma", colorbar=True, title=f"{s.label}: band width (±{k}σ)", **PLOT)
     row = int(np.argmin(np.abs(u2 - x2_slice)))      # nearest grid row to the slice
     xs = u1
-    var = result.on_grid.delta_var[:, 0].reshape(shape)
-    slice_plot = band_1d(xs, mean[row], var[row], k, color=SCENARIO_COLORS[s],
-                         label=scenario_label(s), xname=x1, yname="δ [mm]")
+    var = on_grid.delta_var[:, 0].reshape(shape)
+    slice_plot = band_1d(xs, mean[row], var[row], k, color=METHOD_COLORS[s],
+                         label=s.label, xname=x1, yname="δ [mm]")
     truth = case.true_delta(np.column_stack([xs, np.full_like(xs, u2[row])]))
     layers = [slice_plot]
     if truth is not None:
         layers.append(hv.Curve((xs, truth[:, 0]), x1, "δ [mm]", label="true δ").opts(
             color="black", line_dash="dashed"))
     return [img, band, hv.Overlay(layers).opts(
-        title=f"{scenario_label(s)}: slice at {case.x_names[1]} = {u2[row]:.4f} m",
+        title=f"{s.label}: slice at {case.x_names[1]} = {u2[row]:.4f} m",
         legend_position="top_right", **PLOT)]
 
 
@@ -274,7 +279,7 @@ def koh_posterior(case, model) -> list:
         prior = np.exp(-0.5 * (x - mu) ** 2 / var) / np.sqrt(2 * np.pi * var)
         layers = [hv.Histogram((edges, density), kdims=[label], vdims=["density"],
                                label="KOH posterior").opts(
-                      color=SCENARIO_COLORS["koh"], alpha=0.5, line_alpha=0),
+                      color=METHOD_COLORS[Method.KOH], alpha=0.5, line_alpha=0),
                   hv.Curve((x, prior), label, "density", label="prior").opts(
                       color="black", line_dash="dotted")]
         if case.theta_true is not None:

@@ -7,39 +7,57 @@ button presses into calls of the state's methods.
 from __future__ import annotations
 
 import holoviews as hv
-import numpy as np
 import pandas as pd
 import panel as pn
 import param
 
+from mdcore.pipeline import Method, MethodResult
+
 from . import plots
-from .state import ExplorerState, scenario_order
+from .state import ExplorerState, method_order
 
 SIDEBAR_WIDTH = 330
+#: Shown in the metrics table where a diagnostic does not apply to a method.
+NOT_APPLICABLE = "—"
+#: The columns of :func:`metrics_frame` shown in the diagnostics table, not the metrics one.
+DIAGNOSTICS = ("ESS pairs", "ESS φ", "Pareto k", "acceptance", "IAT (max)", "chain ESS (min)")
 
 
-def metrics_frame(case, results: dict) -> pd.DataFrame:
-    """One row per (scenario, output): NMSE z, NMSE δ, MMD, LPL, coverage, ESS, seconds.
+def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
+    """One row per (method, output): the SPEC §8 metrics, the δ RMSE (output units), then
+    the method's diagnostics.
 
-    ESS is scenario 3's importance-sampling ESS per output, and for KOH the smallest MCMC
-    effective sample size over the parameters.
+    The importance-sampling diagnostics (ESS over the (θ, φ) pairs, ESS over φ, Pareto k̂,
+    "Pareto k")
+    belong to scenario 3 and the chain diagnostics (acceptance, the largest IAT, the
+    smallest chain ESS over the parameters) to KOH; elsewhere, and for δ metrics where the
+    true δ is unknown, the cell holds :data:`NOT_APPLICABLE`, never NaN.
     """
+    def per_output(values, o):
+        return NOT_APPLICABLE if values is None else float(values[o])
+
     rows = []
-    for s in sorted(results, key=scenario_order):
-        r = results[s]
-        m = r.metrics
+    for method in sorted(results, key=method_order):
+        r = results[method]
+        m, imp, chain = r.metrics, r.importance, r.chain
         for o, name in enumerate(case.output_names):
-            pick = (lambda key: np.nan if m[key] is None else m[key][o])
-            ess = float(r.model.ess[o]) if s == 3 else \
-                float(np.min(r.model.ess)) if s == "koh" else np.nan
-            rows.append({"scenario": plots.scenario_label(s), "output": name, "NMSE z [%]": pick("nmse_z"),
-                         "NMSE δ [%]": pick("nmse_delta"), "MMD": pick("mmd"),
-                         "LPL": pick("lpl"), "cover z ±2σ": pick("coverage_z_2sd"),
-                         "cover z ±3σ": pick("coverage_z_3sd"),
-                         "cover δ ±2σ": pick("coverage_delta_2sd"),
-                         "cover δ ±3σ": pick("coverage_delta_3sd"),
-                         "ESS": ess,
-                         "seconds": r.seconds})
+            rows.append({
+                "method": method.label, "output": name,
+                "NMSE z [%]": per_output(m.nmse_z, o),
+                "NMSE δ [%]": per_output(m.nmse_delta, o),
+                "RMSE δ": per_output(m.rmse_delta, o),
+                "MMD": per_output(m.mmd, o), "LPL": per_output(m.lpl, o),
+                "cover z ±2σ": per_output(m.coverage_z_2sd, o),
+                "cover z ±3σ": per_output(m.coverage_z_3sd, o),
+                "cover δ ±2σ": per_output(m.coverage_delta_2sd, o),
+                "cover δ ±3σ": per_output(m.coverage_delta_3sd, o),
+                "ESS pairs": per_output(None if imp is None else imp.ess, o),
+                "ESS φ": per_output(None if imp is None else imp.ess_phi, o),
+                "Pareto k": per_output(None if imp is None else imp.k_hat, o),
+                "acceptance": NOT_APPLICABLE if chain is None else chain.acceptance_rate,
+                "IAT (max)": NOT_APPLICABLE if chain is None else max(chain.iat),
+                "chain ESS (min)": NOT_APPLICABLE if chain is None else min(chain.ess),
+                "seconds": r.seconds})
     return pd.DataFrame(rows)
 
 
@@ -85,9 +103,11 @@ class ExplorerView(pn.viewable.Viewer):
         next_btn.on_click(lambda _: s.next_wave())
         conv_btn.on_click(lambda _: s.run_to_convergence())
         disc = pn.Param(s.param, parameters=["n_s", "n_phi", "paper_sizes", "scenarios",
-                                             "koh_chain", "band", "seed"], show_name=False,
+                                             "proposal", "koh_chain", "band", "seed"],
+                        show_name=False,
                         widgets={"scenarios": pn.widgets.CheckButtonGroup,
                                  "koh_chain": pn.widgets.RadioButtonGroup,
+                                 "proposal": pn.widgets.RadioButtonGroup,
                                  "band": pn.widgets.RadioButtonGroup,
                                  "n_s": pn.widgets.IntInput, "n_phi": pn.widgets.IntInput,
                                  "seed": pn.widgets.IntInput})
@@ -107,36 +127,44 @@ class ExplorerView(pn.viewable.Viewer):
     @param.depends("state.case")
     def _case_info(self):
         c = self.state.case
-        tag = "**SYNTHETIC** — " if c.synthetic and c.name == "shear-5" else ""
-        return pn.pane.Markdown(f"{tag}{c.description}", styles={"font-size": "0.85em"})
+        if c.stand_in:                 # synthetic data standing in for unpublished ones
+            return pn.pane.Alert(c.description, alert_type="warning",
+                                 styles={"font-size": "0.85em"}, css_classes=["stand-in"])
+        return pn.pane.Markdown(c.description, styles={"font-size": "0.85em"})
 
     def _progress_panel(self):
-        """Busy line and progress bar, updated in place.
+        """Busy line, progress bar and a Cancel button, updated in place.
 
         Replacing the widgets on each report made the browser re-lay-out the whole page
-        every time (seconds per report with eight plots on screen); changing two
+        every time (seconds per report with eight plots on screen); changing a few
         properties does not.
         """
         text = pn.pane.Markdown("Idle.", css_classes=["mdcore-idle"])
         bar = pn.indicators.Progress(value=0, max=100, visible=False,
                                      sizing_mode="stretch_width")
+        cancel = pn.widgets.Button(label="Cancel", color="warning", visible=False,
+                                   css_classes=["cancel-job"])
+        cancel.on_click(lambda _: self.state.cancel())
 
         def update(*_):
             s = self.state
-            text.param.update(object=f"Running **{s.task}** …" if s.busy else "Idle.",
+            detail = f" {s.progress_message}" if s.busy and s.progress_message else ""
+            text.param.update(object=f"Running **{s.task}** …{detail}" if s.busy else "Idle.",
                               css_classes=["mdcore-busy" if s.busy else "mdcore-idle"])
             bar.param.update(visible=s.busy, value=int(100 * s.progress))
+            cancel.visible = s.busy
 
-        self.state.param.watch(update, ["busy", "progress", "task"])
+        self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
         update()
-        return pn.Column(text, bar, sizing_mode="stretch_width")
+        return pn.Column(text, pn.Row(bar, cancel, sizing_mode="stretch_width"),
+                         sizing_mode="stretch_width")
 
     # --- tabs --------------------------------------------------------------------------
     @param.depends("state.case", "state.v_m")
     def data_view(self):
         c = self.state.case
-        return pn.pane.HoloViews(plots.data_overview(c, c.noise_var + self.state.v_m_vector()), sizing_mode="stretch_width",
-                                 css_classes=["data-plot"])
+        return pn.pane.HoloViews(plots.data_overview(c, c.noise_var + self.state.v_m_vector()),
+                                 sizing_mode="stretch_width", css_classes=["data-plot"])
 
     @param.depends("state.status", "state.waves")
     def status_view(self):
@@ -164,9 +192,12 @@ class ExplorerView(pn.viewable.Viewer):
             objs.append(plots.implausibility_map(t1, t2, I, s.threshold, c.theta_names,
                                                  c.theta_units, c.theta_true, upto))
         shown = [w for w in s.waves if w.index <= upto]
+        # Every sibling of a multi-plot HoloViews layout stretches: a fixed-width one (this
+        # Row without a sizing mode) collapsed the pairwise NROY plots to zero width.
         summary = pn.Row(pn.pane.HoloViews(plots.nroy_fraction(shown), sizing_mode="stretch_width"),
                          pn.pane.HoloViews(plots.emulator_variance(shown, c.output_names),
-                                           sizing_mode="stretch_width"))
+                                           sizing_mode="stretch_width"),
+                         sizing_mode="stretch_width")
         return pn.Column(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
                                              css_classes=["hm-plot"]) for o in objs], summary,
                          sizing_mode="stretch_width")
@@ -183,16 +214,20 @@ class ExplorerView(pn.viewable.Viewer):
     def discrepancy_view(self):
         s = self.state
         c = s.case
-        shown = [k for k in sorted(s.scenarios, key=scenario_order) if k in s.results]
+        shown = [k for k in sorted(s.scenarios, key=method_order) if k in s.results]
         if not shown:
             return pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
                                     css_classes=["disc-empty"])
         k = int(s.band)
         if c.d_x == 2:
-            rows = [pn.pane.HoloViews(plots.true_delta_2d(c), height=320, width=420)]
+            # A fixed width on this (responsive) plot collapsed the scenario rows below the
+            # slider to zero width in the browser.
+            rows = [pn.pane.HoloViews(plots.true_delta_2d(c), height=320,
+                                      sizing_mode="stretch_width")]
             for sc in shown:
                 rows.append(pn.pane.HoloViews(
-                    hv.Layout(plots.discrepancy_2d(c, s.results[sc], k, s.slice_x2)).cols(3),
+                    hv.Layout(plots.discrepancy_2d(c, s.grid, s.results[sc], k,
+                                                   s.slice_x2)).cols(3),
                     sizing_mode="stretch_width", css_classes=["disc-plot"]))
             slider = pn.widgets.FloatSlider.from_param(s.param.slice_x2, step=0.001)
             return pn.Column(slider, *rows, sizing_mode="stretch_width")
@@ -200,7 +235,7 @@ class ExplorerView(pn.viewable.Viewer):
         cells = []
         for o in range(c.n_out):
             for q in quantities:
-                cells += plots.discrepancy_1d(c, s.results, shown, k, o,
+                cells += plots.discrepancy_1d(c, s.grid, s.results, shown, k, o,
                                               "z" if q == "z" else "delta")
         layout = hv.Layout(cells).cols(len(shown))
         return pn.pane.HoloViews(layout, sizing_mode="stretch_width", css_classes=["disc-plot"])
@@ -212,24 +247,39 @@ class ExplorerView(pn.viewable.Viewer):
         if not shown:
             return pn.pane.Markdown("No scenario has run yet.")
         df = metrics_frame(s.case, shown)
-        table = pn.pane.DataFrame(df, index=False, float_format="{:.4g}".format,
-                                  sizing_mode="stretch_width", css_classes=["metrics-table"])
-        if "koh" not in shown:
-            return table
-        m = shown["koh"].model
+        table = pn.pane.DataFrame(df.drop(columns=list(DIAGNOSTICS)), index=False,
+                                  float_format="{:.4g}".format, sizing_mode="stretch_width",
+                                  css_classes=["metrics-table"])
+        objs = [table]
+        if Method.S3 in shown or Method.KOH in shown:
+            rows = df["method"].isin([Method.S3.label, Method.KOH.label])
+            objs += [pn.pane.Markdown("Diagnostics: importance weights of scenario 3 (ESS "
+                                      "over the (θ, φ) pairs and over φ, Pareto k̂ ≤ 0.7 is "
+                                      "reliable) and the KOH chain (acceptance, largest "
+                                      "autocorrelation time, smallest ESS)."),
+                     pn.pane.DataFrame(df.loc[rows, ["method", "output", *DIAGNOSTICS]],
+                                       index=False, float_format="{:.4g}".format,
+                                       css_classes=["diagnostics-table"])]
+        if Method.KOH not in shown:
+            return pn.Column(*objs, sizing_mode="stretch_width")
+        r = shown[Method.KOH]
+        m, chain = r.model, r.chain
         c = s.case
         theta = ", ".join(f"{n} = {mu:.4g} ± {sd:.2g} {u}" for n, mu, sd, u in
                           zip(c.theta_names, m.theta.mean(axis=0), m.theta.std(axis=0),
                               c.theta_units))
+        caveat = "" if chain.reliable else (" The chain is shorter than 50 autocorrelation "
+                                            "times, so these are themselves uncertain.")
         summary = pn.pane.Markdown(
-            f"**KOH chain:** {m.chain.n_iter:,} iterations ({m.chain.burn_in:,} burn-in), "
-            f"acceptance {m.acceptance_rate:.2f}, integrated autocorrelation time "
-            f"{', '.join(f'{t:.1f}' for t in m.iat)}, ESS "
-            f"{', '.join(f'{e:,.0f}' for e in m.ess)}. Posterior θ: {theta}.",
+            f"**KOH chain:** {chain.n_iter:,} iterations ({chain.burn_in:,} burn-in), "
+            f"acceptance {chain.acceptance_rate:.2f}, integrated autocorrelation time "
+            f"{', '.join(f'{t:.1f}' for t in chain.iat)}, ESS "
+            f"{', '.join(f'{e:,.0f}' for e in chain.ess)}.{caveat} Posterior θ: {theta}.",
             css_classes=["koh-summary"])
-        post = pn.pane.HoloViews(hv.Layout(plots.koh_posterior(c, m)).cols(3),
+        post = pn.pane.HoloViews(hv.Layout(plots.koh_posterior(c, m)).cols(3)
+                                 .opts(shared_axes=False),     # densities differ in scale
                                  sizing_mode="stretch_width", css_classes=["koh-plot"])
-        return pn.Column(table, summary, post, sizing_mode="stretch_width")
+        return pn.Column(*objs, summary, post, sizing_mode="stretch_width")
 
     def __panel__(self):
         hm_tab = pn.Column(self.status_view, self.wave_selector, self.waves_view,
@@ -237,8 +287,11 @@ class ExplorerView(pn.viewable.Viewer):
         disc_tab = pn.Column(pn.widgets.RadioButtonGroup.from_param(self.param.quantity),
                              self.discrepancy_view, sizing_mode="stretch_width")
         metrics_tab = pn.Column(
-            pn.pane.Markdown("SPEC §8 metrics at the test inputs. NMSE in percent; coverage = "
-                             "share of test points (or of the true δ) inside the band."),
+            pn.pane.Markdown("SPEC §8 metrics at the test inputs. NMSE in percent; RMSE δ "
+                             "in the output's units (NMSE δ divides by the variance of the "
+                             "true δ, which is tiny where δ hardly varies, as on shear-5); "
+                             "coverage = share of test points (or of the true δ) inside the "
+                             "band."),
             self.metrics_view, sizing_mode="stretch_width")
         tabs = pn.Tabs(("Data", self.data_view), ("History matching", hm_tab),
                        ("Discrepancy", disc_tab), ("Metrics", metrics_tab),

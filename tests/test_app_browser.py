@@ -8,6 +8,7 @@ import os
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from urllib.parse import urlparse
@@ -35,26 +36,51 @@ def _require_browser():
         pytest.skip(reason)
 
 
-@pytest.fixture(scope="module")
-def server():
-    _require_browser()
+class ServerLog:
+    """Reads ``panel serve``'s output on a thread (so the pipe never fills) and signals
+    when the app is being served."""
+
+    READY = "Bokeh app running at"
+
+    def __init__(self, proc):
+        self.lines: list[str] = []
+        self.ready = threading.Event()
+        self.closed = threading.Event()
+        threading.Thread(target=self._read, args=(proc.stdout,), daemon=True).start()
+
+    def _read(self, stream):
+        for line in stream:
+            self.lines.append(line)
+            if self.READY in line:
+                self.ready.set()
+        self.closed.set()
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+
+def _serve(script: str = "main.py"):
+    """Start ``panel serve app/<script>`` on a free port; return (process, url, log)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "panel", "serve", str(ROOT / "app" / "main.py"), "--address",
+        [sys.executable, "-m", "panel", "serve", str(ROOT / "app" / script), "--address",
          "127.0.0.1", "--port", str(port), "--allow-websocket-origin", f"127.0.0.1:{port}"],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
-    url = f"http://127.0.0.1:{port}/main"
-    deadline = time.time() + 60
-    while time.time() < deadline:
-        try:
-            with socket.create_connection(("127.0.0.1", port), timeout=1):
-                break
-        except OSError:
-            if proc.poll() is not None:
-                pytest.fail("panel serve exited:\n" + proc.stdout.read())
-            time.sleep(0.3)
+    log = ServerLog(proc)
+    end = time.monotonic() + 60
+    while not log.ready.wait(timeout=1.0):            # a condition, polled once a second
+        if log.closed.is_set() or time.monotonic() > end:
+            proc.kill()
+            pytest.fail("panel serve did not start:\n" + log.text())
+    return proc, f"http://127.0.0.1:{port}/{Path(script).stem}", log
+
+
+@pytest.fixture(scope="module")
+def server():
+    _require_browser()
+    proc, url, _log = _serve()
     yield url
     proc.terminate()
     proc.wait(timeout=10)
@@ -97,6 +123,21 @@ def tab(page, name):
     page.locator(".bk-tab", has_text=name).click()
 
 
+def wait_drawn(page, selector, n=1, timeout=30_000):
+    """Wait until at least ``n`` canvases under ``selector`` are visible with a non-zero
+    size (Bokeh has drawn them), instead of sleeping."""
+    canvases = page.locator(f"{selector} canvas")
+    end = time.monotonic() + timeout / 1000
+    while True:
+        boxes = [canvases.nth(k).bounding_box() for k in range(canvases.count())]
+        if sum(1 for b in boxes if b and b["width"] > 0 and b["height"] > 0) >= n:
+            return
+        if time.monotonic() > end:
+            raise AssertionError(f"fewer than {n} drawn canvases under {selector}")
+        canvases.first.wait_for(state="visible", timeout=timeout)
+        page.wait_for_function("() => new Promise(r => requestAnimationFrame(() => r(true)))")
+
+
 def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     ARTIFACTS.mkdir(exist_ok=True)
     page, log = open_page(browser, server)
@@ -124,16 +165,16 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     assert page.locator(".metrics-table table").inner_text().count("tip deflection") == 4
     page.screenshot(path=str(ARTIFACTS / "04b-koh-metrics.png"), full_page=True)
     tab(page, "Discrepancy")
-    time.sleep(2.0)
+    wait_drawn(page, ".disc-plot", n=8)                # z and δ of four methods
     page.screenshot(path=str(ARTIFACTS / "04c-koh-bands.png"), full_page=True)
 
     page.locator("select").first.select_option("shear-5")
-    page.wait_for_selector("text=/SYNTHETIC stand-in/", timeout=30_000)   # case-sensitive
+    # Ten shear-5 plots take headless Chromium 10–20 s to build on a loaded 2-core machine.
+    page.wait_for_selector("text=/SYNTHETIC stand-in/", timeout=90_000)   # case-sensitive
     page.wait_for_selector(".hm-status:has-text('Five-storey')", state="attached",
                            timeout=30_000)
     tab(page, "Data")
-    page.wait_for_selector(".data-plot canvas", timeout=30_000)
-    time.sleep(3.0)                                   # five modes take a moment to draw
+    wait_drawn(page, ".data-plot", n=10)              # data and true δ of five modes
     page.screenshot(path=str(ARTIFACTS / "05-shear5.png"))
 
     assert log.errors == []
@@ -147,8 +188,8 @@ def test_two_sessions_do_not_share_results(browser, server):
     a.get_by_role("button", name="Next wave").click()
     tab(a, "History matching")
     a.wait_for_selector(".hm-status:has-text('wave 1')", timeout=60_000)
-    tab(b, "History matching")
-    time.sleep(1.0)
+    tab(b, "History matching")                         # b's own update, then check it
+    b.wait_for_selector(".hm-status:has-text('Press “Next wave”')", timeout=30_000)
     assert b.locator(".hm-status:has-text('Press “Next wave”')").count() == 1
     assert b.locator(".hm-status:has-text('wave 1')").count() == 0
     assert b.locator(".hm-plot").count() == 0

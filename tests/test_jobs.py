@@ -1,0 +1,362 @@
+"""Tests of the app's job runner (app/jobs.py): failures of any type end the job with one
+notification and the earlier state, newer jobs supersede older ones, cancel stops a running
+job quietly, and progress is throttled.
+
+Background mode is driven the way the served app drives it: the worker hands callbacks to
+``schedule`` (here a queue), and the test thread plays the session's event loop. No fixed
+sleeps: every wait is on a condition with a timeout.
+"""
+
+import queue
+import threading
+import time
+
+import pytest
+
+from mdcore.exceptions import Cancelled
+from mdcore_app.jobs import JobRunner, error_message
+
+TIMEOUT = 30.0
+
+
+class Host:
+    """A stand-in session state: a value the jobs change, busy/progress/error fields."""
+
+    def __init__(self):
+        self.value = "before"
+        self.status = "status before"
+        self.busy = False
+        self.progress = []
+        self.errors = []
+
+    def runner(self, **options) -> JobRunner:
+        return JobRunner(
+            on_start=lambda label: setattr(self, "busy", True),
+            on_progress=lambda f, m: self.progress.append((f, m)),
+            on_finish=lambda: setattr(self, "busy", False),
+            on_error=self.errors.append,
+            snapshot=lambda: (self.value, self.status),
+            restore=self._restore, **options)
+
+    def _restore(self, snap):
+        self.value, self.status = snap
+
+    def apply(self, partial):
+        self.value, self.status = partial, f"status of {partial}"
+
+
+def drain(inbox: queue.Queue, until, timeout: float = TIMEOUT) -> None:
+    """Run scheduled callbacks on this thread until ``until()`` holds; fail on timeout."""
+    end = time.monotonic() + timeout
+    while not until():
+        if time.monotonic() > end:
+            raise AssertionError("condition not reached before the timeout")
+        try:
+            inbox.get(timeout=0.05)()
+        except queue.Empty:
+            pass
+
+
+def background(host: Host, **options):
+    inbox: queue.Queue = queue.Queue()
+    return host.runner(background=True, schedule=inbox.put, **options), inbox
+
+
+# --- failures ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("exc_type", [RuntimeError, ValueError, ZeroDivisionError, KeyError])
+def test_exception_from_compute_restores_state_and_clears_busy(exc_type):
+    host = Host()
+    runner = host.runner()
+
+    def compute(report, cancel):
+        yield "partial"                               # applied: state and status change …
+        report(0.5)
+        raise exc_type("injected")                    # … then the work fails
+
+    job = runner.submit("wave", compute, host.apply)
+    assert job.status == "failed" and isinstance(job.error, exc_type)
+    assert (host.value, host.status) == ("before", "status before")     # restored together
+    assert not host.busy and not runner.busy
+    assert len(host.errors) == 1 and "injected" in host.errors[0]
+
+
+def test_exception_from_apply_restores_state_and_stops_the_work():
+    host = Host()
+    runner = host.runner()
+    yielded = []
+
+    def compute(report, cancel):
+        for k in range(5):
+            yielded.append(k)
+            yield k
+            report((k + 1) / 5)
+
+    def apply(partial):
+        host.apply(partial)
+        if partial == 1:
+            raise RuntimeError("apply broke")
+
+    job = runner.submit("discrepancy", compute, apply)
+    assert job.status == "failed"
+    assert yielded == [0, 1]                          # the worker stopped at its next check
+    assert (host.value, host.status) == ("before", "status before")
+    assert not host.busy and host.errors == ["discrepancy failed with RuntimeError: apply broke"]
+
+
+def test_runtime_error_in_background_mode():
+    host = Host()
+    runner, inbox = background(host)
+
+    def compute(report, cancel):
+        yield "partial"
+        raise RuntimeError("boom")
+
+    job = runner.submit("waves", compute, host.apply)
+    drain(inbox, until=lambda: job.wait(0) and inbox.empty())
+    assert not host.busy and len(host.errors) == 1 and host.value == "before"
+    runner.submit("waves", lambda report, cancel: iter(["after"]), host.apply)
+    drain(inbox, until=lambda: not host.busy)
+    assert host.value == "after" and len(host.errors) == 1          # still usable
+
+
+def test_error_message_names_the_type_except_for_value_errors():
+    assert error_message("wave", ValueError("Raise V_m.")) == "Raise V_m."
+    assert error_message("wave", RuntimeError("x")) == "wave failed with RuntimeError: x"
+    assert error_message("wave", KeyError()) == "wave failed with KeyError: no message"
+
+
+# --- supersession and cancel --------------------------------------------------------------
+
+def test_newer_job_supersedes_and_drops_stale_results():
+    host = Host()
+    runner, inbox = background(host)
+    started, release = threading.Event(), threading.Event()
+
+    def slow(report, cancel):
+        started.set()
+        release.wait(TIMEOUT)
+        yield "stale"
+        raise RuntimeError("stale failure")            # must not notify either
+
+    old = runner.submit("slow", slow, host.apply)
+    assert started.wait(TIMEOUT)
+    new = runner.submit("fast", lambda report, cancel: iter(["fresh"]), host.apply)
+    assert old.status == "superseded" and old.cancel.is_set()
+    drain(inbox, until=lambda: new.wait(0))
+    release.set()
+    drain(inbox, until=lambda: old.wait(0) and inbox.empty())
+    assert host.value == "fresh" and host.errors == [] and not host.busy
+    assert old.status == "superseded" and new.status == "done"
+
+
+def test_cancel_stops_a_running_job_quietly():
+    host = Host()
+    runner, inbox = background(host)
+    started = threading.Event()
+    steps = []
+
+    def endless(report, cancel):
+        yield "first"                                 # applied before the cancel: kept
+        started.set()
+        while True:                                   # stops only through cancel
+            steps.append(1)
+            report(0.5, "working")
+            cancel.wait(0.01)
+
+    job = runner.submit("endless", endless, host.apply)
+    drain(inbox, until=lambda: started.is_set() and host.value == "first")
+    assert runner.cancel()
+    drain(inbox, until=lambda: job.wait(0) and not host.busy)
+    n = len(steps)
+    assert job.status == "cancelled" and host.errors == [] and host.value == "first"
+    assert not runner.cancel()                        # nothing running any more
+    assert len(steps) == n                            # the worker has stopped
+
+
+def test_pipeline_cancelled_is_not_a_notification_storm():
+    """Many retired or cancelled jobs, each raising Cancelled or failing late: no errors."""
+    host = Host()
+    runner, inbox = background(host)
+    gates = []
+
+    def work(report, cancel):
+        gate = threading.Event()
+        gates.append(gate)
+        gate.wait(TIMEOUT)
+        for _ in range(100):
+            report(0.1)                               # raises Cancelled once retired
+        yield "late"
+
+    jobs = [runner.submit(f"job {k}", work, host.apply) for k in range(5)]
+    runner.cancel()
+    drain(inbox, until=lambda: len(gates) == 5)
+    for gate in gates:
+        gate.set()
+    drain(inbox, until=lambda: all(j.wait(0) for j in jobs) and inbox.empty())
+    assert not host.busy
+    assert host.errors == [] and host.value == "before"
+    assert [j.status for j in jobs] == ["superseded"] * 4 + ["cancelled"]
+
+
+def test_cancelled_from_the_work_itself_ends_quietly():
+    host = Host()
+    runner = host.runner()
+
+    def compute(report, cancel):
+        yield "partial"
+        raise Cancelled("run_method was cancelled")
+
+    job = runner.submit("discrepancy", compute, host.apply)
+    assert job.status == "cancelled" and host.errors == [] and not host.busy
+    assert host.value == "partial"                    # a cancel keeps what was applied
+
+
+def test_drop_retires_without_callbacks():
+    host = Host()
+    runner, inbox = background(host)
+    release = threading.Event()
+
+    def compute(report, cancel):
+        release.wait(TIMEOUT)
+        yield "stale"
+
+    job = runner.submit("x", compute, host.apply)
+    runner.drop()
+    release.set()
+    drain(inbox, until=lambda: job.wait(0))
+    assert job.status == "superseded" and host.value == "before" and host.errors == []
+    assert host.busy                                  # drop leaves busy to the caller
+
+
+# --- progress ------------------------------------------------------------------------------
+
+def test_progress_is_throttled_on_a_clock():
+    host = Host()
+    now = [0.0]
+    runner = host.runner(clock=lambda: now[0], interval=0.25)
+
+    def compute(report, cancel):
+        for k in range(100):                          # 100 reports at one instant …
+            report(k / 1000, "fine steps")
+        report(0.2, "big jump")                       # … a jump of ≥ 0.1 always shows
+        now[0] += 0.3
+        report(0.201, "later")                        # … and so does the first after 0.25 s
+        report(0.202, "too soon")
+        yield "done"
+
+    runner.submit("x", compute, host.apply)
+    assert host.progress == [(0.0, "fine steps"), (0.2, "big jump"), (0.201, "later")]
+
+
+# --- the session state on the runner ------------------------------------------------------
+
+def _state(**extra):
+    pytest.importorskip("panel")
+    from mdcore_app.state import ExplorerState
+    s = ExplorerState(**{k: v for k, v in extra.items() if k in ("background", "schedule")})
+    s.param.update(n_candidates=4000, n_s=30, n_phi=8,
+                   **{k: v for k, v in extra.items() if k not in ("background", "schedule")})
+    return s
+
+
+def _fields(s):
+    return (s.waves, dict(s.implausibility_maps), s.selected_wave, s.status, dict(s.results),
+            dict(s._cache), s._problem_key)
+
+
+def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monkeypatch):
+    """Scenario 1 is applied before KOH starts; KOH then fails: the results go back to what
+    they were before the run (not scenario 1 alone), with one notification."""
+    import mdcore_app.state as state_module
+    from mdcore.pipeline import Method
+    s = _state()
+    s.run_to_convergence()
+    s.scenarios = [Method.S2]
+    s.run_discrepancy()
+    before, n = _fields(s), s.n_errors
+    real = state_module.run_method
+    applied = []
+    s.param.watch(lambda e: applied.append(list(e.new)), "results")
+
+    def failing(case, hm, method, *args, **kwargs):
+        if method is Method.KOH:
+            raise RuntimeError("injected in KOH")
+        return real(case, hm, method, *args, **kwargs)
+
+    monkeypatch.setattr(state_module, "run_method", failing)
+    s.scenarios = [Method.S1, Method.S2, Method.KOH]   # runs S1 and KOH (S2 is cached)
+    assert [Method.S1, Method.S2] in applied           # S1 was shown before KOH failed
+    assert not s.busy and s.n_errors == n + 1
+    assert "RuntimeError" in s.error and "injected in KOH" in s.error
+    assert s.results == {Method.S2: before[4][Method.S2]}
+    assert _fields(s)[5] == before[5]                  # the cache too: nothing half-done
+
+
+def test_state_runtime_error_in_a_later_wave_restores_waves_and_status(monkeypatch):
+    import mdcore_app.state as state_module
+    s = _state(max_waves=4, convergence_ratio=0.001)
+    s.next_wave()
+    before, n = _fields(s), s.n_errors
+    real, calls = state_module.next_wave, []
+
+    def failing(problem, waves):
+        calls.append(len(waves))
+        if len(calls) == 2:
+            raise RuntimeError("simulator crashed")
+        return real(problem, waves)
+
+    monkeypatch.setattr(state_module, "next_wave", failing)
+    s.run_to_convergence()                             # wave 2 is applied, wave 3 fails
+    assert calls == [1, 2]
+    after = _fields(s)
+    assert after[0] is before[0] and after[1:] == before[1:]     # waves, maps, status …
+    assert s.status == before[3] and len(s.waves) == 1
+    assert not s.busy and s.n_errors == n + 1 and "simulator crashed" in s.error
+
+
+def test_state_runtime_error_from_apply(monkeypatch):
+    s = _state(max_waves=4, convergence_ratio=0.001)
+    s.next_wave()
+    before, n = _fields(s), s.n_errors
+
+    def broken():
+        raise RuntimeError("apply failed")
+
+    monkeypatch.setattr(s, "_refresh_results", broken)     # called inside the wave's apply
+    s.next_wave()
+    assert _fields(s)[0] is before[0] and _fields(s)[1:] == before[1:]
+    assert not s.busy and s.n_errors == n + 1 and "apply failed" in s.error
+    monkeypatch.undo()
+    s.next_wave()                                          # still usable
+    assert len(s.waves) == 2 and s.n_errors == n + 1
+
+
+def test_state_value_error_restores_and_notifies_once():
+    s = _state()
+    s.next_wave()
+    before, n = _fields(s), s.n_errors
+    s.threshold = -1.0
+    s.next_wave()
+    assert _fields(s)[0] is before[0] and not s.busy and s.n_errors == n + 1
+    assert "threshold T must be a positive number" in s.error
+
+
+def test_state_cancel_stops_a_running_discrepancy_run():
+    """Background mode: cancel a slow scenario-3 run once it reports progress; it ends with
+    no error and no result, and the session is idle again."""
+    from mdcore.pipeline import Method
+    inbox: queue.Queue = queue.Queue()
+    s = _state(background=True, schedule=inbox.put)
+    s.run_to_convergence()
+    drain(inbox, until=lambda: len(s.waves) >= 1 and not s.busy)
+    s.scenarios = [Method.S3]
+    s.param.update(n_s=200, n_phi=2000)                 # long enough to be cancelled
+    s.run_discrepancy()
+    job = s.jobs.job
+    drain(inbox, until=lambda: s.progress > 0 or not s.busy)
+    assert s.busy, "the run finished before it could be cancelled"
+    s.cancel()
+    drain(inbox, until=lambda: job.wait(0) and not s.busy, timeout=120.0)
+    assert job.status == "cancelled" and s.n_errors == 0 and s.results == {}
+    assert s.progress_message == ""

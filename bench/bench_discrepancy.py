@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 from mdcore import cases
-from mdcore.discrepancy import infer
+from mdcore.discrepancy import infer_discrepancy
 from mdcore.history_matching import history_match_case
 from mdcore.reproduce import PAPER_SIZES
 
@@ -40,7 +40,7 @@ def sklearn_loop(case, theta, phi, idx):
         kern = ConstantKernel(sf**2) * Matern(length_scale=ls, nu=1.5) + WhiteKernel(sn**2)
         reg = GaussianProcessRegressor(kern, optimizer=None, alpha=0.0)
         reg.fit(np.column_stack([y_train[j], case.X_train]), case.z_train[:, 0])
-        reg.log_marginal_likelihood_value_
+        _ = reg.log_marginal_likelihood_value_
         reg.predict(np.column_stack([y_test[j], case.X_test]), return_std=True)
     return time.perf_counter() - start
 
@@ -60,7 +60,7 @@ def main():
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=3,
+            model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=3,
                           n_phi=n_phi, phi_prior=case.phi_prior, seed=0)
             t1 = time.perf_counter()
             model.predict(case.X_test)

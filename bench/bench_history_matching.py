@@ -12,7 +12,7 @@ import time
 import numpy as np
 
 from mdcore import cases
-from mdcore.history_matching import _score, case_problem, iter_waves
+from mdcore.history_matching import case_problem, iter_waves
 
 
 def main():
@@ -27,9 +27,9 @@ def main():
         rng = np.random.default_rng(0)
         b = case.theta_bounds
         theta = b[:, 0] + (b[:, 1] - b[:, 0]) * rng.uniform(size=(100_000, case.p))
-        _score(problem, waves[0].emulator, theta[:1000])
+        problem.score(theta[:1000], waves[0].emulator)
         t = time.perf_counter()
-        _score(problem, waves[0].emulator, theta)
+        problem.score(theta, waves[0].emulator)
         dt = time.perf_counter() - t
         print(f"{name}: scored 100,000 candidates in {dt:.3f} s = {1e5 / dt:,.0f} candidates/s "
               f"({problem.X.shape[0]} inputs × {problem.z.shape[1]} outputs)\n")

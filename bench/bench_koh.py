@@ -14,10 +14,11 @@ import time
 
 import numpy as np
 
-from mdcore import cases, gp
+from mdcore import cases
 from mdcore.history_matching import history_match_case
-from mdcore.koh import _gauss_loglik, _noise_cov, infer
-from mdcore.reproduce import koh_phi_prior
+from mdcore.koh import gaussian_log_likelihood, infer_koh, noise_cov
+from mdcore.linalg import JitterLog
+from mdcore.pipeline import koh_phi_prior
 
 
 def main():
@@ -30,7 +31,7 @@ def main():
     case = cases.load("beam-1d", seed=0)
     em = history_match_case(case, seed=0).waves[-1].emulator
     t0 = time.perf_counter()
-    model = infer(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
+    model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
                   bounds=case.theta_bounds, phi_prior=koh_phi_prior(case),
                   n_iter=args.n_iter, burn_in=args.burn_in, seed=0)
     t1 = time.perf_counter()
@@ -41,21 +42,21 @@ def main():
     X, zT, lp = case.X_train, case.z_train.T, model.log_phi
     rng = np.random.default_rng(0)
     thetas = model.theta[rng.integers(0, model.theta.shape[0], args.ref_steps)]
-    log = gp._JitterLog()
+    log = JitterLog()
     ours, naive = np.empty(args.ref_steps), np.empty(args.ref_steps)
-    B = _noise_cov(lp, X)
+    B = noise_cov(lp, X)
     at = em.at(X)
     s = time.perf_counter()
     for i, th in enumerate(thetas):
-        mean, cov = at._moments(*at._theta_terms(th[None], check=False))
-        ours[i] = _gauss_loglik(mean, cov, B, zT, log)[0]
+        mean, cov = at.moments_at(at.theta_terms(th[None], check=False))
+        ours[i] = gaussian_log_likelihood(mean, cov, B, zT, log)[0]
     per_ours = (time.perf_counter() - s) / args.ref_steps
     s = time.perf_counter()
     for i, th in enumerate(thetas):
         at_i = em.at(X)
-        B_i = _noise_cov(lp, X)
+        B_i = noise_cov(lp, X)
         mean, cov = at_i.moments(th[None])
-        naive[i] = _gauss_loglik(mean, cov, B_i, zT, log)[0]
+        naive[i] = gaussian_log_likelihood(mean, cov, B_i, zT, log)[0]
     per_naive = (time.perf_counter() - s) / args.ref_steps
     assert np.allclose(ours, naive, rtol=1e-12, atol=1e-9)
 

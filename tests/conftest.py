@@ -1,5 +1,33 @@
+import importlib.util
+import os
+
 import numpy as np
 import pytest
+
+#: Modules of the ``test`` extra that some tests reach through ``pytest.importorskip``
+#: (module -> what needs it). Locally a missing one skips those tests; with
+#: ``MDCORE_REQUIRE_EXTRAS=1`` (set by ``.ci/run``) it stops the run before any test.
+OPTIONAL_TEST_MODULES = {
+    "sklearn": "tests/test_gp.py (scikit-learn reference)",
+    "arviz": "tests/test_importance.py (PSIS reference)",
+    "numba": "tests/test_compiled.py",
+    "distributed": "tests/test_runs.py (Dask executor)",
+    "PIL": "tests/test_report.py (screenshot check)",
+    "hypothesis": "tests/test_kernels.py (property tests)",
+    "playwright": "the browser tests",
+}
+
+
+def pytest_sessionstart(session):
+    if os.environ.get("MDCORE_REQUIRE_EXTRAS") != "1":
+        return
+    missing = {name: why for name, why in OPTIONAL_TEST_MODULES.items()
+               if importlib.util.find_spec(name) is None}
+    if missing:
+        listed = "; ".join(f"{name} (for {why})" for name, why in missing.items())
+        raise pytest.UsageError(
+            f"MDCORE_REQUIRE_EXTRAS=1 but these test dependencies are not importable: {listed}. "
+            "Install them with: pip install -e \".[test]\"")
 
 
 @pytest.fixture

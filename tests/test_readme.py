@@ -13,7 +13,8 @@ def test_readme_example_runs():
     namespace: dict = {}
     exec(compile(code, "README.md", "exec"), namespace)
     assert namespace["pred"].z_mean.shape == (200, 1)
-    assert namespace["nmse"](namespace["case"].z_test, namespace["pred"].z_mean)[0] < 3.0
+    result = namespace["result"]
+    assert result.metrics.nmse_z[0] < 3.0 and result.importance.k_hat[0] < 0.7
 
 
 def test_ci_runs_the_readme_test_command_verbatim():

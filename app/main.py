@@ -8,11 +8,14 @@ its results back to the session's event loop.
 import holoviews as hv
 import panel as pn
 
+from mdcore import compiled
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 
 pn.extension(notifications=True, design="bootstrap")
 hv.extension("bokeh")
+# Load (or, on a new machine, compile) the numba kernels while the first page is drawn.
+compiled.warm_up_in_background()
 
 
 def create_app() -> pn.viewable.Viewable:

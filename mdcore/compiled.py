@@ -51,6 +51,8 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = [
+    "BACKENDS",
+    "BACKEND_ENV",
     "THREADS_ENV",
     "MixtureSums",
     "available",
@@ -60,10 +62,15 @@ __all__ = [
     "num_threads",
     "predict",
     "predict_batch",
+    "resolve_backend",
     "warm_up",
     "warm_up_in_background",
 ]
 
+#: Values of the ``backend=`` argument of :mod:`mdcore.gp` and the pipeline.
+BACKENDS = ("auto", "numpy", "numba")
+#: Environment variable giving the default backend (one of :data:`BACKENDS`).
+BACKEND_ENV = "MDCORE_BACKEND"
 #: Environment variable limiting the compute threads of mdcore (a positive integer).
 THREADS_ENV = "MDCORE_NUM_THREADS"
 #: Work of one piece (a kernel call on a range of pairs), in flops: about 0.05 s.
@@ -76,6 +83,7 @@ MIN_PIECE = 64
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOL_LOCK = threading.Lock()
 _kernels_module = None
+_warm_thread: threading.Thread | None = None
 
 
 def available() -> bool:
@@ -86,6 +94,34 @@ def available() -> bool:
         return importlib.util.find_spec("numba") is not None
     except (ImportError, ValueError):        # e.g. sys.modules["numba"] = None
         return False
+
+
+def resolve_backend(backend: str | None = None) -> str:
+    """The GP backend to use: ``"numpy"`` (the reference) or ``"numba"`` (this module).
+
+    Parameters
+    ----------
+    backend : {"auto", "numpy", "numba"} or None
+        ``None`` reads :data:`BACKEND_ENV` (``MDCORE_BACKEND``), default ``"auto"``.
+        ``"auto"`` is ``"numba"`` when numba is installed, else ``"numpy"``.
+
+    Raises
+    ------
+    ValueError
+        For an unknown name, or ``"numba"`` without numba installed.
+    """
+    source = "backend"
+    if backend is None:
+        backend, source = os.environ.get(BACKEND_ENV, "").strip() or "auto", BACKEND_ENV
+    if backend not in BACKENDS:
+        raise ValueError(f"{source} must be one of {', '.join(map(repr, BACKENDS))}; "
+                         f"received {backend!r}.")
+    if backend == "auto":
+        return "numba" if available() else "numpy"
+    if backend == "numba" and not available():
+        raise ValueError(f"{source}='numba' needs numba, which is not installed; install it "
+                         "with pip install 'mdcore[fast]', or use backend='numpy'.")
+    return backend
 
 
 def _kernels():
@@ -447,15 +483,20 @@ def warm_up() -> float:
 
 
 def warm_up_in_background() -> threading.Thread | None:
-    """Start :func:`warm_up` in a daemon thread; ``None`` when numba is not installed.
+    """Start :func:`warm_up` in a daemon thread, once per process; ``None`` without numba.
 
-    A compiled call made meanwhile waits for the compilation instead of repeating it.
+    Later calls return the same thread. A compiled call made meanwhile waits for the
+    compilation instead of repeating it.
     """
+    global _warm_thread
     if not available():
         return None
-    thread = threading.Thread(target=_quiet_warm_up, name="mdcore-warm-up", daemon=True)
-    thread.start()
-    return thread
+    with _POOL_LOCK:
+        if _warm_thread is None:
+            _warm_thread = threading.Thread(target=_quiet_warm_up, name="mdcore-warm-up",
+                                            daemon=True)
+            _warm_thread.start()
+        return _warm_thread
 
 
 def _quiet_warm_up() -> None:

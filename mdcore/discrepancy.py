@@ -42,7 +42,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import logsumexp
 
-from . import gp
+from . import compiled, gp
 from .exceptions import LowESSWarning, NumericalWarning
 from .hyperfit import default_bounds, fit_hyperparameters
 from .importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis
@@ -163,6 +163,8 @@ class DiscrepancyModel:
     k_hat : ndarray of shape (n_out,) or None
         Scenario 3: Pareto shape of each output's raw importance weights (Vehtari et al.;
         above 0.7 the mixture is unreliable).
+    backend : {"numpy", "numba"}
+        The GP backend :meth:`predict` uses (:func:`mdcore.compiled.resolve_backend`).
     """
 
     scenario: int
@@ -180,6 +182,7 @@ class DiscrepancyModel:
     seconds: float
     proposal: str | None = None
     k_hat: np.ndarray | None = None
+    backend: str = "numpy"
 
     @property
     def n_out(self) -> int:
@@ -244,7 +247,11 @@ class DiscrepancyModel:
         Ys = _simulate(self.simulate, X_star, self.theta, self.n_out)     # (S, N*, n_out)
         M, K, P = X_star.shape[0], self.log_params.shape[2], self.log_params.shape[3]
         N, d_y = self.X.shape[0], self.n_out
-        block = max(1, int(BLOCK_BYTES // (8 * (M * (d_y + 6) + N * (d_y + 2) + P))))
+        fused = self.backend == "numba"
+        if fused:       # pairs per compiled call: progress and cancel about 20 times an output
+            block = max(2048, -(-self.log_weights[0].size // 20))
+        else:           # pairs per NumPy chunk, in BLOCK_BYTES of temporaries
+            block = max(1, int(BLOCK_BYTES // (8 * (M * (d_y + 6) + N * (d_y + 2) + P))))
         kept = self._kept(prune)
         total = sum(max(1, -(-idx.size // block)) for idx, _ in kept)
         done = 0
@@ -253,10 +260,12 @@ class DiscrepancyModel:
             lw = self.log_weights[o].ravel()[idx]
             w = np.exp(lw - logsumexp(lw))                  # renormalised over kept
             z_o = self.z[:, o]
+            j_all, k_all = np.divmod(idx, K)
 
-            def moments(sel, idx=idx, o=o, z_o=z_o):
-                j, k = np.divmod(idx[sel], K)
-                p = gp.predict(self.log_params[o][j, k], self.Y[j], self.X, z_o, Ys[j], X_star)
+            def moments(sel, o=o, z_o=z_o, j_all=j_all, k_all=k_all):
+                j = j_all[sel]
+                p = gp.predict(self.log_params[o][j, k_all[sel]], self.Y[j], self.X, z_o, Ys[j],
+                               X_star, backend=self.backend)
                 return p.mean, p.var, p.noise_var[:, None], Ys[j][..., o]
 
             # Reference: the heaviest component; sums are taken about it (no cancellation).
@@ -265,21 +274,31 @@ class DiscrepancyModel:
             cz, cd = m0[0], m0[0] - y0[0]
             acc = np.zeros((4, M))                          # Σw dz, Σw dδ, Σw(..z²), Σw(..δ²)
             for sel in _blocks(idx.size, block):
-                mean, var, sn2, ystar = moments(sel)
                 wb = w[sel]
-                bad = ~np.all(np.isfinite(mean) & np.isfinite(var), axis=1)
+                if fused:       # the same sums, per pair in registers (mdcore.compiled)
+                    sums = compiled.mixture_sums(
+                        self.log_params[o][j_all[sel], k_all[sel]], self.Y, j_all[sel], self.X,
+                        z_o, Ys, Ys[..., o], wb, X_star, cz, cd)
+                    bad = sums.dropped
+                    acc += sums.acc
+                else:
+                    mean, var, sn2, ystar = moments(sel)
+                    bad = ~np.all(np.isfinite(mean) & np.isfinite(var), axis=1)
+                    if np.any(bad):
+                        wb = np.where(bad, 0.0, wb)
+                        mean = np.where(bad[:, None], 0.0, mean)
+                        var = np.where(bad[:, None], 0.0, var)
+                    dz = mean - cz
+                    dd = mean - ystar - cd
+                    acc[0] += wb @ dz
+                    acc[1] += wb @ dd
+                    acc[2] += wb @ (var + sn2 + dz * dz)    # Eq. 13/15: total variance of z*
+                    acc[3] += wb @ (var + dd * dd)          # latent variance goes to δ
                 if np.any(bad):
                     warnings.warn(f"{int(bad.sum())} component(s) of output {o} could not be "
                                   "factorised and were dropped from the mixture (weight "
-                                  f"{float(wb[bad].sum()):.3g}).", NumericalWarning, stacklevel=2)
-                    wb = np.where(bad, 0.0, wb)
-                    mean, var = np.where(bad[:, None], 0.0, mean), np.where(bad[:, None], 0.0, var)
-                dz = mean - cz
-                dd = mean - ystar - cd
-                acc[0] += wb @ dz
-                acc[1] += wb @ dd
-                acc[2] += wb @ (var + sn2 + dz * dz)        # Eq. 13/15: total variance of z*
-                acc[3] += wb @ (var + dd * dd)              # latent variance goes to δ
+                                  f"{float(w[sel][bad].sum()):.3g}).",
+                                  NumericalWarning, stacklevel=2)
                 done += 1
                 if progress is not None:
                     progress(min(done / total, 1.0))
@@ -301,7 +320,7 @@ def _prune(value) -> float:
     return p
 
 
-def _prior_proposal(Y, X, z, prior, n_phi, rng, progress):
+def _prior_proposal(Y, X, z, prior, n_phi, rng, progress, backend):
     """Scenario 3 as in the paper: φ^(j,k) ~ p(φ), shared by the outputs (common random
     numbers); ``log w_jk = −NLML`` (Eq. 15), normalised jointly over (j, k) per output."""
     n_out, S, P = z.shape[1], Y.shape[0], prior.size
@@ -313,14 +332,15 @@ def _prior_proposal(Y, X, z, prior, n_phi, rng, progress):
     for o in range(n_out):
         for i, sl in enumerate(steps):
             # Eq. 15: log w_jk = log p(z | y^(j), X, φ^(j,k)) = −NLML
-            log_weights[o, sl] = -gp.neg_log_marginal_likelihood(phi[sl], Y[sl, None], X, z[:, o])
+            log_weights[o, sl] = -gp.neg_log_marginal_likelihood(phi[sl], Y[sl, None], X,
+                                                                 z[:, o], backend=backend)
             if progress is not None:
                 progress((o * len(steps) + i + 1) / (n_out * len(steps)))
         _normalise(log_weights[o], o)
     return log_params, log_weights
 
 
-def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress):
+def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress, backend):
     """Scenario 3 with adaptive importance sampling of φ per output
     (:func:`mdcore.importance.adaptive_importance_sampling`): the same budget of N_φ draws
     per θ, drawn in stages from the prior and then from Student-t fits to the weighted
@@ -330,7 +350,8 @@ def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress):
     log_weights = np.empty((n_out, S, n_phi))
     for o in range(n_out):
         def loglik(phi, o=o):
-            return -gp.neg_log_marginal_likelihood(phi, Y[:, None], X, z[:, o])   # Eq. 15
+            return -gp.neg_log_marginal_likelihood(phi, Y[:, None], X, z[:, o],   # Eq. 15
+                                                   backend=backend)
 
         def report(f, o=o):
             if progress is not None:
@@ -362,7 +383,7 @@ def _normalise(log_weights: np.ndarray, o: int) -> None:
 def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
           n_phi: int = 500, phi_prior: GaussianPrior | None = None, seed=None,
           log_params_hat=None, fit_options: dict | None = None, prune: float = PRUNE,
-          proposal: str = "prior",
+          proposal: str = "prior", backend: str | None = None,
           progress: Callable[[float], None] | None = None) -> DiscrepancyModel:
     """Infer the model discrepancy by one of the three scenarios of SPEC §6.
 
@@ -405,6 +426,12 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         then from Student-t fits to the weighted draws, with deterministic-mixture weights,
         Pareto-smoothed (PSIS); it keeps far more effective samples where the likelihood
         is narrow compared with the prior (beam-2d).
+    backend : {"auto", "numpy", "numba"}, optional
+        GP kernels of the scenario-3 weights and of :meth:`DiscrepancyModel.predict`
+        (:func:`mdcore.compiled.resolve_backend`; default ``MDCORE_BACKEND``, else numba
+        when installed). Both give the same numbers to ~1e-12; ``"numpy"`` is the reference.
+        The φ̂ fit of scenarios 1–2 stays on NumPy: the swarm's choices amplify rounding
+        differences to the optimiser's tolerance (~4e-8 in the metrics).
     progress : callable, optional
         Called with the fraction done in [0, 1]; raising from it cancels.
 
@@ -427,6 +454,7 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     rng = np.random.default_rng(seed)
     prune = _prune(prune)
     choose(proposal, "proposal", PROPOSALS)
+    backend = compiled.resolve_backend(backend)
     if phi_prior is not None and (not isinstance(phi_prior, GaussianPrior) or phi_prior.size != P):
         raise ValueError(f"phi_prior must be a GaussianPrior over P = 2 + n_out + d_x = {P} log "
                          f"hyperparameters ([log σ_f, log ℓ_y×{n_out}, log ℓ_x×{d_x}, log σ_n]); "
@@ -468,7 +496,7 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
                     progress((o + 1) / n_out)
             log_params_hat_arr = np.array([f.log_params for f in fits])
         nlml_hat = np.array([float(gp.neg_log_marginal_likelihood(log_params_hat_arr[o], Y_map,
-                                                                  X, z[:, o]))
+                                                                  X, z[:, o], backend=backend))
                              for o in range(n_out)])
         log_params = np.broadcast_to(log_params_hat_arr[:, None, None, :], (n_out, S, 1, P))
         log_weights = np.full((n_out, S, 1), -np.log(S))
@@ -477,9 +505,11 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         n_phi = as_int(n_phi, "n_phi", 1)
         prior = default_phi_prior(Y[0], X, z[:, 0]) if phi_prior is None else phi_prior
         if proposal == "prior":
-            log_params, log_weights = _prior_proposal(Y, X, z, prior, n_phi, rng, progress)
+            log_params, log_weights = _prior_proposal(Y, X, z, prior, n_phi, rng, progress,
+                                                      backend)
         else:
-            log_params, log_weights = _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress)
+            log_params, log_weights = _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress,
+                                                         backend)
         k_hat = np.array([psis(log_weights[o].ravel()).k_hat for o in range(n_out)])
         if proposal == "adaptive":      # Pareto-smoothed weights (Vehtari et al. 2024)
             log_weights = np.stack([psis(log_weights[o].ravel()).log_weights.reshape(S, -1)
@@ -487,7 +517,7 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     model = DiscrepancyModel(scenario, simulate, theta, Y, X, z, log_params, log_weights,
                              log_params_hat_arr, nlml_hat, prune, prior,
                              time.perf_counter() - start, proposal if scenario == 3 else None,
-                             k_hat if scenario == 3 else None)
+                             k_hat if scenario == 3 else None, backend)
     if scenario == 3:
         switch = " or use proposal='adaptive'" if proposal == "prior" else ""
         for o, (e, k) in enumerate(zip(model.ess, k_hat)):

@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 
+from . import compiled
 from .kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
 from .linalg import JitterLog, cholesky, chunks, for_each_chunk, gather, solve_lower_inplace
 from .threads import single_threaded_blas
@@ -91,7 +92,8 @@ def check_problem(log_params, Y, X, z) -> Problem:
 
 
 @single_threaded_blas
-def neg_log_marginal_likelihood(log_params, Y, X, z) -> np.ndarray:
+def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "numpy"
+                                ) -> np.ndarray:
     """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``.
 
     ``NLML = ½ zᵀ K⁻¹ z + Σ log L_ii + (N/2) log 2π`` with ``K = K_ff + σ_n² I``,
@@ -107,6 +109,12 @@ def neg_log_marginal_likelihood(log_params, Y, X, z) -> np.ndarray:
         Inputs.
     z : ndarray of shape (N,)
         Observations.
+    backend : {"numpy", "numba", "auto"} or None, default="numpy"
+        ``"numpy"`` is this function's reference implementation; ``"numba"`` the fused
+        kernels of :mod:`mdcore.compiled` (same ladder, warnings and results to ~1e-12);
+        ``"auto"`` is numba when installed; ``None`` reads ``MDCORE_BACKEND``
+        (:func:`mdcore.compiled.resolve_backend`). The scenario-3 paths of
+        :mod:`mdcore.discrepancy` choose the compiled one by default.
 
     Returns
     -------
@@ -122,6 +130,8 @@ def neg_log_marginal_likelihood(log_params, Y, X, z) -> np.ndarray:
     (2,)
     """
     prob = check_problem(log_params, Y, X, z)
+    if compiled.resolve_backend(backend) == "numba":
+        return compiled.nlml(prob.log_params, prob.Y, prob.X, prob.z)
     N = prob.X.shape[0]
     out = np.empty(int(np.prod(prob.batch_shape, dtype=np.int64)))
     log = JitterLog()
@@ -142,7 +152,8 @@ def neg_log_marginal_likelihood(log_params, Y, X, z) -> np.ndarray:
 
 
 @single_threaded_blas
-def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
+def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy"
+            ) -> GPPrediction:
     """Posterior predictive moments of the latent GP (Eq. 7), batched.
 
     Parameters
@@ -155,6 +166,8 @@ def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
     Y_star : ndarray of shape (..., N*, d_y)
         Test simulator outputs; leading dims broadcast with ``Y`` and ``log_params``.
     X_star : ndarray of shape (N*, d_x)
+    backend : {"auto", "numpy", "numba"}, optional
+        As in :func:`neg_log_marginal_likelihood`.
 
     Returns
     -------
@@ -185,6 +198,9 @@ def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
     except ValueError:
         raise ValueError(f"the leading dimensions of Y_star {Y_star.shape} do not broadcast "
                          f"with log_params/Y ({prob.batch_shape}).") from None
+    if compiled.resolve_backend(backend) == "numba":
+        return GPPrediction(*compiled.predict(prob.log_params, prob.Y, prob.X, prob.z, Y_star,
+                                              X_star))
     N, M = prob.X.shape[0], X_star.shape[0]
     total = int(np.prod(batch, dtype=np.int64))
     mean = np.empty((total, M))

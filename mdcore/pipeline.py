@@ -30,6 +30,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import logsumexp
 
+from . import compiled
 from .cases import Case
 from .discrepancy import (
     LOW_ESS,
@@ -128,6 +129,10 @@ class Settings:
         (the skipped mass is reported in :class:`ImportanceDiagnostics`).
     proposal : {"prior", "adaptive"}, default="prior"
         Scenario 3's φ proposal (:func:`mdcore.discrepancy.infer_discrepancy`).
+    backend : {"auto", "numpy", "numba"}, default="auto"
+        GP kernels of scenarios 1–3 (:func:`mdcore.compiled.resolve_backend`): ``"auto"``
+        is the compiled path when numba is installed. The backends agree to ~1e-12, so
+        :meth:`key` leaves the backend out.
 
     Examples
     --------
@@ -142,6 +147,7 @@ class Settings:
     burn_in: int = BURN_IN
     prune: float = PRUNE
     proposal: str = "prior"
+    backend: str = "auto"
 
     def __post_init__(self):
         for name, minimum in (("n_s", 1), ("n_phi", 1), ("n_iter", 2), ("burn_in", 0)):
@@ -159,6 +165,7 @@ class Settings:
                              f"keeps every component); received {self.prune!r}.")
         object.__setattr__(self, "prune", prune)
         choose(self.proposal, "proposal", PROPOSALS)
+        compiled.resolve_backend(choose(self.backend, "backend", compiled.BACKENDS))
 
     @classmethod
     def paper(cls, case_name: str) -> Settings:
@@ -493,7 +500,7 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
             case.simulate, theta, case.X_train, case.z_train, scenario=method.scenario,
             theta_map=hm.theta_map, n_phi=settings.n_phi, phi_prior=case.phi_prior, seed=seed,
             log_params_hat=log_params_hat if method is Method.S2 else None,
-            prune=settings.prune, proposal=settings.proposal,
+            prune=settings.prune, proposal=settings.proposal, backend=settings.backend,
             progress=stage(0.0, 0.5, f"{method.label}: fitting the discrepancy GP"))
     pred = model.predict(X_all, progress=stage(0.9 if method is Method.KOH else 0.5, 1.0,
                                                f"{method.label}: predicting"))

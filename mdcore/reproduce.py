@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import cases as _cases
+from . import compiled
 from .discrepancy import DiscrepancyModel
 from .history_matching import HistoryMatchResult, history_match_case
 from .koh import KOHModel
@@ -70,7 +71,8 @@ class CaseRun:
         s = self.settings
         return {"schema_version": SCHEMA_VERSION, "case": self.case.name, "seed": self.seed,
                 "settings": {"n_s": s.n_s, "n_phi": s.n_phi, "n_iter": s.n_iter,
-                             "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal},
+                             "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
+                             "backend": compiled.resolve_backend(s.backend)},
                 "history_matching": {"waves": len(self.hm.waves),
                                      "nroy_fraction": self.hm.nroy_fraction,
                                      "theta_map": self.hm.theta_map.tolist(),

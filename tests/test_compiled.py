@@ -310,3 +310,102 @@ except ImportError as exc:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=300, check=True).stdout
     assert "ImportError: the compiled GP path needs numba" in out
+
+
+# ---------------------------------------------------------------------------------------
+# The backend switch of the library (gp, discrepancy, pipeline)
+
+
+def test_resolve_backend(monkeypatch):
+    monkeypatch.delenv(compiled.BACKEND_ENV, raising=False)
+    assert compiled.resolve_backend("numpy") == "numpy"
+    assert compiled.resolve_backend("auto") == compiled.resolve_backend(None) == "numba"
+    monkeypatch.setenv(compiled.BACKEND_ENV, "numpy")
+    assert compiled.resolve_backend(None) == "numpy"
+    monkeypatch.setenv(compiled.BACKEND_ENV, "cuda")
+    with pytest.raises(ValueError, match="MDCORE_BACKEND must be one of .*received 'cuda'"):
+        compiled.resolve_backend(None)
+    with pytest.raises(ValueError, match="backend must be one of"):
+        gp.neg_log_marginal_likelihood([0.0, 0.0, 0.0, -2.0], np.ones((3, 1)),
+                                       np.ones((3, 1)), np.ones(3), backend="gpu")
+    monkeypatch.setattr(compiled, "available", lambda: False)
+    assert compiled.resolve_backend("auto") == "numpy"
+    with pytest.raises(ValueError, match=r"needs numba.*pip install 'mdcore\[fast\]'"):
+        compiled.resolve_backend("numba")
+
+
+def test_gp_backend_argument_matches_reference(rng):
+    lp, Y, X, z = random_problem(rng, 13, 2, 1, batch=(7,), n_y=(7,))
+    ref = gp.neg_log_marginal_likelihood(lp, Y, X, z)
+    assert_close(gp.neg_log_marginal_likelihood(lp, Y, X, z, backend="numba"), ref, 0.0)
+    Xs = rng.uniform(size=(5, 1))
+    Ys = rng.normal(size=(7, 5, 2))
+    want = gp.predict(lp, Y, X, z, Ys, Xs)
+    got = gp.predict(lp, Y, X, z, Ys, Xs, backend="numba")
+    assert isinstance(got, gp.GPPrediction)
+    assert_moments_close(got, want, lp)
+
+
+@pytest.fixture(scope="module")
+def beam1d():
+    from mdcore import cases
+    from mdcore.history_matching import history_match_case
+
+    case = cases.load("beam-1d")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hm = history_match_case(case, seed=0, n_candidates=5000)
+    return case, hm.posterior_samples(60, seed=1)
+
+
+@pytest.mark.parametrize("proposal", ["prior", "adaptive"])
+def test_scenario_3_is_the_same_on_both_backends(beam1d, proposal):
+    """Weights and the fused mixture prediction (compiled.mixture_sums) against the NumPy
+    path: the log weights to 1e-10 of their range, the moments to 1e-10 relative."""
+    from mdcore.discrepancy import infer_discrepancy
+
+    case, theta = beam1d
+    out = {}
+    for backend in ("numpy", "numba"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train,
+                                      scenario=3, n_phi=30, phi_prior=case.phi_prior, seed=4,
+                                      proposal=proposal, backend=backend)
+        assert model.backend == backend
+        out[backend] = model, model.predict(case.X_test, prune=1e-8)
+    (m0, p0), (m1, p1) = out["numpy"], out["numba"]
+    kept = m0.log_weights > m0.log_weights.max() + np.log(1e-8)
+    scale = np.ptp(m0.log_weights[np.isfinite(m0.log_weights)])
+    assert np.max(np.abs(m1.log_weights - m0.log_weights)[kept]) <= 1e-10 * scale
+    # The adaptive proposal's later stages are fitted to the weights, so its draws carry the
+    # weights' rounding differences (~1e-12); the prior's draws are identical.
+    np.testing.assert_allclose(m1.log_params, m0.log_params, rtol=0,
+                               atol=0.0 if proposal == "prior" else 1e-9)
+    for name in p0._fields:
+        want, got = getattr(p0, name), getattr(p1, name)
+        assert np.max(np.abs(got - want)) <= RTOL * np.max(np.abs(want)), name
+
+
+def test_fused_prediction_reports_progress_and_stops_when_asked(beam1d):
+    from mdcore.discrepancy import infer_discrepancy
+
+    case, theta = beam1d
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train,
+                                  scenario=3, n_phi=200, phi_prior=case.phi_prior, seed=0,
+                                  backend="numba", prune=0.0)
+    seen = []
+    model.predict(case.X_test, progress=seen.append)
+    assert seen[-1] == 1.0 and seen == sorted(seen) and len(seen) >= 5
+
+    class Stop(Exception):
+        pass
+
+    def stop(fraction):
+        if fraction > 0.3:
+            raise Stop
+
+    with pytest.raises(Stop):
+        model.predict(case.X_test, progress=stop)

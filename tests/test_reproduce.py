@@ -18,20 +18,33 @@ METRICS = ("nmse_z", "mmd", "lpl", "coverage_z_2sd", "coverage_z_3sd", "nmse_del
            "coverage_delta_2sd", "coverage_delta_3sd")
 
 
-@pytest.fixture(scope="module")
-def run():
+def small_run(backend):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return reproduce("beam-1d", settings=Settings(n_s=100, n_phi=50, n_iter=6000,
-                                                      burn_in=2000), seed=0)
+                                                      burn_in=2000, backend=backend), seed=0)
 
 
-def close(new, old):
-    np.testing.assert_allclose(np.asarray(new, dtype=float), np.asarray(old, dtype=float),
-                               rtol=1e-10, atol=1e-12)
+@pytest.fixture(scope="module")
+def run():
+    return small_run("numpy")
 
 
 def test_numbers_unchanged_since_before_the_pipeline(run):
+    check_against_reference(run, rtol=1e-10)
+
+
+def test_compiled_backend_changes_no_number_beyond_1e_8():
+    # Issue 15: the numba kernels may reorder sums, never change a reproduce number.
+    pytest.importorskip("numba")
+    check_against_reference(small_run("numba"), rtol=1e-8)
+
+
+def check_against_reference(run, rtol):
+    def close(new, old):
+        np.testing.assert_allclose(np.asarray(new, dtype=float), np.asarray(old, dtype=float),
+                                   rtol=rtol, atol=1e-12)
+
     ref = json.loads(REFERENCE.read_text(encoding="utf-8"))
     d = run.to_dict()
     hm = d["history_matching"]
@@ -58,7 +71,8 @@ def test_json_layout_is_typed_and_versioned(run, tmp_path):
     d = run.to_dict()
     assert d["schema_version"] == SCHEMA_VERSION and d["case"] == "beam-1d" and d["seed"] == 0
     assert d["settings"] == {"n_s": 100, "n_phi": 50, "n_iter": 6000, "burn_in": 2000,
-                             "prune": 1e-12, "proposal": "prior"}
+                             "prune": 1e-12, "proposal": "prior",
+                             "backend": "numpy"}
     for label in ("1", "2"):
         assert d["methods"][label]["importance"] is None and d["methods"][label]["chain"] is None
     assert d["methods"]["3"]["chain"] is None and d["methods"]["koh"]["importance"] is None

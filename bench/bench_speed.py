@@ -1,6 +1,6 @@
 """Issue 15's speed table, for the rows the compiled GP kernels cover, in one run.
 
-Usage: python bench/bench_speed.py [--quick] [--rows beam-1d beam-2d shear-5 app]
+Usage: python bench/bench_speed.py [--quick] [--rows beam-1d beam-2d shear-5 app uncompiled]
                                    [--sklearn-pairs 300] [--no-jit]
 
 Rows: scenario 3 at the paper's sizes (beam-1d 1000 × 500, beam-2d 1000 × 1000, shear-5
@@ -8,14 +8,11 @@ Rows: scenario 3 at the paper's sizes (beam-1d 1000 × 500, beam-2d 1000 × 1000
 case's test inputs; and scenario 3 at the app's default sizes (100 × 50) on every case.
 For each row:
 
-- ``numpy``: the library path (``discrepancy.infer`` + ``DiscrepancyModel.predict``) on
-  the NumPy reference kernels of :mod:`mdcore.gp`;
-- ``numba``: the same library calls with the two GP functions served by
-  :mod:`mdcore.compiled` (``gp.predict`` semantics: the per-pair moments are stored, and
-  the caller gathers ``Y[j]``, ``Y*[j]`` per pair, so nothing is shared between pairs);
-- ``fused``: the compiled weights, then the prediction step fused with the mixture sums
-  (:func:`mdcore.compiled.mixture_sums`: pairs index the θ rows, the per-row input
-  differences are reused, and no per-pair moments are stored);
+- ``numpy``: the library path (``infer_discrepancy`` + ``DiscrepancyModel.predict``) with
+  ``backend="numpy"``, the reference kernels of :mod:`mdcore.gp`;
+- ``numba``: the same calls with ``backend="numba"``: compiled weights, and the prediction
+  fused with the mixture sums (:func:`mdcore.compiled.mixture_sums`: no per-pair moments
+  are stored);
 - ``sklearn``: one ``GaussianProcessRegressor`` per pair (fixed hyperparameters,
   ``optimizer=None``): ``fit`` (which computes the log marginal likelihood) for every pair
   and ``predict(return_std=True)`` for the pairs the prediction keeps, timed on
@@ -24,17 +21,20 @@ For each row:
   the same kernel;
 - ``bound``: the arithmetic of the row, exponentials at the machine's measured exp rate and
   flops at its measured dgemm rate, spread over all cores (formula in :func:`work`);
-- ``cpu/cor``: the fused run's process CPU time over the cores, what it would take on
+- ``cpu/cor``: the compiled run's process CPU time over the cores, what it would take on
   idle cores (on a shared machine the wall clock also counts others' turns);
 - agreement: the largest difference of the compiled predictions from the NumPy ones,
   relative to each field's largest magnitude, and the largest |Δ log w| over the pairs
   the prediction keeps.
 
 ``--quick`` runs the NumPy path and the agreement check on a tenth of the θ samples and
-extrapolates its time by pair counts. The JIT section times ``warm_up()`` in fresh
-processes with an empty and then a filled numba cache. Peak memory is the process's peak
-resident set size so far (``ru_maxrss``), so it only grows down the table. Figures only:
-the machine may be shared, so the load average is printed; nothing is asserted.
+extrapolates its time by pair counts. Two rows the compiled kernels do not cover yet are
+timed on the library as it is: the KOH chain (150,000 steps, beam-1d) and one
+history-matching wave of 10⁵ candidates (beam-1d and shear-5). The JIT section times
+``warm_up()`` in fresh processes with an empty and then a filled numba cache. Peak memory
+is the process's peak resident set size so far (``ru_maxrss``), so it only grows down the
+table. Figures only: the machine may be shared, so the load average is printed; nothing is
+asserted.
 """
 
 from __future__ import annotations
@@ -50,14 +50,14 @@ import time
 import warnings
 
 import numpy as np
-from scipy.special import logsumexp
 
-from mdcore import cases, compiled, discrepancy, gp
-from mdcore.history_matching import history_match_case
+from mdcore import cases, compiled
+from mdcore.discrepancy import infer_discrepancy
+from mdcore.history_matching import case_problem, history_match_case, iter_waves
+from mdcore.pipeline import Method, Settings, run_method
 
 PAPER = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
 APP = (100, 50)
-infer = getattr(discrepancy, "infer_discrepancy", None) or discrepancy.infer
 
 
 # ---------------------------------------------------------------------------------------
@@ -128,54 +128,7 @@ def work(N, d_y, d_x, M, pairs, kept):
 # The paths
 
 
-@contextlib.contextmanager
-def numba_gp():
-    """Serve gp.neg_log_marginal_likelihood and gp.predict from mdcore.compiled."""
-    saved = gp.neg_log_marginal_likelihood, gp.predict
-
-    def nlml(log_params, Y, X, z):
-        return compiled.nlml(log_params, Y, X, z)
-
-    def predict(log_params, Y, X, z, Y_star, X_star):
-        return gp.GPPrediction(*compiled.predict(log_params, Y, X, z, Y_star, X_star))
-
-    gp.neg_log_marginal_likelihood, gp.predict = nlml, predict
-    try:
-        yield
-    finally:
-        gp.neg_log_marginal_likelihood, gp.predict = saved
-
-
-def fused_predict(model, X_star):
-    """DiscrepancyModel.predict (same pruning, renormalisation and reference component)
-    with the per-pair moments and the mixture sums fused in one compiled pass."""
-    Ys = model.simulate(X_star, model.theta)                         # (S, M, n_out)
-    K = model.log_params.shape[2]
-    M = X_star.shape[0]
-    out = np.empty((4, M, model.n_out))
-    for o in range(model.n_out):
-        lw_all = model.log_weights[o].ravel()
-        cut = lw_all.max() + np.log(model.prune) if model.prune > 0 else -np.inf
-        idx = np.flatnonzero(np.isfinite(lw_all) & (lw_all >= cut))
-        lw = lw_all[idx]
-        w = np.exp(lw - logsumexp(lw))
-        j, k = np.divmod(idx, K)
-        theta = model.log_params[o][j, k]
-        z_o = model.z[:, o]
-        ref = int(np.argmax(w))
-        m0 = compiled.predict(theta[ref], model.Y[j[ref]], model.X, z_o, Ys[j[ref]], X_star)[0]
-        cz, cd = m0, m0 - Ys[j[ref], :, o]
-        s = compiled.mixture_sums(theta, model.Y, j, model.X, z_o, Ys, Ys[..., o], w, X_star,
-                                  cz, cd)
-        acc = s.acc
-        out[0, :, o] = cz + acc[0]
-        out[1, :, o] = np.maximum(acc[2] - acc[0] ** 2, 0.0)
-        out[2, :, o] = cd + acc[1]
-        out[3, :, o] = np.maximum(acc[3] - acc[1] ** 2, 0.0)
-    return discrepancy.DiscrepancyPrediction(out[0], out[1], out[2], out[3])
-
-
-def library(case, theta, n_phi, fused=False):
+def library(case, theta, n_phi, backend):
     """(model, prediction, infer seconds, predict seconds, CPU seconds) of the library path.
 
     CPU seconds (all threads of the process) say what the run would take on idle cores:
@@ -184,10 +137,11 @@ def library(case, theta, n_phi, fused=False):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         c0, t0 = time.process_time(), time.perf_counter()
-        model = infer(case.simulate, theta, case.X_train, case.z_train, scenario=3,
-                      n_phi=n_phi, phi_prior=case.phi_prior, seed=0)
+        model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train,
+                                  scenario=3, n_phi=n_phi, phi_prior=case.phi_prior, seed=0,
+                                  backend=backend)
         t1 = time.perf_counter()
-        pred = fused_predict(model, case.X_test) if fused else model.predict(case.X_test)
+        pred = model.predict(case.X_test)
         t2, c2 = time.perf_counter(), time.process_time()
     return model, pred, t1 - t0, t2 - t1, c2 - c0
 
@@ -239,7 +193,8 @@ def sklearn_seconds(case, theta, model, n_sample, rng):
         t = time.perf_counter()
         for flat in fit_idx:
             reg, j = regressor(o, flat)
-            reg.fit(np.column_stack([y_train[j], case.X_train]), case.z_train[:, o])
+            with contextlib.suppress(np.linalg.LinAlgError):    # not PD: sklearn gives up
+                reg.fit(np.column_stack([y_train[j], case.X_train]), case.z_train[:, o])
         total += (time.perf_counter() - t) / fit_idx.size * pairs
         lw = model.log_weights[o].ravel()
         kept = np.flatnonzero(lw >= lw.max() + np.log(model.prune))
@@ -247,12 +202,13 @@ def sklearn_seconds(case, theta, model, n_sample, rng):
         fitted = []
         for flat in pred_idx:
             reg, j = regressor(o, flat)
-            fitted.append((reg.fit(np.column_stack([y_train[j], case.X_train]),
-                                   case.z_train[:, o]), j))
+            with contextlib.suppress(np.linalg.LinAlgError):
+                fitted.append((reg.fit(np.column_stack([y_train[j], case.X_train]),
+                                       case.z_train[:, o]), j))
         t = time.perf_counter()
         for reg, j in fitted:
             reg.predict(np.column_stack([y_test[j], case.X_test]), return_std=True)
-        total += (time.perf_counter() - t) / pred_idx.size * kept.size
+        total += (time.perf_counter() - t) / max(1, len(fitted)) * kept.size
     return total
 
 
@@ -270,42 +226,55 @@ def row(name, sizes, rates, args, rng):
     M = case.X_test.shape[0]
 
     compiled.warm_up()
-    library(case, theta[:2], 2)                         # first-call costs out of the way
-    with numba_gp():
-        library(case, theta[:2], 2, fused=True)
-        model_n, pred_n, inf_n, pre_n, _ = library(case, theta, n_phi)
-        _, pred_f, inf_f, pre_f, cpu_f = library(case, theta, n_phi, fused=True)
+    library(case, theta[:2], 2, "numpy")                # first-call costs out of the way
+    library(case, theta[:2], 2, "numba")
+    model_n, pred_n, inf_n, pre_n, cpu_n = library(case, theta, n_phi, "numba")
     kept = int(np.sum(model_n.n_components))
     pairs = n_out * n_s * n_phi
 
     sub = max(1, n_s // 10) if args.quick and n_s > 100 else n_s
-    model_r, pred_r, inf_r, pre_r, _ = library(case, theta[:sub], n_phi)
+    model_r, pred_r, inf_r, pre_r, _ = library(case, theta[:sub], n_phi, "numpy")
     scale_inf, scale_pre = n_s / sub, kept / max(1, int(np.sum(model_r.n_components)))
     numpy_s = inf_r * scale_inf + pre_r * scale_pre
     if sub == n_s:
-        agree = max(agreement(pred_n, pred_r), agreement(pred_f, pred_r))
-        agree_w = kept_log_weight_gap(model_n, model_r)
+        agree, agree_w = agreement(pred_n, pred_r), kept_log_weight_gap(model_n, model_r)
     else:                      # compare on the subset the NumPy path ran on
-        with numba_gp():
-            model_c, pred_c, _, _, _ = library(case, theta[:sub], n_phi)
-            pred_cf = fused_predict(model_c, case.X_test)
-        agree = max(agreement(pred_c, pred_r), agreement(pred_cf, pred_r))
-        agree_w = kept_log_weight_gap(model_c, model_r)
+        model_c, pred_c, _, _, _ = library(case, theta[:sub], n_phi, "numba")
+        agree, agree_w = agreement(pred_c, pred_r), kept_log_weight_gap(model_c, model_r)
 
     sk = (sklearn_seconds(case, theta, model_n, args.sklearn_pairs, rng)
           if args.sklearn_pairs else np.nan)
     exps, flops = work(N, n_out, d_x, M, pairs, kept)
     bound = (exps * rates["exp_s"] + flops * rates["flop_s"]) / rates["cores"]
-    numba_s, fused_s = inf_n + pre_n, inf_f + pre_f
+    numba_s = inf_n + pre_n
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     label = f"S3 {name} {n_s}×{n_phi}" + (f" ×{n_out} outputs" if n_out > 1 else "")
     print(f"{label:<28} {pairs:>9,} {kept:>9,} {numpy_s:>8.2f}{'*' if sub < n_s else ' '}"
-          f" {numba_s:>7.2f} {fused_s:>7.2f} {cpu_f / rates['cores']:>7.2f} {sk:>9.1f}"
-          f" {numpy_s / fused_s:>6.1f}x {sk / fused_s:>7.0f}x {bound:>7.3f}"
-          f" {fused_s / bound:>6.1f}x {agree:>8.1e} {agree_w:>8.1e} {peak:>6.0f}", flush=True)
+          f" {numba_s:>7.2f} {cpu_n / rates['cores']:>7.2f} {sk:>9.1f}"
+          f" {numpy_s / numba_s:>6.1f}x {sk / numba_s:>7.0f}x {bound:>7.3f}"
+          f" {numba_s / bound:>6.1f}x {agree:>8.1e} {agree_w:>8.1e} {peak:>6.0f}", flush=True)
     print(f"{'':<28} {'':>9} {'':>9}   (numpy: weights {inf_r * scale_inf:.2f} + predict "
-          f"{pre_r * scale_pre:.2f}; numba: {inf_n:.2f} + {pre_n:.2f}; fused: {inf_f:.2f} + "
-          f"{pre_f:.2f}; {exps / 1e9:.2f} G exps, {flops / 1e9:.1f} Gflop)", flush=True)
+          f"{pre_r * scale_pre:.2f}; numba: {inf_n:.2f} + {pre_n:.2f}; "
+          f"{exps / 1e9:.2f} G exps, {flops / 1e9:.1f} Gflop)", flush=True)
+
+
+def uncompiled_rows():
+    """The KOH chain and one history-matching wave, timed on the library as it is."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        case = cases.load("beam-1d")
+        hm = history_match_case(case, seed=0)
+        t = time.perf_counter()
+        run_method(case, hm, Method.KOH, Settings.paper("beam-1d"), seed=0)
+        print(f"{'KOH beam-1d 150,000 steps':<28} {'':>9} {'':>9} "
+              f"{time.perf_counter() - t:>8.2f}  (NumPy only; target ≤ 15 s)", flush=True)
+        for name in ("beam-1d", "shear-5"):
+            case = cases.load(name)
+            problem = case_problem(case, n_candidates=100_000, max_waves=1)
+            wave = next(iter_waves(problem))
+            print(f"{'HM wave ' + name + ' 10⁵ cand.':<28} {'':>9} {'':>9} "
+                  f"{wave.seconds:>8.2f}  (NumPy only, emulator fit included; target ≤ 0.2 s)",
+                  flush=True)
 
 
 def jit_times():
@@ -326,7 +295,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true",
                     help="NumPy path on a tenth of the θ samples, extrapolated")
-    ap.add_argument("--rows", nargs="+", default=["beam-1d", "beam-2d", "shear-5", "app"])
+    ap.add_argument("--rows", nargs="+",
+                    default=["beam-1d", "beam-2d", "shear-5", "app", "uncompiled"])
     ap.add_argument("--sklearn-pairs", type=int, default=300)
     ap.add_argument("--no-jit", action="store_true", help="skip the cold/warm JIT timing")
     args = ap.parse_args()
@@ -345,18 +315,18 @@ def main():
           f"{rates['cores']} cores")
     print(f"peak RSS before the rows: "
           f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB\n")
-    print(f"{'row':<28} {'pairs':>9} {'kept':>9} {'numpy s':>9} {'numba s':>7} {'fused s':>7}"
-          f" {'cpu/cor':>7} {'sklearn s':>9} {'np/fu':>7} {'sk/fu':>8} {'bound s':>7}"
-          f" {'fu/bd':>7} {'Δ pred':>8} {'Δ log w':>8} {'RSS MB':>6}")
+    print(f"{'row':<28} {'pairs':>9} {'kept':>9} {'numpy s':>9} {'numba s':>7}"
+          f" {'cpu/cor':>7} {'sklearn s':>9} {'np/nb':>7} {'sk/nb':>8} {'bound s':>7}"
+          f" {'nb/bd':>7} {'Δ pred':>8} {'Δ log w':>8} {'RSS MB':>6}")
     for r in args.rows:
         if r == "app":
             for name in PAPER:
                 row(name, APP, rates, args, rng)
+        elif r == "uncompiled":
+            uncompiled_rows()
         else:
             row(r, PAPER[r], rates, args, rng)
     print("\n* NumPy time extrapolated from a tenth of the θ samples (--quick).")
-    print("Not covered by these kernels: KOH 150,000 iterations; one history-matching wave "
-          "of 10⁵ candidates (the emulator and KOH steps are not compiled yet).")
     print(f"load average {os.getloadavg()[0]:.1f} at end")
 
 

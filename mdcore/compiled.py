@@ -56,6 +56,7 @@ __all__ = [
     "THREADS_ENV",
     "MixtureSums",
     "available",
+    "koh_log_likelihood",
     "mixture_sums",
     "nlml",
     "nlml_batch",
@@ -83,6 +84,7 @@ MIN_PIECE = 64
 _POOLS: dict[int, ThreadPoolExecutor] = {}
 _POOL_LOCK = threading.Lock()
 _kernels_module = None
+_koh_module = None
 _warm_thread: threading.Thread | None = None
 
 
@@ -136,6 +138,16 @@ def _kernels():
                 f"importing it failed ({exc}). Use backend='numpy' instead.") from exc
         _kernels_module = _compiled_kernels
     return _kernels_module
+
+
+def _koh_kernels():
+    """The KOH kernel module, imported on first use."""
+    global _koh_module
+    if _koh_module is None:
+        _kernels()                          # the same clear ImportError without numba
+        from . import _compiled_koh
+        _koh_module = _compiled_koh
+    return _koh_module
 
 
 def cores() -> int:
@@ -453,6 +465,45 @@ def mixture_sums(log_params, Y, y_index, X, z, Y_star, y_star_out, weight, X_sta
     return MixtureSums(acc, dropped)
 
 
+def koh_log_likelihood(arrays, base, zT, jitter_log):
+    """The Kennedy–O'Hagan likelihood at one θ as a compiled callable (SPEC §7).
+
+    Parameters
+    ----------
+    arrays : mdcore.emulator.EmulatorArrays
+        From :meth:`mdcore.emulator.EmulatorAt.arrays` at the observed inputs.
+    base : ndarray of shape (n_out, N, N)
+        The θ-independent covariance ``σ_f² m32(X, X) + K_δ + σ_n² I``.
+    zT : ndarray of shape (n_out, N)
+        Observations.
+    jitter_log : JitterLog
+        Receives every call's jitter counts; the caller warns.
+
+    Returns
+    -------
+    callable
+        ``f(theta)`` for θ of shape (p,): ``Σ_o log N(z_o | m_η, Σ_η + base_o)``, what
+        :func:`mdcore.koh.gaussian_log_likelihood` gives on the emulator's moments, or
+        ``-inf`` where a covariance fails the jitter ladder. Runs in the calling thread.
+    """
+    k = _koh_kernels()
+    _, ladder = _reference()
+    fixed = tuple(map(_contiguous, (arrays.T_train, arrays.inv_ell, arrays.Q_t, arrays.W,
+                                    arrays.lin, arrays.beta_t, arrays.AK, arrays.V,
+                                    arrays.sf4, base, zT, ladder)))
+    lo, span = arrays.t_lo, arrays.t_span
+    stats = np.zeros(3)
+
+    def log_likelihood(theta) -> float:
+        stats[:] = 0.0
+        value = k.log_likelihood(_contiguous((theta - lo) / span), *fixed, stats)
+        if stats[0] or stats[1]:
+            jitter_log.record(int(stats[0]), int(stats[1]), float(stats[2]))
+        return value
+
+    return log_likelihood
+
+
 # ---------------------------------------------------------------------------------------
 # Warm-up
 
@@ -479,6 +530,12 @@ def warm_up() -> float:
     k.pair_range(k.MIXTURE, 0, 2, theta, Y, index, X, z, Ys, index,
                  np.ascontiguousarray(Ys[..., 0]), np.array([0.5, 0.5]), Xs, np.zeros(2),
                  np.zeros(2), ladder, *out, acc)
+    # The KOH step: p = 1, R = 2 training θ, N = N_t = 2 inputs, one output.
+    eye = np.eye(2).reshape(1, 2, 2)
+    _koh_kernels().log_likelihood(np.zeros(1), np.zeros((2, 1)), np.ones((1, 1)), eye.copy(),
+                                  eye.copy(), np.zeros((1, 2)), np.zeros((1, 1)), eye.copy(),
+                                  eye.copy(), np.ones(1), 2.0 * eye, np.zeros((1, 2)), ladder,
+                                  np.zeros(3))
     return time.perf_counter() - start
 
 

@@ -34,8 +34,47 @@ from .kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist
 from .threads import single_threaded_blas
 from .validation import as_float_array, check_bounds
 
-__all__ = ["Emulator", "EmulatorAt", "EmulatorPrediction", "KronGP", "ThetaTerms",
-           "fit_emulator"]
+__all__ = ["Emulator", "EmulatorArrays", "EmulatorAt", "EmulatorPrediction", "KronGP",
+           "ThetaTerms", "fit_emulator"]
+
+
+class EmulatorArrays(NamedTuple):
+    """The fixed pieces of :class:`EmulatorAt`'s algebra as stacked float64 arrays, for
+    compiled kernels (:meth:`EmulatorAt.arrays`). Shapes: R training θ, p parameters,
+    N inputs, N_t training inputs of the emulator, n_out outputs.
+
+    Attributes
+    ----------
+    t_lo, t_span : ndarray of shape (p,)
+        θ's unit box: ``unit = (θ − t_lo) / t_span``.
+    T_train : ndarray of shape (R, p)
+        Training θ in the unit box.
+    inv_ell : ndarray of shape (n_out, p)
+        ``1 / ℓ_θ``.
+    Q_t : ndarray of shape (n_out, R, R)
+    W : ndarray of shape (n_out, R, N_t)
+    lin : ndarray of shape (n_out, N)
+        ``β₀ + β_xᵀ x``.
+    beta_t : ndarray of shape (n_out, p)
+    AK : ndarray of shape (n_out, R, N)
+    V : ndarray of shape (n_out, N, N_t)
+    sf4 : ndarray of shape (n_out,)
+    prior : ndarray of shape (n_out, N, N)
+        ``σ_f² m32(X, X)``.
+    """
+
+    t_lo: np.ndarray
+    t_span: np.ndarray
+    T_train: np.ndarray
+    inv_ell: np.ndarray
+    Q_t: np.ndarray
+    W: np.ndarray
+    lin: np.ndarray
+    beta_t: np.ndarray
+    AK: np.ndarray
+    V: np.ndarray
+    sf4: np.ndarray
+    prior: np.ndarray
 
 
 class ThetaTerms(NamedTuple):
@@ -318,6 +357,19 @@ class EmulatorAt:
             kt = matern32(scaled_sq_dist(Tu, Ttr, np.exp(g.log_params[1:1 + p])))
             terms.append((kt, (kt @ g.Q_t) ** 2 @ g.W))
         return ThetaTerms(Tu, tuple(terms))
+
+    def arrays(self) -> EmulatorArrays:
+        """The fixed pieces of the algebra above, stacked over outputs (for compiled code)."""
+        em = self.emulator
+        p, d_x = em.theta_train.shape[1], self.X.shape[1]
+        t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
+        gps = em._gps
+        return EmulatorArrays(
+            t_lo, t_span, _unit(em.theta_train, t_lo, t_span),
+            np.stack([np.exp(-g.log_params[1:1 + p]) for g in gps]),
+            np.stack([g.Q_t for g in gps]), np.stack([g.W for g in gps]), self._lin,
+            np.stack([g.beta[1 + d_x:] for g in gps]), self._AK, self._V,
+            np.array([np.exp(4 * g.log_params[0]) for g in gps]), self._prior)
 
     def moments(self, theta):
         """Mean and covariance of the emulated simulator at ``X`` for each θ.

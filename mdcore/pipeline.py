@@ -130,8 +130,9 @@ class Settings:
     proposal : {"prior", "adaptive"}, default="prior"
         Scenario 3's φ proposal (:func:`mdcore.discrepancy.infer_discrepancy`).
     backend : {"auto", "numpy", "numba"}, default="auto"
-        GP kernels of scenarios 1–3 (:func:`mdcore.compiled.resolve_backend`): ``"auto"``
-        is the compiled path when numba is installed. The backends agree to ~1e-12, so
+        Kernels of scenario 3 and of the KOH chain
+        (:func:`mdcore.compiled.resolve_backend`): ``"auto"`` is the compiled path when
+        numba is installed. The backends agree to ~1e-12, so
         :meth:`key` leaves the backend out.
 
     Examples
@@ -491,7 +492,7 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
         model = infer_koh(hm.waves[-1].emulator, case.X_train, case.z_train,
                           theta_prior=case.theta_prior, bounds=case.theta_bounds,
                           phi_prior=koh_phi_prior(case), n_iter=settings.n_iter,
-                          burn_in=settings.burn_in, seed=seed,
+                          burn_in=settings.burn_in, seed=seed, backend=settings.backend,
                           progress=stage(0.0, 0.9, "KOH: φ̂ and the θ chain"))
     else:
         theta = hm.posterior_samples(settings.n_s, seed=seed) if method is not Method.S1 \

@@ -409,3 +409,81 @@ def test_fused_prediction_reports_progress_and_stops_when_asked(beam1d):
 
     with pytest.raises(Stop):
         model.predict(case.X_test, progress=stop)
+
+
+# ---------------------------------------------------------------------------------------
+# The KOH likelihood step
+
+
+@pytest.fixture(scope="module")
+def koh_setup():
+    from mdcore import cases
+    from mdcore.history_matching import history_match_case
+    from mdcore.koh import noise_cov
+
+    case = cases.load("beam-1d")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        hm = history_match_case(case, seed=0, n_candidates=5000)
+    at = hm.waves[-1].emulator.at(case.X_train)
+    log_phi = np.array([[np.log(0.3), np.log(0.2), np.log(0.05)]])
+    return case, hm, at, noise_cov(log_phi, case.X_train), np.ascontiguousarray(case.z_train.T)
+
+
+def test_koh_step_matches_numpy_likelihood(koh_setup, rng):
+    from mdcore.koh import gaussian_log_likelihood
+    from mdcore.linalg import JitterLog
+
+    case, _, at, B, zT = koh_setup
+    lo, hi = case.theta_bounds[:, 0], case.theta_bounds[:, 1]
+    theta = lo + (hi - lo) * rng.uniform(size=(50, lo.size))
+    arrays = at.arrays()
+    step = compiled.koh_log_likelihood(arrays, arrays.prior + B, zT, JitterLog())
+    want = gaussian_log_likelihood(*at.moments_at(at.theta_terms(theta)), B, zT, JitterLog())
+    got = np.array([step(t) for t in theta])
+    np.testing.assert_allclose(got, want, rtol=RTOL)
+
+
+def test_koh_step_jitter_and_failure_match_numpy(koh_setup, monkeypatch):
+    """A noise covariance that makes Σ_η + B indefinite: the same ladder step, the same
+    warning text, and -inf where every step fails, on both paths."""
+    from mdcore.koh import gaussian_log_likelihood
+    from mdcore.linalg import JitterLog
+
+    case, _, at, B, zT = koh_setup
+    theta = case.theta_bounds.mean(axis=1)
+    mean, cov = at.moments_at(at.theta_terms(theta[None]))
+    w, Q = np.linalg.eigh(cov[0, 0] + B[0])
+    for shift, expect_finite in ((1.0001 * w[0] + 1e-9 * np.mean(np.diag(cov[0, 0] + B[0])),
+                                  True), (w[0] + 10.0 * abs(w).max(), False)):
+        B_bad = B - shift * np.eye(B.shape[-1])
+        logs = JitterLog(), JitterLog()
+        want = gaussian_log_likelihood(mean, cov, B_bad, zT, logs[0])[0]
+        arrays = at.arrays()
+        got = compiled.koh_log_likelihood(arrays, arrays.prior + B_bad, zT, logs[1])(theta)
+        assert np.isfinite(want) == expect_finite == np.isfinite(got)
+        if expect_finite:
+            np.testing.assert_allclose(got, want, rtol=1e-8)
+        texts = []
+        for log in logs:
+            with warnings.catch_warnings(record=True) as rec:
+                warnings.simplefilter("always")
+                log.warn("KOH likelihood")
+            texts.append([str(r.message) for r in rec])
+        assert texts[0] == texts[1] and texts[0], texts
+
+
+def test_koh_chain_is_the_same_on_both_backends(koh_setup):
+    from mdcore.koh import infer_koh
+
+    case, hm, *_ = koh_setup
+    chains = []
+    for backend in ("numpy", "numba"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            m = infer_koh(hm.waves[-1].emulator, case.X_train, case.z_train,
+                          theta_prior=case.theta_prior, bounds=case.theta_bounds,
+                          log_phi=[np.log(0.3), np.log(0.2), np.log(0.05)], n_iter=3000,
+                          burn_in=500, seed=3, backend=backend)
+        chains.append(m.chain.samples)
+    np.testing.assert_allclose(chains[1], chains[0], rtol=1e-10, atol=0)

@@ -6,6 +6,8 @@ button presses into calls of the state's methods.
 
 from __future__ import annotations
 
+import time
+
 import holoviews as hv
 import pandas as pd
 import panel as pn
@@ -17,6 +19,9 @@ from . import plots
 from .state import ExplorerState, method_order
 
 SIDEBAR_WIDTH = 330
+#: A job's progress bar and Cancel button appear once it has run this long (seconds), so
+#: that runs at the default sizes (a fraction of a second) do not flash them.
+SHOW_PROGRESS_AFTER = 0.5
 #: Shown in the metrics table where a diagnostic does not apply to a method.
 NOT_APPLICABLE = "—"
 #: The columns of :func:`metrics_frame` shown in the diagnostics table, not the metrics one.
@@ -145,14 +150,20 @@ class ExplorerView(pn.viewable.Viewer):
         cancel = pn.widgets.Button(label="Cancel", color="warning", visible=False,
                                    css_classes=["cancel-job"])
         cancel.on_click(lambda _: self.state.cancel())
+        since: list[float | None] = [None]          # when the current job started
 
         def update(*_):
             s = self.state
+            if not s.busy:
+                since[0] = None
+            elif since[0] is None:
+                since[0] = time.monotonic()
             detail = f" {s.progress_message}" if s.busy and s.progress_message else ""
             text.param.update(object=f"Running **{s.task}** …{detail}" if s.busy else "Idle.",
                               css_classes=["mdcore-busy" if s.busy else "mdcore-idle"])
-            bar.param.update(visible=s.busy, value=int(100 * s.progress))
-            cancel.visible = s.busy
+            show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
+            bar.param.update(visible=show, value=int(100 * s.progress))
+            cancel.visible = show
 
         self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
         update()

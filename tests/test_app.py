@@ -326,3 +326,24 @@ def test_a_case_that_fails_to_load_is_one_error_and_keeps_the_current_case(monke
     s.case_name = "shear-5"
     assert s.n_errors == n + 1 and "measurement file is missing" in s.error
     assert s.case_name == "beam-1d" and s.case.name == "beam-1d" and s.waves is waves
+
+
+def test_progress_bar_appears_only_for_runs_longer_than_half_a_second(monkeypatch):
+    import mdcore_app.views as views_module
+
+    s = ExplorerState()
+    panel = ExplorerView(state=s)._progress_panel()
+    bar, cancel = panel[1][0], panel[1][1]
+    clock = [100.0]
+    monkeypatch.setattr(views_module.time, "monotonic", lambda: clock[0])
+    s.param.update(busy=True, task="scenario 1")
+    s.progress = 0.5
+    assert not bar.visible and not cancel.visible          # a short run: no flash
+    s.busy = False
+    clock[0] += 10.0
+    s.param.update(busy=True, task="scenario 3")
+    clock[0] += views_module.SHOW_PROGRESS_AFTER
+    s.progress = 0.2
+    assert bar.visible and cancel.visible and bar.value == 20
+    s.busy = False
+    assert not bar.visible and not cancel.visible

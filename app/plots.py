@@ -88,10 +88,13 @@ def _span(case, d):
     return float(X[:, d].min()), float(X[:, d].max())
 
 
-def nroy_samples(waves, names, units, bounds, truth, upto: int, *, max_points: int = 1500):
+def nroy_samples(waves, names, units, bounds, truth, upto: int, *,
+                 max_points: int = 1500) -> list:
     """NROY samples of waves 1..upto in θ space, coloured by wave, with the true θ.
 
-    A histogram per wave for p = 1; pairwise scatter plots for p ≥ 2.
+    One overlaid histogram per wave for p = 1; one scatter plot per pair of parameters for
+    p ≥ 2. A list of plots: the view gives each its own pane (responsive plots inside one
+    HoloViews layout collapsed to zero width in the browser).
     """
     labels = [_label(n, u) for n, u in zip(names, units)]
     p = len(labels)
@@ -110,7 +113,7 @@ def nroy_samples(waves, names, units, bounds, truth, upto: int, *, max_points: i
                  for k, s in samples if s.shape[0]]
         if truth is not None:
             hists.append(hv.VLine(truth[0]).opts(color="black", line_dash="dashed"))
-        return hv.Overlay(hists).opts(title="NROY samples", **PLOT)
+        return [hv.Overlay(hists).opts(title="NROY samples", **PLOT)]
     panels = []
     for i in range(p):
         for j in range(i + 1, p):
@@ -126,9 +129,7 @@ def nroy_samples(waves, names, units, bounds, truth, upto: int, *, max_points: i
                 title=f"NROY samples: {names[i]} vs {names[j]}",
                 xlim=tuple(bounds[i]), ylim=tuple(bounds[j]), legend_position="top_right",
                 **PLOT))
-    if len(panels) == 1:
-        return panels[0]
-    return hv.Layout(panels).cols(min(3, len(panels))).opts(shared_axes=False)
+    return panels
 
 
 def implausibility_map(t1, t2, I, threshold, names, units, truth, wave_index):

@@ -196,22 +196,25 @@ class ExplorerView(pn.viewable.Viewer):
         if not s.waves:
             return pn.pane.Markdown("Press **Next wave** to run the first wave.")
         upto = s.selected_wave or len(s.waves)
-        objs = [plots.nroy_samples(s.waves, c.theta_names, c.theta_units, c.theta_bounds,
-                                   c.theta_true, upto)]
+        pairs = plots.nroy_samples(s.waves, c.theta_names, c.theta_units, c.theta_bounds,
+                                   c.theta_true, upto)
+        rows = [pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width", height=300,
+                                           css_classes=["hm-plot"]) for o in pairs[i:i + 3]],
+                       sizing_mode="stretch_width") for i in range(0, len(pairs), 3)]
         if upto in s.implausibility_maps:
             t1, t2, I = s.implausibility_maps[upto]
-            objs.append(plots.implausibility_map(t1, t2, I, s.threshold, c.theta_names,
-                                                 c.theta_units, c.theta_true, upto))
+            rows.append(pn.pane.HoloViews(
+                plots.implausibility_map(t1, t2, I, s.threshold, c.theta_names,
+                                         c.theta_units, c.theta_true, upto),
+                sizing_mode="stretch_width", css_classes=["hm-plot"]))
         shown = [w for w in s.waves if w.index <= upto]
-        # Every sibling of a multi-plot HoloViews layout stretches: a fixed-width one (this
-        # Row without a sizing mode) collapsed the pairwise NROY plots to zero width.
+        # Each plot its own pane, every pane stretching: responsive plots inside one
+        # HoloViews layout, or beside a fixed-width sibling, collapsed to zero width.
         summary = pn.Row(pn.pane.HoloViews(plots.nroy_fraction(shown), sizing_mode="stretch_width"),
                          pn.pane.HoloViews(plots.emulator_variance(shown, c.output_names),
                                            sizing_mode="stretch_width"),
                          sizing_mode="stretch_width")
-        return pn.Column(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
-                                             css_classes=["hm-plot"]) for o in objs], summary,
-                         sizing_mode="stretch_width")
+        return pn.Column(*rows, summary, sizing_mode="stretch_width")
 
     @param.depends("state.waves")
     def wave_selector(self):
@@ -236,10 +239,13 @@ class ExplorerView(pn.viewable.Viewer):
             rows = [pn.pane.HoloViews(plots.true_delta_2d(c), height=320,
                                       sizing_mode="stretch_width")]
             for sc in shown:
-                rows.append(pn.pane.HoloViews(
-                    hv.Layout(plots.discrepancy_2d(c, s.grid, s.results[sc], k,
-                                                   s.slice_x2)).cols(3),
-                    sizing_mode="stretch_width", css_classes=["disc-plot"]))
+                # One pane per plot in a Row: responsive plots inside one hv.Layout pane
+                # collapsed to zero width in the browser (blank panels).
+                rows.append(pn.Row(*[pn.pane.HoloViews(p, sizing_mode="stretch_width",
+                                                       height=300, css_classes=["disc-plot"])
+                                     for p in plots.discrepancy_2d(c, s.grid, s.results[sc],
+                                                                   k, s.slice_x2)],
+                                   sizing_mode="stretch_width"))
             slider = pn.widgets.FloatSlider.from_param(s.param.slice_x2, step=0.001)
             return pn.Column(slider, *rows, sizing_mode="stretch_width")
         quantities = {"z and δ": ["z", "δ"], "δ": ["δ"], "z": ["z"]}[self.quantity]

@@ -196,3 +196,69 @@ def test_two_sessions_do_not_share_results(browser, server):
     assert log_a.errors == [] and log_b.errors == []
     a.close()
     b.close()
+
+
+def assert_drawn(page, selector, n):
+    """At least ``n`` canvases under ``selector``, each with a size and with pixels beyond
+    its background: a collapsed or empty plot fails (issue 17)."""
+    from io import BytesIO
+
+    import numpy as np
+    from PIL import Image
+
+    wait_drawn(page, selector, n=n, timeout=90_000)
+    end = time.monotonic() + 60
+    while True:
+        try:
+            drawn = _count_drawn(page.locator(f"{selector} canvas"), np, Image, BytesIO)
+        except Exception:       # noqa: BLE001 - a plot re-rendered while it was read
+            drawn = -1
+        if drawn >= n:
+            return
+        if time.monotonic() > end:
+            raise AssertionError(f"{drawn} of at least {n} plots under {selector} are drawn")
+        page.wait_for_timeout(500)
+
+
+def _count_drawn(canvases, np, Image, BytesIO) -> int:
+    drawn = 0
+    for k in range(canvases.count()):
+        box = canvases.nth(k).bounding_box(timeout=5_000)
+        if not box or box["width"] < 50 or box["height"] < 50:
+            continue
+        shot = canvases.nth(k).screenshot(timeout=5_000)
+        img = np.asarray(Image.open(BytesIO(shot)).convert("RGB"))
+        colours, counts = np.unique(img.reshape(-1, 3), axis=0, return_counts=True)
+        if 1.0 - counts.max() / counts.sum() > 0.02:     # > 2 % not the background colour
+            drawn += 1
+    return drawn
+
+
+@pytest.mark.parametrize("case, n_disc", [("beam-1d", 6), ("beam-2d", 9), ("shear-5", 30)])
+def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_disc):
+    ARTIFACTS.mkdir(exist_ok=True)
+    page = browser.new_page(viewport={"width": 1280, "height": 720})
+    log = PageLog(page)
+    page.goto(server)
+    page.wait_for_selector(".data-plot canvas", timeout=60_000)
+    if case != "beam-1d":
+        from mdcore import cases
+        title = cases.load(case).title[-10:]          # "paper §4.2)": unique per case
+        page.locator("select").first.select_option(case)
+        page.wait_for_selector(f".hm-status:has-text('{title}')", state="attached",
+                               timeout=90_000)
+    tab(page, "Data")
+    assert_drawn(page, ".data-plot", 1)
+    page.get_by_role("button", name="Run to convergence").click()
+    tab(page, "History matching")
+    page.wait_for_selector(".hm-status:has-text('converged')", timeout=90_000)
+    assert_drawn(page, ".hm-plot", 1)
+    page.get_by_role("button", name="Run discrepancy").click()
+    tab(page, "Discrepancy")
+    assert_drawn(page, ".disc-plot", n_disc)
+    page.screenshot(path=str(ARTIFACTS / f"tabs-{case}-discrepancy.png"), full_page=True)
+    tab(page, "Metrics")
+    assert page.wait_for_selector(".metrics-table table", timeout=30_000).inner_text()
+    assert log.errors == []
+    assert log.hosts <= {"127.0.0.1", "localhost"}, log.hosts
+    page.close()

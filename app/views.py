@@ -282,9 +282,9 @@ class ExplorerView(pn.viewable.Viewer):
         r = shown[Method.KOH]
         m, chain = r.model, r.chain
         c = s.case
-        theta = ", ".join(f"{n} = {mu:.4g} ± {sd:.2g} {u}" for n, mu, sd, u in
-                          zip(c.theta_names, m.theta.mean(axis=0), m.theta.std(axis=0),
-                              c.theta_units))
+        theta = ", ".join(f"{n} = {mu:.4g} ± {sd:.2g}" + ("" if u in ("", "-") else f" {u}")
+                          for n, mu, sd, u in zip(c.theta_names, m.theta.mean(axis=0),
+                                                  m.theta.std(axis=0), c.theta_units))
         caveat = "" if chain.reliable else (" The chain is shorter than 50 autocorrelation "
                                             "times, so these are themselves uncertain.")
         summary = pn.pane.Markdown(

@@ -204,6 +204,15 @@ def _add_method_options(p) -> None:
     p.add_argument("--json", default=None, metavar="PATH", help="also write the numbers here")
 
 
+def _add_output_options(p) -> None:
+    """The seed and the files a single run writes (reproduce and run)."""
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--csv", default=None, metavar="DIR",
+                   help="also write nroy.csv and predictions.csv into this folder")
+    p.add_argument("--out", default=None, metavar="REPORT.html",
+                   help="also write a self-contained HTML report")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(prog="python -m mdcore", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -220,20 +229,12 @@ def main(argv=None) -> int:
                         "(the paper's Tables 1–3)")
     rp.add_argument("case", choices=cases.names())
     _add_method_options(rp)
-    rp.add_argument("--seed", type=int, default=0)
-    rp.add_argument("--csv", default=None, metavar="DIR",
-                    help="also write nroy.csv and predictions.csv into this folder")
-    rp.add_argument("--out", default=None, metavar="REPORT.html",
-                    help="also write a self-contained HTML report")
+    _add_output_options(rp)
     rn = sub.add_parser("run", help="your own case: history matching + methods on a TOML "
                         "case file (see the README, 'Your own data')")
     rn.add_argument("case_file", help="the TOML case file")
     _add_method_options(rn)
-    rn.add_argument("--seed", type=int, default=0)
-    rn.add_argument("--csv", default=None, metavar="DIR",
-                    help="also write nroy.csv and predictions.csv into this folder")
-    rn.add_argument("--out", default=None, metavar="REPORT.html",
-                    help="also write a self-contained HTML report")
+    _add_output_options(rn)
     st = sub.add_parser("study", help="reproduce a case over many seeds: mean ± sd of every "
                         "metric beside the paper's values, and whether its patterns hold")
     st.add_argument("case", choices=cases.names())

@@ -2,7 +2,6 @@
 caching and supersession."""
 
 import queue
-import time
 import warnings
 from itertools import pairwise
 
@@ -14,6 +13,7 @@ import holoviews as hv  # noqa: E402
 import panel as pn  # noqa: E402
 from bokeh.document import Document  # noqa: E402
 from bokeh.models import GlyphRenderer  # noqa: E402
+from event_loop import drain  # noqa: E402
 
 import mdcore_app.state as state_module  # noqa: E402
 from mdcore.pipeline import Method  # noqa: E402
@@ -173,7 +173,7 @@ def test_newer_request_supersedes_older_one():
     s = ExplorerState(background=True, schedule=inbox.put)
     s.param.update(**SMALL)
     s.run_to_convergence()
-    _drain(inbox, until=lambda: not s.busy)
+    drain(inbox, timeout=120.0, until=lambda: not s.busy)
     assert len(s.waves) == 1
     s.scenarios = [Method.S3]
     s.n_phi = 400                                      # a slower run …
@@ -181,21 +181,9 @@ def test_newer_request_supersedes_older_one():
     job = s.jobs.job
     s.case_name = "beam-2d"                           # … superseded by a case switch
     assert job.status == "superseded" and job.cancel.is_set() and not s.busy
-    _drain(inbox, until=lambda: job.wait(0) and inbox.empty())
+    drain(inbox, timeout=120.0, until=lambda: job.wait(0) and inbox.empty())
     assert s.results == {} and s.case.name == "beam-2d" and s.waves == ()
     assert s.error == ""
-
-
-def _drain(inbox, until, timeout=120.0):
-    """Play the session's event loop until ``until()`` holds; fail after ``timeout`` s."""
-    end = time.monotonic() + timeout
-    while not until():
-        if time.monotonic() > end:
-            raise AssertionError("condition not reached before the timeout")
-        try:
-            inbox.get(timeout=0.05)()
-        except queue.Empty:
-            pass
 
 
 def test_two_sessions_are_independent():

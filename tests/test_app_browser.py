@@ -4,7 +4,6 @@ Skipped when Chromium or Playwright is missing, unless ``MDCORE_REQUIRE_BROWSER=
 (set by ``.ci/run``), which turns the skip into a failure.
 """
 
-import os
 import socket
 import subprocess
 import sys
@@ -14,26 +13,10 @@ from pathlib import Path
 from urllib.parse import urlparse
 
 import pytest
+from browser import CHROMIUM, FLAGS, require_browser
 
-CHROMIUM = "/usr/bin/chromium"
-FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-         "--disable-component-update", "--disable-sync", "--no-first-run"]
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 ROOT = Path(__file__).resolve().parent.parent
-
-
-def _require_browser():
-    reason = None
-    try:
-        import playwright.sync_api  # noqa: F401
-    except ImportError:
-        reason = "playwright is not installed"
-    if reason is None and not os.path.exists(CHROMIUM):
-        reason = f"Chromium is not at {CHROMIUM} (apt-get install -y chromium)"
-    if reason is not None:
-        if os.environ.get("MDCORE_REQUIRE_BROWSER") == "1":
-            pytest.fail(f"browser test required (MDCORE_REQUIRE_BROWSER=1) but {reason}")
-        pytest.skip(reason)
 
 
 class ServerLog:
@@ -79,7 +62,7 @@ def _serve(script: str = "main.py"):
 
 @pytest.fixture(scope="module")
 def server():
-    _require_browser()
+    require_browser()
     proc, url, _log = _serve()
     yield url
     proc.terminate()
@@ -234,8 +217,11 @@ def _count_drawn(canvases, np, Image, BytesIO) -> int:
     return drawn
 
 
-@pytest.mark.parametrize("case, n_disc", [("beam-1d", 6), ("beam-2d", 9), ("shear-5", 30)])
-def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_disc):
+@pytest.mark.parametrize("case, n_hm, n_disc",
+                         [("beam-1d", 2, 6), ("beam-2d", 1, 9), ("shear-5", 3, 30)])
+def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_hm, n_disc):
+    """NROY plots (beam-1d: θ pair and implausibility map; beam-2d: histogram; shear-5:
+    three θ pairs) and every scenario's bands, each drawn."""
     ARTIFACTS.mkdir(exist_ok=True)
     page = browser.new_page(viewport={"width": 1280, "height": 720})
     log = PageLog(page)
@@ -252,7 +238,7 @@ def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_disc):
     page.get_by_role("button", name="Run to convergence").click()
     tab(page, "History matching")
     page.wait_for_selector(".hm-status:has-text('converged')", timeout=90_000)
-    assert_drawn(page, ".hm-plot", 1)
+    assert_drawn(page, ".hm-plot", n_hm)
     page.get_by_role("button", name="Run discrepancy").click()
     tab(page, "Discrepancy")
     assert_drawn(page, ".disc-plot", n_disc)

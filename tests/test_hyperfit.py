@@ -6,25 +6,13 @@ import warnings
 import naive_gp
 import numpy as np
 import pytest
+from test_gp import random_problem
 
 from mdcore import gp
 from mdcore.discrepancy import default_phi_prior
 from mdcore.exceptions import ConvergenceWarning
 from mdcore.hyperfit import default_bounds, fit_hyperparameters, lbfgs_converged
 from mdcore.priors import GaussianPrior
-
-
-def random_problem(rng, N=9, d_y=5, d_x=2):
-    X = rng.uniform(0, 1, size=(N, d_x))
-    Y = rng.normal(size=(N, d_y))
-    z = rng.normal(size=N)
-    return Y, X, z
-
-
-def random_log_params(rng, d_y, d_x, shape=()):
-    lp = rng.normal(scale=0.4, size=shape + (2 + d_y + d_x,))
-    lp[..., -1] = rng.uniform(-3, -1, size=shape)
-    return lp
 
 
 def draw_from_gp(rng, log_params, Y, X):

@@ -9,9 +9,9 @@ sleeps: every wait is on a condition with a timeout.
 
 import queue
 import threading
-import time
 
 import pytest
+from event_loop import drain
 
 from mdcore.exceptions import Cancelled
 from mdcore_app.jobs import JobRunner, error_message
@@ -43,18 +43,6 @@ class Host:
 
     def apply(self, partial):
         self.value, self.status = partial, f"status of {partial}"
-
-
-def drain(inbox: queue.Queue, until, timeout: float = TIMEOUT) -> None:
-    """Run scheduled callbacks on this thread until ``until()`` holds; fail on timeout."""
-    end = time.monotonic() + timeout
-    while not until():
-        if time.monotonic() > end:
-            raise AssertionError("condition not reached before the timeout")
-        try:
-            inbox.get(timeout=0.05)()
-        except queue.Empty:
-            pass
 
 
 def background(host: Host, **options):
@@ -113,10 +101,10 @@ def test_runtime_error_in_background_mode():
         raise RuntimeError("boom")
 
     job = runner.submit("waves", compute, host.apply)
-    drain(inbox, until=lambda: job.wait(0) and inbox.empty())
+    drain(inbox, timeout=TIMEOUT, until=lambda: job.wait(0) and inbox.empty())
     assert not host.busy and len(host.errors) == 1 and host.value == "before"
     runner.submit("waves", lambda report, cancel: iter(["after"]), host.apply)
-    drain(inbox, until=lambda: not host.busy)
+    drain(inbox, timeout=TIMEOUT, until=lambda: not host.busy)
     assert host.value == "after" and len(host.errors) == 1          # still usable
 
 
@@ -143,9 +131,9 @@ def test_newer_job_supersedes_and_drops_stale_results():
     assert started.wait(TIMEOUT)
     new = runner.submit("fast", lambda report, cancel: iter(["fresh"]), host.apply)
     assert old.status == "superseded" and old.cancel.is_set()
-    drain(inbox, until=lambda: new.wait(0))
+    drain(inbox, timeout=TIMEOUT, until=lambda: new.wait(0))
     release.set()
-    drain(inbox, until=lambda: old.wait(0) and inbox.empty())
+    drain(inbox, timeout=TIMEOUT, until=lambda: old.wait(0) and inbox.empty())
     assert host.value == "fresh" and host.errors == [] and not host.busy
     assert old.status == "superseded" and new.status == "done"
 
@@ -165,9 +153,9 @@ def test_cancel_stops_a_running_job_quietly():
             cancel.wait(0.01)
 
     job = runner.submit("endless", endless, host.apply)
-    drain(inbox, until=lambda: started.is_set() and host.value == "first")
+    drain(inbox, timeout=TIMEOUT, until=lambda: started.is_set() and host.value == "first")
     assert runner.cancel()
-    drain(inbox, until=lambda: job.wait(0) and not host.busy)
+    drain(inbox, timeout=TIMEOUT, until=lambda: job.wait(0) and not host.busy)
     n = len(steps)
     assert job.status == "cancelled" and host.errors == [] and host.value == "first"
     assert not runner.cancel()                        # nothing running any more
@@ -190,10 +178,10 @@ def test_pipeline_cancelled_is_not_a_notification_storm():
 
     jobs = [runner.submit(f"job {k}", work, host.apply) for k in range(5)]
     runner.cancel()
-    drain(inbox, until=lambda: len(gates) == 5)
+    drain(inbox, timeout=TIMEOUT, until=lambda: len(gates) == 5)
     for gate in gates:
         gate.set()
-    drain(inbox, until=lambda: all(j.wait(0) for j in jobs) and inbox.empty())
+    drain(inbox, timeout=TIMEOUT, until=lambda: all(j.wait(0) for j in jobs) and inbox.empty())
     assert not host.busy
     assert host.errors == [] and host.value == "before"
     assert [j.status for j in jobs] == ["superseded"] * 4 + ["cancelled"]
@@ -224,7 +212,7 @@ def test_drop_retires_without_callbacks():
     job = runner.submit("x", compute, host.apply)
     runner.drop()
     release.set()
-    drain(inbox, until=lambda: job.wait(0))
+    drain(inbox, timeout=TIMEOUT, until=lambda: job.wait(0))
     assert job.status == "superseded" and host.value == "before" and host.errors == []
     assert host.busy                                  # drop leaves busy to the caller
 
@@ -349,12 +337,12 @@ def test_state_cancel_stops_a_running_discrepancy_run():
     inbox: queue.Queue = queue.Queue()
     s = _state(background=True, schedule=inbox.put)
     s.run_to_convergence()
-    drain(inbox, until=lambda: len(s.waves) >= 1 and not s.busy)
+    drain(inbox, timeout=TIMEOUT, until=lambda: len(s.waves) >= 1 and not s.busy)
     s.scenarios = [Method.S3]
     s.param.update(n_s=200, n_phi=2000)                 # long enough to be cancelled
     s.run_discrepancy()
     job = s.jobs.job
-    drain(inbox, until=lambda: s.progress > 0 or not s.busy)
+    drain(inbox, timeout=TIMEOUT, until=lambda: s.progress > 0 or not s.busy)
     assert s.busy, "the run finished before it could be cancelled"
     s.cancel()
     drain(inbox, until=lambda: job.wait(0) and not s.busy, timeout=120.0)

@@ -363,7 +363,7 @@ class EmulatorAt:
         em = self.emulator
         p, d_x = em.theta_train.shape[1], self.X.shape[1]
         t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
-        gps = em._gps
+        gps = em.gps
         return EmulatorArrays(
             t_lo, t_span, _unit(em.theta_train, t_lo, t_span),
             np.stack([np.exp(-g.log_params[1:1 + p]) for g in gps]),

@@ -233,6 +233,13 @@ class ExplorerView(pn.viewable.Viewer):
             return pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
                                     css_classes=["disc-empty"])
         k = int(s.band)
+        # The diagnostics' warnings stay beside the bands they concern (the notification
+        # that also reports them fades).
+        advice = [w for m in shown for w in s.results[m].warnings]
+        head = [pn.pane.Alert("\n\n".join(f"**{w.split(':', 1)[0]}**:{w.split(':', 1)[1]}"
+                                            for w in advice),
+                              alert_type="warning", css_classes=["disc-warnings"])] \
+            if advice else []
         if c.d_x == 2:
             # A fixed width on this (responsive) plot collapsed the scenario rows below the
             # slider to zero width in the browser.
@@ -247,7 +254,7 @@ class ExplorerView(pn.viewable.Viewer):
                                                                    k, s.slice_x2)],
                                    sizing_mode="stretch_width"))
             slider = pn.widgets.FloatSlider.from_param(s.param.slice_x2, step=0.001)
-            return pn.Column(slider, *rows, sizing_mode="stretch_width")
+            return pn.Column(*head, slider, *rows, sizing_mode="stretch_width")
         quantities = {"z and δ": ["z", "δ"], "δ": ["δ"], "z": ["z"]}[self.quantity]
         cells = []
         for o in range(c.n_out):
@@ -255,7 +262,8 @@ class ExplorerView(pn.viewable.Viewer):
                 cells += plots.discrepancy_1d(c, s.grid, s.results, shown, k, o,
                                               "z" if q == "z" else "delta")
         layout = hv.Layout(cells).cols(len(shown))
-        return pn.pane.HoloViews(layout, sizing_mode="stretch_width", css_classes=["disc-plot"])
+        plot = pn.pane.HoloViews(layout, sizing_mode="stretch_width", css_classes=["disc-plot"])
+        return pn.Column(*head, plot, sizing_mode="stretch_width") if head else plot
 
     @param.depends("state.results", "state.scenarios")
     def metrics_view(self):

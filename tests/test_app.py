@@ -210,6 +210,11 @@ def test_low_ess_becomes_a_notice_not_a_failure():
     assert s.n_notices == 1 and "importance weights are unreliable" in s.notice
     assert "raise N_φ" in s.notice and s.error == ""
     assert list(s.results) == [Method.S3]
+    # ... and it stays beside the band in the Discrepancy tab (issue 16).
+    view = ExplorerView(state=s).discrepancy_view()
+    alerts = [a for a in view.select(pn.pane.Alert) if "disc-warnings" in a.css_classes]
+    assert len(alerts) == 1 and "importance weights are unreliable" in alerts[0].object
+    assert "raise N_φ" in alerts[0].object
 
 
 def test_reused_phi_hat_follows_the_seed():

@@ -112,10 +112,12 @@ class ExplorerState(param.Parameterized):
 
     # --- case and history-matching controls -------------------------------------------
     case_name = param.Selector(objects=list(cases.names()), default="beam-1d", label="Case study")
-    v_m = param.Number(default=0.05, softbounds=(0.001, 0.2), label="V_m",
+    v_m = param.Number(default=0.05, bounds=(0.0, None), inclusive_bounds=(False, True),
+                       softbounds=(0.001, 0.2), label="V_m",
                        doc="Model-discrepancy variance in the case's output units squared "
                            "(shear-5: of ω1; the other modes scale with their mean squared).")
-    threshold = param.Number(default=3.0, softbounds=(1.0, 5.0), label="Threshold T")
+    threshold = param.Number(default=3.0, bounds=(0.0, None), inclusive_bounds=(False, True),
+                             softbounds=(1.0, 5.0), label="Threshold T")
     rule = param.Selector(objects=list(RULES), default="max", label="Implausibility rule")
     n_runs = param.Integer(default=10, bounds=(1, None), label="Runs per wave")
     n_candidates = param.Integer(default=50_000, bounds=(100, None), label="Candidates per wave")
@@ -257,6 +259,12 @@ class ExplorerState(param.Parameterized):
         self.param.update(waves=snap.waves, implausibility_maps=snap.implausibility_maps,
                           selected_wave=snap.selected_wave, status=snap.status,
                           results=snap.results)
+
+    def reject(self, name: str, value, reason: Exception) -> None:
+        """Report a typed value the parameter ``name`` refused (the field reverts)."""
+        p = self.param[name]
+        self._report_error(f"{p.label}: {value!r} is not allowed ({reason}). The field keeps "
+                           f"{getattr(self, name)!r}.")
 
     def _report_error(self, message: str) -> None:
         self.param.update(error=message, n_errors=self.n_errors + 1)

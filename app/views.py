@@ -97,25 +97,29 @@ class ExplorerView(pn.viewable.Viewer):
         s = self.state
         w = pn.Param(s.param, parameters=["case_name"], show_name=False,
                      widgets={"case_name": pn.widgets.Select})
-        hm = pn.Param(s.param, parameters=["v_m", "threshold", "rule", "n_runs", "n_candidates",
-                                           "max_waves", "convergence_ratio"], show_name=False,
-                      widgets={"v_m": {"type": pn.widgets.FloatInput, "step": 0.005},
-                               "threshold": {"type": pn.widgets.FloatInput, "step": 0.5},
-                               "rule": pn.widgets.RadioButtonGroup,
-                               "convergence_ratio": {"type": pn.widgets.FloatInput, "step": 0.1}})
+        hm = pn.Column(
+            self._number_input("v_m", pn.widgets.FloatInput, step=0.005),
+            self._number_input("threshold", pn.widgets.FloatInput, step=0.5),
+            pn.Param(s.param, parameters=["rule"], show_name=False,
+                     widgets={"rule": pn.widgets.RadioButtonGroup}),
+            self._number_input("n_runs", pn.widgets.IntInput),
+            self._number_input("n_candidates", pn.widgets.IntInput, step=10_000),
+            pn.Param(s.param, parameters=["max_waves"], show_name=False),
+            self._number_input("convergence_ratio", pn.widgets.FloatInput, step=0.1))
         next_btn = pn.widgets.Button(label="Next wave", color="primary")
         conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
         next_btn.on_click(lambda _: s.next_wave())
         conv_btn.on_click(lambda _: s.run_to_convergence())
-        disc = pn.Param(s.param, parameters=["n_s", "n_phi", "paper_sizes", "scenarios",
-                                             "proposal", "koh_chain", "band", "seed"],
-                        show_name=False,
-                        widgets={"scenarios": pn.widgets.CheckButtonGroup,
-                                 "koh_chain": pn.widgets.RadioButtonGroup,
-                                 "proposal": pn.widgets.RadioButtonGroup,
-                                 "band": pn.widgets.RadioButtonGroup,
-                                 "n_s": pn.widgets.IntInput, "n_phi": pn.widgets.IntInput,
-                                 "seed": pn.widgets.IntInput})
+        disc = pn.Column(
+            self._number_input("n_s", pn.widgets.IntInput),
+            self._number_input("n_phi", pn.widgets.IntInput),
+            pn.Param(s.param, parameters=["paper_sizes", "scenarios", "proposal", "koh_chain",
+                                          "band"], show_name=False,
+                     widgets={"scenarios": pn.widgets.CheckButtonGroup,
+                              "koh_chain": pn.widgets.RadioButtonGroup,
+                              "proposal": pn.widgets.RadioButtonGroup,
+                              "band": pn.widgets.RadioButtonGroup}),
+            self._number_input("seed", pn.widgets.IntInput))
         run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
         run_btn.on_click(lambda _: s.run_discrepancy())
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
@@ -128,6 +132,28 @@ class ExplorerView(pn.viewable.Viewer):
             w, self._case_info, pn.pane.Markdown("#### History matching"), hm,
             pn.Row(next_btn, conv_btn), pn.pane.Markdown("#### Discrepancy"), disc, run_btn,
             self._progress_panel(), width=SIDEBAR_WIDTH)
+
+    def _number_input(self, name: str, cls, **kw):
+        """A number field for the state's parameter ``name`` whose typed value the parameter
+        checks: a value it refuses (outside the hard bounds, empty, wrong type) becomes one
+        notification saying what is allowed, and the field reverts. The parameter's soft
+        bounds are only a hint, so values beyond them (T = 7, V_m = 0.5) are accepted."""
+        s = self.state
+        p = s.param[name]
+        field = cls(label=p.label, value=getattr(s, name), description=p.doc, **kw)
+
+        def push(event):
+            if event.new == getattr(s, name):
+                return
+            try:
+                setattr(s, name, event.new)
+            except ValueError as exc:
+                s.reject(name, event.new, exc)
+                field.value = getattr(s, name)
+
+        field.param.watch(push, "value")
+        s.param.watch(lambda e: setattr(field, "value", e.new), name)
+        return field
 
     @param.depends("state.case")
     def _case_info(self):

@@ -151,10 +151,9 @@ def test_everything_ruled_out_is_an_error_and_keeps_the_earlier_state():
     assert s.n_errors == n + 1 and "nothing is non-implausible" in s.error
     assert "Raise V_m" in s.error
     assert s.waves is waves and s.results == results and not s.busy
-    s.threshold = -1.0
-    s.next_wave()
-    assert s.n_errors == n + 2 and "threshold T must be a positive number" in s.error
-    assert s.waves is waves
+    with pytest.raises(ValueError, match="greater than 0"):   # the field reports it
+        s.threshold = -1.0
+    assert s.waves is waves and s.threshold == 3.0
     s.param.update(v_m=0.05, threshold=3.0)
     s.next_wave()                                      # still usable afterwards
     assert len(s.waves) == 1
@@ -340,3 +339,22 @@ def test_progress_bar_appears_only_for_runs_longer_than_half_a_second(monkeypatc
     assert bar.visible and cancel.visible and bar.value == 20
     s.busy = False
     assert not bar.visible and not cancel.visible
+
+
+def test_typed_values_the_parameter_refuses_notify_once_and_revert():
+    s = ExplorerState()
+    controls = ExplorerView(state=s)._controls()
+    fields = {w.label: w for w in controls.select(pn.widgets.Widget) if hasattr(w, "label")}
+    t, vm, n_s = fields["Threshold T"], fields["V_m"], fields["N_s (θ samples)"]
+    assert t.start is None and t.end is None            # soft bounds are not limits
+    t.value = 7.0                                       # beyond the soft range: valid
+    assert s.threshold == 7.0 and s.n_errors == 0
+    for field, bad, name in ((t, 0.0, "threshold"), (vm, -0.05, "v_m"), (n_s, 0, "n_s"),
+                             (t, None, "threshold")):
+        before, errors = getattr(s, name), s.n_errors
+        field.value = bad
+        assert s.n_errors == errors + 1, (name, bad)
+        assert getattr(s, name) == before and field.value == before
+        assert field.label in s.error and "is not allowed" in s.error
+    s.v_m = 0.1                                         # the state moves the field too
+    assert vm.value == 0.1 and s.n_errors == 4

@@ -1,7 +1,7 @@
 """Issue 15's speed table, for the rows the compiled GP kernels cover, in one run.
 
-Usage: python bench/bench_speed.py [--quick] [--rows beam-1d beam-2d shear-5 app koh-wave]
-                                   [--sklearn-pairs 300] [--no-jit]
+Usage: python bench/bench_speed.py [--quick] [--rows beam-1d beam-2d shear-5 app koh hm-wave]
+                                   [--sklearn-pairs 300] [--no-jit] [--repeat 5]
 
 Rows: scenario 3 at the paper's sizes (beam-1d 1000 × 500, beam-2d 1000 × 1000, shear-5
 1000 × 500 on all 5 outputs), weights of every pair plus the mixture prediction at the
@@ -28,13 +28,19 @@ For each row:
   the prediction keeps.
 
 ``--quick`` runs the NumPy path and the agreement check on a tenth of the θ samples and
-extrapolates its time by pair counts. ``koh-wave``: the KOH chain (150,000 steps, beam-1d)
-on both backends, and one history-matching wave of 10⁵ candidates (beam-1d and shear-5;
-not compiled yet). The JIT section times
-``warm_up()`` in fresh processes with an empty and then a filled numba cache. Peak memory
-is the process's peak resident set size so far (``ru_maxrss``), so it only grows down the
-table. Figures only: the machine may be shared, so the load average is printed; nothing is
-asserted.
+extrapolates its time by pair counts. ``koh``: the KOH chain (150,000 steps, beam-1d) on
+both backends. ``hm-wave``: one history-matching wave of 10⁵ candidates on every case
+(:func:`mdcore.history_matching.next_wave`: simulator runs, emulator fit, candidates,
+scoring), shortest of ``--repeat`` runs per backend; its second line splits it into the
+emulator fit (bit-identical on both backends: see :func:`hm_wave_rows`) and the scoring
+of the candidates, with the scoring's bound (its exps and flops); ``sklearn`` is
+``GaussianProcessRegressor.predict(return_std=True)`` of the equivalent dense GP over
+(x, θ) at the candidates, timed on 500 of them and extrapolated; ``Δ pred`` is the
+largest |ΔI| relative to I, and the NROY sets are compared. ``koh-wave`` runs both.
+The JIT section times ``warm_up()`` (every kernel) and the emulator kernel alone in fresh
+processes with an empty and then a filled numba cache. Peak memory is the process's peak
+resident set size so far (``ru_maxrss``), so it only grows down the table. Figures only:
+the machine may be shared, so the load average is printed; nothing is asserted.
 """
 
 from __future__ import annotations
@@ -49,12 +55,14 @@ import sys
 import tempfile
 import time
 import warnings
+from functools import partial
 
 import numpy as np
 
 from mdcore import cases, compiled
 from mdcore.discrepancy import infer_discrepancy
-from mdcore.history_matching import case_problem, history_match_case, iter_waves
+from mdcore.emulator import fit_emulator
+from mdcore.history_matching import case_problem, history_match_case, next_wave
 from mdcore.pipeline import Method, Settings, run_method
 
 PAPER = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
@@ -259,8 +267,8 @@ def row(name, sizes, rates, args, rng):
           f"{exps / 1e9:.2f} G exps, {flops / 1e9:.1f} Gflop)", flush=True)
 
 
-def koh_and_wave_rows():
-    """The KOH chain on both backends, and one history-matching wave (NumPy only)."""
+def koh_row():
+    """The KOH chain on both backends."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         case = cases.load("beam-1d")
@@ -277,26 +285,121 @@ def koh_and_wave_rows():
         print(f"{'KOH beam-1d 150,000 steps':<28} {'':>9} {'':>9} {seconds['numpy']:>8.2f} "
               f" {seconds['numba']:>7.2f} {'':>7} {'':>9} {ratio:>6.1f}x"
               f"   (target ≤ 15 s; chains differ by at most {gap:.1e})", flush=True)
-        for name in ("beam-1d", "shear-5"):
-            case = cases.load(name)
-            problem = case_problem(case, n_candidates=100_000, max_waves=1)
-            wave = next(iter_waves(problem))
-            print(f"{'HM wave ' + name + ' 10⁵ cand.':<28} {'':>9} {'':>9} "
-                  f"{wave.seconds:>8.2f}  (NumPy only, emulator fit included; target ≤ 0.2 s)",
-                  flush=True)
+
+
+def sklearn_wave_seconds(problem, emulator, theta, n_sample=500):
+    """``GaussianProcessRegressor.predict(return_std=True)`` of the dense GP over (x, θ)
+    with the emulator's hyperparameters, per output, at ``n_sample`` candidates × the
+    observed inputs, extrapolated to all of ``theta``. scikit-learn has no product of
+    per-block kernels: an ARD Matérn 3/2 over [x, θ] (the same cost, not the same kernel)."""
+    from sklearn.gaussian_process import GaussianProcessRegressor
+    from sklearn.gaussian_process.kernels import ConstantKernel, Matern, WhiteKernel
+
+    p, d_x = problem.p, problem.X.shape[1]
+    lo, span = problem.bounds[:, 0], problem.bounds[:, 1] - problem.bounds[:, 0]
+    Xu = emulator.unit_x(problem.X)
+    Tu = (emulator.theta_train - lo) / span
+    train = np.column_stack([np.tile(Xu, (len(Tu), 1)), np.repeat(Tu, len(Xu), axis=0)])
+    sub = (theta[:n_sample] - lo) / span
+    test = np.column_stack([np.tile(Xu, (len(sub), 1)), np.repeat(sub, len(Xu), axis=0)])
+    total = 0.0
+    for o, g in enumerate(emulator.gps):
+        e = np.exp(g.log_params)
+        ell = np.r_[e[1 + p:1 + p + d_x], e[1:1 + p]]
+        kern = (ConstantKernel(e[0] ** 2) * Matern(length_scale=ell, nu=1.5)
+                + WhiteKernel(e[-1] ** 2))
+        reg = GaussianProcessRegressor(kern, optimizer=None, alpha=0.0)
+        with contextlib.suppress(np.linalg.LinAlgError):
+            reg.fit(train, emulator.y_train[..., o].ravel())
+            t = time.perf_counter()
+            reg.predict(test, return_std=True)
+            total += time.perf_counter() - t
+    return total * len(theta) / len(sub)
+
+
+def hm_wave_rows(rates, repeat):
+    """One history-matching wave of 10⁵ candidates per case, on both backends.
+
+    The emulator fit gives the same bits on both backends, on purpose: its result must not
+    move (L-BFGS-B turns a 1-ulp change of the NLML into ~1e-5 in the hyperparameters and
+    ~1e-7 in θ_MAP), so the compiled fit replays NumPy's arithmetic and sums exactly
+    (:func:`mdcore.emulator._kron_nlml_compiled`).
+    """
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for name in ("beam-1d", "beam-2d", "shear-5"):
+            hm_wave_row(cases.load(name), rates, repeat)
+
+
+def hm_wave_row(case, rates, repeat):
+    wave, wall, cpu, score = {}, {}, {}, {}
+    for backend in ("numpy", "numba"):
+        problem = case_problem(case, n_candidates=100_000, max_waves=1, backend=backend)
+        next_wave(problem)                                      # first-call costs
+        best = (np.inf, 0.0)
+        for _ in range(repeat):
+            c0, t0 = time.process_time(), time.perf_counter()
+            w = next_wave(problem)
+            best = min(best, (time.perf_counter() - t0, time.process_time() - c0))
+        wave[backend], (wall[backend], cpu[backend]) = w, best
+        score[backend] = best_of(partial(problem.score, w.candidates, w.emulator), repeat)
+    ref, new = wave["numpy"], wave["numba"]
+    problem, em, theta = new.problem, new.emulator, new.candidates
+    fit = {b: best_of(partial(fit_emulator, problem.X, em.theta_train, em.y_train,
+                              problem.bounds, seed=0, backend=b), repeat)
+           for b in ("numpy", "numba")}
+    same = np.array_equal(ref.nroy, new.nroy)
+    dI = float(np.max(np.abs(new.candidate_implausibility - ref.candidate_implausibility)
+                      / ref.candidate_implausibility))
+    sk = sklearn_wave_seconds(problem, em, theta)
+    M, (N, n_out), R, p = len(theta), problem.z.shape, len(em.theta_train), problem.p
+    exps = M * n_out * R
+    flops = M * n_out * (R * (3 * p + 4) + 2 * R * R + 4 * R * N + 8 * N)
+    bound = (exps * rates["exp_s"] + flops * rates["flop_s"]) / rates["cores"]
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    label = f"HM wave {case.name} 10⁵ cand."
+    print(f"{label:<28} {M:>9,} {len(new.nroy):>9,} {wall['numpy']:>8.3f} "
+          f" {wall['numba']:>7.3f} {cpu['numba'] / rates['cores']:>7.3f} {sk:>9.2f}"
+          f" {wall['numpy'] / wall['numba']:>6.1f}x {sk / wall['numba']:>7.0f}x"
+          f" {bound:>7.3f} {score['numba'] / bound:>6.1f}x {dI:>8.1e} {'':>8}"
+          f" {peak:>6.0f}", flush=True)
+    print(f"{'':<28} {'':>9} {'':>9}   (target ≤ 0.2 s; emulator fit numpy {fit['numpy']:.3f} s,"
+          f" numba {fit['numba']:.3f} s (bit-identical); scoring numpy {score['numpy']:.3f} s,"
+          f" numba {score['numba']:.3f} s ({score['numpy'] / score['numba']:.1f}x; nb/bd is the"
+          f" scoring's); NROY sets {'identical' if same else 'DIFFER'}; R = {R}, N = {N},"
+          f" {n_out} output{'s' if n_out > 1 else ''}; shortest of {repeat})", flush=True)
+
+
+#: The emulator kernel alone, both modes, on a tiny problem (p = 1, R = N = 2, one output).
+EMULATOR_JIT = """
+import time
+import numpy as np
+t = time.perf_counter()
+from mdcore import _compiled_emulator as e
+eye = np.eye(2).reshape(1, 2, 2)
+fixed = (np.zeros(1), np.ones(1), np.zeros((2, 1)), np.ones((1, 1)), eye.copy(),
+         np.ones((1, 1)), np.zeros((1, 2)), eye.copy(), eye.copy(), np.ones(1),
+         np.zeros((2, 1)), np.ones((2, 1)), 1)
+for mode in (e.MOMENTS, e.SCORES):
+    e.candidate_range(mode, 0, 3, np.full((3, 1), 0.5), *fixed, np.empty((3, 2, 1)),
+                      np.empty((3, 2, 1)), np.empty(3))
+print(time.perf_counter() - t)
+"""
 
 
 def jit_times():
-    """warm_up() in a fresh process: empty numba cache (cold), then filled (warm)."""
+    """warm_up() (every kernel), and the emulator kernel alone, in fresh processes: empty
+    numba cache (cold), then filled (warm)."""
     code = ("import time; t = time.perf_counter(); from mdcore import compiled; "
             "w = compiled.warm_up(); print(w, time.perf_counter() - t)")
-    with tempfile.TemporaryDirectory() as cache:
-        env = dict(os.environ, NUMBA_CACHE_DIR=cache)
-        out = []
-        for _ in range(2):
-            res = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
-                                 text=True, check=True)
-            out.append(tuple(float(v) for v in res.stdout.split()))
+    out = []
+    for script in (code, EMULATOR_JIT):
+        with tempfile.TemporaryDirectory() as cache:
+            env = dict(os.environ, NUMBA_CACHE_DIR=cache)
+            for _ in range(2):
+                res = subprocess.run([sys.executable, "-c", script], env=env,
+                                     capture_output=True, text=True, check=True)
+                out.append(tuple(float(v) for v in res.stdout.split()))
     return out
 
 
@@ -305,18 +408,22 @@ def main():
     ap.add_argument("--quick", action="store_true",
                     help="NumPy path on a tenth of the θ samples, extrapolated")
     ap.add_argument("--rows", nargs="+",
-                    default=["beam-1d", "beam-2d", "shear-5", "app", "koh-wave"])
+                    default=["beam-1d", "beam-2d", "shear-5", "app", "koh", "hm-wave"])
     ap.add_argument("--sklearn-pairs", type=int, default=300)
     ap.add_argument("--no-jit", action="store_true", help="skip the cold/warm JIT timing")
+    ap.add_argument("--repeat", type=int, default=5,
+                    help="timings of the hm-wave rows: shortest of this many runs")
     args = ap.parse_args()
     rng = np.random.default_rng(1)
 
     print(f"cores {cores()}, compiled threads {compiled.num_threads()}, load average "
           f"{os.getloadavg()[0]:.1f} at start")
     if not args.no_jit:
-        (cold_w, cold_t), (warm_w, warm_t) = jit_times()
+        (cold_w, cold_t), (warm_w, warm_t), (cold_e,), (warm_e,) = jit_times()
         print(f"JIT: warm_up() in a fresh process, empty cache {cold_w:.1f} s (process "
               f"{cold_t:.1f} s); cache filled {warm_w:.2f} s (process {warm_t:.2f} s)")
+        print(f"JIT: the history-matching emulator kernel alone, empty cache {cold_e:.1f} s; "
+              f"cache filled {warm_e:.2f} s")
     rates = machine_rates()
     print(f"machine (1 core): exp {rates['numpy_exp_s'] * 1e9:.2f} ns (NumPy), "
           f"{rates['compiled_exp_s'] * 1e9:.2f} ns (compiled); dgemm "
@@ -331,8 +438,12 @@ def main():
         if r == "app":
             for name in PAPER:
                 row(name, APP, rates, args, rng)
-        elif r == "koh-wave":
-            koh_and_wave_rows()
+        elif r in ("koh", "koh-wave"):
+            koh_row()
+            if r == "koh-wave":
+                hm_wave_rows(rates, args.repeat)
+        elif r == "hm-wave":
+            hm_wave_rows(rates, args.repeat)
         else:
             row(r, PAPER[r], rates, args, rng)
     print("\n* NumPy time extrapolated from a tenth of the θ samples (--quick).")

@@ -6,7 +6,10 @@ jitter ladder and the same warnings, but fused per (hyperparameter, Y) pair: ker
 (Eq. 3), Cholesky, triangular solves, NLML and predictive moments run in small per-thread
 buffers, with no pairs × N × N temporaries. :func:`mixture_sums` goes one step further for
 scenarios 2–3 and accumulates the mixture sums of Eq. 13/15 directly, so the per-pair
-moments are never stored.
+moments are never stored. :func:`emulator_moments` and :func:`emulator_scores` do the same
+for the history-matching emulator at many candidate θ (SPEC §4–5): its moments, or the
+combined implausibility (Eq. 16) fused with them, a block of candidates at a time; and
+:func:`fit_kernels` evaluate the emulator fit's likelihood with the exact bits of NumPy.
 
 numba is optional. Nothing here imports it until a kernel is first needed (or
 :func:`warm_up` is called); :func:`available` says whether it can be. Inputs are assumed
@@ -20,13 +23,15 @@ Compile cost
     call at start-up.
 
 Threads
-    The kernel is serial and releases the GIL. A call is split into pieces (ranges of
-    pairs, about 0.05 s of work each) that run on one process-wide pool of
-    :func:`num_threads` threads (``MDCORE_NUM_THREADS`` if set, else every core). Every
-    caller (app sessions, jobs) queues its pieces on that same pool, so the process never
-    runs more compute threads than that, and concurrent calls take turns piece by piece.
-    numba's own threading layer is not used (no OpenMP team, no nested parallelism), and
-    the kernel calls no BLAS, so the BLAS thread limit does not concern it.
+    The kernels are serial and release the GIL. A call is split into pieces (ranges of
+    pairs, or of history-matching candidates, about 0.05 s of work each) that run on one
+    process-wide pool of :func:`num_threads` threads (``MDCORE_NUM_THREADS`` if set, else
+    every core). Every caller (app sessions, jobs) queues its pieces on that same pool, so
+    the process never runs more compute threads than that, and concurrent calls take turns
+    piece by piece. numba's own threading layer is not used (no ``parallel=True``, no
+    OpenMP team, no nested parallelism), and the kernels call no BLAS, so the BLAS thread
+    limit does not concern them. The emulator fit's small kernels (:func:`fit_kernels`)
+    run in the calling thread, between BLAS calls that its caller holds to one thread.
 
 Examples
 --------
@@ -56,6 +61,8 @@ __all__ = [
     "THREADS_ENV",
     "MixtureSums",
     "available",
+    "emulator_moments",
+    "emulator_scores",
     "koh_log_likelihood",
     "mixture_sums",
     "nlml",
@@ -82,9 +89,21 @@ PIECES = 32
 MIN_PIECE = 64
 
 _POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def _forget_pools_after_fork() -> None:
+    """In a forked child (a fork-based ``ProcessPoolExecutor``), drop the thread pools:
+    their threads did not survive the fork, and work queued on them would wait for ever.
+    The child starts new ones on first use."""
+    _POOLS.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pools_after_fork)
 _POOL_LOCK = threading.Lock()
 _kernels_module = None
 _koh_module = None
+_emulator_module = None
 _warm_thread: threading.Thread | None = None
 
 
@@ -148,6 +167,16 @@ def _koh_kernels():
         from . import _compiled_koh
         _koh_module = _compiled_koh
     return _koh_module
+
+
+def _emulator_kernels():
+    """The history-matching emulator kernel module, imported on first use."""
+    global _emulator_module
+    if _emulator_module is None:
+        _kernels()                          # the same clear ImportError without numba
+        from . import _compiled_emulator
+        _emulator_module = _compiled_emulator
+    return _emulator_module
 
 
 def cores() -> int:
@@ -505,6 +534,92 @@ def koh_log_likelihood(arrays, base, zT, jitter_log):
 
 
 # ---------------------------------------------------------------------------------------
+# The history-matching emulator at many candidates
+
+
+def _candidates(mode, arrays, theta, z, vt, rank):
+    """:func:`mdcore._compiled_emulator.candidate_range` over all candidates, by pieces.
+
+    Candidates are independent, so the numbers do not depend on the pieces or threads.
+    Returns ``(mean, var, imp, n_bad)``.
+    """
+    k = _emulator_kernels()
+    theta = _contiguous(theta)
+    M = theta.shape[0]
+    n_out, R, N = arrays.AK.shape
+    p = arrays.T_train.shape[1]
+    fixed = tuple(map(_contiguous, (arrays.t_lo, arrays.t_span, arrays.T_train, arrays.inv_ell,
+                                    arrays.Q_t, arrays.beta_t, arrays.lin, arrays.AK, arrays.G,
+                                    arrays.sf2, z, vt)))
+    mean = np.empty((M if mode == k.MOMENTS else 0, N, n_out))
+    var = np.empty((M, N, n_out))
+    imp = np.empty(M if mode == k.SCORES else 0)
+    per = n_out * (R * (3.0 * p + 12.0) + 2.0 * R * R + 4.0 * R * N + 8.0 * N)
+    size = max(MIN_PIECE, min(-(-M // PIECES), int(LAUNCH_FLOPS / per)))
+
+    def work(m0, m1):
+        return k.candidate_range(mode, m0, m1, theta, *fixed, rank, mean, var, imp)
+
+    n_bad = sum(_in_pieces(work, [(m0, min(M, m0 + size)) for m0 in range(0, M, size)])
+                ) if M else 0
+    return mean, var, imp, int(n_bad)
+
+
+def emulator_moments(arrays, theta):
+    """Compiled :meth:`mdcore.emulator.Emulator.predict` on validated input.
+
+    Parameters
+    ----------
+    arrays : mdcore.emulator.EmulatorArrays
+        From :meth:`mdcore.emulator.EmulatorAt.arrays` at the inputs X (N of them).
+    theta : ndarray of shape (M, p)
+        Candidates, in the case's units.
+
+    Returns
+    -------
+    mean, var : ndarray of shape (M, N, n_out)
+    """
+    none = np.zeros((0, 0))
+    mean, var, _, _ = _candidates(_emulator_kernels().MOMENTS, arrays, theta, none, none, 1)
+    return mean, var
+
+
+def emulator_scores(arrays, theta, z, vt, rank: int):
+    """Combined implausibility (Eq. 16) fused with the emulator's moments, validated input.
+
+    Parameters
+    ----------
+    arrays, theta
+        As in :func:`emulator_moments`.
+    z, vt : ndarray of shape (N, n_out)
+        Observations and ``V_o + V_m``.
+    rank : int
+        1, 2 or 3: the combined implausibility is the rank-th largest over the targets.
+
+    Returns
+    -------
+    imp : ndarray of shape (M,)
+    var : ndarray of shape (M, N, n_out)
+        The emulator variance at every target.
+    n_bad : int
+        Targets with ``V_o + V_m + var ≤ 0`` (the caller raises).
+    """
+    _, var, imp, n_bad = _candidates(_emulator_kernels().SCORES, arrays, theta, z, vt, rank)
+    return imp, var, n_bad
+
+
+def fit_kernels():
+    """The compiled pieces of the emulator fit's likelihood (``fit_*`` of
+    :mod:`mdcore._compiled_emulator`), for :func:`mdcore.emulator.fit_emulator`.
+
+    They replay the NumPy evaluation's arithmetic and sums in the same order, so the fit,
+    and every history match, is identical on both backends; they run in the calling
+    thread and call no BLAS.
+    """
+    return _emulator_kernels()
+
+
+# ---------------------------------------------------------------------------------------
 # Warm-up
 
 
@@ -512,9 +627,25 @@ def warm_up() -> float:
     """Load (or, the first time on a machine, compile) every kernel; returns seconds.
 
     Runs the kernel once on a tiny problem, so that later calls start at full speed.
-    Safe to call from several threads; numba compiles the kernel once.
+    Safe to call from several threads; numba compiles the kernel once. The history-matching
+    kernels come first: a history match is the first thing the app and the CLI run.
     """
     start = time.perf_counter()
+    # The history-matching emulator at candidates, both modes (one signature).
+    e = _emulator_kernels()
+    eye = np.eye(2).reshape(1, 2, 2)
+    one, two = np.ones(1), np.ones((1, 1))
+    fixed = (np.zeros(1), one, np.zeros((2, 1)), two, eye.copy(), two, np.zeros((1, 2)),
+             eye.copy(), eye.copy(), one, np.zeros((2, 1)), np.ones((2, 1)), 1)
+    for mode in (e.MOMENTS, e.SCORES):
+        e.candidate_range(mode, 0, 3, np.full((3, 1), 0.5), *fixed, np.empty((3, 2, 1)),
+                          np.empty((3, 2, 1)), np.empty(3))
+    # The emulator fit's pieces, on the layouts the fit passes (rows of stacks included).
+    from .emulator import _kron_nlml_compiled, _sq_diffs
+    T, res = np.array([[0.1, 0.2], [0.7, 0.4], [0.3, 0.9]]), np.array([[0.1], [-0.2], [0.3]])
+    Xu = np.array([[0.5]])
+    _kron_nlml_compiled(np.array([0.0, -0.5, -0.5, 0.0, -3.0]), T, Xu, res,
+                        (_sq_diffs(T), _sq_diffs(Xu)), e)
     k = _kernels()
     X = np.linspace(0.0, 1.0, 3)[:, None]
     Y = np.stack([np.sin(3.0 * X), np.cos(2.0 * X)])           # (2, 3, 1)

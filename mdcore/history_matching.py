@@ -39,6 +39,7 @@ import scipy.optimize
 import scipy.special
 import scipy.stats
 
+from . import compiled
 from .emulator import Emulator, fit_emulator
 from .runs import run_simulator
 from .threads import single_threaded_blas
@@ -46,6 +47,7 @@ from .validation import (
     as_float_array,
     as_int,
     as_outputs,
+    as_positive_float,
     as_seed_int,
     check_bounds,
     check_positive,
@@ -60,6 +62,13 @@ __all__ = ["RULES", "implausibility", "combine", "Score", "Wave", "HistoryMatchP
 RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
 #: Default largest share of a wave's simulator runs that may fail (and be dropped).
 MAX_FAILED_FRACTION = 0.5
+#: Largest sizes accepted up front: candidates scored per wave (and NROY samples drawn at
+#: once), simulator runs per wave (the emulator's θ covariance is runs × runs), and the
+#: Metropolis steps that spread the candidates. Beyond these the work would not fit in
+#: memory, so it is refused before it starts.
+MAX_CANDIDATES = 10_000_000
+MAX_RUNS = 10_000
+MAX_MCMC_STEPS = 1_000
 RULED_OUT_HINT = ("nothing is non-implausible: every candidate θ has I > T. Raise V_m (the "
                   "model-discrepancy variance) or the threshold T, or use the 2nd/3rd max rule.")
 
@@ -173,6 +182,10 @@ class HistoryMatchProblem:
         Seconds after which a batch of simulator runs counts as failed.
     max_failed_fraction : float
         A wave whose share of failed simulator runs exceeds this is an error.
+    backend : {"numpy", "numba"}
+        How waves fit the emulator and score candidates (:meth:`score`): the NumPy
+        reference or the compiled kernels (:func:`mdcore.emulator.fit_emulator`,
+        :meth:`mdcore.emulator.Emulator.implausibility`).
     """
 
     simulate: Callable = field(repr=False)
@@ -194,6 +207,7 @@ class HistoryMatchProblem:
     batch_size: int | None = None
     timeout: float | None = None
     max_failed_fraction: float = MAX_FAILED_FRACTION
+    backend: str = "numpy"
 
     @property
     def p(self) -> int:
@@ -220,7 +234,10 @@ class HistoryMatchProblem:
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (M, p) with p = {self.p}; received "
                              f"{theta.shape}.")
-        pred = emulator.predict(self.X, theta)
+        if self.backend == "numba":       # the fused compiled kernel
+            return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
+                                                  rank=RULES[self.rule], backend="numba"))
+        pred = emulator.predict(self.X, theta, backend="numpy")
         I = implausibility(self.z, pred.mean, pred.var, V_o=self.V_o, V_m=self.V_m)
         return Score(combine(I, self.rule), pred.var)
 
@@ -317,7 +334,8 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
           mcmc_steps: int = 4, convergence_ratio: float = 1.0,
           executor: Executor | None = None, batch_size: int | None = None,
           timeout: float | None = None,
-          max_failed_fraction: float = MAX_FAILED_FRACTION) -> HistoryMatchProblem:
+          max_failed_fraction: float = MAX_FAILED_FRACTION,
+          backend: str | None = None) -> HistoryMatchProblem:
     """Validate and assemble a history-matching problem.
 
     Parameters
@@ -364,6 +382,12 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Failed runs (raised, timed out, NaN/inf) are dropped and reported on the wave; when
         more than this share of a wave's runs fail (or all do), the wave is an error that
         names the first failure.
+    backend : {"auto", "numpy", "numba"}, optional
+        How each wave fits its emulator and scores its candidates: ``"numpy"`` (the
+        reference) or ``"numba"`` (compiled: a fit with the same bits, and scoring fused
+        with the implausibility; the same NROY sets). Default ``MDCORE_BACKEND``, else numba
+        when installed (:func:`mdcore.compiled.resolve_backend`).
+        :meth:`HistoryMatchResult.log_likelihood` (and so θ_MAP) always uses NumPy.
     """
     if not callable(simulate):
         raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
@@ -372,10 +396,14 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     p = bounds.shape[0]
     X = as_float_array(X, "X", ndim=2)
     z = as_outputs(z, X.shape[0])
-    threshold = float(threshold)
-    if not np.isfinite(threshold) or threshold <= 0:
+    try:
+        T = float(threshold)
+    except (TypeError, ValueError):
+        T = float("nan")
+    if isinstance(threshold, bool) or not np.isfinite(T) or T <= 0:
         raise ValueError(f"threshold T must be a positive number; received {threshold!r}. "
                          "T = 3 is the usual choice.")
+    threshold = T
     choose(rule, "rule", RULES)
     Xu, zm, zv, counts = replicate_summary(X, z)
     n_out = z.shape[1]
@@ -400,9 +428,9 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         V_o = zv
     else:
         V_o = np.where(has_rep[:, None], zv, V_o)     # SPEC §5: replicate variance wins
-    n_runs = as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1)
+    n_runs = as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1, MAX_RUNS)
     n_candidates = as_int(50_000 * p if n_candidates is None else n_candidates,
-                           "n_candidates", 10)
+                           "n_candidates", 10, MAX_CANDIDATES)
     max_waves = as_int(max_waves, "max_waves", 1)
     seed = as_seed_int(seed)
     if initial_design is None:
@@ -413,25 +441,32 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     if initial_design.shape[1] != p:
         raise ValueError(f"initial_design must have shape (R0, {p}); received "
                          f"{initial_design.shape}.")
-    convergence_ratio = float(convergence_ratio)
-    if not convergence_ratio > 0:
-        raise ValueError(f"convergence_ratio must be positive; received {convergence_ratio!r}.")
-    max_failed_fraction = float(max_failed_fraction)
-    if not 0.0 <= max_failed_fraction < 1.0:
+    if initial_design.shape[0] > MAX_RUNS:
+        raise ValueError(f"initial_design must have at most {MAX_RUNS:,} rows (simulator runs "
+                         f"of wave 1); received {initial_design.shape[0]:,}.")
+    convergence_ratio = as_positive_float(convergence_ratio, "convergence_ratio",
+                                          "1 is SPEC §5's rule.")
+    try:
+        failed = float(max_failed_fraction)
+    except (TypeError, ValueError):
+        failed = float("nan")
+    if not 0.0 <= failed < 1.0:
         raise ValueError(f"max_failed_fraction must be in [0, 1); received "
                          f"{max_failed_fraction!r}.")
+    max_failed_fraction = failed
     if executor is not None and not callable(getattr(executor, "submit", None)):
         raise ValueError(f"executor must be a concurrent.futures.Executor (with submit); "
                          f"received {type(executor).__name__}.")
     if batch_size is not None:
         batch_size = as_int(batch_size, "batch_size", 1)
-    if timeout is not None and not float(timeout) > 0:
-        raise ValueError(f"timeout must be a positive number of seconds; received {timeout!r}.")
+    if timeout is not None:
+        timeout = as_positive_float(timeout, "timeout", "It is in seconds.")
     return HistoryMatchProblem(simulate, Xu, zm, V_o, V_m, bounds, threshold, rule, n_runs,
                                n_candidates, max_waves, initial_design, seed,
-                               as_int(mcmc_steps, "mcmc_steps", 0), convergence_ratio,
+                               as_int(mcmc_steps, "mcmc_steps", 0, MAX_MCMC_STEPS),
+                               convergence_ratio,
                                executor, batch_size, None if timeout is None else float(timeout),
-                               max_failed_fraction)
+                               max_failed_fraction, compiled.resolve_backend(backend))
 
 
 def _in_nroy(problem, waves, theta) -> np.ndarray:
@@ -517,10 +552,11 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
             f"wave {k}: {n_failed} of {len(new_runs)} simulator runs failed (at most "
             f"{problem.max_failed_fraction:.0%} may); the first at θ = "
             f"{np.array2string(first.theta, precision=4)}: {first.message}. Fix the simulator "
-            "or narrow the bounds to where it runs.")
+            "(simulate) or narrow the bounds to where it runs.")
     new_runs, new_y = new_runs[runs.ok], runs.y
     emulator = fit_emulator(problem.X, np.vstack([old_theta, new_runs]),
-                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng)
+                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng,
+                            backend=problem.backend)
     if k == 1:
         candidates = problem.bounds[:, 0] + span * rng.uniform(size=(problem.n_candidates,
                                                                       problem.p))
@@ -626,7 +662,7 @@ class HistoryMatchResult:
         ValueError
             If the last wave ruled out everything.
         """
-        n = as_int(n, "n", 1)
+        n = as_int(n, "n", 1, MAX_CANDIDATES)
         last = self.waves[-1]
         if last.nroy.shape[0] == 0:
             raise ValueError(f"no θ samples: {last.message}")
@@ -642,7 +678,7 @@ class HistoryMatchResult:
         θ^(j) of the discrepancy scenarios (SPEC §1: θ^(j) ~ p(θ | z)); repeats are
         possible when the likelihood is concentrated.
         """
-        n = as_int(n, "n", 1)
+        n = as_int(n, "n", 1, MAX_CANDIDATES // 20)
         rng = np.random.default_rng(seed)
         pool = self.nroy_samples(max(20 * n, 20_000), seed=rng)
         ll = self.log_likelihood(pool)
@@ -657,7 +693,9 @@ class HistoryMatchResult:
         Eq. 16 standardises by. θ (M, p) -> (M,).
         """
         theta = np.atleast_2d(as_float_array(theta, "theta"))
-        pred = self.waves[-1].emulator.predict(self.problem.X, theta)
+        # NumPy on every backend: theta_map's Nelder–Mead turns 1e-16 changes of this into
+        # ~1e-7 changes of θ_MAP, and θ_MAP must not depend on the backend.
+        pred = self.waves[-1].emulator.predict(self.problem.X, theta, backend="numpy")
         s2 = self.problem.V_o + self.problem.V_m + pred.var
         r2 = (self.problem.z - pred.mean) ** 2 / s2
         return -0.5 * np.sum(r2 + np.log(2.0 * np.pi * s2), axis=(1, 2))

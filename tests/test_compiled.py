@@ -487,3 +487,182 @@ def test_koh_chain_is_the_same_on_both_backends(koh_setup):
                           burn_in=500, seed=3, backend=backend)
         chains.append(m.chain.samples)
     np.testing.assert_allclose(chains[1], chains[0], rtol=1e-10, atol=0)
+
+
+# ---------------------------------------------------------------------------------------
+# The history-matching emulator at many candidates
+
+
+@pytest.fixture(scope="module")
+def emulators():
+    """Wave-1 emulators of the three cases: p = 1–3, d_x = 1–2, 1 or 5 outputs, R = 4–27
+    training runs (R % 4 = 0, 1, 3: every branch of the unrolled loops)."""
+    from mdcore import cases
+    from mdcore.history_matching import case_problem, next_wave
+
+    out = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for name in ("beam-1d", "beam-2d", "shear-5"):
+            problem = case_problem(cases.load(name), max_waves=1, n_candidates=1000,
+                                   backend="numpy")
+            out[name] = problem, next_wave(problem).emulator
+    return out
+
+
+def candidates(problem, rng, M):
+    """M random θ over the box and 10 % beyond it on every side (extrapolation too)."""
+    lo, hi = problem.bounds[:, 0], problem.bounds[:, 1]
+    return lo - 0.1 * (hi - lo) + 1.2 * (hi - lo) * rng.uniform(size=(M, problem.p))
+
+
+@pytest.mark.parametrize("name", ["beam-1d", "beam-2d", "shear-5"])
+def test_emulator_moments_match_numpy_path(emulators, rng, name):
+    """Mean relative to its largest magnitude per output, variance relative to σ_f²; at the
+    observed inputs and at other inputs; 3,001 θ is not a multiple of the block or piece."""
+    from mdcore import cases
+
+    problem, em = emulators[name]
+    theta = candidates(problem, rng, 3001)
+    sf2 = np.exp(2.0 * em.log_params[:, 0])
+    for X in (problem.X, cases.load(name).X_test[:50]):
+        ref = em.predict(X, theta, backend="numpy")
+        got = em.predict(X, theta, backend="numba")
+        assert got.mean.shape == got.var.shape == ref.mean.shape == (3001, X.shape[0], em.n_out)
+        scale = np.max(np.abs(ref.mean), axis=(0, 1))
+        assert np.all(np.abs(got.mean - ref.mean) <= RTOL * scale), \
+            np.max(np.abs(got.mean - ref.mean) / scale)
+        assert np.all(np.abs(got.var - ref.var) <= RTOL * sf2)
+        assert np.all(got.var >= 0.0)
+
+
+@pytest.mark.parametrize("name", ["beam-1d", "shear-5"])
+def test_emulator_implausibility_matches_numpy_path(emulators, rng, name):
+    """The fused kernel against Eq. 16 and the combiner on the NumPy moments, for every rule;
+    and, on one backend, exactly the formula on that backend's own moments."""
+    from mdcore.history_matching import RULES, combine, implausibility
+
+    problem, em = emulators[name]
+    theta = candidates(problem, rng, 2000)
+    V = problem.V_o + problem.V_m
+    ref = em.predict(problem.X, theta, backend="numpy")
+    own = em.predict(problem.X, theta, backend="numba")
+    # |ΔI| ≤ |Δ mean| / sqrt(V + var): the mean's tolerance over the smallest sd.
+    tol = RTOL * np.max(np.abs(ref.mean)) / np.sqrt(np.min(V))
+    for rule, rank in RULES.items():
+        want = combine(implausibility(problem.z, ref.mean, ref.var, V_o=problem.V_o,
+                                      V_m=problem.V_m), rule)
+        I, var = em.implausibility(problem.X, theta, problem.z, V, rank=rank, backend="numba")
+        np.testing.assert_allclose(I, want, rtol=RTOL, atol=tol)
+        np.testing.assert_array_equal(var, own.var)
+        exact = combine(np.abs(problem.z - own.mean) / np.sqrt(V + own.var), rule)
+        np.testing.assert_array_equal(I, exact)
+        I_np, var_np = em.implausibility(problem.X, theta, problem.z, V, rank=rank,
+                                         backend="numpy")
+        np.testing.assert_array_equal(I_np, want)
+        np.testing.assert_array_equal(var_np, ref.var)
+
+
+def test_emulator_kernel_bad_input_and_empty_batch(emulators):
+    problem, em = emulators["beam-1d"]
+    theta = problem.bounds.mean(axis=1)[None]
+    V = problem.V_o + problem.V_m
+    for backend in ("numpy", "numba"):
+        with pytest.raises(ValueError, match="V_o \\+ V_m \\+ var must be positive"):
+            em.implausibility(problem.X, theta, problem.z, -np.ones_like(V), backend=backend)
+        with pytest.raises(ValueError, match="rank must be 1, 2 or 3"):
+            em.implausibility(problem.X, theta, problem.z, V, rank=4, backend=backend)
+        with pytest.raises(ValueError, match="rank 3 needs at least 3 targets"):
+            em.implausibility(problem.X[:2], theta, problem.z[:2], V[:2], rank=3,
+                              backend=backend)
+        with pytest.raises(ValueError, match=r"z and V must broadcast to \(N, n_out\)"):
+            em.implausibility(problem.X, theta, problem.z[:3], V, backend=backend)
+        I, var = em.implausibility(problem.X, np.empty((0, 2)), problem.z, V, backend=backend)
+        assert I.shape == (0,) and var.shape == (0, 13, 1)
+        pred = em.predict(problem.X, np.empty((0, 2)), backend=backend)
+        assert pred.mean.shape == pred.var.shape == (0, 13, 1)
+
+
+def test_emulator_kernel_does_not_depend_on_threads_or_pieces(emulators, rng, monkeypatch):
+    problem, em = emulators["shear-5"]
+    theta = candidates(problem, rng, 5000)
+    V = problem.V_o + problem.V_m
+    whole = em.implausibility(problem.X, theta, problem.z, V, rank=2, backend="numba")
+    moments = em.predict(problem.X, theta, backend="numba")
+    monkeypatch.setenv(compiled.THREADS_ENV, "1")
+    for a, b in zip(em.implausibility(problem.X, theta, problem.z, V, rank=2,
+                                      backend="numba"), whole):
+        np.testing.assert_array_equal(a, b)
+    monkeypatch.delenv(compiled.THREADS_ENV)
+    monkeypatch.setattr(compiled, "LAUNCH_FLOPS", 1.0)          # 64 candidates per piece
+    for a, b in zip(em.implausibility(problem.X, theta, problem.z, V, rank=2,
+                                      backend="numba"), whole):
+        np.testing.assert_array_equal(a, b)
+    for a, b in zip(em.predict(problem.X, theta, backend="numba"), moments):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_emulator_kernels_compile_one_signature(emulators, rng):
+    from mdcore import _compiled_emulator as e
+
+    compiled.warm_up()
+    problem, em = emulators["beam-2d"]
+    theta = candidates(problem, rng, 100)
+    em.predict(problem.X, theta, backend="numba")
+    em.implausibility(problem.X, theta, problem.z, problem.V_o + problem.V_m, rank=np.int64(2),
+                      backend="numba")
+    assert len(e.candidate_range.signatures) == 1, e.candidate_range.signatures
+    # The fit's kernels: warm_up compiled the layouts a real fit passes (d_x = 2 here).
+    from mdcore.emulator import fit_emulator
+
+    fit_emulator(problem.X, em.theta_train, em.y_train, problem.bounds, seed=0,
+                 backend="numba")
+    for kernel in (e.fit_distances, e.fit_kernel, e.fit_spectrum, e.fit_terms, e.fit_trace,
+                   e.fit_dot):
+        assert len(kernel.signatures) == 1, (kernel, kernel.signatures)
+
+
+@pytest.mark.parametrize("name,options", [
+    ("beam-1d", dict(max_waves=3)),
+    ("shear-5", dict(max_waves=2, rule="2nd max")),
+])
+def test_history_match_is_the_same_on_both_backends(name, options):
+    """Multi-wave runs (wave ≥ 2 scores its Metropolis proposals under every earlier wave):
+    the same candidates, NROY sets and fractions to the last bit, and the same θ_MAP."""
+    from mdcore import cases
+    from mdcore.history_matching import history_match_case
+
+    case = cases.load(name)
+    runs = []
+    for backend in ("numpy", "numba"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            result = history_match_case(case, seed=0, n_candidates=20_000,
+                                        convergence_ratio=1e-3, backend=backend, **options)
+        assert result.problem.backend == backend
+        runs.append(result)
+    ref, new = runs
+    assert len(new.waves) == len(ref.waves) == options["max_waves"]
+    for a, b in zip(ref.waves, new.waves):
+        np.testing.assert_array_equal(b.candidates, a.candidates)
+        np.testing.assert_array_equal(b.nroy, a.nroy)
+        np.testing.assert_allclose(b.candidate_implausibility, a.candidate_implausibility,
+                                   rtol=1e-8)
+        np.testing.assert_allclose(b.max_var, a.max_var, rtol=1e-8)
+        assert b.status == a.status
+    assert new.nroy_fraction == ref.nroy_fraction
+    np.testing.assert_allclose(new.theta_map, ref.theta_map, rtol=1e-8)
+    np.testing.assert_array_equal(new.nroy_samples(500, seed=1), ref.nroy_samples(500, seed=1))
+
+
+def test_history_match_backend_is_checked(monkeypatch):
+    from mdcore import cases
+    from mdcore.history_matching import case_problem
+
+    case = cases.load("beam-1d")
+    with pytest.raises(ValueError, match="backend must be one of"):
+        case_problem(case, backend="cuda")
+    monkeypatch.setenv(compiled.BACKEND_ENV, "numpy")
+    assert case_problem(case).backend == "numpy"
+    monkeypatch.setenv(compiled.BACKEND_ENV, "auto")
+    assert case_problem(case).backend == "numba"

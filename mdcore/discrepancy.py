@@ -18,6 +18,32 @@ mixture moments are the laws of total expectation and variance::
 with ``V_f`` the latent GP variance. The sums are accumulated about a reference component
 (the heaviest), so large means do not cancel the small variances.
 
+Chunks and executors
+--------------------
+The (θ, φ) pairs are processed in chunks whose layout depends on the problem size only:
+
+- scenario 3's weights: :data:`WEIGHT_PAIRS` pairs per chunk (rows of θ × all N_φ draws),
+  every output at once;
+- the prediction: about 20 blocks per output on the compiled backend (at least
+  :data:`MIN_FUSED_BLOCK` pairs), or blocks of :data:`BLOCK_BYTES` of temporaries on NumPy.
+
+Each chunk is one call of a module-level function on the arrays it needs (a few MB at
+most), so ``executor=`` (any ``concurrent.futures.Executor``: a ``ThreadPoolExecutor``, a
+``ProcessPoolExecutor``, a Dask ``Client(...).get_executor()``) can run them elsewhere. The
+results are collected and reduced in chunk order, exactly as the serial run does, so the
+numbers are identical to the serial run's for the same seed, on any executor.
+
+Granularity: a Dask task costs a few ms when the cluster is idle (measured: ~36 ms for a
+1.6 MB payload on a loaded two-core machine), so each chunk is sized at ~0.1–0.3 s of
+one core's work on beam-1d: 100,000 NLMLs (3.2 MB of φ) per weight chunk, a compiled
+prediction block of 25,000 pairs at the paper's sizes (0.8 MB), or ~2,900 pairs on NumPy.
+A cluster therefore pays from the paper's sizes up (scenario 3: 5 weight chunks and 20
+prediction blocks an output at N_s × N_φ = 1000 × 500, ten times as many chunks of the
+weights at 10×); smaller runs (scenario 2, the app's sizes) are a chunk or two and are
+quicker serially. The same layout keeps cancelling (``progress`` raising) within a chunk.
+At most :data:`IN_FLIGHT` chunks are submitted and not yet collected, which bounds the
+memory held by payloads and results.
+
 Examples
 --------
 >>> from mdcore import cases
@@ -33,11 +59,14 @@ Examples
 
 from __future__ import annotations
 
+import collections
+import contextlib
 import time
 import warnings
-from collections.abc import Callable
-from dataclasses import dataclass
-from typing import NamedTuple
+from collections.abc import Callable, Generator, Iterable
+from concurrent.futures import Executor
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple
 
 import numpy as np
 from scipy.special import logsumexp
@@ -46,11 +75,13 @@ from . import compiled, gp
 from .exceptions import LowESSWarning, NumericalWarning
 from .hyperfit import default_bounds, fit_hyperparameters
 from .importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis
+from .linalg import JitterLog
 from .priors import GaussianPrior
+from .threads import single_threaded_blas
 from .validation import as_float_array, as_int, as_outputs, choose
 
 __all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyPrediction", "default_phi_prior",
-           "LowESSWarning", "SCENARIOS", "PROPOSALS", "LOW_ESS"]
+           "LowESSWarning", "SCENARIOS", "PROPOSALS", "LOW_ESS", "check_executor"]
 
 SCENARIOS = (1, 2, 3)
 #: Scenario 3's φ proposals: the paper's prior draws, or adaptive importance sampling.
@@ -60,8 +91,17 @@ LOW_ESS = 30.0
 #: Default pruning level: components with normalised weight below ``PRUNE × max`` are
 #: skipped in the prediction step (their mass is reported).
 PRUNE = 1e-12
-#: Working-memory budget of one prediction block, in bytes.
+#: Working-memory budget of one prediction block on the NumPy backend, in bytes.
 BLOCK_BYTES = 32 * 2**20
+#: Fewest pairs per block of the compiled prediction (which aims at ~20 blocks per output).
+MIN_FUSED_BLOCK = 2048
+#: (θ, φ) pairs per chunk of scenario 3's weights (one task, one progress step).
+WEIGHT_PAIRS = 100_000
+#: Chunks submitted to an executor and not yet collected, at most.
+IN_FLIGHT = 32
+#: Scenario 3's prior draws φ (N_s, N_φ, P) are kept up to this size, in bytes; larger
+#: sets are regenerated from their random stream when needed (:class:`PriorDraws`).
+KEEP_DRAWS_BYTES = 64 * 2**20
 
 
 class DiscrepancyPrediction(NamedTuple):
@@ -128,6 +168,206 @@ def _blocks(n: int, size: int):
         yield slice(start, min(n, start + size))
 
 
+def check_executor(executor) -> Executor | None:
+    """``executor`` if it is None or has a callable ``submit``; else a ValueError naming it."""
+    if executor is not None and not callable(getattr(executor, "submit", None)):
+        raise ValueError(f"executor must be a concurrent.futures.Executor (with submit), e.g. "
+                         f"a ThreadPoolExecutor or a Dask Client(...).get_executor(); received "
+                         f"{type(executor).__name__}.")
+    return executor
+
+
+def _in_order(executor: Executor | None, fn: Callable, payloads: Iterable[tuple]
+              ) -> Generator[Any, None, None]:
+    """``fn(*args)`` for each ``args`` of ``payloads``, in order.
+
+    Without an executor the calls run here, one at a time. With one, up to
+    :data:`IN_FLIGHT` calls are submitted ahead of the one awaited; when the consumer stops
+    early (an exception, a cancel), the calls not yet collected are cancelled.
+    """
+    if executor is None:
+        for args in payloads:
+            yield fn(*args)
+        return
+    pending: collections.deque = collections.deque()
+    try:
+        for args in payloads:
+            pending.append(executor.submit(fn, *args))
+            if len(pending) >= IN_FLIGHT:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
+    finally:
+        for future in pending:
+            future.cancel()
+
+
+def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
+                   backend: str) -> tuple[np.ndarray, tuple | None]:
+    """Scenario 3's log weights ``−NLML`` (Eq. 15) of one chunk of pairs, every output.
+
+    Module level and on plain arrays, so that process and Dask executors can run it.
+
+    Parameters
+    ----------
+    phi : ndarray of shape (R, K, P)
+        Log hyperparameters of the chunk's pairs: R θ rows × K draws.
+    Y : ndarray of shape (R, N, n_out)
+        Simulator outputs at the training inputs of the R θ.
+    X : ndarray of shape (N, d_x)
+    z : ndarray of shape (N, n_out)
+    backend : {"numpy", "numba"}
+
+    Returns
+    -------
+    log_w : ndarray of shape (n_out, R, K)
+        Unnormalised log weights; ``-inf`` where the covariance could not be factorised.
+    jitter : tuple or None
+        Compiled backend: ``(jittered, failed, max_jitter)`` for the caller to report; the
+        NumPy backend warns where it runs.
+    """
+    out = np.empty((z.shape[1],) + phi.shape[:2])
+    if backend == "numba":
+        log = JitterLog()
+        for o in range(z.shape[1]):
+            out[o] = -compiled.nlml(phi, Y[:, None], X, z[:, o], jitter_log=log)
+        return out, (log.jittered, log.failed, log.max_jitter)
+    for o in range(z.shape[1]):
+        out[o] = -gp.neg_log_marginal_likelihood(phi, Y[:, None], X, z[:, o], backend="numpy")
+    return out, None
+
+
+def _mixture_chunk(log_params: np.ndarray, Y: np.ndarray, j: np.ndarray, X: np.ndarray,
+                   z: np.ndarray, Y_star: np.ndarray, y_star_out: np.ndarray, w: np.ndarray,
+                   X_star: np.ndarray, cz: np.ndarray, cd: np.ndarray, backend: str
+                   ) -> tuple[np.ndarray, np.ndarray, tuple | None]:
+    """Weighted mixture sums (Eq. 13/15) of one block of components of one output.
+
+    Module level and on plain arrays (only the θ rows the block uses), so that process and
+    Dask executors can run it; the caller adds the blocks' sums in block order.
+
+    Parameters
+    ----------
+    log_params : ndarray of shape (B, P)
+        Hyperparameters of the block's B components.
+    Y : ndarray of shape (S_b, N, d_y)
+        Training simulator outputs of the θ rows the block uses.
+    j : int ndarray of shape (B,)
+        Row of ``Y``, ``Y_star`` and ``y_star_out`` of each component.
+    X : ndarray of shape (N, d_x)
+    z : ndarray of shape (N,)
+        This output's observations.
+    Y_star : ndarray of shape (S_b, M, d_y)
+        Simulator outputs at ``X_star``.
+    y_star_out : ndarray of shape (S_b, M)
+        This output's column of ``Y_star``.
+    w : ndarray of shape (B,)
+        Normalised weights.
+    X_star : ndarray of shape (M, d_x)
+    cz, cd : ndarray of shape (M,)
+        The reference component's ``E[z*]`` and ``E[z*] − y*``.
+    backend : {"numpy", "numba"}
+
+    Returns
+    -------
+    acc : ndarray of shape (4, M)
+        ``Σ w dz``, ``Σ w dδ``, ``Σ w (V_f + σ_n² + dz²)``, ``Σ w (V_f + dδ²)``.
+    bad : bool ndarray of shape (B,)
+        Components left out (not factorisable, or non-finite moments).
+    jitter : tuple or None
+        As in :func:`_weights_chunk`.
+    """
+    if backend == "numba":       # the same sums, per pair in registers (mdcore.compiled)
+        log = JitterLog()
+        sums = compiled.mixture_sums(log_params, Y, j, X, z, Y_star, y_star_out, w, X_star,
+                                     cz, cd, jitter_log=log)
+        return sums.acc, sums.dropped, (log.jittered, log.failed, log.max_jitter)
+    acc, bad = _numpy_mixture_sums(log_params, Y, j, X, z, Y_star, y_star_out, w, X_star,
+                                   cz, cd)
+    return acc, bad, None
+
+
+@single_threaded_blas       # one BLAS thread, as on a Dask worker: the same sums everywhere
+def _numpy_mixture_sums(log_params, Y, j, X, z, Y_star, y_star_out, w, X_star, cz, cd):
+    """:func:`_mixture_chunk` on the NumPy backend: ``(acc (4, M), bad (B,))``."""
+    p = gp.predict(log_params, Y[j], X, z, Y_star[j], X_star, backend="numpy")
+    mean, var, sn2, ystar = p.mean, p.var, p.noise_var[:, None], y_star_out[j]
+    bad = ~np.all(np.isfinite(mean) & np.isfinite(var), axis=1)
+    if np.any(bad):
+        w = np.where(bad, 0.0, w)
+        mean = np.where(bad[:, None], 0.0, mean)
+        var = np.where(bad[:, None], 0.0, var)
+    dz = mean - cz
+    dd = mean - ystar - cd
+    acc = np.zeros((4, X_star.shape[0]))
+    acc[0] += w @ dz
+    acc[1] += w @ dd
+    acc[2] += w @ (var + sn2 + dz * dz)          # Eq. 13/15: total variance of z*
+    acc[3] += w @ (var + dd * dd)                # latent variance goes to δ
+    return acc, bad
+
+
+@dataclass(frozen=True, eq=False)
+class PriorDraws:
+    """Scenario 3's prior draws ``φ^(j,k) ~ p(φ)`` kept as the random stream that made them.
+
+    The draws are made block by block of θ rows: block ``b`` (rows ``[b·rows, (b+1)·rows)``)
+    is ``prior.sample(R_b · N_φ, seed=g)`` with ``g`` at ``states[b]``. So any block can be
+    drawn again, bit for bit, and a large run need not keep the (N_s, N_φ, P) array
+    (160 MB at N_s = 10,000, N_φ = 500, P = 4).
+
+    Attributes
+    ----------
+    prior : GaussianPrior
+    n_theta, n_phi : int
+        N_s and N_φ.
+    rows : int
+        θ rows per block.
+    states : tuple of dict
+        The generator's ``bit_generator.state`` before each block's draws.
+    """
+
+    prior: GaussianPrior
+    n_theta: int
+    n_phi: int
+    rows: int
+    states: tuple
+
+    def block(self, b: int) -> np.ndarray:
+        """The draws of block ``b``, shape (R_b, N_φ, P)."""
+        state = self.states[b]
+        bit_generator = getattr(np.random, state["bit_generator"])()
+        bit_generator.state = state
+        n_rows = min(self.n_theta, (b + 1) * self.rows) - b * self.rows
+        return self.prior.sample(n_rows * self.n_phi, seed=np.random.Generator(bit_generator)
+                                 ).reshape(n_rows, self.n_phi, self.prior.size)
+
+    def between(self, lo: int, hi: int, cache: dict | None = None) -> np.ndarray:
+        """The draws of θ rows ``lo`` to ``hi − 1``, shape (hi − lo, N_φ, P).
+
+        ``cache`` (block -> draws) keeps the blocks drawn for the caller; blocks before
+        ``lo``'s are dropped from it, so a caller going through the rows in order holds
+        about one block.
+        """
+        first, last = lo // self.rows, (hi - 1) // self.rows
+        if cache is None:
+            cache = {}
+        for b in [b for b in cache if b < first]:
+            del cache[b]
+        parts = []
+        for b in range(first, last + 1):
+            if b not in cache:
+                cache[b] = self.block(b)
+            parts.append(cache[b])
+        draws = parts[0] if len(parts) == 1 else np.concatenate(parts)
+        offset = first * self.rows
+        return draws[lo - offset:hi - offset]
+
+    def all(self) -> np.ndarray:
+        """Every draw, shape (N_s, N_φ, P)."""
+        return self.between(0, self.n_theta)
+
+
 @dataclass(frozen=True, eq=False)
 class DiscrepancyModel:
     """A fitted discrepancy mixture; call :meth:`predict` for z* and δ*.
@@ -145,7 +385,9 @@ class DiscrepancyModel:
     log_params : ndarray of shape (n_out, S, K, P)
         Hyperparameters of every component (K = 1 for scenarios 1–2, N_φ for 3). Together
         with :attr:`weights` this is scenario 3's hyperparameter posterior. Scenario 3
-        shares one prior draw between outputs (common random numbers).
+        shares one prior draw between outputs (common random numbers). A property: when
+        scenario 3's prior draws exceed :data:`KEEP_DRAWS_BYTES` they are kept as
+        :attr:`phi_draws` and drawn again on first access (then kept).
     log_weights : ndarray of shape (n_out, S, K)
         Normalised log weights; ``logsumexp`` over (S, K) is 0 for every output.
     log_params_hat : ndarray of shape (n_out, P) or None
@@ -165,6 +407,9 @@ class DiscrepancyModel:
         above 0.7 the mixture is unreliable).
     backend : {"numpy", "numba"}
         The GP backend :meth:`predict` uses (:func:`mdcore.compiled.resolve_backend`).
+    phi_draws : PriorDraws or None
+        Scenario 3 with the prior proposal: the φ draws as their random stream (used when
+        the array itself is not kept).
     """
 
     scenario: int
@@ -173,7 +418,7 @@ class DiscrepancyModel:
     Y: np.ndarray
     X: np.ndarray
     z: np.ndarray
-    log_params: np.ndarray
+    _log_params: np.ndarray | None = field(repr=False)
     log_weights: np.ndarray
     log_params_hat: np.ndarray | None
     nlml_hat: np.ndarray | None
@@ -183,10 +428,33 @@ class DiscrepancyModel:
     proposal: str | None = None
     k_hat: np.ndarray | None = None
     backend: str = "numpy"
+    phi_draws: PriorDraws | None = field(default=None, repr=False)
 
     @property
     def n_out(self) -> int:
         return self.z.shape[1]
+
+    @property
+    def log_params(self) -> np.ndarray:
+        """Hyperparameters of every component, (n_out, S, K, P) (see the class)."""
+        if self._log_params is None:
+            if self.phi_draws is None:
+                raise ValueError("this model has neither log_params nor phi_draws.")
+            phi = self.phi_draws.all()
+            object.__setattr__(self, "_log_params",
+                               np.broadcast_to(phi, (self.n_out,) + phi.shape))
+        assert self._log_params is not None
+        return self._log_params
+
+    def _params(self, o: int, j: np.ndarray, k: np.ndarray, cache: dict) -> np.ndarray:
+        """Hyperparameters of components ``(j, k)`` of output ``o``, (B, P); ``j`` ascending.
+
+        From the kept array, or drawn again from :attr:`phi_draws` (``cache`` holds the
+        blocks of draws between calls)."""
+        if self._log_params is not None or self.phi_draws is None:
+            return self.log_params[o][j, k]
+        lo = int(j[0])
+        return self.phi_draws.between(lo, int(j[-1]) + 1, cache)[j - lo, k]
 
     @property
     def weights(self) -> np.ndarray:
@@ -220,7 +488,8 @@ class DiscrepancyModel:
         return np.array([idx.size for idx, _ in self._kept(self.prune)])
 
     def predict(self, X_star, *, prune: float | None = None,
-                progress: Callable[[float], None] | None = None) -> DiscrepancyPrediction:
+                progress: Callable[[float], None] | None = None,
+                executor: Executor | None = None) -> DiscrepancyPrediction:
         """Bias-corrected prediction and discrepancy at ``X_star`` (SPEC §6, Eq. 13/15).
 
         Parameters
@@ -233,6 +502,10 @@ class DiscrepancyModel:
         progress : callable, optional
             Called with the fraction done in [0, 1] after each block. If it raises, the
             prediction stops and the exception propagates (use this to cancel).
+        executor : concurrent.futures.Executor, optional
+            Runs the blocks of components (see "Chunks and executors" in
+            :mod:`mdcore.discrepancy`); the numbers are identical to the serial run's.
+            Default: in this process.
 
         Returns
         -------
@@ -244,68 +517,65 @@ class DiscrepancyModel:
             raise ValueError(f"X_star must have shape (N*, d_x) with d_x = {self.X.shape[1]} "
                              f"like the training X; received {X_star.shape}.")
         prune = self.prune if prune is None else _prune(prune)
+        executor = check_executor(executor)
         Ys = _simulate(self.simulate, X_star, self.theta, self.n_out)     # (S, N*, n_out)
-        M, K, P = X_star.shape[0], self.log_params.shape[2], self.log_params.shape[3]
-        N, d_y = self.X.shape[0], self.n_out
-        fused = self.backend == "numba"
-        if fused:       # pairs per compiled call: progress and cancel about 20 times an output
-            block = max(2048, -(-self.log_weights[0].size // 20))
+        M, K = X_star.shape[0], self.log_weights.shape[2]
+        N, d_y, P = self.X.shape[0], self.n_out, 2 + self.n_out + self.X.shape[1]
+        if self.backend == "numba":     # pairs per compiled call: ~20 blocks an output
+            block = max(MIN_FUSED_BLOCK, -(-self.log_weights[0].size // 20))
         else:           # pairs per NumPy chunk, in BLOCK_BYTES of temporaries
             block = max(1, int(BLOCK_BYTES // (8 * (M * (d_y + 6) + N * (d_y + 2) + P))))
         kept = self._kept(prune)
         total = sum(max(1, -(-idx.size // block)) for idx, _ in kept)
         done = 0
+        jitter = JitterLog()
         out = np.empty((4, M, self.n_out))
         for o, (idx, _) in enumerate(kept):
-            lw = self.log_weights[o].ravel()[idx]
-            w = np.exp(lw - logsumexp(lw))                  # renormalised over kept
+            w = self.log_weights[o].ravel()[idx]
+            w -= logsumexp(w)
+            np.exp(w, out=w)                                # renormalised over kept
             z_o = self.z[:, o]
-            j_all, k_all = np.divmod(idx, K)
-
-            def moments(sel, o=o, z_o=z_o, j_all=j_all, k_all=k_all):
-                j = j_all[sel]
-                p = gp.predict(self.log_params[o][j, k_all[sel]], self.Y[j], self.X, z_o, Ys[j],
-                               X_star, backend=self.backend)
-                return p.mean, p.var, p.noise_var[:, None], Ys[j][..., o]
+            ys_o = np.ascontiguousarray(Ys[..., o])          # (S, N*)
 
             # Reference: the heaviest component; sums are taken about it (no cancellation).
-            ref = int(np.argmax(w))
-            m0, _, _, y0 = moments(slice(ref, ref + 1))
-            cz, cd = m0[0], m0[0] - y0[0]
+            j0, k0 = divmod(int(idx[int(np.argmax(w))]), K)
+            lp0 = self._params(o, np.array([j0]), np.array([k0]), {})
+            ref = gp.predict(lp0, self.Y[[j0]], self.X, z_o, Ys[[j0]], X_star,
+                             backend=self.backend)
+            cz, cd = ref.mean[0], ref.mean[0] - ys_o[j0]
+            blocks = list(_blocks(idx.size, block))
+
+            def payloads(o=o, idx=idx, w=w, z_o=z_o, ys_o=ys_o, cz=cz, cd=cd, blocks=blocks):
+                draws = dict()         # block of φ draws -> array (PriorDraws.between)
+                for sel in blocks:
+                    j, k = np.divmod(idx[sel], K)
+                    lp = self._params(o, j, k, draws)        # (B, P)
+                    Y, Y_star, y_star_out = self.Y, Ys, ys_o
+                    if executor is not None:     # send only the θ rows the block uses
+                        rows, j = np.unique(j, return_inverse=True)
+                        Y, Y_star, y_star_out = Y[rows], Y_star[rows], y_star_out[rows]
+                    yield (lp, Y, j, self.X, z_o, Y_star, y_star_out, w[sel], X_star, cz, cd,
+                           self.backend)
+
             acc = np.zeros((4, M))                          # Σw dz, Σw dδ, Σw(..z²), Σw(..δ²)
-            for sel in _blocks(idx.size, block):
-                wb = w[sel]
-                if fused:       # the same sums, per pair in registers (mdcore.compiled)
-                    sums = compiled.mixture_sums(
-                        self.log_params[o][j_all[sel], k_all[sel]], self.Y, j_all[sel], self.X,
-                        z_o, Ys, Ys[..., o], wb, X_star, cz, cd)
-                    bad = sums.dropped
-                    acc += sums.acc
-                else:
-                    mean, var, sn2, ystar = moments(sel)
-                    bad = ~np.all(np.isfinite(mean) & np.isfinite(var), axis=1)
+            with contextlib.closing(_in_order(executor, _mixture_chunk, payloads())) as results:
+                for sel, (part, bad, counts) in zip(blocks, results):
+                    acc += part                              # block order: reproducible
+                    if counts is not None:
+                        jitter.record(*counts)
                     if np.any(bad):
-                        wb = np.where(bad, 0.0, wb)
-                        mean = np.where(bad[:, None], 0.0, mean)
-                        var = np.where(bad[:, None], 0.0, var)
-                    dz = mean - cz
-                    dd = mean - ystar - cd
-                    acc[0] += wb @ dz
-                    acc[1] += wb @ dd
-                    acc[2] += wb @ (var + sn2 + dz * dz)    # Eq. 13/15: total variance of z*
-                    acc[3] += wb @ (var + dd * dd)          # latent variance goes to δ
-                if np.any(bad):
-                    warnings.warn(f"{int(bad.sum())} component(s) of output {o} could not be "
-                                  "factorised and were dropped from the mixture (weight "
-                                  f"{float(w[sel][bad].sum()):.3g}).",
-                                  NumericalWarning, stacklevel=2)
-                done += 1
-                if progress is not None:
-                    progress(min(done / total, 1.0))
+                        warnings.warn(f"{int(bad.sum())} component(s) of output {o} could not "
+                                      "be factorised and were dropped from the mixture (weight "
+                                      f"{float(w[sel][bad].sum()):.3g}).",
+                                      NumericalWarning, stacklevel=2)
+                    done += 1
+                    if progress is not None:
+                        progress(min(done / total, 1.0))
             out[0, :, o] = cz + acc[0]
             out[1, :, o] = np.maximum(acc[2] - acc[0] ** 2, 0.0)
             out[2, :, o] = cd + acc[1]
             out[3, :, o] = np.maximum(acc[3] - acc[1] ** 2, 0.0)
+        jitter.warn("predict")
         return DiscrepancyPrediction(out[0], out[1], out[2], out[3])
 
 
@@ -320,27 +590,94 @@ def _prune(value) -> float:
     return p
 
 
-def _prior_proposal(Y, X, z, prior, n_phi, rng, progress, backend):
-    """Scenario 3 as in the paper: φ^(j,k) ~ p(φ), shared by the outputs (common random
-    numbers); ``log w_jk = −NLML`` (Eq. 15), normalised jointly over (j, k) per output."""
-    n_out, S, P = z.shape[1], Y.shape[0], prior.size
-    phi = prior.sample(S * n_phi, seed=rng).reshape(S, n_phi, P)
-    log_params = np.broadcast_to(phi, (n_out, S, n_phi, P))
-    log_weights = np.empty((n_out, S, n_phi))
-    rows = max(1, 50_000 // n_phi)                      # ~50k pairs per progress step
-    steps = list(_blocks(S, rows))
-    for o in range(n_out):
-        for i, sl in enumerate(steps):
-            # Eq. 15: log w_jk = log p(z | y^(j), X, φ^(j,k)) = −NLML
-            log_weights[o, sl] = -gp.neg_log_marginal_likelihood(phi[sl], Y[sl, None], X,
-                                                                 z[:, o], backend=backend)
+def _nlml_rows(blocks: Iterable[tuple[slice, np.ndarray]], S: int, K: int, Y, X, z,
+               backend, executor, jitter: JitterLog,
+               progress: Callable[[float], None] | None = None) -> np.ndarray:
+    """``−NLML`` (Eq. 15) of every pair ``(φ^(j,k), Y[j])`` and output, one chunk of θ rows
+    at a time, on ``executor`` or here.
+
+    Parameters
+    ----------
+    blocks : iterable of (slice, ndarray of shape (R, K, P))
+        The θ rows of each chunk and their φ draws, in row order, covering ``0:S``; made
+        lazily, so only the chunks in flight are held.
+    S, K : int
+        θ rows and draws per row.
+    Y : ndarray of shape (S, N, n_out)
+    X : ndarray of shape (N, d_x)
+    z : ndarray of shape (N, n_out)
+        The outputs to weigh (a column slice for one output).
+    backend : {"numpy", "numba"}
+    executor : concurrent.futures.Executor or None
+    jitter : JitterLog
+        Receives the compiled backend's jitter counts.
+    progress : callable, optional
+        Called with the fraction of rows done after each chunk.
+
+    Returns
+    -------
+    ndarray of shape (n_out, S, K)
+    """
+    log_weights = np.empty((z.shape[1], S, K))
+    steps: collections.deque = collections.deque()
+
+    def payloads():
+        for sl, phi in blocks:
+            steps.append(sl)
+            yield phi, Y[sl], X, z, backend
+
+    with contextlib.closing(_in_order(executor, _weights_chunk, payloads())) as results:
+        for part, counts in results:
+            sl = steps.popleft()
+            log_weights[:, sl] = part
+            if counts is not None:
+                jitter.record(*counts)
             if progress is not None:
-                progress((o * len(steps) + i + 1) / (n_out * len(steps)))
+                progress(sl.stop / S)
+    return log_weights
+
+
+def _row_blocks(phi: np.ndarray):
+    """``(slice, phi[slice])`` over chunks of about :data:`WEIGHT_PAIRS` pairs."""
+    for sl in _blocks(phi.shape[0], max(1, WEIGHT_PAIRS // phi.shape[1])):
+        yield sl, phi[sl]
+
+
+def _prior_proposal(Y, X, z, prior, n_phi, rng, progress, backend, executor, jitter):
+    """Scenario 3 as in the paper: φ^(j,k) ~ p(φ), shared by the outputs (common random
+    numbers); ``log w_jk = −NLML`` (Eq. 15), normalised jointly over (j, k) per output.
+
+    The draws are made chunk by chunk from one stream (the same numbers as one big draw)
+    and weighed as they come; they are kept when they fit in :data:`KEEP_DRAWS_BYTES`,
+    else only the generator state before each chunk is (:class:`PriorDraws`).
+
+    Returns ``(log_params (n_out, S, N_φ, P) or None, log_weights (n_out, S, N_φ),
+    PriorDraws)``.
+    """
+    n_out, S, P = z.shape[1], Y.shape[0], prior.size
+    rows = max(1, WEIGHT_PAIRS // n_phi)
+    keep = 8 * S * n_phi * P <= KEEP_DRAWS_BYTES
+    phi = np.empty((S, n_phi, P)) if keep else None
+    states = list()           # generator state before each chunk
+
+    def blocks():
+        for sl in _blocks(S, rows):                 # one stream, drawn in pieces
+            states.append(rng.bit_generator.state)
+            draws = prior.sample((sl.stop - sl.start) * n_phi, seed=rng).reshape(-1, n_phi, P)
+            if phi is not None:
+                phi[sl] = draws
+            yield sl, draws
+
+    log_weights = _nlml_rows(blocks(), S, n_phi, Y, X, z, backend, executor, jitter,
+                             progress)
+    for o in range(n_out):
         _normalise(log_weights[o], o)
-    return log_params, log_weights
+    draws = PriorDraws(prior, S, n_phi, rows, tuple(states))
+    log_params = None if phi is None else np.broadcast_to(phi, (n_out, S, n_phi, P))
+    return log_params, log_weights, draws
 
 
-def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress, backend):
+def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress, backend, executor, jitter):
     """Scenario 3 with adaptive importance sampling of φ per output
     (:func:`mdcore.importance.adaptive_importance_sampling`): the same budget of N_φ draws
     per θ, drawn in stages from the prior and then from Student-t fits to the weighted
@@ -349,9 +686,9 @@ def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress, backend):
     log_params = np.empty((n_out, S, n_phi, prior.size))
     log_weights = np.empty((n_out, S, n_phi))
     for o in range(n_out):
-        def loglik(phi, o=o):
-            return -gp.neg_log_marginal_likelihood(phi, Y[:, None], X, z[:, o],   # Eq. 15
-                                                   backend=backend)
+        def loglik(phi, o=o):                                                   # Eq. 15
+            return _nlml_rows(_row_blocks(phi), S, phi.shape[1], Y, X, z[:, o:o + 1],
+                              backend, executor, jitter)[0]
 
         def report(f, o=o):
             if progress is not None:
@@ -363,7 +700,7 @@ def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress, backend):
         except ValueError:
             raise ValueError(_all_zero_message(o)) from None
         log_params[o], log_weights[o] = out.samples, out.log_weights
-    return log_params, log_weights
+    return log_params, log_weights, None
 
 
 def _all_zero_message(o: int) -> str:
@@ -384,7 +721,8 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
           n_phi: int = 500, phi_prior: GaussianPrior | None = None, seed=None,
           log_params_hat=None, fit_options: dict | None = None, prune: float = PRUNE,
           proposal: str = "prior", backend: str | None = None,
-          progress: Callable[[float], None] | None = None) -> DiscrepancyModel:
+          progress: Callable[[float], None] | None = None,
+          executor: Executor | None = None) -> DiscrepancyModel:
     """Infer the model discrepancy by one of the three scenarios of SPEC §6.
 
     Parameters
@@ -434,6 +772,13 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         differences to the optimiser's tolerance (~4e-8 in the metrics).
     progress : callable, optional
         Called with the fraction done in [0, 1]; raising from it cancels.
+    executor : concurrent.futures.Executor, optional
+        Runs scenario 3's chunks of (θ, φ) pairs (see "Chunks and executors" in
+        :mod:`mdcore.discrepancy`), for example a ``ProcessPoolExecutor`` or a Dask
+        ``Client(...).get_executor()``; the numbers are identical to the serial run's.
+        Scenarios 1–2 have no pair chunks here (their pairs are in
+        :meth:`DiscrepancyModel.predict`, which takes an executor too). Default: in this
+        process.
 
     Returns
     -------
@@ -455,6 +800,7 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     prune = _prune(prune)
     choose(proposal, "proposal", PROPOSALS)
     backend = compiled.resolve_backend(backend)
+    executor = check_executor(executor)
     if phi_prior is not None and (not isinstance(phi_prior, GaussianPrior) or phi_prior.size != P):
         raise ValueError(f"phi_prior must be a GaussianPrior over P = 2 + n_out + d_x = {P} log "
                          f"hyperparameters ([log σ_f, log ℓ_y×{n_out}, log ℓ_x×{d_x}, log σ_n]); "
@@ -472,6 +818,12 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         if theta_map is not None and theta.shape[1] != theta_map.size:
             raise ValueError(f"theta_samples must have shape (N_s, p) with p = {theta_map.size} "
                              f"like theta_map; received {theta.shape}.")
+    if scenario == 3:       # refuse an absurd budget before any simulator run
+        from .pipeline import MAX_N_PHI, MAX_PAIRS
+        n_phi = as_int(n_phi, "n_phi", 1, MAX_N_PHI)
+        if theta.shape[0] * n_phi > MAX_PAIRS:
+            raise ValueError(f"N_s × n_phi must be at most {MAX_PAIRS:,} (θ, φ) pairs; received "
+                             f"{theta.shape[0]:,} × {n_phi:,}. Lower N_s or n_phi.")
     Y = _simulate(simulate, X, theta, n_out)
     S = theta.shape[0]
 
@@ -500,16 +852,15 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
                              for o in range(n_out)])
         log_params = np.broadcast_to(log_params_hat_arr[:, None, None, :], (n_out, S, 1, P))
         log_weights = np.full((n_out, S, 1), -np.log(S))
-        prior = None
+        prior, phi_draws = None, None
     else:
         n_phi = as_int(n_phi, "n_phi", 1)
         prior = default_phi_prior(Y[0], X, z[:, 0]) if phi_prior is None else phi_prior
-        if proposal == "prior":
-            log_params, log_weights = _prior_proposal(Y, X, z, prior, n_phi, rng, progress,
-                                                      backend)
-        else:
-            log_params, log_weights = _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress,
-                                                         backend)
+        jitter = JitterLog()
+        propose = _prior_proposal if proposal == "prior" else _adaptive_proposal
+        log_params, log_weights, phi_draws = propose(Y, X, z, prior, n_phi, rng, progress,
+                                                     backend, executor, jitter)
+        jitter.warn("neg_log_marginal_likelihood")
         k_hat = np.array([psis(log_weights[o].ravel()).k_hat for o in range(n_out)])
         if proposal == "adaptive":      # Pareto-smoothed weights (Vehtari et al. 2024)
             log_weights = np.stack([psis(log_weights[o].ravel()).log_weights.reshape(S, -1)
@@ -517,7 +868,7 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     model = DiscrepancyModel(scenario, simulate, theta, Y, X, z, log_params, log_weights,
                              log_params_hat_arr, nlml_hat, prune, prior,
                              time.perf_counter() - start, proposal if scenario == 3 else None,
-                             k_hat if scenario == 3 else None, backend)
+                             k_hat if scenario == 3 else None, backend, phi_draws)
     if scenario == 3:
         switch = " or use proposal='adaptive'" if proposal == "prior" else ""
         for o, (e, k) in enumerate(zip(model.ess, k_hat)):

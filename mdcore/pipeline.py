@@ -24,6 +24,7 @@ import enum
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -38,22 +39,31 @@ from .discrepancy import (
     PRUNE,
     DiscrepancyModel,
     DiscrepancyPrediction,
+    check_executor,
     infer_discrepancy,
 )
 from .exceptions import Cancelled
 from .history_matching import HistoryMatchResult
 from .importance import K_HAT_THRESHOLD
-from .koh import BURN_IN, FAST, N_ITER, KOHModel, infer_koh
+from .koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, infer_koh
 from .metrics import coverage, lpl, mmd, nmse
 from .priors import GaussianPrior
 from .validation import as_float_array, as_int, as_seed_int, choose
 
 __all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics",
-           "ChainDiagnostics", "MethodResult", "PAPER_SIZES", "run_method", "scores",
-           "koh_phi_prior"]
+           "ChainDiagnostics", "MethodResult", "PAPER_SIZES", "MAX_N_S", "MAX_N_PHI",
+           "MAX_PAIRS", "MAX_N_ITER", "run_method", "scores", "koh_phi_prior"]
 
 #: The paper's (N_s, N_φ) per case study (SPEC §6).
 PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
+
+#: Largest sizes :class:`Settings` accepts (the paper's are N_s = 1000, N_φ = 500–1000 and a
+#: 150,000-step chain): θ samples, φ samples per θ, (θ, φ) pairs of scenario 3, and KOH
+#: chain steps. Anything larger would run out of memory, so it is refused up front.
+MAX_N_S = 100_000
+MAX_N_PHI = 100_000
+MAX_PAIRS = 100_000_000
+MAX_N_ITER = MAX_CHAIN
 
 #: ``progress(fraction, message)``: fraction done in [0, 1] and what is running.
 Progress = Callable[[float, str], None]
@@ -151,8 +161,14 @@ class Settings:
     backend: str = "auto"
 
     def __post_init__(self):
-        for name, minimum in (("n_s", 1), ("n_phi", 1), ("n_iter", 2), ("burn_in", 0)):
-            object.__setattr__(self, name, as_int(getattr(self, name), name, minimum))
+        for name, minimum, maximum in (("n_s", 1, MAX_N_S), ("n_phi", 1, MAX_N_PHI),
+                                       ("n_iter", 2, MAX_N_ITER), ("burn_in", 0, MAX_N_ITER)):
+            object.__setattr__(self, name, as_int(getattr(self, name), name, minimum, maximum))
+        if self.n_s * self.n_phi > MAX_PAIRS:
+            raise ValueError(f"n_s × n_phi must be at most {MAX_PAIRS:,} (θ, φ) pairs for "
+                             f"scenario 3; received n_s = {self.n_s:,} and n_phi = "
+                             f"{self.n_phi:,} ({self.n_s * self.n_phi:,} pairs). Lower one of "
+                             "them (the paper: 1000 × 500).")
         if self.burn_in >= self.n_iter:
             raise ValueError(f"burn_in must be smaller than n_iter; received burn_in = "
                              f"{self.burn_in}, n_iter = {self.n_iter}. Raise n_iter or lower "
@@ -362,15 +378,29 @@ def koh_phi_prior(case: Case) -> GaussianPrior:
     return GaussianPrior(case.phi_prior.mean[keep], case.phi_prior.var[keep])
 
 
+#: θ rows per block of :func:`importance_diagnostics` (bounds its temporaries).
+DIAGNOSTIC_ROWS = 1000
+
+
 def importance_diagnostics(model: DiscrepancyModel) -> ImportanceDiagnostics:
-    """ESS over pairs and over φ of a scenario-3 model's normalised log weights (n_out, S, K)."""
-    lw = model.log_weights
-    n_out, S, K = lw.shape
-    lw_theta = logsumexp(lw, axis=2)                                   # log w_j (n_out, S)
-    # ESS_j over φ given θ_j: 1 / Σ_k (w_jk / w_j)², in log space.
-    with np.errstate(invalid="ignore"):
-        cond = lw - lw_theta[..., None]
-        log_ess_j = -logsumexp(2.0 * np.where(np.isfinite(cond), cond, -np.inf), axis=2)
+    """ESS over pairs and over φ of a scenario-3 model's normalised log weights (n_out, S, K).
+
+    The per-θ sums run over blocks of :data:`DIAGNOSTIC_ROWS` θ rows, so the temporaries
+    stay at a few (n_out, 1000, K) arrays however large N_s is.
+    """
+    lw_all = model.log_weights
+    n_out, S, K = lw_all.shape
+    lw_theta = np.empty((n_out, S))                                    # log w_j
+    log_ess_j = np.empty((n_out, S))
+    for start in range(0, S, DIAGNOSTIC_ROWS):
+        rows = slice(start, min(S, start + DIAGNOSTIC_ROWS))
+        lw = lw_all[:, rows]
+        lw_theta[:, rows] = logsumexp(lw, axis=2)
+        # ESS_j over φ given θ_j: 1 / Σ_k (w_jk / w_j)², in log space.
+        with np.errstate(invalid="ignore"):
+            cond = lw - lw_theta[:, rows, None]
+            log_ess_j[:, rows] = -logsumexp(2.0 * np.where(np.isfinite(cond), cond, -np.inf),
+                                            axis=2)
     ess_phi = np.sum(np.exp(lw_theta + np.where(np.isfinite(lw_theta), log_ess_j, 0.0)),
                      axis=1)
     return ImportanceDiagnostics(tuple(float(e) for e in model.ess),
@@ -413,7 +443,8 @@ def _advice(method: Method, settings: Settings, importance, chain) -> tuple:
 
 def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *, seed,
                X_extra=None, log_params_hat=None, progress: Progress | None = None,
-               cancel: threading.Event | None = None) -> MethodResult:
+               cancel: threading.Event | None = None,
+               executor: Executor | None = None) -> MethodResult:
     """Learn the discrepancy of ``case`` by one method and score it (SPEC §6–8).
 
     Parameters
@@ -438,6 +469,11 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
         ``progress(fraction, message)`` as the work goes on.
     cancel : threading.Event, optional
         Checked between chunks of work; when set, the run stops with :class:`Cancelled`.
+    executor : concurrent.futures.Executor, optional
+        Runs the chunks of (θ, φ) pairs of scenarios 2–3 (the scenario-3 weights and the
+        mixture prediction; see "Chunks and executors" in :mod:`mdcore.discrepancy`), for
+        example a Dask ``Client(...).get_executor()``. The results are identical to the
+        serial run's. Scenario 1 and KOH run here. Default: in this process.
 
     Returns
     -------
@@ -461,12 +497,13 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
         raise ValueError(f"settings must be a pipeline.Settings; received "
                          f"{type(settings).__name__}.")
     method = Method.parse(method)
+    executor = check_executor(executor)
     if hm.problem.p != case.p or hm.problem.X.shape[1] != case.d_x:
         raise ValueError(f"hm does not belong to {case.name}: it has p = {hm.problem.p} and "
                          f"d_x = {hm.problem.X.shape[1]}; the case has p = {case.p} and "
                          f"d_x = {case.d_x}.")
     if hm.status == "ruled_out":
-        raise ValueError(f"the history match ruled out every θ, so there is nothing to "
+        raise ValueError(f"hm (the history match) ruled out every θ, so there is nothing to "
                          f"learn the discrepancy from: {hm.message}")
     seed = as_seed_int(seed)
     X_all = case.X_test
@@ -502,9 +539,11 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
             theta_map=hm.theta_map, n_phi=settings.n_phi, phi_prior=case.phi_prior, seed=seed,
             log_params_hat=log_params_hat if method is Method.S2 else None,
             prune=settings.prune, proposal=settings.proposal, backend=settings.backend,
-            progress=stage(0.0, 0.5, f"{method.label}: fitting the discrepancy GP"))
-    pred = model.predict(X_all, progress=stage(0.9 if method is Method.KOH else 0.5, 1.0,
-                                               f"{method.label}: predicting"))
+            progress=stage(0.0, 0.5, f"{method.label}: fitting the discrepancy GP"),
+            executor=executor)
+    predicting = stage(0.9 if method is Method.KOH else 0.5, 1.0, f"{method.label}: predicting")
+    pred = model.predict(X_all, progress=predicting, executor=executor) \
+        if isinstance(model, DiscrepancyModel) else model.predict(X_all, progress=predicting)
     n_extra = 0 if X_extra is None else X_extra.shape[0]
     on_extra = None if X_extra is None else DiscrepancyPrediction(*(a[:n_extra] for a in pred))
     on_test = DiscrepancyPrediction(*(a[n_extra:] for a in pred))

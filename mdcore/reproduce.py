@@ -7,20 +7,21 @@ Every method goes through :func:`mdcore.pipeline.run_method`, as in the app.
 from __future__ import annotations
 
 from collections.abc import Callable
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
 
 from . import cases as _cases
 from . import compiled
-from .discrepancy import DiscrepancyModel
+from .discrepancy import DiscrepancyModel, check_executor
 from .history_matching import HistoryMatchResult, history_match_case
 from .koh import KOHModel
 from .pipeline import Method, MethodResult, Progress, Settings, run_method
 from .validation import as_seed_int
 
 __all__ = ["SCHEMA_VERSION", "CaseRun", "default_methods", "parse_methods", "reproduce",
-           "run_case"]
+           "run_case", "run_methods"]
 
 #: Version of the JSON layout written by :meth:`CaseRun.to_dict`.
 SCHEMA_VERSION = 2
@@ -101,7 +102,8 @@ def _entry(r: MethodResult) -> dict:
 
 def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed=0,
               report: Callable[[str], None] | None = None,
-              progress: Progress | None = None) -> CaseRun:
+              progress: Progress | None = None,
+              executor: Executor | None = None) -> CaseRun:
     """History-match a case, run the methods, and score them (the ``reproduce`` command).
 
     Parameters
@@ -119,21 +121,25 @@ def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed
         Called with a line of text as each stage finishes.
     progress : callable, optional
         ``progress(fraction, message)`` within each method (see :func:`run_method`).
+    executor : concurrent.futures.Executor, optional
+        Runs the simulator runs of the history match and the pair chunks of scenarios 2–3
+        (see :func:`run_case`); the numbers are identical to the serial run's.
 
     Returns
     -------
     CaseRun
     """
+    executor = check_executor(executor)
     case = _cases.load(name, seed=seed)
     return run_case(case, methods=default_methods(name) if methods is None else methods,
                     settings=Settings.paper(name) if settings is None else settings,
-                    seed=case.seed, report=report, progress=progress)
+                    seed=case.seed, report=report, progress=progress, executor=executor)
 
 
 def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
              settings: Settings | None = None, seed=0,
              report: Callable[[str], None] | None = None, progress: Progress | None = None,
-             **history_matching) -> CaseRun:
+             executor: Executor | None = None, **history_matching) -> CaseRun:
     """History-match any case (built-in or :func:`mdcore.case_file.load_case_file`), then
     run the methods on it through :func:`mdcore.pipeline.run_method`.
 
@@ -147,9 +153,14 @@ def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
         Seeds the history match, the θ samples, the φ draws and the KOH chain.
     report, progress : callable, optional
         As in :func:`reproduce`.
+    executor : concurrent.futures.Executor, optional
+        Runs the history match's simulator runs (one θ per task unless ``batch_size`` is
+        given) and the pair chunks of scenarios 2–3 (:func:`mdcore.pipeline.run_method`),
+        for example a Dask ``Client(...).get_executor()``; the numbers are identical to the
+        serial run's. Default: in this process.
     **history_matching
         Options of :func:`mdcore.history_matching.setup` (``n_runs``, ``convergence_ratio``,
-        ``executor`` …).
+        ``batch_size``, ``timeout`` …).
 
     Returns
     -------
@@ -157,19 +168,54 @@ def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
     """
     seed = as_seed_int(seed)
     chosen = parse_methods(methods)
+    executor = check_executor(executor)
     settings = Settings.paper(case.name) if settings is None else settings
-    hm = history_match_case(case, seed=seed, **history_matching)
+    hm = history_match_case(case, seed=seed, executor=executor, **history_matching)
     if report:
         report(hm.message)
+    results = run_methods(case, hm, chosen, settings, seed=seed, report=report,
+                          progress_for=None if progress is None else (lambda m: progress),
+                          executor=executor)
+    return CaseRun(case, hm, settings, seed, results)
+
+
+def run_methods(case: _cases.Case, hm: HistoryMatchResult, methods, settings: Settings, *,
+                seed=0, report: Callable[[str], None] | None = None,
+                progress_for: Callable[[Method], Progress | None] | None = None,
+                executor: Executor | None = None) -> tuple[MethodResult, ...]:
+    """Run the methods on a history match, in the order 1, 2, 3, KOH; scenario 2 reuses
+    scenario 1's φ̂ when both run.
+
+    Parameters
+    ----------
+    case : Case
+    hm : HistoryMatchResult
+        Must not have ruled everything out.
+    methods : sequence of {1, 2, 3, "koh"} or Method
+    settings : Settings
+    seed : int, default=0
+    report : callable, optional
+        ``report(line)`` after each method.
+    progress_for : callable, optional
+        ``progress_for(method)`` gives the ``progress(fraction, message)`` of that method
+        (the command line draws one bar per method), or None.
+    executor : concurrent.futures.Executor, optional
+        As in :func:`run_case`.
+
+    Returns
+    -------
+    tuple of MethodResult
+    """
     if hm.status == "ruled_out":
         raise ValueError(f"{case.name}: {hm.message}")
     results: list[MethodResult] = []
-    for method in chosen:
+    for method in parse_methods(methods):
         hat = next((r.model.log_params_hat for r in results
                     if r.method is Method.S1 and isinstance(r.model, DiscrepancyModel)), None)
         result = run_method(case, hm, method, settings, seed=seed, log_params_hat=hat,
-                            progress=progress)
+                            progress=None if progress_for is None else progress_for(method),
+                            executor=executor)
         results.append(result)
         if report:
             report(f"{method.label}: {result.seconds:.2f} s")
-    return CaseRun(case, hm, settings, seed, tuple(results))
+    return tuple(results)

@@ -173,6 +173,37 @@ def test_same_seed_same_numbers_and_progress(toy):
         infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, progress=cancel)
 
 
+@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.parametrize("seed", [4, np.random.Generator(np.random.MT19937(4))])
+def test_prior_draws_not_kept_are_drawn_again_bit_for_bit(toy, monkeypatch, seed):
+    """Above KEEP_DRAWS_BYTES scenario 3 keeps the generator state per chunk instead of the
+    (N_s, N_φ, P) draws; the weights, the prediction and log_params are the same."""
+    from mdcore import discrepancy
+    X, z, theta, _, prior = toy
+    theta = np.repeat(theta, 5, axis=0)                             # 20 θ rows
+    monkeypatch.setattr(discrepancy, "WEIGHT_PAIRS", 21)            # 3 rows × 7 draws a chunk
+    monkeypatch.setattr(discrepancy, "MIN_FUSED_BLOCK", 16)
+    state = seed.bit_generator.state if isinstance(seed, np.random.Generator) else None
+
+    def run():
+        if state is not None:
+            seed.bit_generator.state = state
+        return infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=7,
+                                 phi_prior=prior, seed=seed)
+
+    kept = run()
+    monkeypatch.setattr(discrepancy, "KEEP_DRAWS_BYTES", 0)
+    lazy = run()
+    assert kept._log_params is not None and lazy._log_params is None
+    assert len(lazy.phi_draws.states) == 7                          # ceil(20 / 3) chunks
+    np.testing.assert_array_equal(lazy.log_weights, kept.log_weights)
+    for a, b in zip(lazy.predict(X, prune=0.0), kept.predict(X, prune=0.0)):
+        np.testing.assert_array_equal(a, b)
+    assert lazy._log_params is None                                 # predict drew blocks only
+    np.testing.assert_array_equal(lazy.log_params, kept.log_params)
+    np.testing.assert_array_equal(lazy.phi_draws.between(5, 11), kept.log_params[0, 5:11])
+
+
 def test_low_ess_warns_with_a_suggestion(toy):
     X, z, theta, _, _ = toy
     far = GaussianPrior(mean=[3.0, 3.0, 3.0, 3.0, -6.0], var=[9.0] * 5)

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .history_matching import HistoryMatchResult
+from .reproduce import CaseRun
 
 __all__ = ["nroy_csv", "predictions_csv", "write_tables"]
 
@@ -35,6 +36,23 @@ def _table(comment: str, header: list, rows) -> str:
     writer.writerow(header)
     writer.writerows(rows)
     return out.getvalue()
+
+
+def _labels(values, name: str, p: int) -> list | None:
+    """Column labels: None, or a sequence of ``p`` strings (one per θ component)."""
+    if values is None:
+        return None
+    if isinstance(values, str) or not all(isinstance(v, str) for v in values) \
+            or len(values) != p:
+        raise ValueError(f"{name} must be a list of {p} strings, one per θ component; "
+                         f"received {values!r}.")
+    return list(values)
+
+
+def _check_run(run) -> None:
+    if not isinstance(run, CaseRun):
+        raise ValueError(f"run must be an mdcore.reproduce.CaseRun (reproduce or run_case); "
+                         f"received {type(run).__name__}.")
 
 
 def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
@@ -52,9 +70,12 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
         Columns ``wave``, one per θ component, ``implausibility``; one row per retained
         candidate of each wave (uniform in that wave's NROY set).
     """
+    if not isinstance(hm, HistoryMatchResult):
+        raise ValueError(f"hm must be a HistoryMatchResult (history_match or "
+                         f"history_match_case); received {type(hm).__name__}.")
     p = hm.problem.p
-    names = names or [f"theta_{i + 1}" for i in range(p)]
-    units = units or [""] * p
+    names = _labels(names, "names", p) or [f"theta_{i + 1}" for i in range(p)]
+    units = _labels(units, "units", p) or [""] * p
     head = ["wave"] + [f"{n} [{u}]" if u else n for n, u in zip(names, units)] \
         + ["implausibility"]
     rows = []
@@ -80,6 +101,7 @@ def predictions_csv(run) -> str:
         One row per (method, output, test input): the inputs, the observation, the
         predictive mean and sd of z, of δ, and the true δ where it is known.
     """
+    _check_run(run)
     case = run.case
     truth = case.true_delta(case.X_test)
     head = (["method", "output"] + [f"{n} [{u}]" for n, u in zip(case.x_names, case.x_units)]
@@ -100,11 +122,19 @@ def predictions_csv(run) -> str:
 
 
 def write_tables(run, folder) -> list[Path]:
-    """Write ``nroy.csv`` and ``predictions.csv`` of a run into ``folder`` (created)."""
+    """Write ``nroy.csv`` and ``predictions.csv`` of a run into ``folder`` (created).
+
+    Both tables are made before anything is written, so a bad ``run`` leaves no files.
+    """
+    _check_run(run)
     folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"folder {str(folder)!r} is a file; give a folder for nroy.csv and "
+                         "predictions.csv.")
+    texts = [nroy_csv(run.hm, run.case.theta_names, run.case.theta_units),
+             predictions_csv(run)]
     folder.mkdir(parents=True, exist_ok=True)
     paths = [folder / "nroy.csv", folder / "predictions.csv"]
-    paths[0].write_text(nroy_csv(run.hm, run.case.theta_names, run.case.theta_units),
-                        encoding="utf-8")
-    paths[1].write_text(predictions_csv(run), encoding="utf-8")
+    for path, text in zip(paths, texts):
+        path.write_text(text, encoding="utf-8")
     return paths

@@ -36,7 +36,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import gammaln, logsumexp
 
-from .validation import as_float_array, as_int
+from .validation import as_float_array, as_int, as_positive_float
 
 __all__ = ["K_HAT_THRESHOLD", "PSIS", "effective_sample_size", "psis",
            "generalized_pareto_fit", "StudentT", "AdaptiveSample", "stage_sizes",
@@ -82,7 +82,9 @@ def effective_sample_size(log_weights, axis=None) -> np.ndarray:
     >>> round(float(effective_sample_size(np.zeros(10))), 12)
     10.0
     """
-    lw = np.asarray(log_weights, dtype=np.float64)
+    lw = as_float_array(log_weights, "log_weights", finite=False)
+    if np.any(np.isnan(lw)) or np.any(lw == np.inf):
+        raise ValueError("log_weights must not contain NaN or +inf; a zero weight is -inf.")
     return np.exp(2.0 * logsumexp(lw, axis=axis) - logsumexp(2.0 * lw, axis=axis))
 
 
@@ -153,6 +155,7 @@ def psis(log_weights, *, r_eff: float = 1.0) -> PSIS:
         raise ValueError("log_weights must not contain NaN or +inf; a zero weight is -inf.")
     if not np.any(np.isfinite(lw)):
         raise ValueError("every weight is zero (all log_weights are -inf); nothing to smooth.")
+    r_eff = as_positive_float(r_eff, "r_eff", "1 is for independent draws.")
     S = lw.size
     x = lw - np.max(lw)
     tail = int(np.ceil(min(0.2 * S, 3.0 * np.sqrt(S / float(r_eff)))))

@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from .linalg import workspace
+from .validation import as_float_array
 
 __all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "split_log_params",
            "separable_matern", "kernel", "train_cov", "cross_cov"]
@@ -119,13 +120,51 @@ def separable_matern(log_sf2, ry, rx, tmp=None) -> np.ndarray:
     return ry
 
 
+def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
+    """The arguments of :func:`kernel` as float arrays whose shapes fit together."""
+    Xa = as_float_array(Xa, "Xa", ndim=2, allow_empty=True)
+    Xb = as_float_array(Xb, "Xb", ndim=2, allow_empty=True)
+    if Xb.shape[1] != Xa.shape[1]:
+        raise ValueError(f"Xb must have shape (Nb, d_x) with d_x = {Xa.shape[1]} like Xa "
+                         f"{Xa.shape}; received {Xb.shape}.")
+    Ya = as_float_array(Ya, "Ya", min_ndim=2, allow_empty=True)
+    Yb = as_float_array(Yb, "Yb", min_ndim=2, allow_empty=True)
+    for name, Y, X in (("Ya", Ya, Xa), ("Yb", Yb, Xb)):
+        if Y.shape[-2] != X.shape[0]:
+            raise ValueError(f"{name} must have shape (..., N, d_y) with N = {X.shape[0]} rows "
+                             f"like X{name[-1]} {X.shape}; received {Y.shape}.")
+    if Yb.shape[-1] != Ya.shape[-1]:
+        raise ValueError(f"Yb must have d_y = {Ya.shape[-1]} columns like Ya {Ya.shape}; "
+                         f"received {Yb.shape}.")
+    d_y, d_x = Ya.shape[-1], Xa.shape[1]
+    lp = as_float_array(log_params, "log_params", min_ndim=1)
+    P = 2 + d_y + d_x
+    if lp.shape[-1] != P:
+        raise ValueError(
+            f"log_params must have last dimension P = 2 + d_y + d_x = 2 + {d_y} + {d_x} = {P} "
+            f"([log σ_f, log ℓ_y×{d_y}, log ℓ_x×{d_x}, log σ_n]); received shape {lp.shape}.")
+    try:
+        np.broadcast_shapes(lp.shape[:-1], Ya.shape[:-2], Yb.shape[:-2])
+    except ValueError:
+        raise ValueError(f"the leading dimensions of log_params {lp.shape}, Ya {Ya.shape} and "
+                         f"Yb {Yb.shape} do not broadcast; add size-1 axes to align them."
+                         ) from None
+    return lp, Ya, Xa, Yb, Xb
+
+
 def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
     """Cross-covariance ``σ_f² m32(r_y) m32(r_x)`` (Eq. 3), without the noise term.
 
     Shapes: ``log_params`` (..., P); ``Ya`` (..., Na, d_y); ``Xa`` (Na, d_x);
     ``Yb`` (..., Nb, d_y); ``Xb`` (Nb, d_x) -> (..., Na, Nb).
+
+    Raises
+    ------
+    ValueError
+        For shapes that do not fit together (naming the argument), or NaN/inf anywhere.
     """
-    d_y, d_x = np.shape(Ya)[-1], np.shape(Xa)[-1]
+    log_params, Ya, Xa, Yb, Xb = _check_kernel_args(log_params, Ya, Xa, Yb, Xb)
+    d_y, d_x = Ya.shape[-1], Xa.shape[-1]
     sf, ly, lx, _ = split_log_params(log_params, d_y, d_x)
     ry = SQRT3 * np.sqrt(scaled_sq_dist(Ya, Yb, ly))
     rx = SQRT3 * np.sqrt(scaled_sq_dist(Xa, Xb, lx))

@@ -61,12 +61,12 @@ from .exceptions import ConvergenceWarning, NumericalWarning
 from .hyperfit import default_bounds, lbfgs_advice, lbfgs_converged
 from .kernels import kernel, matern32_and_dlog_ell
 from .linalg import JitterLog, cholesky, solve_lower_inplace
-from .mcmc import Chain, adaptive_metropolis
+from .mcmc import MAX_CHAIN, Chain, adaptive_metropolis
 from .priors import GaussianPrior, ThetaPrior
 from .validation import as_float_array, as_int, as_outputs, check_bounds
 
 __all__ = ["KOHModel", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
-           "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST"]
+           "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST", "MAX_CHAIN"]
 
 #: The paper's chain: 150,000 iterations of which the first 50,000 are burn-in (SPEC §7).
 N_ITER, BURN_IN = 150_000, 50_000
@@ -534,10 +534,14 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
     if phi_prior is not None and phi_prior.size != 2 + d_x:
         raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
                          f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
-    n_iter = as_int(n_iter, "n_iter", 2)
-    burn_in = as_int(burn_in, "burn_in", 0)
-    n_theta_eb = as_int(n_theta_eb, "n_theta_eb", 1)
-    n_predict = as_int(n_predict, "n_predict", 1)
+    n_iter = as_int(n_iter, "n_iter", 2, MAX_CHAIN)
+    burn_in = as_int(burn_in, "burn_in", 0, MAX_CHAIN)
+    if burn_in >= n_iter - 1:          # checked before φ̂, not after it (mcmc checks again)
+        raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so that at "
+                         f"least two samples are kept; received burn_in={burn_in}. The "
+                         "paper: n_iter = 150,000 with burn_in = 50,000.")
+    n_theta_eb = as_int(n_theta_eb, "n_theta_eb", 1, 1_000_000)
+    n_predict = as_int(n_predict, "n_predict", 1, MAX_CHAIN)
     backend = compiled.resolve_backend(backend)
     rng = np.random.default_rng(seed)
     at = _at(model, X, n_out)

@@ -30,11 +30,14 @@ import numpy as np
 from .exceptions import ConvergenceWarning
 from .validation import as_float_array, as_int
 
-__all__ = ["Chain", "RELIABLE_TAUS", "adaptive_metropolis", "integrated_autocorr_time"]
+__all__ = ["Chain", "MAX_CHAIN", "RELIABLE_TAUS", "adaptive_metropolis",
+           "integrated_autocorr_time"]
 
 #: A chain is long enough to trust its IAT when it spans this many autocorrelation times
 #: (Foreman-Mackey et al., emcee: "more than 50 τ").
 RELIABLE_TAUS = 50
+#: Longest chain accepted (the kept steps are stored): longer is refused up front.
+MAX_CHAIN = 100_000_000
 
 
 @dataclass(frozen=True, eq=False)
@@ -158,8 +161,8 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
     """
     x = as_float_array(x0, "x0", ndim=1).copy()
     d = x.size
-    n_iter = as_int(n_iter, "n_iter", 2)
-    burn_in = as_int(burn_in, "burn_in", 0)
+    n_iter = as_int(n_iter, "n_iter", 2, MAX_CHAIN)
+    burn_in = as_int(burn_in, "burn_in", 0, MAX_CHAIN)
     if burn_in >= n_iter - 1:
         raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so that at "
                          f"least two samples are kept; received burn_in={burn_in}.")

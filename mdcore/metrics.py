@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import norm
 
-from .validation import as_float_array, check_positive
+from .validation import as_float_array, as_positive_float, check_positive
 
 __all__ = ["nmse", "lpl", "coverage", "mmd"]
 
@@ -100,9 +100,8 @@ def coverage(target, mean, var, *, k: float = 3.0):
     -------
     float or ndarray of shape (n_out,)
     """
+    k = as_positive_float(k, "k", "It is the band half-width in standard deviations.")
     t, m, v = _predictive(target, mean, var, strict=False)
-    if not np.isfinite(k) or k <= 0:
-        raise ValueError(f"k must be a positive number of standard deviations; received {k!r}.")
     return _squeeze(np.mean(np.abs(t - m) <= k * np.sqrt(v), axis=0), t)
 
 

@@ -49,6 +49,10 @@ METRICS = ("nmse_z", "nmse_delta", "rmse_delta", "mmd", "lpl", "coverage_z_2sd",
            "coverage_z_3sd", "coverage_delta_2sd", "coverage_delta_3sd", "sd_z", "sd_delta")
 
 
+#: Most seeds one study runs (each seed is a whole reproduce run).
+MAX_SEEDS = 10_000
+
+
 def parse_seeds(text: str) -> tuple[int, ...]:
     """Seeds from ``"0-9"``, ``"0,3,5"`` or ``"2"`` (ranges inclusive).
 
@@ -64,7 +68,12 @@ def parse_seeds(text: str) -> tuple[int, ...]:
             raise ValueError(f"seeds must look like '0-9', '0,3,5' or '2' (non-negative "
                              f"integers, ranges low-high); received {text!r}.")
         lo = int(m.group(1))
-        seeds.extend(range(lo, int(m.group(2) or lo) + 1))
+        hi = int(m.group(2) or lo)
+        if len(seeds) + hi - lo + 1 > MAX_SEEDS:
+            raise ValueError(f"seeds must name at most {MAX_SEEDS:,} seeds (each is a whole "
+                             f"reproduce run); received {text!r}, which names "
+                             f"{len(seeds) + hi - lo + 1:,} or more. Give a shorter range.")
+        seeds.extend(range(lo, hi + 1))
     if len(set(seeds)) != len(seeds):
         raise ValueError(f"seeds repeat in {text!r}; give each seed once.")
     return tuple(seeds)

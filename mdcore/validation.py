@@ -57,11 +57,34 @@ def check_positive(arr: np.ndarray, name: str, *, strict: bool = True) -> np.nda
     return arr
 
 
-def as_int(value, name: str, minimum: int) -> int:
-    """Check that ``value`` is an integer (not a bool) ≥ ``minimum``; return it as int."""
+def as_int(value, name: str, minimum: int, maximum: int | None = None) -> int:
+    """Check that ``value`` is an integer (not a bool) ≥ ``minimum``; return it as int.
+
+    With ``maximum``, larger values are refused up front: a size such as ``10**12``
+    samples would otherwise be attempted and fail only when the memory runs out.
+    """
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer ≥ {minimum}; received {value!r}.")
+    if maximum is not None and value > maximum:
+        raise ValueError(f"{name} must be an integer ≥ {minimum} and ≤ {maximum:,}; received "
+                         f"{value!r}, which would need more memory and time than any machine "
+                         f"has. Use a value up to {maximum:,}.")
     return int(value)
+
+
+def as_positive_float(value, name: str, hint: str = "") -> float:
+    """A finite scalar > 0 as float; anything else (text, None, NaN, inf, ≤ 0) is refused.
+
+    ``hint`` ends the message (what the number means, a usual value).
+    """
+    try:
+        out = float(value)
+    except (TypeError, ValueError):
+        out = float("nan")
+    if isinstance(value, bool) or not np.isfinite(out) or out <= 0:
+        raise ValueError(f"{name} must be a positive number (finite, > 0); received "
+                         f"{value!r}." + (f" {hint}" if hint else ""))
+    return out
 
 
 def check_bounds(bounds, name: str = "bounds") -> np.ndarray:
@@ -79,7 +102,11 @@ def check_bounds(bounds, name: str = "bounds") -> np.ndarray:
 
 def choose(value: str, name: str, options) -> str:
     """Check that a string option is one of ``options`` (scipy-style message)."""
-    if value not in options:
+    try:
+        known = value in options
+    except TypeError:                        # unhashable (a list, a dict): not an option
+        known = False
+    if not known:
         raise ValueError(f"{value!r} is not a valid {name}. It must be one of {sorted(options)!r}.")
     return value
 

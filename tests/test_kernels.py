@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from mdcore import gp
-from mdcore.kernels import kernel, matern32, matern32_and_dlog_ell
+from mdcore.kernels import kernel, matern32, matern32_and_dlog_ell, train_cov
 
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import given, settings  # noqa: E402
@@ -74,3 +74,31 @@ def test_prediction_variance_is_non_negative_and_order_free(problem, random):
     a = gp.neg_log_marginal_likelihood(lp, Y, X, z)
     b = gp.neg_log_marginal_likelihood(lp, Y[perm], X[perm], z[perm])
     np.testing.assert_allclose(b, a, rtol=1e-8, atol=1e-8)
+
+
+@settings(max_examples=40, deadline=None)
+@given(problems(), st.randoms(use_true_random=False))
+def test_training_covariance_and_predictions_at_new_inputs(problem, random):
+    """The chunk kernel the NLML and the predictions factorise: train_cov's lower triangle is
+    K_ff + σ_n² I, symmetric positive definite with every eigenvalue ≥ σ_n²; at inputs that
+    are not training points the latent variance lies in [0, σ_f²] and does not depend on the
+    order of the training points."""
+    lp, Y, X, z = problem
+    N = len(X)
+    sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
+    lower = train_cov(lp[None], Y[None], X)[0]
+    assert np.all(np.triu(lower, 1) == 0)                  # only the lower triangle is filled
+    K = np.tril(lower) + np.tril(lower, -1).T
+    np.testing.assert_allclose(K, kernel(lp, Y, X, Y, X) + sn2 * np.eye(N), rtol=1e-10,
+                               atol=1e-12)
+    assert np.linalg.eigvalsh(K).min() >= sn2 - 1e-9 * sf2 * N
+    rng = np.random.default_rng(random.getrandbits(32))
+    X_star = rng.uniform(-3.0, 3.0, size=(5, X.shape[1]))
+    Y_star = rng.uniform(-3.0, 3.0, size=(5, Y.shape[1]))
+    perm = np.array(random.sample(range(N), N))
+    p = gp.predict(lp, Y, X, z, Y_star, X_star)
+    q = gp.predict(lp, Y[perm], X[perm], z[perm], Y_star, X_star)
+    assert np.all(p.var >= 0) and np.all(p.var <= sf2 * (1 + 1e-9))
+    scale = 1.0 + np.max(np.abs(p.mean))
+    np.testing.assert_allclose(q.mean, p.mean, rtol=1e-7, atol=1e-7 * scale)
+    np.testing.assert_allclose(q.var, p.var, rtol=1e-6, atol=1e-9 * sf2)

@@ -1,29 +1,70 @@
 """Entry point of the Model Discrepancy Explorer: ``panel serve app/main.py``.
 
+Your own cases join the built-in ones with ``panel serve app/main.py --args --case
+my_case.toml [--case other.toml ...]`` (TOML case files, see :mod:`mdcore.case_file`).
+
 Each browser session runs this module and gets its own :class:`ExplorerState`, so two
 sessions never see each other's results. Long work runs on a background thread and hands
 its results back to the session's event loop.
 """
 
+import argparse
+import sys
+from pathlib import Path
+
 import holoviews as hv
 import panel as pn
 
 from mdcore import compiled
+from mdcore.case_file import load_case_file
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 
-pn.extension(notifications=True, design="bootstrap")
+pn.extension("filedropper", notifications=True, design="bootstrap")
 hv.extension("bokeh")
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.
 compiled.warm_up_in_background()
 
 
-def create_app() -> pn.viewable.Viewable:
+def case_files(argv: list[str]) -> list[Path]:
+    """The ``--case`` files given after ``panel serve app/main.py --args``."""
+    parser = argparse.ArgumentParser(prog="panel serve app/main.py --args")
+    parser.add_argument("--case", action="append", default=[], type=Path,
+                        help="a TOML case file to add to the case list (repeatable)")
+    return parser.parse_args(argv).case
+
+
+def own_cases(paths: list[Path]):
+    """Load the case files once per server (cached across sessions by path and mtime).
+
+    Returns the cases and one error message per file that could not be loaded.
+    """
+    loaded, errors = [], []
+    for path in paths:
+        try:
+            key = ("mdcore-case-file", str(path.resolve()), path.stat().st_mtime_ns)
+        except OSError:
+            errors.append(f"--case {path}: the file does not exist.")
+            continue
+        try:
+            if key not in pn.state.cache:
+                pn.state.cache[key] = load_case_file(path)
+            loaded.append(pn.state.cache[key])
+        except ValueError as exc:
+            errors.append(f"--case {path}: {exc}")
+    return loaded, errors
+
+
+def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
     """Build one session's page (state + view) for the current Bokeh document."""
     doc = pn.state.curdoc
+    cases, errors = own_cases(case_files(sys.argv[1:] if argv is None else argv))
     state = ExplorerState(background=doc is not None and doc.session_context is not None,
-                          schedule=_scheduler(doc))
-    return ExplorerView(state=state)
+                          schedule=_scheduler(doc), own_cases=tuple(cases))
+    view = ExplorerView(state=state)
+    for message in errors:                        # shown once the page is there
+        pn.state.onload(lambda m=message: state.report_error(m))
+    return view
 
 
 def _scheduler(doc):

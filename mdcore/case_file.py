@@ -52,6 +52,7 @@ Examples
 
 from __future__ import annotations
 
+import dataclasses
 import importlib
 import re
 import sys
@@ -62,11 +63,15 @@ from typing import Any
 import numpy as np
 import scipy.stats
 
-from .cases import Case, read_measurements
+from .cases import Case, MeasurementsError, parse_measurements, read_measurements
 from .discrepancy import default_phi_prior
 from .priors import ThetaPrior
 
-__all__ = ["load_case_file", "CaseFileError"]
+__all__ = ["load_case_file", "CaseFileError", "TEST_COLUMN", "measurements_template",
+           "with_measurements"]
+
+#: The column of an uploaded measurements file that marks test rows (1) and training rows (0).
+TEST_COLUMN = "test"
 
 
 class CaseFileError(ValueError):
@@ -109,11 +114,21 @@ class _Reader:
             raise self._fail(key, "a positive number" if positive else "a finite number", value)
         return float(value)
 
-    def integer(self, key: str, minimum: int) -> int:
+    def integer(self, key: str, minimum: int, maximum: int | None = None) -> int:
         value = self.table.get(key)
-        if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-            raise self._fail(key, f"an integer ≥ {minimum}", value)
+        if isinstance(value, bool) or not isinstance(value, int) or value < minimum \
+                or (maximum is not None and value > maximum):
+            limit = "" if maximum is None else f" and ≤ {maximum:,}"
+            raise self._fail(key, f"an integer ≥ {minimum}{limit}", value)
         return value
+
+    def only(self, *keys: str) -> None:
+        """Refuse keys the format does not know (a misspelt optional key is not ignored)."""
+        unknown = sorted(k for k in self.table if k not in keys)
+        if unknown:
+            where = f"[{self.where}]" if self.where else "the top level"
+            raise CaseFileError(f"{self.path}: {where} has unknown key(s) {unknown}; the keys "
+                                f"allowed there are {list(keys)}. Check the spelling.")
 
     def texts(self, key: str, n: int | None = None, default=None) -> tuple[str, ...]:
         value = self.table.get(key, default)
@@ -217,7 +232,7 @@ def load_case_file(path, *, seed=0) -> Case:
     if not np.all(np.isin(flag, (0.0, 1.0))):
         bad = flag[~np.isin(flag, (0.0, 1.0))][0]
         raise CaseFileError(f"{csv_path}: column {test_column!r} must be 0 (training row) or 1 "
-                            f"(test row) in every row; found {bad!r}.")
+                            f"(test row) in every row; found {float(bad)!r}.")
     X, z, test = m.X[:, :-1], m.z, flag == 1.0
     if not np.any(~test) or not np.any(test):
         raise CaseFileError(f"{csv_path}: column {test_column!r} must mark at least one "
@@ -263,8 +278,21 @@ def load_case_file(path, *, seed=0) -> Case:
     box = np.array(bounds)
 
     hm = top.sub("history_matching")
+    # Unknown keys, once the required ones are known to be there: a misspelt optional key
+    # (noise_variance, initial_desing) is an error, not silently ignored.
+    top.only("name", "title", "description", "data", "simulator", "parameters",
+             "history_matching")
+    data.only("file", "inputs", "outputs", "input_units", "output_units", "test_column",
+              "noise_var")
+    sim.only("function", "path")
+    for i, table in enumerate(params):
+        _Reader(path, table, f"parameters {i + 1}").only(
+            "name", "unit", "lower", "upper", "prior_mean", "prior_var", "true")
+    hm.only("V_m", "initial_design")
     V_m = hm.numbers("V_m", n_out, positive=True)
-    n_design = hm.integer("initial_design", 2) if hm.has("initial_design") else max(10 * p, 10)
+    from .history_matching import MAX_RUNS
+    n_design = hm.integer("initial_design", 2, MAX_RUNS) if hm.has("initial_design") \
+        else max(10 * p, 10)
     lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng(seed))
     design = scipy.stats.qmc.scale(lhs.random(n_design), box[:, 0], box[:, 1])
 
@@ -281,6 +309,10 @@ def load_case_file(path, *, seed=0) -> Case:
                             f"n_out) = (1, {min(2, int((~test).sum()))}, {n_out}) for one θ at "
                             f"two inputs; it returned {y0.shape}.")
     Y0 = np.asarray(simulate(X[~test], centre), dtype=np.float64)[0]
+    if not (np.all(np.isfinite(y0)) and np.all(np.isfinite(Y0))):
+        raise CaseFileError(f"{path}: [simulator] function returned NaN or inf at the centre of "
+                            f"the parameter box {centre[0].tolist()}; it must return finite "
+                            "outputs inside the box (check its units and the bounds).")
     phi_prior = default_phi_prior(Y0, X[~test], z[~test][:, 0])
 
     return Case(
@@ -293,3 +325,100 @@ def load_case_file(path, *, seed=0) -> Case:
         V_m=V_m,
         phi_prior=phi_prior, theta_prior=ThetaPrior(np.array(mean), np.array(var)),
         initial_design=design, seed=0, _simulator=simulate, _true_delta=None)
+
+
+def measurements_template(case: Case) -> str:
+    """The CSV layout :func:`with_measurements` reads, filled with ``case``'s own data.
+
+    Columns: the case's inputs, its outputs, then :data:`TEST_COLUMN` (0 = training row,
+    1 = test row); one row per observation, replicates as repeated rows.
+    """
+    head = list(case.x_names) + list(case.output_names) + [TEST_COLUMN]
+    units = ", ".join(f"{n} [{u}]" for n, u in zip(case.x_names + case.output_names,
+                                                   case.x_units + case.output_units))
+    lines = [f"# {case.title}: measurements for the simulator of {case.name}",
+             f"# units: {units}; {TEST_COLUMN}: 1 = held-out test row, 0 = training row",
+             ",".join(f'"{h}"' if "," in h else h for h in head)]
+    for X, z, flag in ((case.X_train, case.z_train, 0), (case.X_test, case.z_test, 1)):
+        for x_row, z_row in zip(X, z):
+            lines.append(",".join([repr(float(v)) for v in (*x_row, *z_row)] + [str(flag)]))
+    return "\n".join(lines) + "\n"
+
+
+def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
+    """``base``'s simulator, parameters and priors with your own measurements.
+
+    For measurements of the structure a built-in case simulates (your own beam
+    deflections, say). The text is parsed, never evaluated.
+
+    Parameters
+    ----------
+    base : Case
+        The built-in case whose simulator, θ box, priors and V_m are kept.
+    text : str
+        CSV text in the layout of :func:`measurements_template`: the inputs
+        ``base.x_names``, the outputs ``base.output_names`` and :data:`TEST_COLUMN`.
+    source : str, default="upload"
+        The file name, for messages and the case's name.
+
+    Returns
+    -------
+    Case
+        Named ``"<base name> · <source>"``. The observation noise variance is the
+        pooled replicate variance when every training input has replicates, otherwise
+        ``base.noise_var``. θ_true and the true δ are unknown (None).
+
+    Raises
+    ------
+    MeasurementsError (a ValueError)
+        With one sentence per problem (``problems``), each naming the line and column.
+    """
+    if not isinstance(text, str):
+        raise MeasurementsError([f"text must be CSV text (str); received "
+                                 f"{type(text).__name__}."])
+    inputs = tuple(base.x_names) + (TEST_COLUMN,)
+    m = parse_measurements(text, source=source, inputs=inputs, outputs=base.output_names)
+    flag = m.X[:, -1]
+    problems = []
+    if not np.all(np.isin(flag, (0.0, 1.0))):
+        bad = flag[~np.isin(flag, (0.0, 1.0))][0]
+        problems.append(f"{source}: column {TEST_COLUMN!r} must be 0 (training row) or 1 "
+                        f"(test row) in every row; found {float(bad)!r}.")
+    X, z, test = m.X[:, :-1], m.z, flag == 1.0
+    if not problems and (not np.any(~test) or not np.any(test)):
+        problems.append(f"{source}: column {TEST_COLUMN!r} must mark at least one training "
+                        f"row (0) and one test row (1); found {int((~test).sum())} and "
+                        f"{int(test.sum())}.")
+    lo, hi = base.X_train.min(axis=0), base.X_train.max(axis=0)
+    span = np.where(hi > lo, hi - lo, 1.0)
+    outside = np.any((X < lo - 0.5 * span) | (X > hi + 0.5 * span), axis=1)
+    if np.any(outside):
+        row = X[np.argmax(outside)]
+        ranges = ", ".join(f"{n} {a:g}–{b:g} {u}"
+                           for n, a, b, u in zip(base.x_names, lo, hi, base.x_units))
+        problems.append(f"{source}: {int(outside.sum())} row(s) have inputs far outside the "
+                        f"{base.name} range ({ranges}), for example {row.tolist()}; check "
+                        "the columns' units.")
+    n_train = int((~test).sum())
+    if not problems and n_train < 3:
+        problems.append(f"{source}: {n_train} training row(s); at least 3 are needed to fit "
+                        "a discrepancy GP.")
+    if problems:
+        raise MeasurementsError(problems)
+    _, counts = np.unique(X[~test], axis=0, return_counts=True)
+    noise = (_pooled_replicate_var(X[~test], z[~test]) if np.all(counts >= 2)
+             else np.array(base.noise_var, dtype=np.float64))
+    if np.any(noise <= 0):
+        noise = np.array(base.noise_var, dtype=np.float64)
+    name = f"{base.name} · {Path(source).name}"
+    # replace() keeps the simulator, the θ box and the priors of the base case.
+    return dataclasses.replace(
+        base, name=name,
+        title=f"{base.title.split(' (')[0]}: your measurements ({Path(source).name})",
+        description=(f"Your measurements from {Path(source).name} ({n_train} training and "
+                     f"{int(test.sum())} test rows) with the {base.name} simulator, θ box and "
+                     f"priors. Noise variance {', '.join(f'{v:.3g}' for v in noise)} "
+                     + ("(pooled over replicates)." if np.all(counts >= 2)
+                        else f"(the {base.name} default; add replicate rows to estimate it).")),
+        stand_in=False, theta_true=None, X_train=X[~test], z_train=z[~test], X_test=X[test],
+        z_test=z[test], noise_var=noise, _true_delta=None)

@@ -26,8 +26,8 @@ from .priors import GaussianPrior, ThetaPrior
 from .simulators import natural_frequencies, tip_deflection
 from .validation import as_float_array, as_seed_int, choose
 
-__all__ = ["Case", "Measurements", "load", "names", "read_measurements",
-           "make_shear5_measurements", "SHEAR5_CSV"]
+__all__ = ["Case", "Measurements", "MeasurementsError", "load", "names", "parse_measurements",
+           "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
 
 #: The shipped synthetic shear-5 measurements, package data (a ``Traversable``; regenerate
 #: in a checkout with ``python assets/make_shear5_data.py``).
@@ -319,6 +319,19 @@ class Measurements(NamedTuple):
     comments: tuple
 
 
+#: Problems listed before a measurements file is given up on (the rest are counted).
+MAX_PROBLEMS = 5
+
+
+class MeasurementsError(ValueError):
+    """A measurements file that cannot be read; ``problems`` lists what is wrong, one
+    sentence each (the message joins them)."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = tuple(problems)
+        super().__init__(" ".join(self.problems))
+
+
 def read_measurements(path, *, inputs, outputs=None, ignore=("repeat",)) -> Measurements:
     """Read observations from a CSV file with a header row.
 
@@ -342,14 +355,49 @@ def read_measurements(path, *, inputs, outputs=None, ignore=("repeat",)) -> Meas
 
     Raises
     ------
-    ValueError
+    MeasurementsError (a ValueError)
         For a missing file or column, a ragged row, a non-numeric cell or NaN/inf; the
         message names the file and the line.
     """
     path = Path(path)
     if not path.is_file():
-        raise ValueError(f"measurement file {str(path)!r} does not exist.")
-    lines = path.read_text(encoding="utf-8").splitlines()
+        raise MeasurementsError([f"measurement file {str(path)!r} does not exist."])
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise MeasurementsError([f"{path}: not UTF-8 text ({exc.reason} at byte "
+                                 f"{exc.start}); save the file as UTF-8 CSV."]) from None
+    return parse_measurements(text, source=str(path), inputs=inputs, outputs=outputs,
+                              ignore=ignore)
+
+
+def parse_measurements(text: str, *, source: str, inputs, outputs=None,
+                       ignore=("repeat",)) -> Measurements:
+    """Parse observations from CSV text (the format of :func:`read_measurements`).
+
+    Only parses: nothing in the text is evaluated or imported, so it is safe for text
+    uploaded by a browser.
+
+    Parameters
+    ----------
+    text : str
+        The CSV text.
+    source : str
+        Where the text comes from (a file name), used in the messages.
+    inputs, outputs, ignore
+        As in :func:`read_measurements`.
+
+    Returns
+    -------
+    Measurements
+
+    Raises
+    ------
+    MeasurementsError (a ValueError)
+        Listing up to :data:`MAX_PROBLEMS` problems (missing columns, ragged rows,
+        cells that are not finite numbers), each naming the line and the column.
+    """
+    lines = text.removeprefix("\ufeff").splitlines()   # a BOM (Excel's UTF-8 CSV)
     comments, header_line = [], None
     for lineno, line in enumerate(lines, start=1):
         if line.startswith("#"):
@@ -358,8 +406,8 @@ def read_measurements(path, *, inputs, outputs=None, ignore=("repeat",)) -> Meas
             header_line = lineno
             break
     if header_line is None:
-        raise ValueError(f"{path}: no header row found; the first non-comment line must name "
-                         "the columns.")
+        raise MeasurementsError([f"{source}: no header row found; the first non-comment line "
+                                 "must name the columns."])
     header = [h.strip() for h in next(csv.reader([lines[header_line - 1]]))]
     inputs = tuple(inputs)
     if outputs is None:
@@ -367,35 +415,48 @@ def read_measurements(path, *, inputs, outputs=None, ignore=("repeat",)) -> Meas
     outputs = tuple(outputs)
     missing = [c for c in inputs + outputs if c not in header]
     if missing:
-        raise ValueError(f"{path} line {header_line}: column(s) {missing} not found in the "
-                         f"header {header}.")
+        raise MeasurementsError([f"{source} line {header_line}: column(s) {missing} not found "
+                                 f"in the header {header}; the file needs the columns "
+                                 f"{list(inputs + outputs)}."])
     if not outputs:
-        raise ValueError(f"{path}: no output columns; name them with outputs=.")
+        raise MeasurementsError([f"{source}: no output columns; name them with outputs=."])
+    repeated = [c for c in dict.fromkeys(inputs + outputs) if header.count(c) > 1]
+    if repeated:                      # which of the equal names is meant is ambiguous
+        raise MeasurementsError([f"{source} line {header_line}: column(s) {repeated} appear "
+                                 f"more than once in the header {header}; give each column "
+                                 "a distinct name."])
     cols = [header.index(c) for c in inputs + outputs]
-    rows = []
+    rows, problems = [], []
     for lineno in range(header_line + 1, len(lines) + 1):
         line = lines[lineno - 1]
         if not line.strip() or line.startswith("#"):
             continue
         cells = next(csv.reader([line]))
         if len(cells) != len(header):
-            raise ValueError(f"{path} line {lineno}: {len(cells)} field(s), but the header has "
-                             f"{len(header)}; every row needs one value per column.")
+            problems.append(f"{source} line {lineno}: {len(cells)} field(s), but the header "
+                            f"has {len(header)}; every row needs one value per column.")
+            continue
         row = []
         for c in cols:
-            text = cells[c].strip()
+            text_c = cells[c].strip()
             try:
-                v = float(text)
+                v = float(text_c)
             except ValueError:
-                raise ValueError(f"{path} line {lineno}, column {header[c]!r}: {text!r} is not "
-                                 "a number.") from None
+                problems.append(f"{source} line {lineno}, column {header[c]!r}: {text_c!r} is "
+                                "not a number.")
+                continue
             if not np.isfinite(v):
-                raise ValueError(f"{path} line {lineno}, column {header[c]!r}: {text!r} is not "
-                                 "finite; remove the row or fill in the value.")
+                problems.append(f"{source} line {lineno}, column {header[c]!r}: {text_c!r} is "
+                                "not finite; remove the row or fill in the value.")
+                continue
             row.append(v)
         rows.append(row)
+    if problems:
+        more = len(problems) - MAX_PROBLEMS
+        raise MeasurementsError(problems[:MAX_PROBLEMS] + (
+            [f"{source}: and {more} more problem(s) like these."] if more > 0 else []))
     if not rows:
-        raise ValueError(f"{path}: the header is followed by no data rows.")
+        raise MeasurementsError([f"{source}: the header is followed by no data rows."])
     data = np.array(rows)
     k = len(inputs)
     return Measurements(data[:, :k], data[:, k:], inputs, outputs, tuple(comments))

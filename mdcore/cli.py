@@ -1,20 +1,29 @@
-"""Command line: ``python -m mdcore {cases,history-match,reproduce,study} ...``."""
+"""Command line: ``python -m mdcore {cases,history-match,reproduce,run,study} ...``.
+
+Exit codes: 0 done, 2 bad input (the message says what to fix), 1 a failure (a file that
+cannot be written, a simulator or cluster that fails).
+"""
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
+import warnings
+from collections import Counter
 
 import numpy as np
 
 from . import cases, compiled
+from .exceptions import LowESSWarning
 from .export import write_tables
-from .history_matching import history_match_case
+from .history_matching import HistoryMatchResult, case_problem, iter_waves
 from .koh import BURN_IN, N_ITER
 from .pipeline import Method, Settings
-from .reproduce import reproduce, run_case
+from .reproduce import CaseRun, default_methods, parse_methods, run_methods
 from .study import PAPER, study
+from .validation import as_int, as_seed_int
 
 
 def _cmd_cases(args) -> int:
@@ -27,22 +36,61 @@ def _cmd_cases(args) -> int:
     return 0
 
 
+def _v_m(case, values):
+    """V_m per output from ``--v-m``: one value per output, or one value for output 1 that
+    the other outputs scale by (z̄_i / z̄_1)², as in the app; None keeps the case's."""
+    if values is None:
+        return None
+    v = np.asarray(values, dtype=np.float64)
+    if v.size == 1 and case.n_out > 1:
+        zbar = np.abs(case.z_train.mean(axis=0))
+        return v[0] * (zbar / zbar[0]) ** 2
+    if v.size != case.n_out:
+        raise ValueError(f"--v-m takes 1 value or one per output ({case.n_out} for "
+                         f"{case.name}: {', '.join(case.output_names)}); received {v.size}.")
+    return v
+
+
+def _history_options(args, case) -> dict:
+    """The history-matching options given on the command line (others: the case's)."""
+    opts = {k: getattr(args, k) for k in ("threshold", "rule", "max_waves", "n_runs",
+                                          "n_candidates", "convergence_ratio")
+            if getattr(args, k) is not None}
+    v_m = _v_m(case, args.v_m)
+    if v_m is not None:
+        opts["V_m"] = v_m
+    return opts
+
+
+def _history_match(case, args, executor=None) -> HistoryMatchResult:
+    """Run the waves with a progress bar (on a terminal) and return the history match."""
+    problem = case_problem(case, seed=args.seed, executor=executor,
+                           **_history_options(args, case))
+    waves = []
+    with _Bar("history matching", problem.max_waves, "wave") as bar:
+        for wave in iter_waves(problem):
+            waves.append(wave)
+            bar.update_to(len(waves), f"wave {wave.index}: NROY {100 * wave.nroy_fraction:.2f} %")
+    return HistoryMatchResult(problem, tuple(waves))
+
+
+def _print_waves(case, result) -> None:
+    rows = [[str(w.index), f"{100 * w.nroy_fraction:.2f}", str(len(w.runs_theta)),
+             str(len(w.failures)), f"{np.max(w.max_var / w.var_threshold):.3g}",
+             f"{w.seconds:.2f}"] for w in result.waves]
+    print(case.title)
+    print(_table(["wave", "NROY %", "runs", "failed", "max var / (V_o+V_m)", "seconds"], rows))
+    failed = [f for w in result.waves for f in w.failures]
+    if failed:
+        print(f"{len(failed)} simulator run(s) failed and were dropped; the first: {failed[0]}")
+    print(result.message)
+
+
 def _cmd_history_match(args) -> int:
     case = cases.load(args.case, seed=args.seed)
-    opts = dict(seed=args.seed, max_waves=args.max_waves, threshold=args.threshold,
-                rule=args.rule)
-    if args.v_m is not None:
-        opts["V_m"] = args.v_m
-    if args.n_candidates is not None:
-        opts["n_candidates"] = args.n_candidates
-    result = history_match_case(case, **opts)
-    print(f"{case.title}\n{'wave':>4} {'NROY %':>8} {'runs':>5} {'max var / (V_o+V_m)':>20} "
-          f"{'seconds':>8}")
-    for w in result.waves:
-        ratio = np.max(w.max_var / w.var_threshold)
-        print(f"{w.index:>4} {100 * w.nroy_fraction:>8.2f} {len(w.runs_theta):>5} "
-              f"{ratio:>20.3g} {w.seconds:>8.2f}")
-    print(result.message)
+    with _executor(args) as executor:
+        result = _history_match(case, args, executor)
+    _print_waves(case, result)
     if result.status != "ruled_out":
         names = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
                           zip(case.theta_names, result.theta_map, case.theta_units))
@@ -50,9 +98,70 @@ def _cmd_history_match(args) -> int:
     return 0 if result.status != "ruled_out" else 1
 
 
-def _fmt(value, spec: str, width: int) -> str:
-    """A number in ``spec``, or "—" where it does not apply; right-aligned in ``width``."""
-    return ("—" if value is None else spec.format(value)).rjust(width)
+def _table(header: list[str], rows: list[list[str]]) -> str:
+    """Right-aligned columns, each as wide as its widest cell."""
+    widths = [max(len(str(c)) for c in col) for col in zip(header, *rows)]
+    return "\n".join(" ".join(str(c).rjust(w) for c, w in zip(line, widths))
+                     for line in [header, *rows])
+
+
+class _Bar:
+    """A progress bar with ETA on stderr when it is a terminal (tqdm); silent otherwise.
+
+    ``update_to(done, message)`` moves it to ``done`` of ``total``; :meth:`fraction` takes
+    the pipeline's ``progress(fraction, message)``.
+    """
+
+    def __init__(self, label: str, total: float, unit: str):
+        self.label, self.total, self.unit = label, total, unit
+        self._bar = None
+
+    def __enter__(self):
+        if sys.stderr.isatty():
+            from tqdm import tqdm
+            self._bar = tqdm(total=self.total, desc=self.label, unit=self.unit, leave=False,
+                             file=sys.stderr, dynamic_ncols=True)
+        return self
+
+    def update_to(self, done: float, message: str = "") -> None:
+        if self._bar is not None:
+            self._bar.n = min(done, self.total)
+            if message:
+                self._bar.set_postfix_str(message, refresh=False)
+            self._bar.refresh()
+
+    def fraction(self, f: float, message: str = "") -> None:
+        self.update_to(int(round(f * self.total)), message)
+
+    def __exit__(self, *exc):
+        if self._bar is not None:
+            self._bar.close()
+        return False
+
+
+@contextlib.contextmanager
+def _executor(args):
+    """The executor of ``--dask ADDRESS`` or ``--workers N`` (a local Dask cluster), or
+    None (serial) when neither is given."""
+    address, workers = getattr(args, "dask", None), getattr(args, "dask_workers", None)
+    if address is None and workers is None:
+        yield None
+        return
+    try:
+        from distributed import Client, LocalCluster
+    except ImportError:
+        raise ValueError("--dask and --workers need dask and distributed: pip install "
+                         "'mdcore[dask]'.") from None
+    if address is not None:
+        with Client(address, timeout="10s") as client:
+            yield client.get_executor()
+        return
+    workers = as_int(workers, "--workers", 1, 1024)
+    # One compute thread per worker process, or N workers × every core oversubscribe.
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                      dashboard_address=None, env={"MDCORE_NUM_THREADS": "1"}) as cluster, \
+            Client(cluster) as client:
+        yield client.get_executor()
 
 
 def _settings(args, name: str) -> Settings:
@@ -64,19 +173,37 @@ def _settings(args, name: str) -> Settings:
                     backend=args.backend)
 
 
-def _cmd_reproduce(args) -> int:
-    run = reproduce(args.case, methods=args.scenarios, settings=_settings(args, args.case),
-                    seed=args.seed, report=lambda line: print(line, flush=True))
+def _run(case, args, methods, settings_name: str) -> int:
+    """History match with a bar, then the methods with a bar each, then the tables."""
+    settings = _settings(args, settings_name)
+    methods = parse_methods(methods)
+    with _executor(args) as executor:
+        hm = _history_match(case, args, executor)
+        print(hm.message, flush=True)
+        with contextlib.ExitStack() as bars:
+            def bar_for(method):
+                bars.close()                        # the previous method's bar
+                total, unit = {Method.S1: (100, "%"), Method.S2: (settings.n_s, "θ"),
+                               Method.S3: (settings.n_s * settings.n_phi, "pairs"),
+                               Method.KOH: (settings.n_iter, "iterations")}[method]
+                return bars.enter_context(_Bar(method.label, total, unit)).fraction
+
+            results = run_methods(case, hm, methods, settings, seed=args.seed,
+                                  report=lambda line: (bars.close(), print(line, flush=True)),
+                                  progress_for=bar_for, executor=executor)
+    run = CaseRun(case, hm, settings, as_seed_int(args.seed), results)
     return _print_run(run, args)
+
+
+def _cmd_reproduce(args) -> int:
+    case = cases.load(args.case, seed=args.seed)
+    return _run(case, args, args.scenarios or default_methods(args.case), args.case)
 
 
 def _cmd_run(args) -> int:
     from .case_file import load_case_file
     case = load_case_file(args.case_file, seed=args.seed)
-    run = run_case(case, methods=args.scenarios or ("1", "2", "3"),
-                   settings=_settings(args, case.name), seed=args.seed,
-                   report=lambda line: print(line, flush=True))
-    return _print_run(run, args)
+    return _run(case, args, args.scenarios or ("1", "2", "3"), case.name)
 
 
 def _print_run(run, args) -> int:
@@ -88,25 +215,25 @@ def _print_run(run, args) -> int:
           f"{100 * hm.nroy_fraction[-1]:.2f} %, θ_MAP: {theta}, truth in NROY: "
           f"{run.truth_in_nroy}\nN_s = {settings.n_s}, N_φ = {settings.n_phi}, seed "
           f"{run.seed}\n")
-    columns = [("method", 8), ("output", 14), ("NMSE z %", 9), ("NMSE δ %", 9), ("MMD", 7),
-               ("LPL", 9), ("cov z 3σ", 8), ("cov δ 3σ", 8), ("ESS pairs", 10),
-               ("ESS φ", 8), ("k̂", 6), ("seconds", 8)]
-    print(" ".join(name.rjust(w) for name, w in columns))
+    header = ["method", "output", "NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cov z 3σ",
+              "cov δ 3σ", "ESS pairs", "ESS φ", "k̂", "seconds"]
+    rows = []
     for r in run.results:
         m, imp = r.metrics, r.importance
         for o, name in enumerate(case.output_names):
-            def pick(values, o=o):
-                return None if values is None else values[o]
+            def pick(values, spec, o=o):
+                return "—" if values is None else spec.format(values[o])
             low = imp is not None and imp.low[o]
-            cells = [r.method.value + ("!" if low else ""), name, _fmt(m.nmse_z[o], "{:.3f}", 9),
-                     _fmt(pick(m.nmse_delta), "{:.3f}", 9), _fmt(m.mmd[o], "{:.4f}", 7),
-                     _fmt(m.lpl[o], "{:.1f}", 9), _fmt(m.coverage_z_3sd[o], "{:.2f}", 8),
-                     _fmt(pick(m.coverage_delta_3sd), "{:.2f}", 8),
-                     _fmt(None if imp is None else imp.ess[o], "{:,.1f}", 10),
-                     _fmt(None if imp is None else imp.ess_phi[o], "{:.1f}", 8),
-                     _fmt(None if imp is None else imp.k_hat[o], "{:.2f}", 6),
-                     _fmt(r.seconds, "{:.2f}", 8)]
-            print(" ".join(str(c).rjust(w) for c, (_, w) in zip(cells, columns)))
+            rows.append([r.method.value + ("!" if low else ""), name,
+                         pick(m.nmse_z, "{:.3f}"), pick(m.nmse_delta, "{:.3f}"),
+                         pick(m.rmse_delta, "{:.3g}"), pick(m.mmd, "{:.4f}"),
+                         pick(m.lpl, "{:.1f}"), pick(m.coverage_z_3sd, "{:.2f}"),
+                         pick(m.coverage_delta_3sd, "{:.2f}"),
+                         pick(None if imp is None else imp.ess, "{:,.1f}"),
+                         pick(None if imp is None else imp.ess_phi, "{:.1f}"),
+                         pick(None if imp is None else imp.k_hat, "{:.2f}"),
+                         f"{r.seconds:.2f}"])
+    print(_table(header, rows))
     for r in run.results:
         if r.chain is not None:
             c, post = r.chain, r.model.theta
@@ -117,6 +244,7 @@ def _print_run(run, args) -> int:
                   f"{c.acceptance_rate:.3f}, IAT {', '.join(f'{t:.1f}' for t in c.iat)}, "
                   f"ESS {', '.join(f'{e:,.0f}' for e in c.ess)}\nKOH posterior θ: {theta}")
     notes = [w for r in run.results for w in r.warnings]
+    _SHOWN.update(notes)                    # not repeated in the warnings summary
     if notes:
         print("\n! unreliable importance weights or chain:\n"
               + "\n".join(f"  - {w}" for w in notes))
@@ -137,8 +265,12 @@ def _cmd_study(args) -> int:
     from concurrent.futures import ProcessPoolExecutor
 
     settings = _settings(args, args.case)
-    workers = max(1, args.workers)
-    if workers == 1:
+    workers = as_int(args.workers, "--workers", 1, 1024)
+    if args.dask is not None:
+        with _executor(args) as executor:
+            result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
+                           executor=executor)
+    elif workers == 1:
         result = study(args.case, args.seeds, methods=args.scenarios, settings=settings)
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
@@ -185,7 +317,8 @@ def _cmd_study(args) -> int:
 
 def _add_method_options(p) -> None:
     """The options that choose the methods and their sizes (reproduce, run and study)."""
-    p.add_argument("--scenarios", nargs="+", choices=[m.value for m in Method], default=None,
+    p.add_argument("--methods", "--scenarios", dest="scenarios", nargs="+",
+                   choices=[m.value for m in Method], default=None,
                    help="decoupled scenarios 1–3 and/or koh, the Kennedy–O'Hagan baseline "
                    "(default: 1 2 3, plus koh for beam-1d)")
     p.add_argument("--n-s", type=int, default=None, help="θ samples (default: paper's 1000)")
@@ -213,49 +346,136 @@ def _add_output_options(p) -> None:
                    help="also write a self-contained HTML report")
 
 
+def _add_history_options(p) -> None:
+    """History-matching options (history-match, reproduce and run); default: the case's."""
+    g = p.add_argument_group("history matching (default: the case's settings)")
+    g.add_argument("--v-m", type=float, nargs="+", default=None, metavar="V",
+                   help="model-discrepancy variance (output units²): one per output, or one "
+                   "for output 1 that the others scale by (z̄_i / z̄_1)², as in the app")
+    g.add_argument("--threshold", type=float, default=None, metavar="T",
+                   help="implausibility threshold T (default 3)")
+    g.add_argument("--rule", default=None, choices=["max", "2nd max", "3rd max"],
+                   help="how the outputs' implausibilities combine (default max)")
+    g.add_argument("--max-waves", type=int, default=None, help="at most this many waves")
+    g.add_argument("--n-runs", type=int, default=None,
+                   help="simulator runs added per wave (default max(10, 5 p))")
+    g.add_argument("--n-candidates", type=int, default=None,
+                   help="candidate θ scored per wave (default 50,000 p)")
+    g.add_argument("--convergence-ratio", type=float, default=None, metavar="R",
+                   help="stop when the emulator variance < R (V_o + V_m) (default 1)")
+    d = p.add_argument_group("simulator runs on a cluster (default: in this process)")
+    d.add_argument("--dask", default=None, metavar="ADDRESS",
+                   help="run simulator batches on the Dask scheduler at ADDRESS, e.g. "
+                   "tcp://10.0.0.5:8786; the numbers equal a serial run's")
+    d.add_argument("--workers", dest="dask_workers", type=int, default=None, metavar="N",
+                   help="start a local Dask cluster of N processes for the simulator runs")
+
+
+#: The run's own advice, printed with its table; the warnings summary leaves it out.
+_SHOWN: set[str] = set()
+
+EXIT_CODES = ("exit codes: 0 done; 2 bad input (the message names the option or file and "
+              "what to fix); 1 a failure (a file that cannot be written, a simulator or "
+              "cluster that fails). Progress bars appear on a terminal only.")
+EXAMPLES = {
+    "cases": "example:\n  python -m mdcore cases",
+    "history-match": "examples:\n  python -m mdcore history-match beam-1d\n"
+                     "  python -m mdcore history-match shear-5 --v-m 0.2 --threshold 3.5\n"
+                     "  python -m mdcore history-match beam-2d --n-runs 10 "
+                     "--convergence-ratio 0.1 --max-waves 8",
+    "reproduce": "examples:\n  python -m mdcore reproduce beam-1d            "
+                 "# the paper's Table 1 (about a minute)\n"
+                 "  python -m mdcore reproduce beam-2d --methods 1 3 --proposal adaptive\n"
+                 "  python -m mdcore reproduce shear-5 --n-s 200 --n-phi 100 --json out.json "
+                 "--csv results/ --out report.html",
+    "run": "examples:\n  python -m mdcore run examples/beam_lab/beam_lab.toml\n"
+           "  python -m mdcore run my_case.toml --methods 1 2 --v-m 0.02 --out report.html\n"
+           "  python -m mdcore run my_case.toml --dask tcp://scheduler:8786",
+    "study": "examples:\n  python -m mdcore study beam-1d --seeds 0-9\n"
+             "  python -m mdcore study beam-2d --seeds 0,3,5 --methods 3 --proposal adaptive "
+             "--json study.json",
+}
+
+
+#: Warning classes in words, for the summary.
+WARNING_WORDS = {"LowESSWarning": "few effective importance samples",
+                 "ConvergenceWarning": "did not converge",
+                 "NumericalWarning": "numerical fallback",
+                 "RuntimeWarning": "numerical"}
+
+
+def _summarise(caught) -> None:
+    """Print each distinct warning once, with how often it came, in words. Low-ESS
+    warnings are left out once the run's own advice (printed with the table) said it."""
+    counts = Counter((w.category.__name__, str(w.message)) for w in caught
+                     if not (_SHOWN and issubclass(w.category, LowESSWarning)))
+    if not counts:
+        return
+    print(f"\n{sum(counts.values())} warning(s) while running, each listed once:",
+          file=sys.stderr)
+    for (category, message), n in counts.items():
+        kind = WARNING_WORDS.get(category, category)
+        print(f"  - {kind}{f' (×{n})' if n > 1 else ''}: {message}", file=sys.stderr)
+
+
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m mdcore", description=__doc__)
+    parser = argparse.ArgumentParser(
+        prog="python -m mdcore", formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Model discrepancy (Gardner et al., MSSP 2021): history matching, GP "
+        "discrepancy scenarios 1–3 and the Kennedy–O'Hagan baseline.",
+        epilog="\n\n".join([EXAMPLES["reproduce"], EXAMPLES["run"], EXIT_CODES]))
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("cases", help="list the case studies")
-    hm = sub.add_parser("history-match", help="run Bayesian history matching on a case")
+
+    def command(name: str, text: str):
+        return sub.add_parser(name, help=text, description=text, epilog=EXAMPLES[name] + "\n\n"
+                              + EXIT_CODES, formatter_class=argparse.RawDescriptionHelpFormatter)
+
+    command("cases", "list the case studies")
+    hm = command("history-match", "run Bayesian history matching on a case (waves until "
+                 "converged) and print each wave's NROY share and θ_MAP")
     hm.add_argument("case", choices=cases.names())
     hm.add_argument("--seed", type=int, default=0)
-    hm.add_argument("--max-waves", type=int, default=5)
-    hm.add_argument("--threshold", type=float, default=3.0)
-    hm.add_argument("--rule", default="max", choices=["max", "2nd max", "3rd max"])
-    hm.add_argument("--v-m", type=float, default=None, help="model-discrepancy variance")
-    hm.add_argument("--n-candidates", type=int, default=None)
-    rp = sub.add_parser("reproduce", help="history matching + discrepancy scenarios + metrics "
-                        "(the paper's Tables 1–3)")
+    _add_history_options(hm)
+    rp = command("reproduce", "history matching + discrepancy scenarios + metrics (the "
+                 "paper's Tables 1–3)")
     rp.add_argument("case", choices=cases.names())
     _add_method_options(rp)
     _add_output_options(rp)
-    rn = sub.add_parser("run", help="your own case: history matching + methods on a TOML "
-                        "case file (see the README, 'Your own data')")
+    _add_history_options(rp)
+    rn = command("run", "your own case: history matching + methods on a TOML case file (see "
+                 "the README, 'Your own data')")
     rn.add_argument("case_file", help="the TOML case file")
     _add_method_options(rn)
     _add_output_options(rn)
-    st = sub.add_parser("study", help="reproduce a case over many seeds: mean ± sd of every "
-                        "metric beside the paper's values, and whether its patterns hold")
+    _add_history_options(rn)
+    st = command("study", "reproduce a case over many seeds: mean ± sd of every metric "
+                 "beside the paper's values, and whether its patterns hold")
     st.add_argument("case", choices=cases.names())
     _add_method_options(st)
     st.add_argument("--seeds", default="0-9", help="seeds, e.g. 0-9 or 0,3,5 (default 0-9)")
     st.add_argument("--workers", type=int, default=2,
                     help="processes running seeds in parallel (default 2; 1 runs in this one)")
+    st.add_argument("--dask", default=None, metavar="ADDRESS",
+                    help="run the seeds on the Dask scheduler at ADDRESS instead")
     args = parser.parse_args(argv)
     if args.command in ("reproduce", "run", "study"):
         # Load (or compile) the numba kernels while history matching runs.
         compiled.warm_up_in_background()
-    try:
-        return {"cases": _cmd_cases, "history-match": _cmd_history_match,
-                "reproduce": _cmd_reproduce, "run": _cmd_run,
-                "study": _cmd_study}[args.command](args)
-    except ValueError as exc:                      # bad input: the message says what to fix
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    except (OSError, RuntimeError) as exc:         # a file that cannot be written, a failure
-        print(f"error: {type(exc).__name__}: {exc}", file=sys.stderr)
-        return 1
+    _SHOWN.clear()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            code = {"cases": _cmd_cases, "history-match": _cmd_history_match,
+                    "reproduce": _cmd_reproduce, "run": _cmd_run,
+                    "study": _cmd_study}[args.command](args)
+        except ValueError as exc:                  # bad input: the message says what to fix
+            print(f"error: {exc}", file=sys.stderr)
+            code = 2
+        except (OSError, RuntimeError) as exc:     # a file that cannot be written, a failure
+            print(f"error: {type(exc).__name__}: {exc}", file=sys.stderr)
+            code = 1
+    _summarise(caught)
+    return code
 
 
 if __name__ == "__main__":

@@ -83,3 +83,79 @@ def test_run_own_case_file_writes_tables_and_json(tmp_path, capsys):
     assert main(["run", str(example), "--n-s", "5", "--n-phi", "2", "--scenarios", "1",
                  "--json", str(tmp_path / "no" / "such" / "dir.json")]) == 1
     assert "FileNotFoundError" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", ["cases", "history-match", "reproduce", "run", "study"])
+def test_every_subcommand_has_examples_and_exit_codes_in_help(command, capsys):
+    with pytest.raises(SystemExit) as done:
+        main([command, "--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    assert "example" in text and f"python -m mdcore {command}" in text
+    assert "exit codes: 0 done; 2 bad input" in text
+
+
+def test_history_options_reach_the_history_match(capsys):
+    assert main(["history-match", "beam-1d", "--n-candidates", "3000", "--n-runs", "6",
+                 "--convergence-ratio", "0.05", "--max-waves", "3", "--v-m", "0.04"]) == 0
+    out = capsys.readouterr().out
+    header = next(line for line in out.splitlines() if "NROY %" in line)
+    rows = [line for line in out.splitlines()
+            if line.split() and line.split()[0].isdigit() and len(line) == len(header)]
+    runs = [int(r.split()[2]) for r in rows]
+    assert len(rows) >= 2 and runs == [25] + [6] * (len(rows) - 1)   # design, then --n-runs
+    assert main(["history-match", "shear-5", "--v-m", "0.1", "0.2"]) == 2
+    assert "--v-m takes 1 value or one per output (5 for shear-5" in capsys.readouterr().err
+
+
+def test_warnings_are_summarised_once_in_words(capsys, monkeypatch):
+    import warnings as w
+
+    from mdcore import cli
+    from mdcore.exceptions import ConvergenceWarning
+
+    def noisy(args):
+        for _ in range(3):
+            w.warn("the optimiser stopped early", ConvergenceWarning, stacklevel=1)
+        w.warn("something else", RuntimeWarning, stacklevel=1)
+        return 0
+
+    monkeypatch.setattr(cli, "_cmd_cases", noisy)
+    assert main(["cases"]) == 0
+    err = capsys.readouterr().err
+    assert "4 warning(s) while running, each listed once" in err
+    assert "did not converge (×3): the optimiser stopped early" in err
+    assert err.count("the optimiser stopped early") == 1
+
+
+def test_progress_bars_only_on_a_terminal(capsys, monkeypatch):
+    import io
+
+    from mdcore import cli
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    with cli._Bar("Scenario 3", 200, "pairs") as bar:      # not a terminal: silent
+        bar.fraction(0.5, "pairs")
+    assert capsys.readouterr().err == ""
+    fake = Terminal()
+    monkeypatch.setattr(cli.sys, "stderr", fake)
+    with cli._Bar("Scenario 3", 200, "pairs") as bar:
+        bar._bar.ncols, bar._bar.nrows = 100, 40
+        bar.fraction(0.5, "scoring pairs")
+    shown = fake.getvalue()
+    assert "Scenario 3:  50%" in shown and "100/200" in shown and "scoring pairs" in shown
+
+
+def test_local_dask_cluster_gives_the_serial_numbers(tmp_path):
+    pytest.importorskip("distributed")
+    serial, cluster = tmp_path / "serial.json", tmp_path / "cluster.json"
+    base = ["reproduce", "beam-1d", "--n-s", "20", "--n-phi", "5", "--methods", "1",
+            "--n-candidates", "3000"]
+    assert main(base + ["--json", str(serial)]) == 0
+    assert main(base + ["--workers", "2", "--json", str(cluster)]) == 0
+    a, b = json.loads(serial.read_text()), json.loads(cluster.read_text())
+    assert a["history_matching"] == b["history_matching"]
+    assert a["methods"]["1"]["metrics"] == b["methods"]["1"]["metrics"]

@@ -1,0 +1,202 @@
+"""Saved sessions and uploaded files of the app: JSON in and out, checked, never pickled.
+
+A session file is JSON with a versioned layout::
+
+    {"schema": "mdcore-session", "schema_version": 1, "mdcore_version": "...",
+     "case": {"name": ..., "based_on": null | built-in case, "measurements_csv": null | text,
+              "measurements_file": null | file name},
+     "controls": {"preset", "v_m", "threshold", "rule", "n_runs", "n_candidates", "max_waves",
+                  "convergence_ratio", "n_s", "n_phi", "scenarios", "koh_chain",
+                  "proposal", "seed", "band"},
+     "n_waves": int,
+     "run": null | the layout of ``python -m mdcore reproduce --json`` (the metrics)}
+
+Opening one sets the controls and recomputes the waves and the methods: every step is
+seeded, so the numbers come back the same, and :func:`compare_metrics` checks that they
+do. Uploaded data travel inside the file (``measurements_csv``), so a session on your own
+measurements reopens anywhere.
+
+Everything read from a browser goes through :func:`decode_upload` first (a size cap and
+UTF-8), and is then only parsed (``json.loads``, :mod:`csv`): no upload is ever run,
+imported or unpickled.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import mdcore
+from mdcore.pipeline import Method, MethodResult
+
+__all__ = ["CONTROLS", "MAX_UPLOAD_BYTES", "SCHEMA", "SCHEMA_VERSION", "SessionError",
+           "compare_metrics", "decode_upload", "parse_session"]
+
+SCHEMA, SCHEMA_VERSION = "mdcore-session", 1
+#: Largest file the app accepts from a browser (bytes).
+MAX_UPLOAD_BYTES = 5 * 1024 * 1024
+#: The state's parameters a session file stores, and the JSON types each must have.
+CONTROLS: dict[str, tuple[type, ...]] = {
+    "preset": (str,), "v_m": (int, float), "threshold": (int, float), "rule": (str,),
+    "n_runs": (int,),
+    "n_candidates": (int,), "max_waves": (int,), "convergence_ratio": (int, float),
+    "n_s": (int,), "n_phi": (int,), "scenarios": (list,), "koh_chain": (str,),
+    "proposal": (str,), "seed": (int,), "band": (int,)}
+#: Relative difference below which a recomputed metric counts as the saved one.
+RTOL = 1e-9
+
+
+class SessionError(ValueError):
+    """A file the app cannot take; ``problems`` lists what is wrong, one sentence each."""
+
+    def __init__(self, problems: list[str]):
+        self.problems = tuple(problems)
+        super().__init__(" ".join(self.problems))
+
+
+def decode_upload(data: bytes, filename: str, *, kind: str) -> str:
+    """The text of an uploaded file, after the size cap and a UTF-8 check.
+
+    Parameters
+    ----------
+    data : bytes
+        The file's content as the browser sent it.
+    filename : str
+        Its name, for the messages.
+    kind : str
+        What the file should be ("measurements CSV", "session JSON"), for the messages.
+
+    Raises
+    ------
+    SessionError
+        Empty, larger than :data:`MAX_UPLOAD_BYTES`, or not UTF-8 text.
+    """
+    if not isinstance(data, bytes | bytearray) or not data:
+        raise SessionError([f"{filename}: the file is empty; choose a {kind}."])
+    if len(data) > MAX_UPLOAD_BYTES:
+        raise SessionError([f"{filename}: {len(data) / 2**20:.1f} MB is more than the "
+                            f"{MAX_UPLOAD_BYTES / 2**20:.0f} MB limit for a {kind}."])
+    try:
+        return bytes(data).decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise SessionError([f"{filename}: not UTF-8 text ({exc.reason} at byte {exc.start}); "
+                            f"a {kind} must be saved as UTF-8."]) from None
+
+
+def parse_session(text: str, filename: str = "session.json") -> dict[str, Any]:
+    """Read and check a session file's JSON (layout in the module doc).
+
+    Returns
+    -------
+    dict
+        The parsed document, with every key of the layout present and of its type.
+
+    Raises
+    ------
+    SessionError
+        Listing every problem found: not JSON, another schema or a newer version, a
+        missing key, or a value of the wrong type.
+    """
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise SessionError([f"{filename}: not valid JSON (line {exc.lineno}, column "
+                            f"{exc.colno}: {exc.msg})."]) from None
+    if not isinstance(doc, dict) or doc.get("schema") != SCHEMA:
+        found = doc.get("schema") if isinstance(doc, dict) else type(doc).__name__
+        raise SessionError([f"{filename}: not an mdcore session (expected \"schema\": "
+                            f"{SCHEMA!r}; found {found!r}). Save one with “Save session”."])
+    version = doc.get("schema_version")
+    if not isinstance(version, int) or not 1 <= version <= SCHEMA_VERSION:
+        raise SessionError([f"{filename}: schema_version {version!r} is not supported; this "
+                            f"app reads versions 1 to {SCHEMA_VERSION}."])
+    problems = []
+    case = doc.get("case")
+    if not isinstance(case, dict) or not isinstance(case.get("name"), str):
+        problems.append(f"{filename}: \"case\" must be an object with a \"name\" string; "
+                        f"found {case!r}.")
+    else:
+        for k in ("based_on", "measurements_csv", "measurements_file"):
+            if case.get(k) is not None and not isinstance(case[k], str):
+                problems.append(f"{filename}: case.{k} must be a string or null; found "
+                                f"{type(case[k]).__name__}.")
+    controls = doc.get("controls")
+    if not isinstance(controls, dict):
+        problems.append(f"{filename}: \"controls\" must be an object; found {controls!r}.")
+    else:
+        for k, types in CONTROLS.items():
+            v = controls.get(k)
+            if v is None:
+                problems.append(f"{filename}: controls.{k} is missing.")
+            elif isinstance(v, bool) or not isinstance(v, types):
+                problems.append(f"{filename}: controls.{k} must be "
+                                f"{' or '.join(t.__name__ for t in types)}; found {v!r}.")
+            elif isinstance(v, float) and not math.isfinite(v):
+                problems.append(f"{filename}: controls.{k} must be finite; found {v!r}.")
+    n_waves = doc.get("n_waves")
+    if isinstance(n_waves, bool) or not isinstance(n_waves, int) or n_waves < 0:
+        problems.append(f"{filename}: \"n_waves\" must be a whole number ≥ 0; found "
+                        f"{n_waves!r}.")
+    run = doc.get("run")
+    if run is not None and not (isinstance(run, dict) and isinstance(run.get("methods"), dict)):
+        problems.append(f"{filename}: \"run\" must be null or an object with \"methods\".")
+    if problems:
+        raise SessionError(problems)
+    return doc
+
+
+def session_document(*, case_name: str, based_on: str | None, measurements_csv: str | None,
+                     measurements_file: str | None, controls: dict, n_waves: int,
+                     run: dict | None) -> dict[str, Any]:
+    """The JSON document of a session (layout in the module doc)."""
+    return {"schema": SCHEMA, "schema_version": SCHEMA_VERSION,
+            "mdcore_version": mdcore.__version__,
+            "case": {"name": case_name, "based_on": based_on,
+                     "measurements_csv": measurements_csv,
+                     "measurements_file": measurements_file},
+            "controls": controls, "n_waves": int(n_waves), "run": run}
+
+
+def _close(a, b) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    if isinstance(a, list | tuple):
+        return len(a) == len(b) and all(_close(x, y) for x, y in zip(a, b))
+    return math.isclose(float(a), float(b), rel_tol=RTOL, abs_tol=1e-12)
+
+
+def compare_metrics(saved: dict, results: dict[Method, MethodResult]) -> str:
+    """Say whether recomputed results reproduce a saved session's metrics.
+
+    Parameters
+    ----------
+    saved : dict
+        ``run["methods"]`` of a session file: method value -> {"metrics": {...}}.
+    results : dict of Method -> MethodResult
+        What the restored session computed.
+
+    Returns
+    -------
+    str
+        A status line: every metric equal to :data:`RTOL`, or the first differences.
+    """
+    differ, missing = [], []
+    for value, entry in saved.items():
+        method = Method.parse(value)
+        if method not in results:
+            missing.append(method.label)
+            continue
+        now = results[method].metrics.as_dict()
+        for name, old in (entry.get("metrics") or {}).items():
+            if name in now and not _close(old, now[name]):
+                differ.append(f"{method.label} {name}: saved {old}, now {now[name]}")
+    labels = ", ".join(Method.parse(v).label for v in saved)
+    if not differ and not missing:
+        return (f"Session restored: {labels} recomputed, and every metric equals the saved "
+                f"one (to {RTOL:g} relative).")
+    text = f"Session restored, but {len(differ)} metric(s) differ from the saved ones"
+    if missing:
+        text += f" and {', '.join(missing)} did not run"
+    return text + ": " + "; ".join(differ[:3]) + (" (different mdcore version or backend?)"
+                                                   if differ else "")

@@ -1,0 +1,283 @@
+"""Your data in, results out, in the app: uploaded measurements, saved and reopened
+sessions, downloads, and results kept per case."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+pytest.importorskip("panel")
+import holoviews as hv  # noqa: E402
+import panel as pn  # noqa: E402
+from bokeh.document import Document  # noqa: E402
+
+from mdcore import cases  # noqa: E402
+from mdcore.case_file import measurements_template, with_measurements  # noqa: E402
+from mdcore.pipeline import Method  # noqa: E402
+from mdcore_app import session  # noqa: E402
+from mdcore_app.state import ExplorerState  # noqa: E402
+from mdcore_app.views import ExplorerView  # noqa: E402
+
+hv.extension("bokeh")
+SMALL = {"preset": "paper", "n_candidates": 4000, "n_s": 30, "n_phi": 8}
+S123 = [Method.S1, Method.S2, Method.S3]
+
+
+def small_state(case="beam-1d", **extra):
+    s = ExplorerState()
+    s.case_name = case
+    s.param.update(**{**SMALL, **extra})
+    return s
+
+
+def errors_of(s):
+    """Collect every notification of ``s`` (one per event)."""
+    seen = []
+    s.param.watch(lambda e: seen.append(s.error), "n_errors")
+    return seen
+
+
+def quiet(fn, *args):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fn(*args)
+
+
+def lab_csv(case_name="beam-1d", shift=0.02):
+    """Measurements in the template layout: the case's data with every reading shifted."""
+    c = cases.load(case_name)
+    lines = measurements_template(c).splitlines()
+    out = lines[:3]
+    n_out = c.n_out
+    for row in lines[3:]:
+        cells = row.split(",")
+        for j in range(c.d_x, c.d_x + n_out):
+            cells[j] = repr(float(cells[j]) + shift)
+        out.append(",".join(cells))
+    return "\n".join(out) + "\n"
+
+
+# ---------------------------------------------------------------------------------------
+# Uploaded measurements
+
+
+def test_template_round_trips_every_case():
+    for name in cases.names():
+        c = cases.load(name)
+        own = with_measurements(c, measurements_template(c), source="mine.csv")
+        np.testing.assert_array_equal(own.X_train, c.X_train)
+        np.testing.assert_array_equal(own.z_test, c.z_test)
+        assert own.theta_true is None and own.true_delta(c.X_test) is None
+        np.testing.assert_array_equal(own.theta_bounds, c.theta_bounds)
+
+
+def test_uploaded_measurements_become_a_case_of_this_session_only():
+    s = small_state()
+    other = ExplorerState()
+    text = lab_csv()
+    assert s.upload_measurements(text.encode(), "my_beam.csv")
+    assert s.case_name == "beam-1d · my_beam.csv" and s.error == ""
+    np.testing.assert_allclose(s.case.z_train, cases.load("beam-1d").z_train + 0.02,
+                               rtol=0, atol=1e-12)
+    assert s.case.simulate(s.case.X_train, [[0.5, 200.0]]).shape == (1, 13, 1)
+    assert "beam-1d · my_beam.csv" not in other.param.case_name.objects     # per session
+    quiet(s.run_discrepancy)                    # history matching first, then the methods
+    assert s.error == "" and list(s.results) == S123
+    m = s.results[Method.S1].metrics
+    assert m.nmse_delta is None and np.isfinite(m.nmse_z[0])       # no true δ for own data
+    s.case_name = "beam-2d"
+    assert s.base_case_name() == "beam-2d"
+    s.case_name = "beam-1d · my_beam.csv"        # the upload stays, with its results
+    assert list(s.results) == S123
+
+
+@pytest.mark.parametrize("data, problem", [
+    (b"", "empty"),
+    (b"x" * (session.MAX_UPLOAD_BYTES + 1), "MB limit"),
+    ("crack location,tip deflection,test\n0.2,\xe9,0\n".encode("latin-1"), "not UTF-8"),
+    (b"position,deflection\n0.2,0.5\n", "not found in the header"),
+    (b"crack location,tip deflection,test\n", "no data rows"),
+    (b"crack location,tip deflection,test\n0.2,0.5,0\n0.3,0.6,2\n", "must be 0"),
+    (b"crack location,tip deflection,test\n0.2,0.5,1\n0.3,0.6,1\n", "at least one training"),
+    (b"crack location,tip deflection,test\n200,0.5,0\n0.3,0.6,1\n", "far outside"),
+    (b"crack location,tip deflection,test\n0.2,0.5,0\n0.3,0.6,1\n", "at least 3"),
+    (b"crack location,tip deflection,test\n0.2,__import__('os'),0\n0.3,0.6,1\n",
+     "is not a number"),
+], ids=["empty", "too-big", "latin-1", "wrong-columns", "no-rows", "bad-test-flag",
+        "no-training-rows", "wrong-units", "too-few-rows", "code-is-not-run"])
+def test_a_bad_upload_is_a_notification_and_the_session_keeps_its_case(data, problem):
+    s = small_state()
+    s.run_to_convergence()
+    waves, objects = s.waves, list(s.param.case_name.objects)
+    seen = errors_of(s)
+    assert not s.upload_measurements(data, "lab.csv")
+    assert len(seen) == 1 and problem in seen[0] and "lab.csv" in seen[0]
+    assert s.case_name == "beam-1d" and s.waves is waves
+    assert list(s.param.case_name.objects) == objects
+
+
+def test_each_problem_of_an_upload_is_its_own_notification():
+    s = small_state()
+    seen = errors_of(s)
+    bad = b"crack location,tip deflection,test\n0.2,abc,0\n0.3,nan,1\n0.4,0.5\n0.5,0.1,0\n"
+    assert not s.upload_measurements(bad, "lab.csv")
+    assert len(seen) == 3
+    assert "line 2" in seen[0] and "'abc' is not a number" in seen[0]
+    assert "line 3" in seen[1] and "not finite" in seen[1]
+    assert "line 4" in seen[2] and "2 field(s)" in seen[2]
+
+
+# ---------------------------------------------------------------------------------------
+# Sessions: save, then open, gives the same numbers
+
+
+def run_small(s, methods=S123):
+    s.scenarios = methods
+    quiet(s.run_discrepancy)
+    assert s.error == "" and list(s.results) == methods
+    return s
+
+
+def test_saved_session_reopens_with_the_same_numbers():
+    s = run_small(small_state(n_s=40, seed=3, v_m=0.06, threshold=2.5))
+    doc = json.loads(s.session_json())
+    assert doc["schema"] == "mdcore-session" and doc["schema_version"] == 1
+    assert doc["controls"]["seed"] == 3 and doc["controls"]["scenarios"] == ["1", "2", "3"]
+    assert doc["n_waves"] == len(s.waves)
+    assert set(doc["run"]["methods"]) == {"1", "2", "3"}
+    fresh = ExplorerState()
+    statuses = []
+    fresh.param.watch(lambda e: statuses.append(e.new), "status")
+    assert quiet(fresh.open_session, s.session_json().encode(), "saved.json")
+    assert fresh.error == ""
+    assert (fresh.v_m, fresh.threshold, fresh.n_s, fresh.seed) == (0.06, 2.5, 40, 3)
+    assert len(fresh.waves) == len(s.waves) and list(fresh.results) == S123
+    for m in S123:
+        assert fresh.results[m].metrics.as_dict() == s.results[m].metrics.as_dict()
+        np.testing.assert_array_equal(fresh.results[m].on_extra.delta_var,
+                                      s.results[m].on_extra.delta_var)
+    assert "every metric equals the saved one" in statuses[-1]
+
+
+def test_a_session_on_uploaded_data_carries_the_data():
+    s = small_state()
+    s.upload_measurements(lab_csv(shift=0.03).encode(), "lab.csv")
+    run_small(s, [Method.S1])
+    fresh = ExplorerState()
+    assert quiet(fresh.open_session, s.session_json().encode(), "lab_session.json")
+    assert fresh.case_name == "beam-1d · lab.csv" and fresh.error == ""
+    np.testing.assert_array_equal(fresh.case.z_train, s.case.z_train)
+    assert fresh.results[Method.S1].metrics.as_dict() == s.results[Method.S1].metrics.as_dict()
+
+
+def test_a_changed_metric_is_reported_on_open():
+    s = run_small(small_state(), [Method.S1])
+    doc = json.loads(s.session_json())
+    doc["run"]["methods"]["1"]["metrics"]["nmse_z"][0] *= 1.5
+    fresh = ExplorerState()
+    quiet(fresh.open_session, json.dumps(doc).encode(), "edited.json")
+    assert "1 metric(s) differ" in fresh.status and "nmse_z" in fresh.status
+
+
+def good_doc():
+    return json.loads(small_state().session_json())
+
+
+def edit(path, value):
+    doc = good_doc()
+    *keys, last = path
+    target = doc
+    for k in keys:
+        target = target[k]
+    if value is KeyError:
+        del target[last]
+    else:
+        target[last] = value
+    return json.dumps(doc).encode()
+
+
+@pytest.mark.parametrize("data, problem", [
+    (b"{not json", "not valid JSON"),
+    (b"[1, 2]", "not an mdcore session"),
+    (json.dumps({"schema": "other"}).encode(), "not an mdcore session"),
+    (edit(["schema_version"], 99), "schema_version 99 is not supported"),
+    (edit(["controls", "v_m"], KeyError), "controls.v_m is missing"),
+    (edit(["controls", "n_s"], "many"), "controls.n_s must be int"),
+    (edit(["controls", "seed"], True), "controls.seed must be int"),
+    (edit(["n_waves"], -1), "n_waves"),
+    (edit(["case", "name"], "bridge-9"), "'bridge-9' is not in this app"),
+    (edit(["controls", "v_m"], -0.5), "V_m"),
+    (edit(["controls", "n_phi"], 0), "N_φ"),
+    (edit(["controls", "rule"], "mean"), "rule"),
+], ids=["not-json", "a-list", "other-schema", "newer-version", "missing-control",
+        "wrong-type", "bool-for-int", "negative-waves", "unknown-case", "negative-v_m",
+        "zero-n_phi", "unknown-rule"])
+def test_a_bad_session_file_is_a_notification_and_changes_nothing(data, problem):
+    s = small_state(v_m=0.07)
+    s.run_to_convergence()
+    before = {k: getattr(s, k) for k in ("case_name", *session.CONTROLS)}
+    waves = s.waves
+    seen = errors_of(s)
+    assert not s.open_session(data, "bad.json")
+    assert len(seen) >= 1 and problem in seen[0]
+    assert {k: getattr(s, k) for k in before} == before and s.waves is waves
+
+
+# ---------------------------------------------------------------------------------------
+# Results kept per case; downloads
+
+
+def test_switching_cases_keeps_each_cases_results():
+    s = run_small(small_state(v_m=0.04), [Method.S1])
+    waves, result = s.waves, s.results[Method.S1]
+    s.case_name = "shear-5"
+    assert s.waves == () and s.results == {}
+    s.case_name = "beam-1d"
+    assert s.waves is waves and s.results[Method.S1] is result and s.v_m == 0.04
+
+
+def test_downloads_give_the_files_of_the_current_results():
+    s = small_state()
+    v = ExplorerView(state=s)
+    files = v.files_view()
+    pn.panel(files).get_root(Document())
+    buttons = {b.css_classes[0]: b for b in files.select(pn.widgets.FileDownload)}
+    assert buttons["dl-nroy"].disabled and buttons["dl-report"].disabled
+    template = buttons["dl-template"].callback().getvalue().decode()
+    assert template == measurements_template(s.case)
+    run_small(s, [Method.S1])
+    assert not buttons["dl-nroy"].disabled and not buttons["dl-predictions"].disabled
+    nroy = buttons["dl-nroy"].callback().getvalue().decode().splitlines()
+    assert nroy[1] == "wave,l_cr [mm],E [GPa],implausibility"
+    rows = [line.split(",") for line in nroy[2:]]
+    assert {int(r[0]) for r in rows} == {w.index for w in s.waves}
+    assert max(float(r[-1]) for r in rows) <= s.threshold
+    pred = buttons["dl-predictions"].callback().getvalue().decode().splitlines()
+    assert len(pred) == 2 + s.case.X_test.shape[0]            # one method, one output
+    html = buttons["dl-report"].callback().getvalue().decode()
+    assert html.startswith("<!DOCTYPE html>") and "<script src=" not in html
+    doc = json.loads(buttons["dl-session"].callback().getvalue())
+    assert doc["run"]["methods"]["1"]["metrics"] == s.results[Method.S1].metrics.as_dict()
+    assert buttons["dl-report"].filename == "beam-1d_report.html"
+
+
+# ---------------------------------------------------------------------------------------
+# panel serve app/main.py --args --case my_case.toml
+
+
+def test_case_files_given_to_the_server_join_the_case_list(tmp_path):
+    from mdcore_app import main
+    toml = main.Path(__file__).resolve().parent.parent / "examples" / "beam_lab" / "beam_lab.toml"
+    view = main.create_app(["--case", str(toml)])
+    s = view.state
+    assert "beam-lab" in s.param.case_name.objects
+    s.case_name = "beam-lab"
+    s.param.update(**SMALL)
+    run_small(s, [Method.S1])
+    assert s.case.theta_names == ("E", "w0") and np.isfinite(s.results[Method.S1].metrics.lpl[0])
+    bad = tmp_path / "bad.toml"
+    bad.write_text('name = "x"\n[data]\nfile = 3\n', encoding="utf-8")
+    cases_, errors = main.own_cases([bad, tmp_path / "missing.toml"])
+    assert cases_ == [] and len(errors) == 2
+    assert "bad.toml" in errors[0] and "file" in errors[0] and "does not exist" in errors[1]

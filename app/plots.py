@@ -10,11 +10,17 @@ import numpy as np
 
 from mdcore.pipeline import Method
 
+from .report import PAPER_COLOR, metric_bars
+
 #: Category10 (the wave colours repeat after ten waves).
 WAVE_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
                "#7f7f7f", "#bcbd22", "#17becf"]
 METHOD_COLORS = {Method.S1: "#1f77b4", Method.S2: "#ff7f0e", Method.S3: "#2ca02c",
                  Method.KOH: "#d62728"}
+#: θ_MAP's marker on every θ plot: a red star (the truth is a cross or a dashed line).
+THETA_MAP_COLOR = "red"
+THETA_MAP_MARKER = {"color": THETA_MAP_COLOR, "marker": "star", "size": 18,
+                    "line_color": "black", "line_width": 1}
 PLOT = {"responsive": True, "height": 300, "min_width": 200, "tools": ["hover"], "show_grid": True}
 
 
@@ -89,12 +95,33 @@ def _span(case, d):
 
 
 def nroy_samples(waves, names, units, bounds, truth, upto: int, *,
-                 max_points: int = 1500) -> list:
+                 max_points: int = 1500, theta_map=None) -> list:
     """NROY samples of waves 1..upto in θ space, coloured by wave, with the true θ.
 
     One overlaid histogram per wave for p = 1; one scatter plot per pair of parameters for
     p ≥ 2. A list of plots: the view gives each its own pane (responsive plots inside one
     HoloViews layout collapsed to zero width in the browser).
+
+    Parameters
+    ----------
+    waves : sequence of mdcore.history_matching.Wave
+    names, units : sequence of str, length p
+    bounds : ndarray of shape (p, 2)
+        The prior box (the axis ranges).
+    truth : ndarray of shape (p,) or None
+        The true θ (a black cross; a dashed line for p = 1).
+    upto : int
+        Show waves 1..upto.
+    max_points : int, default=1500
+        At most this many samples per wave are drawn.
+    theta_map : ndarray of shape (p,), optional
+        θ_MAP (:attr:`mdcore.history_matching.HistoryMatchResult.theta_map`): a red star
+        (a red line for p = 1), legend "θ_MAP".
+
+    Returns
+    -------
+    list of hv.Overlay
+        One for p = 1, ``p (p − 1) / 2`` for p ≥ 2.
     """
     labels = [_label(n, u) for n, u in zip(names, units)]
     p = len(labels)
@@ -113,6 +140,8 @@ def nroy_samples(waves, names, units, bounds, truth, upto: int, *,
                  for k, s in samples if s.shape[0]]
         if truth is not None:
             hists.append(hv.VLine(truth[0]).opts(color="black", line_dash="dashed"))
+        if theta_map is not None:
+            hists.append(_map_line(theta_map[0], labels[0]))
         return [hv.Overlay(hists).opts(title="NROY samples", **PLOT)]
     panels = []
     for i in range(p):
@@ -125,6 +154,8 @@ def nroy_samples(waves, names, units, bounds, truth, upto: int, *,
                 layers.append(hv.Scatter(([truth[i]], [truth[j]]), labels[i], labels[j],
                                          label="true θ").opts(color="black", marker="x",
                                                               size=14, line_width=3))
+            if theta_map is not None:
+                layers.append(_map_marker(theta_map[i], theta_map[j], labels[i], labels[j]))
             panels.append(hv.Overlay(layers).opts(
                 title=f"NROY samples: {names[i]} vs {names[j]}",
                 xlim=tuple(bounds[i]), ylim=tuple(bounds[j]), legend_position="top_right",
@@ -132,8 +163,26 @@ def nroy_samples(waves, names, units, bounds, truth, upto: int, *,
     return panels
 
 
-def implausibility_map(t1, t2, I, threshold, names, units, truth, wave_index):
-    """Combined implausibility over the θ plane for one wave, with the T contour."""
+def implausibility_map(t1, t2, I, threshold, names, units, truth, wave_index, *,
+                       theta_map=None):
+    """Combined implausibility over the θ plane for one wave, with the T contour.
+
+    Parameters
+    ----------
+    t1 : ndarray of shape (n1,)
+    t2 : ndarray of shape (n2,)
+        The grid of the two parameters.
+    I : ndarray of shape (n2, n1)
+        Combined implausibility on the grid.
+    threshold : float
+        T; the contour is drawn at it.
+    names, units : sequence of str, length 2
+    truth : ndarray of shape (2,) or None
+        The true θ (a red cross).
+    wave_index : int
+    theta_map : ndarray of shape (2,), optional
+        θ_MAP: a red star with a black outline, legend "θ_MAP".
+    """
     l1, l2 = (_label(n, u) for n, u in zip(names, units))
     img = hv.Image((t1, t2, np.minimum(I, 3 * threshold)), [l1, l2], "implausibility").opts(
         cmap="viridis_r", colorbar=True, clim=(0.0, 3 * threshold),
@@ -145,6 +194,8 @@ def implausibility_map(t1, t2, I, threshold, names, units, truth, wave_index):
     if truth is not None:
         layers.append(hv.Scatter(([truth[0]], [truth[1]]), l1, l2, label="true θ").opts(
             color="red", marker="x", size=14, line_width=3))
+    if theta_map is not None:
+        layers.append(_map_marker(theta_map[0], theta_map[1], l1, l2))
     return hv.Overlay(layers)
 
 
@@ -204,7 +255,7 @@ def discrepancy_1d(case, grid, results, methods, k, output, quantity) -> list:
                                  label="test data").opts(color="grey", size=3, alpha=0.6),
                       hv.Scatter((case.X_train[:, 0], case.z_train[:, output]), xname, yname,
                                  label="training data").opts(color="black", size=6)]
-            title = f"{s.label}: bias-corrected {case.output_names[output]}"
+            title = f"{s.label}: z (bias-corrected)"
         else:
             yname = _label("δ " + case.output_names[output], unit)
             layers = [band_1d(x, on_grid.delta_mean[:, output], on_grid.delta_var[:, output],
@@ -213,9 +264,11 @@ def discrepancy_1d(case, grid, results, methods, k, output, quantity) -> list:
             if truth is not None:
                 layers.append(hv.Curve((x, truth[:, output]), xname, yname,
                                        label="true δ").opts(color="black", line_dash="dashed"))
-            title = f"{s.label}: discrepancy δ, {case.output_names[output]}"
-        plots.append(hv.Overlay(layers).opts(title=title, legend_position="top_right",
-                                             **PLOT))
+            title = f"{s.label}: δ" + (f", {case.output_names[output]}"
+                                       if case.n_out > 1 else "")
+        # The legend below the plot: inside, it covered the data at 1280 px.
+        plots.append(hv.Overlay(layers).opts(title=title, legend_position="bottom",
+                                             legend_cols=2, **PLOT))
     return plots
 
 
@@ -289,3 +342,328 @@ def koh_posterior(case, model) -> list:
         out.append(hv.Overlay(layers).opts(title=f"KOH posterior of {name}",
                                            legend_position="top_right", **PLOT))
     return out
+
+
+# --- θ_MAP, the weighted θ posterior, scenario 3's φ posterior, the simulator at θ_MAP and
+# --- the metrics chart (issue 17, "the missing views").
+
+def _map_marker(x: float, y: float, xname: str, yname: str) -> hv.Scatter:
+    """θ_MAP in a θ plane: a red star with a black outline, legend "θ_MAP"."""
+    return hv.Scatter(([float(x)], [float(y)]), xname, yname, label="θ_MAP").opts(
+        **THETA_MAP_MARKER)
+
+
+def _map_line(x: float, xname: str) -> hv.VLines:
+    """θ_MAP on a one-parameter axis: a solid red vertical line, legend "θ_MAP"."""
+    return hv.VLines([float(x)], kdims=[xname], label="θ_MAP").opts(
+        color=THETA_MAP_COLOR, line_width=3)
+
+
+def _truth_line(x: float, xname: str) -> hv.VLines:
+    """The true value on a one-parameter axis: a dashed black vertical line."""
+    return hv.VLines([float(x)], kdims=[xname], label="true θ").opts(
+        color="black", line_dash="dashed", line_width=2)
+
+
+def _number(value: float, unit: str) -> str:
+    """``value`` to four significant figures, with its unit when it has one."""
+    return f"{value:.4g} {unit}" if unit and unit != "-" else f"{value:.4g}"
+
+
+def theta_posterior(case, hm, n: int = 4000, seed=0, *, bins: int = 40) -> list:
+    """The weighted θ posterior of Bayesian history matching, one plot per θ component.
+
+    The posterior is the Gaussian likelihood behind the implausibility measure
+    (:meth:`mdcore.history_matching.HistoryMatchResult.log_likelihood`) restricted to NROY,
+    under the uniform prior on the box. It is drawn as ``n`` samples uniform in the final
+    NROY set (:meth:`~mdcore.history_matching.HistoryMatchResult.nroy_samples`), each
+    weighted by its normalised likelihood: the same density that
+    :meth:`~mdcore.history_matching.HistoryMatchResult.posterior_samples` resamples from,
+    without the resampling noise. Behind it, faint, the unweighted NROY samples: the
+    support that history matching leaves.
+
+    Parameters
+    ----------
+    case : mdcore.cases.Case
+    hm : mdcore.history_matching.HistoryMatchResult
+    n : int, default=4000
+        NROY samples weighted.
+    seed : int or numpy.random.Generator, default=0
+    bins : int, default=40
+        Histogram bins over each parameter's prior box.
+
+    Returns
+    -------
+    list of hv.Overlay, length p
+        Per component j: the weighted histogram (density, green), the NROY histogram
+        (density, grey), θ_MAP (solid red line) and the truth (dashed black line, when
+        ``case.theta_true`` is known), over the prior box; titled with θ_MAP in numbers
+        and units, e.g. "E: θ_MAP = 68.27 GPa". Empty when the history match ruled out
+        every θ (there is no posterior).
+    """
+    if hm.waves[-1].nroy.shape[0] == 0:
+        return []
+    theta = hm.nroy_samples(n, seed=seed)                                   # (n, p)
+    log_l = hm.log_likelihood(theta)                                        # (n,)
+    w = np.exp(log_l - log_l.max())
+    w /= w.sum()
+    ess = 1.0 / float(np.sum(w * w))
+    theta_map = hm.theta_map
+    out = []
+    for j, (name, unit) in enumerate(zip(case.theta_names, case.theta_units)):
+        label = _label(name, unit)
+        lo, hi = (float(b) for b in case.theta_bounds[j])
+        edges = np.linspace(lo, hi, bins + 1)
+        nroy, _ = np.histogram(theta[:, j], bins=edges, density=True)
+        post, _ = np.histogram(theta[:, j], bins=edges, weights=w, density=True)
+        layers = [hv.Histogram((edges, nroy), kdims=[label], vdims=["density"],
+                               label="NROY (uniform)").opts(color="grey", alpha=0.25,
+                                                            line_alpha=0),
+                  hv.Histogram((edges, post), kdims=[label], vdims=["density"],
+                               label=f"posterior (ESS {ess:,.0f} of {n:,})").opts(
+                      color="#2ca02c", alpha=0.6, line_alpha=0),
+                  _map_line(theta_map[j], label)]
+        if case.theta_true is not None:
+            layers.append(_truth_line(case.theta_true[j], label))
+        out.append(hv.Overlay(layers).opts(
+            title=f"{name}: θ_MAP = {_number(theta_map[j], unit)}", xlim=(lo, hi),
+            legend_position="top_right", **PLOT))
+    return out
+
+
+def phi_names(n_out: int, d_x: int) -> list[str]:
+    """Names of the discrepancy GP's log hyperparameters in the SPEC §2 layout.
+
+    Parameters
+    ----------
+    n_out, d_x : int
+        The GP's simulator-output inputs (d_y = n_out) and physical inputs.
+
+    Returns
+    -------
+    list of str, length P = 2 + n_out + d_x
+        ``["log σ_f", "log ℓ_y1", …, "log ℓ_x1", …, "log σ_n"]`` (without the index where
+        there is one of a kind).
+
+    Examples
+    --------
+    >>> phi_names(1, 2)
+    ['log σ_f', 'log ℓ_y', 'log ℓ_x1', 'log ℓ_x2', 'log σ_n']
+    """
+    def numbered(symbol: str, k: int) -> list[str]:
+        return [f"log {symbol}"] if k == 1 else [f"log {symbol}{i + 1}" for i in range(k)]
+
+    return ["log σ_f"] + numbered("ℓ_y", n_out) + numbered("ℓ_x", d_x) + ["log σ_n"]
+
+
+def _phi_meaning(case, c: int) -> str:
+    """What φ component ``c`` scales, in words and units (for the axis label)."""
+    n_out = case.n_out
+    if c == 0:
+        return "signal sd"
+    if c <= n_out:
+        o = c - 1
+        return f"lengthscale in {case.output_names[o]}, {case.output_units[o]}"
+    if c <= n_out + case.d_x:
+        d = c - 1 - n_out
+        return f"lengthscale in {case.x_names[d]}, {case.x_units[d]}"
+    return "noise sd"
+
+
+def phi_posterior(case, result, *, output: int | None = None, bins: int = 30) -> list:
+    """Scenario 3's hyperparameter posterior against its prior (the paper's Figs 6, 9, 16).
+
+    Scenario 3 draws φ^(j,k) (SPEC §2 layout, log scale) and weights each (θ^(j), φ^(j,k))
+    pair by its marginal likelihood (Eq. 15). The φ posterior of output o is the histogram
+    of all drawn φ weighted by the normalised pair weights ``w_jk`` (they sum to 1 per
+    output); the prior is the Gaussian the draws came from.
+
+    Parameters
+    ----------
+    case : mdcore.cases.Case
+    result : mdcore.pipeline.MethodResult
+        A scenario-3 result; its ``model`` (a :class:`mdcore.discrepancy.DiscrepancyModel`)
+        holds ``log_params`` (n_out, N_s, N_φ, P) and ``log_weights`` (n_out, N_s, N_φ).
+    output : int, optional
+        Only this output (default: every output).
+    bins : int, default=30
+
+    Returns
+    -------
+    list of hv.Overlay
+        Output by output, component by component (``n_out × P``, or ``P`` with ``output``):
+        the weighted histogram (density, green), the prior density (dotted black curve over
+        the prior mean ± 4 sd, widened to every draw of weight ≥ 1e-6 × the largest; draws
+        beyond fall in the edge bins) and the weighted posterior mean (green line). Titled
+        with the output, the component's name (:func:`phi_names`) and the output's ESS.
+        Empty for a result that is not scenario 3.
+    """
+    model = result.model
+    if result.method is not Method.S3 or getattr(model, "log_weights", None) is None:
+        return []
+    prior = model.phi_prior if model.phi_prior is not None else case.phi_prior
+    names = phi_names(case.n_out, case.d_x)
+    outputs = range(case.n_out) if output is None else [int(output)]
+    out = []
+    for o in outputs:
+        phi = model.log_params[o].reshape(-1, model.log_params.shape[-1])      # (S K, P)
+        lw = model.log_weights[o].ravel()                                     # (S K,)
+        w = np.exp(lw - lw.max())
+        w /= w.sum()
+        ess = 1.0 / float(np.sum(w * w))
+        carried = w >= 1e-6 * w.max()           # draws that carry visible weight
+        for c, name in enumerate(names):
+            mu, sd = float(prior.mean[c]), float(np.sqrt(prior.var[c]))
+            lo = min(mu - 4 * sd, float(phi[carried, c].min()))
+            hi = max(mu + 4 * sd, float(phi[carried, c].max()))
+            edges = np.linspace(lo, hi, bins + 1)
+            # Far draws of negligible weight (the adaptive proposal's heavy tails) go to the
+            # edge bins rather than stretching the axis, so the histogram keeps all the mass.
+            post, _ = np.histogram(np.clip(phi[:, c], lo, hi), bins=edges, weights=w,
+                                   density=True)
+            x = np.linspace(lo, hi, 301)
+            dens = np.exp(-0.5 * ((x - mu) / sd) ** 2) / (sd * np.sqrt(2 * np.pi))
+            label = f"{name} ({_phi_meaning(case, c)})"
+            out.append(hv.Overlay([
+                hv.Histogram((edges, post), kdims=[label], vdims=["density"],
+                             label="weighted posterior").opts(
+                    color=METHOD_COLORS[Method.S3], alpha=0.6, line_alpha=0),
+                hv.Curve((x, dens), label, "density", label="prior").opts(
+                    color="black", line_dash="dotted", line_width=2),
+                hv.VLines([float(w @ phi[:, c])], kdims=[label], label="posterior mean").opts(
+                    color=METHOD_COLORS[Method.S3], line_width=2),
+            ]).opts(title=f"{case.output_names[o]}: {name} (ESS {ess:,.1f} of {w.size:,})",
+                    xlim=(lo, hi), legend_position="top_right", **PLOT))
+    return out
+
+
+def simulator_at_map(case, hm, *, n_grid: int = 201) -> list:
+    """The simulator at θ_MAP against the data, per output (the paper's Fig. 12).
+
+    Parameters
+    ----------
+    case : mdcore.cases.Case
+    hm : mdcore.history_matching.HistoryMatchResult
+    n_grid : int, default=201
+        Points of the input grid over the span of the training and test inputs.
+
+    Returns
+    -------
+    list of hv.Overlay, length n_out
+        Per output (shear-5: each mode ω1…ω5): the training data (black), the test data
+        (grey), ``η(x, θ_MAP)`` (``case.simulate(grid, hm.theta_map)``, solid red) and
+        ``η(x, θ_true)`` when the truth is known (dashed black). The θ_MAP curve's legend
+        gives its RMSE to the training data. Empty for ``d_x = 2`` (beam-2d: a
+        surface per output is not a comparison one reads) and when the history match
+        ruled out every θ.
+    """
+    if case.d_x != 1 or hm.waves[-1].nroy.shape[0] == 0:
+        return []
+    xname = _label(case.x_names[0], case.x_units[0])
+    grid = np.linspace(*_span(case, 0), n_grid)[:, None]                       # (G, 1)
+    theta_map = hm.theta_map
+    at_map = case.simulate(grid, theta_map)[0]                                 # (G, n_out)
+    at_data = case.simulate(case.X_train, theta_map)[0]                        # (N, n_out)
+    truth = None if case.theta_true is None else case.simulate(grid, case.theta_true)[0]
+    out = []
+    for o in range(case.n_out):
+        unit = case.output_units[o]
+        yname = _label(case.output_names[o], unit)
+        rmse = float(np.sqrt(np.mean((at_data[:, o] - case.z_train[:, o]) ** 2)))
+        layers = [hv.Scatter((case.X_test[:, 0], case.z_test[:, o]), xname, yname,
+                             label="test data").opts(color="grey", size=4, alpha=0.6),
+                  hv.Scatter((case.X_train[:, 0], case.z_train[:, o]), xname, yname,
+                             label="training data").opts(color="black", size=6),
+                  hv.Curve((grid[:, 0], at_map[:, o]), xname, yname,
+                           label=f"simulator at θ_MAP (RMSE {_number(rmse, unit)})").opts(
+                      color=THETA_MAP_COLOR, line_width=2)]
+        if truth is not None:
+            layers.append(hv.Curve((grid[:, 0], truth[:, o]), xname, yname,
+                                   label="simulator at true θ").opts(color="black",
+                                                                      line_dash="dashed"))
+        out.append(hv.Overlay(layers).opts(
+            title=f"{case.output_names[o]}: simulator at θ_MAP vs data",
+            legend_position="top_right", **PLOT))
+    return out
+
+
+#: The metrics :func:`metrics_chart` draws: Metrics field -> short name.
+CHART_METRICS = {"nmse_z": "NMSE z", "nmse_delta": "NMSE δ"}
+
+
+def metrics_chart(case, results, paper=None, *, logy: bool = True) -> hv.Overlay:
+    """NMSE of z and of δ per method as grouped bars, with the paper's values beside them.
+
+    The pairing of this run's metrics with the paper's is
+    :func:`mdcore_app.report.metric_bars`, shared with the HTML report's metrics figures.
+
+    Parameters
+    ----------
+    case : mdcore.cases.Case
+    results : dict
+        :class:`mdcore.pipeline.Method` -> :class:`mdcore.pipeline.MethodResult`; drawn in
+        the order S1, S2, S3, KOH, each in its method colour.
+    paper : dict, optional
+        The paper's values, as :data:`mdcore.study.PAPER` ``[case.name]`` (``{metric:
+        {"1" | "2" | "3" | "koh": value}}``); None draws no reference.
+    logy : bool, default=True
+        Log y axis (KOH's δ NMSE is ~20× the scenarios' on beam-1d).
+
+    Returns
+    -------
+    hv.Overlay
+        One group of bars per metric (NMSE z; NMSE δ when the true δ is known), and per
+        output for multi-output cases ("NMSE z · ω1", …), one bar per method
+        (``hv.Rectangles``: bar heights are the metrics, in %); where ``paper`` has a value,
+        a diamond at that value just right of the method's bar, legend "paper".
+
+    Raises
+    ------
+    ValueError
+        If ``results`` holds no metric to draw.
+    """
+    methods = [m for m in Method if m in results]
+    rows = {metric: metric_bars(case, [results[m] for m in methods], metric, paper)
+            for metric in CHART_METRICS}
+    groups = [(metric, o) for o in range(case.n_out) for metric in CHART_METRICS
+              if any(r[1] == o for r in rows[metric])]
+    if not groups:
+        raise ValueError("results holds no metrics to draw; run a method first.")
+    values = [r[2] for metric in rows for r in rows[metric]]
+    refs = [r[3] for metric in rows for r in rows[metric] if np.isfinite(r[3])]
+    positive = [v for v in values + refs if v > 0]
+    floor = (min(positive) / 3 if positive else 1e-3) if logy else 0.0
+    top = max(values + refs)
+    slot = 0.8 / len(methods)
+    bars = {m: [] for m in methods}
+    marks = []
+    for g, (metric, o) in enumerate(groups):
+        for metric_o in rows[metric]:
+            m, out, value, ref = metric_o
+            if out != o:
+                continue
+            left = g - 0.4 + methods.index(m) * slot
+            bars[m].append((left + 0.05 * slot, floor, left + 0.65 * slot, value,
+                            m.label, case.output_names[o], CHART_METRICS[metric], value))
+            if np.isfinite(ref):
+                marks.append((left + 0.82 * slot, ref, m.label, CHART_METRICS[metric]))
+    ticks = [(g, CHART_METRICS[metric] if case.n_out == 1 else
+              f"{CHART_METRICS[metric]} · {case.output_names[o]}")
+             for g, (metric, o) in enumerate(groups)]
+    vdims = ["method", "output", "metric", "NMSE [%]"]
+    layers = [hv.Rectangles(bars[m], kdims=["x0", "y0", "x1", "y1"], vdims=vdims,
+                            label=m.label).opts(color=METHOD_COLORS[m], line_alpha=0,
+                                                tools=["hover"])
+              for m in methods if bars[m]]
+    if marks:
+        layers.append(hv.Scatter(marks, "x", ["NMSE [%]", "method", "metric"],
+                                 label="paper").opts(color=PAPER_COLOR, marker="diamond",
+                                                     size=14, line_color="black",
+                                                     tools=["hover"]))
+    scale = ", log scale" if logy else ""
+    return hv.Overlay(layers).opts(
+        title=f"NMSE at the test inputs [%]{scale}",
+        xticks=ticks, xlim=(-0.5, len(groups) - 0.5),
+        ylim=(floor, top * (3 if logy else 1.1)), logy=logy, xlabel="", ylabel="NMSE [%]",
+        legend_position="top_left", responsive=True, height=300, min_width=200,
+        show_grid=True)

@@ -31,10 +31,12 @@ from bokeh.resources import Resources
 
 from mdcore.study import PAPER
 
-__all__ = ["report_html", "report_layout", "write_report"]
+__all__ = ["report_html", "report_layout", "write_report", "metric_bars"]
 
 COLORS = {"1": "#1f77b4", "2": "#ff7f0e", "3": "#2ca02c", "koh": "#d62728"}
 LABELS = {"1": "Scenario 1", "2": "Scenario 2", "3": "Scenario 3", "koh": "KOH"}
+#: Marker colour of the paper's reference values in the metrics charts.
+PAPER_COLOR = "#dd8452"
 
 
 def _unit(name: str, unit: str) -> str:
@@ -133,19 +135,56 @@ def _theta_figure(run):
     return fig
 
 
-def _metrics_figure(run, metric: str, title: str):
-    """A metric per method and output, with the paper's value where it has one."""
-    case = run.case
-    paper = PAPER.get(case.name, {}).get(metric, {})
-    factors, ours, ref = [], [], []
-    for r in run.results:
+def metric_bars(case, results, metric: str, paper: dict | None = None) -> list[tuple]:
+    """One metric per method and output, beside the paper's value where it has one.
+
+    The one place that pairs this run's metrics with the paper's (SPEC §10): the report's
+    metrics figures and :func:`mdcore_app.plots.metrics_chart` both draw from it.
+
+    Parameters
+    ----------
+    case : mdcore.cases.Case
+    results : iterable of mdcore.pipeline.MethodResult
+        In the order the bars are drawn. Methods whose metric is None (no true δ) are left out.
+    metric : str
+        A field of :class:`mdcore.pipeline.Metrics`, e.g. ``"nmse_z"`` or ``"nmse_delta"``.
+    paper : dict, optional
+        The paper's values in the layout of :data:`mdcore.study.PAPER` ``[case]``:
+        ``{metric: {method value ("1", "2", "3", "koh"): value}}``. A single value stands
+        for a single-output case only (the paper's tables are per case); a sequence of
+        ``n_out`` values gives one per output.
+
+    Returns
+    -------
+    list of tuple ``(method, output, value, paper_value)``
+        ``method`` a :class:`mdcore.pipeline.Method`, ``output`` the output index,
+        ``value`` this run's metric and ``paper_value`` the paper's (NaN where it has none).
+    """
+    ref = (paper or {}).get(metric) or {}
+    rows = []
+    for r in results:
         values = getattr(r.metrics, metric)
         if values is None:
             continue
-        for o, name in enumerate(case.output_names):
-            factors.append((LABELS[r.method.value], name))
-            ours.append(values[o])
-            ref.append(paper.get(r.method.value, np.nan) if case.n_out == 1 else np.nan)
+        theirs = ref.get(r.method.value)
+        for o in range(case.n_out):
+            if theirs is None:
+                p = np.nan
+            elif np.ndim(theirs) == 0:
+                p = float(theirs) if case.n_out == 1 else np.nan
+            else:
+                p = float(theirs[o]) if len(theirs) == case.n_out else np.nan
+            rows.append((r.method, o, float(values[o]), p))
+    return rows
+
+
+def _metrics_figure(run, metric: str, title: str):
+    """A metric per method and output, with the paper's value where it has one."""
+    case = run.case
+    rows = metric_bars(case, run.results, metric, PAPER.get(case.name))
+    factors = [(LABELS[m.value], case.output_names[o]) for m, o, _, _ in rows]
+    ours = [v for _, _, v, _ in rows]
+    ref = [p for _, _, _, p in rows]
     if not factors:
         return None
     fig = figure(height=260, sizing_mode="stretch_width", x_range=FactorRange(*factors),
@@ -155,7 +194,7 @@ def _metrics_figure(run, metric: str, title: str):
     if np.any(np.isfinite(ref)):
         keep = [i for i, v in enumerate(ref) if np.isfinite(v)]
         fig.scatter([factors[i] for i in keep], [ref[i] for i in keep], size=12,
-                    marker="diamond", color="#dd8452", legend_label="paper")
+                    marker="diamond", color=PAPER_COLOR, legend_label="paper")
     fig.xaxis.major_label_orientation = 0.6
     fig.add_layout(fig.legend[0], "right")
     return fig

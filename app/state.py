@@ -14,15 +14,28 @@ a failure of any kind becomes one notification with the earlier state put back.
 
 from __future__ import annotations
 
+import json
 from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
 import param
+import scipy.stats
 
 from mdcore import cases, koh
-from mdcore.history_matching import RULES, HistoryMatchResult, case_problem, next_wave
+from mdcore.case_file import with_measurements
+from mdcore.cases import Case
+from mdcore.history_matching import (
+    MAX_CANDIDATES,
+    MAX_RUNS,
+    RULES,
+    HistoryMatchResult,
+    case_problem,
+    next_wave,
+)
 from mdcore.pipeline import (
+    MAX_N_PHI,
+    MAX_N_S,
     PAPER_SIZES,
     Method,
     MethodKey,
@@ -31,6 +44,7 @@ from mdcore.pipeline import (
     run_method,
 )
 
+from . import session
 from .jobs import JobRunner
 
 _INTERACTIVE = Settings.interactive()
@@ -51,10 +65,26 @@ def method_order(method: Method) -> int:
     return list(Method).index(method)
 
 
+#: The teaching preset's wave-1 design and runs per wave: small enough that the waves
+#: visibly shrink NROY (beam-1d: 5 waves, 34.8 → 21.2 %; beam-2d: 3 waves, 54.5 → 37.7 %,
+#: with the true θ non-implausible), then ``TEACHING_RATIO`` × (V_o + V_m) to converge.
+TEACHING = {"beam-1d": (4, 3), "beam-2d": (2, 1), "shear-5": (4, 3)}
+TEACHING_RATIO, TEACHING_MAX_WAVES = 0.1, 6
+
+
+def teaching_design(case, base_name: str) -> np.ndarray:
+    """The teaching preset's wave-1 design: a seeded Latin hypercube of a few runs, (R0, p)."""
+    r0 = TEACHING.get(base_name, (case.p + 2, case.p))[0]
+    lhs = scipy.stats.qmc.LatinHypercube(d=case.p, seed=np.random.default_rng(0))
+    b = case.theta_bounds
+    return scipy.stats.qmc.scale(lhs.random(r0), b[:, 0], b[:, 1])
+
+
 class ProblemKey(NamedTuple):
     """The settings that define a history-matching problem; a change starts a new match."""
 
     case_name: str
+    preset: str
     v_m: float
     threshold: float
     rule: str
@@ -71,6 +101,11 @@ class ResultKey(NamedTuple):
     n_waves: int
     method: MethodKey          # Settings.key(method): only the sizes that method uses
     seed: int
+
+
+#: The controls of the history match, restored with a case's results when switching back.
+HM_CONTROLS = ("preset", "v_m", "threshold", "rule", "n_runs", "n_candidates", "max_waves",
+               "convergence_ratio")
 
 
 class Snapshot(NamedTuple):
@@ -112,15 +147,21 @@ class ExplorerState(param.Parameterized):
 
     # --- case and history-matching controls -------------------------------------------
     case_name = param.Selector(objects=list(cases.names()), default="beam-1d", label="Case study")
-    v_m = param.Number(default=0.05, bounds=(0.0, None), inclusive_bounds=(False, True),
+    preset = param.Selector(
+        objects=["teaching", "paper"], default="teaching", label="Preset",
+        doc="teaching: a wave-1 design of a few runs and a strict convergence rule, so you "
+            "can watch 3–5 waves shrink the non-implausible set; paper: the paper's design "
+            "(SPEC §5), which converges after one wave.")
+    v_m = param.Number(default=0.05, bounds=(0.0, 1e12), inclusive_bounds=(False, True),
                        softbounds=(0.001, 0.2), label="V_m",
                        doc="Model-discrepancy variance in the case's output units squared "
                            "(shear-5: of ω1; the other modes scale with their mean squared).")
-    threshold = param.Number(default=3.0, bounds=(0.0, None), inclusive_bounds=(False, True),
+    threshold = param.Number(default=3.0, bounds=(0.0, 1e6), inclusive_bounds=(False, True),
                              softbounds=(1.0, 5.0), label="Threshold T")
     rule = param.Selector(objects=list(RULES), default="max", label="Implausibility rule")
-    n_runs = param.Integer(default=10, bounds=(1, None), label="Runs per wave")
-    n_candidates = param.Integer(default=50_000, bounds=(100, None), label="Candidates per wave")
+    n_runs = param.Integer(default=10, bounds=(1, MAX_RUNS), label="Runs per wave")
+    n_candidates = param.Integer(default=50_000, bounds=(100, MAX_CANDIDATES),
+                                 label="Candidates per wave")
     max_waves = param.Integer(default=5, bounds=(1, 20), label="Max waves")
     convergence_ratio = param.Number(
         default=1.0, bounds=(0.001, 1.0), label="Convergence ratio",
@@ -129,8 +170,8 @@ class ExplorerState(param.Parameterized):
     selected_wave = param.Integer(default=0, bounds=(0, None), label="Wave shown")
 
     # --- discrepancy controls ----------------------------------------------------------
-    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, None), label="N_s (θ samples)")
-    n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, None), label="N_φ (φ per θ)")
+    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, MAX_N_S), label="N_s (θ samples)")
+    n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, MAX_N_PHI), label="N_φ (φ per θ)")
     paper_sizes = param.Boolean(default=False, label="Paper sizes")
     scenarios = param.ListSelector(default=[Method.S1, Method.S2, Method.S3],
                                    objects=METHODS, label="Scenarios",
@@ -167,8 +208,19 @@ class ExplorerState(param.Parameterized):
     n_notices = param.Integer(default=0)
 
     def __init__(self, *, background: bool = False,
-                 schedule: Callable[[Callable], object] | None = None, **params):
+                 schedule: Callable[[Callable], object] | None = None,
+                 own_cases: tuple[Case, ...] = (), **params):
+        #: Cases of this session beyond the built-in ones: from ``--case`` files, and
+        #: uploaded measurements (name -> (Case, built-in base name or None, CSV text or
+        #: None, file name or None)).
+        self._own: dict[str, tuple[Case, str | None, str | None, str | None]] = {
+            c.name: (c, None, None, None) for c in own_cases}
+        #: Results and history-match controls of the cases switched away from.
+        self._kept: dict[str, tuple[dict, Snapshot]] = {}
+        self._restoring = False
         super().__init__(**params)
+        if self._own:
+            self.param.case_name.objects = list(cases.names()) + list(self._own)
         self._jobs = JobRunner(
             background=background, schedule=schedule,
             on_start=lambda label: self.param.update(busy=True, task=label, progress=0.0,
@@ -176,7 +228,7 @@ class ExplorerState(param.Parameterized):
             on_progress=lambda f, message: self.param.update(progress=f,
                                                              progress_message=message),
             on_finish=lambda: self.param.update(busy=False, task="", progress_message=""),
-            on_error=self._report_error, snapshot=self._snapshot, restore=self._restore)
+            on_error=self.report_error, snapshot=self._snapshot, restore=self._restore)
         self._problem = None
         self._problem_key: ProblemKey | None = None
         self._hm = None
@@ -200,21 +252,25 @@ class ExplorerState(param.Parameterized):
         if self.case is not None and self.case_name == self.case.name:
             return                                   # put back after a failed load
         try:
-            case = cases.load(self.case_name, seed=0)
+            case = (self._own[self.case_name][0] if self.case_name in self._own
+                    else cases.load(self.case_name, seed=0))
         except Exception as exc:                     # noqa: BLE001 - any failure: keep the case
             if self.case is None:
                 raise
-            self._report_error(f"Could not load the case {self.case_name!r}, so "
+            self.report_error(f"Could not load the case {self.case_name!r}, so "
                                f"{self.case.name} stays loaded: {exc}")
             self.case_name = self.case.name
             return
         self._jobs.drop()                            # drop work for the previous case
+        if self.case is not None:                    # keep its results for switching back
+            self._kept[self.case.name] = ({k: getattr(self, k) for k in HM_CONTROLS},
+                                          self._snapshot())
         self._problem, self._problem_key, self._cache = None, None, {}
         with param.parameterized.batch_call_watchers(self):
             self.case = case
             self.grid = plotting_grid(case)
             self.v_m = float(case.V_m[0])
-            self.n_runs = max(10, 5 * case.p)
+            self._apply_preset()
             self.n_candidates = 50_000 * case.p
             if case.d_x == 2:
                 self.param.slice_x2.bounds = (float(case.X_train[:, 1].min()),
@@ -226,11 +282,34 @@ class ExplorerState(param.Parameterized):
             self.selected_wave = 0
             self.status = f"{case.title}. Press “Next wave” or “Run to convergence”."
             self.busy, self.task, self.progress, self.progress_message = False, "", 0.0, ""
+            if case.name in self._kept:
+                controls, snap = self._kept.pop(case.name)
+                self.param.update(**controls)
+                self._restore(snap)
+                self._refresh_results()          # the discrepancy settings may differ now
+
+    def base_case_name(self) -> str:
+        """The built-in case the current case builds on (itself, if built-in)."""
+        own = self._own.get(self.case_name)
+        return self.case_name if own is None else (own[1] or self.case_name)
+
+    @param.depends("preset", watch=True)
+    def _apply_preset(self):
+        """Runs per wave, convergence ratio and max waves of the preset (the wave-1
+        design follows the preset in :meth:`_current_problem`)."""
+        if self.preset == "teaching":
+            runs = TEACHING.get(self.base_case_name(), (0, self.case.p))[1]
+            self.param.update(n_runs=runs, convergence_ratio=TEACHING_RATIO,
+                              max_waves=TEACHING_MAX_WAVES)
+        else:
+            self.param.update(n_runs=max(10, 5 * self.case.p), convergence_ratio=1.0,
+                              max_waves=5)
 
     @param.depends("paper_sizes", watch=True)
     def _apply_paper_sizes(self):
         if self.paper_sizes:
-            self.n_s, self.n_phi = PAPER_SIZES[self.case_name]
+            self.n_s, self.n_phi = PAPER_SIZES.get(self.base_case_name(),
+                                                   PAPER_SIZES["beam-1d"])
         else:
             self.n_s, self.n_phi = DEFAULT_N_S, DEFAULT_N_PHI
 
@@ -263,10 +342,11 @@ class ExplorerState(param.Parameterized):
     def reject(self, name: str, value, reason: Exception) -> None:
         """Report a typed value the parameter ``name`` refused (the field reverts)."""
         p = self.param[name]
-        self._report_error(f"{p.label}: {value!r} is not allowed ({reason}). The field keeps "
+        self.report_error(f"{p.label}: {value!r} is not allowed ({reason}). The field keeps "
                            f"{getattr(self, name)!r}.")
 
-    def _report_error(self, message: str) -> None:
+    def report_error(self, message: str) -> None:
+        """Show ``message`` as one error notification."""
         self.param.update(error=message, n_errors=self.n_errors + 1)
 
     def _report_notice(self, message: str) -> None:
@@ -276,53 +356,76 @@ class ExplorerState(param.Parameterized):
     # History matching
 
     def _settings_key(self) -> ProblemKey:
-        return ProblemKey(self.case_name, self.v_m, self.threshold, self.rule, self.n_runs,
+        return ProblemKey(self.case_name, self.preset, self.v_m, self.threshold, self.rule,
+                          self.n_runs,
                           self.n_candidates, self.max_waves, self.convergence_ratio)
 
     def _current_problem(self):
         """The problem for the current settings; a changed setting starts a new match."""
         key = self._settings_key()
         if key != self._problem_key:
+            design = ({"initial_design": teaching_design(self.case, self.base_case_name())}
+                      if self.preset == "teaching" else {})
             problem = case_problem(self.case, V_m=self.v_m_vector(), threshold=self.threshold,
                                    rule=self.rule, n_runs=self.n_runs,
                                    n_candidates=self.n_candidates, max_waves=self.max_waves,
-                                   convergence_ratio=self.convergence_ratio, seed=0)
+                                   convergence_ratio=self.convergence_ratio, seed=0,
+                                   **design)
             return problem, key, ()
         return self._problem, key, self.waves
+
+    def _wave_steps(self, problem, key, waves, stop, report):
+        """Run waves on a worker thread and yield ``("wave", ...)`` partial results.
+
+        ``stop(wave)`` says when to end after ``wave`` (converged waves always end).
+        """
+        total = max(problem.max_waves - len(waves), 1)
+        report(0.0, f"wave {len(waves) + 1}")
+        while True:
+            wave = next_wave(problem, waves)
+            if wave.status == "ruled_out":
+                raise ValueError(wave.message + " The previous waves are kept.")
+            waves = waves + (wave,)
+            maps = self._implausibility_map(problem, wave)
+            report(min(1.0, len(waves) / total), f"wave {wave.index} done")
+            yield "wave", (problem, key, waves, wave.index, maps)
+            if wave.done or stop(wave):
+                return
+
+    def _apply_wave(self, partial) -> None:
+        problem, key, waves, index, maps = partial
+        fresh = key != self._problem_key
+        self._problem, self._problem_key = problem, key
+        new_maps = {} if fresh else dict(self.implausibility_maps)
+        if maps is not None:
+            new_maps[index] = maps
+        if fresh:
+            self._cache = {}
+        self.param.update(waves=waves, implausibility_maps=new_maps, selected_wave=index,
+                          status=waves[-1].message)
+        self._refresh_results()          # results of other wave counts are not shown
+
+    def _apply(self, partial) -> None:
+        """Apply a ``("wave", ...)`` or ``("methods", ...)`` partial result of a job."""
+        kind, payload = partial
+        if kind == "note":
+            self.status = payload
+            return
+        (self._apply_wave if kind == "wave" else self._apply_methods)(payload)
 
     def _wave_task(self, until_done: bool):
         def compute(report, cancel):
             problem, key, waves = self._current_problem()
             if waves and waves[-1].done:
-                raise ValueError(f"{waves[-1].message} Lower the convergence ratio or raise "
-                                 "max waves to refine further, or change a setting to start over.")
-            total = problem.max_waves - len(waves)
-            report(0.0, f"wave {len(waves) + 1}")
-            while True:
-                wave = next_wave(problem, waves)
-                if wave.status == "ruled_out":
-                    raise ValueError(wave.message + " The previous waves are kept.")
-                waves = waves + (wave,)
-                maps = self._implausibility_map(problem, wave)
-                report(min(1.0, len(waves) / max(total, 1)), f"wave {wave.index} done")
-                yield problem, key, waves, wave.index, maps
-                if not until_done or wave.done:
-                    return
+                # Nothing to compute: say so calmly (a notice, not an error).
+                yield "note", (f"Already converged after {len(waves)} wave(s): "
+                               f"{waves[-1].message} To refine further, lower the "
+                               "convergence ratio or raise max waves; a changed setting "
+                               "starts a new history match.")
+                return
+            yield from self._wave_steps(problem, key, waves, lambda w: not until_done, report)
 
-        def apply(partial):
-            problem, key, waves, index, maps = partial
-            fresh = key != self._problem_key
-            self._problem, self._problem_key = problem, key
-            new_maps = {} if fresh else dict(self.implausibility_maps)
-            if maps is not None:
-                new_maps[index] = maps
-            if fresh:
-                self._cache = {}
-            self.param.update(waves=waves, implausibility_maps=new_maps, selected_wave=index,
-                              status=waves[-1].message)
-            self._refresh_results()          # results of other wave counts are not shown
-
-        return compute, apply
+        return compute, self._apply
 
     def next_wave(self) -> None:
         """Run one more wave (a changed setting starts a new history match)."""
@@ -360,9 +463,12 @@ class ExplorerState(param.Parameterized):
         return Settings(n_s=self.n_s, n_phi=self.n_phi, proposal=self.proposal,
                         **KOH_CHAINS[self.koh_chain])
 
-    def _key(self, method: Method, settings: Settings | None = None) -> ResultKey:
+    def _key(self, method: Method, settings: Settings | None = None, *,
+             problem_key: ProblemKey | None = None, n_waves: int | None = None) -> ResultKey:
         settings = self.method_settings() if settings is None else settings
-        return ResultKey(self._problem_key, len(self.waves), settings.key(method), self.seed)
+        return ResultKey(self._problem_key if problem_key is None else problem_key,
+                         len(self.waves) if n_waves is None else n_waves,
+                         settings.key(method), self.seed)
 
     def _refresh_results(self) -> None:
         """Show the cached results that match the current settings (no computation)."""
@@ -377,6 +483,8 @@ class ExplorerState(param.Parameterized):
     @param.depends("n_s", "n_phi", "seed", "scenarios", "koh_chain", "proposal", watch=True)
     def _discrepancy_settings_changed(self):
         self._refresh_results()
+        if self._restoring:
+            return                      # open_session submits one job for everything
         if self.results.keys() != set(self.scenarios) and self.waves and self._cache:
             self.run_discrepancy()      # only when the user has run discrepancy before
 
@@ -392,51 +500,256 @@ class ExplorerState(param.Parameterized):
         return None
 
     def run_discrepancy(self) -> None:
-        """Run the selected methods that are not cached for the current settings."""
-        if not self.waves:
-            self._report_error("Run history matching first: the discrepancy scenarios need "
-                               "θ samples from the non-implausible set.")
-            return
-        hm = self.history_match
-        if hm.status == "ruled_out":
-            self._report_error(hm.message)
-            return
+        """Run the selected methods that are not cached for the current settings.
+
+        With no history match yet (or after a history-match setting changed), the job
+        first runs the waves until convergence, and the status line says so.
+        """
         try:
             settings = self.method_settings()
         except ValueError as exc:
-            self._report_error(str(exc))
+            self.report_error(str(exc))
             return
-        keys = {m: self._key(m, settings) for m in sorted(self.scenarios, key=method_order)}
-        todo = [m for m, k in keys.items() if k not in self._cache]
-        if not todo:
-            self._refresh_results()
-            return
+        if self.waves and self._settings_key() == self._problem_key:
+            hm = self.history_match
+            if hm.status == "ruled_out":
+                self.report_error(hm.message)
+                return
+            keys = {m: self._key(m, settings) for m in sorted(self.scenarios, key=method_order)}
+            if all(k in self._cache for k in keys.values()):
+                self._refresh_results()
+                return
+        self._jobs.submit("discrepancy", self._discrepancy_compute(settings), self._apply)
+
+    def _discrepancy_compute(self, settings: Settings, n_waves: int | None = None,
+                             expected: dict | None = None, waves_only: bool = False):
+        """The job of :meth:`run_discrepancy` (and of :meth:`open_session`).
+
+        Parameters
+        ----------
+        settings : Settings
+        n_waves : int, optional
+            Run exactly this many waves first (a restored session); default: use the
+            current waves, or run to convergence when there are none.
+        expected : dict, optional
+            ``method value -> metrics dict`` of a saved session, checked when done.
+        waves_only : bool, default=False
+            Stop after the waves (a restored session without results).
+        """
         case, grid, seed = self.case, self.grid, self.seed
-        hat = self._cached_phi_hat(keys.get(Method.S1, self._key(Method.S1, settings)))
+        chosen = sorted(self.scenarios, key=method_order)
+        problem, key, waves = self._current_problem()
+        if n_waves is not None and len(waves) > n_waves:
+            waves = waves[:n_waves]              # each wave depends only on the earlier ones
+        target = n_waves if n_waves is not None else (len(waves) or None)
 
         def compute(report, cancel):
-            nonlocal hat
-            done = []
+            nonlocal waves
+            if target is None:
+                yield "note", ("No history match for these settings yet: running the waves "
+                               "until convergence, then the discrepancy methods.")
+            if target is None or len(waves) < target:
+                steps = self._wave_steps(problem, key, waves,
+                                         lambda w: target is not None and w.index >= target,
+                                         lambda f, m: report(0.3 * f, m))
+                for partial in steps:
+                    waves = partial[1][2]
+                    yield partial
+                if target is not None and len(waves) != target:
+                    raise ValueError(f"The saved session has {target} wave(s), but the history "
+                                     f"match converged after {len(waves)}; the file does not "
+                                     "match this version's results.")
+            elif len(waves) != len(self.waves):
+                yield "wave", (problem, key, waves, len(waves),
+                               self.implausibility_maps.get(len(waves)))
+            if waves_only:
+                return
+            hm = HistoryMatchResult(problem, waves)
+            if hm.status == "ruled_out":
+                raise ValueError(hm.message)
+            keys = {m: ResultKey(key, len(waves), settings.key(m), seed) for m in chosen}
+            todo = [m for m in chosen if keys[m] not in self._cache]
+            hat = self._cached_phi_hat(keys.get(Method.S1,
+                                                ResultKey(key, len(waves),
+                                                          settings.key(Method.S1), seed)))
+            base = 0.3 if target is None else 0.0
+            done: list[MethodResult] = []
             for i, method in enumerate(todo):
                 if method is Method.KOH and done:
-                    yield done                # show scenarios 1–3 while the chain runs
+                    yield "methods", (keys, done, None)   # show 1–3 while the chain runs
                     done = []
                 result = run_method(
                     case, hm, method, settings, seed=seed, X_extra=grid,
                     log_params_hat=hat if method is Method.S2 else None,
-                    progress=lambda f, message, i=i: report((i + f) / len(todo), message),
+                    progress=lambda f, message, i=i: report(
+                        base + (1 - base) * (i + f) / len(todo), message),
                     cancel=cancel)
                 if method is Method.S1:
                     hat = result.model.log_params_hat
                 done.append(result)
-            yield done                # few updates: every re-render of the plots costs ~0.3 s
+            yield "methods", (keys, done, expected)  # few updates: each re-render costs ~0.3 s
 
-        def apply(done):
-            for result in done:
-                self._cache[keys[result.method]] = result
-            advice = [w for result in done for w in result.warnings]
-            if advice:
-                self._report_notice("\n\n".join(advice))
-            self._refresh_results()
+        return compute
 
-        self._jobs.submit("discrepancy", compute, apply)
+    def _apply_methods(self, payload) -> None:
+        keys, done, expected = payload
+        for result in done:
+            self._cache[keys[result.method]] = result
+        advice = [w for result in done for w in result.warnings]
+        if advice:
+            self._report_notice("\n\n".join(advice))
+        self._refresh_results()
+        if expected is not None:
+            self.status = session.compare_metrics(expected, self.results)
+
+    # ------------------------------------------------------------------------------
+    # Your data in, results out
+
+    def upload_measurements(self, data: bytes, filename: str) -> bool:
+        """Use uploaded measurements with the current case's simulator (a new case).
+
+        The file must have the layout of :func:`mdcore.case_file.measurements_template`
+        (the "Template CSV" download). It is only parsed: nothing in it is run. Each
+        problem found becomes one notification, and the session keeps its case.
+
+        Parameters
+        ----------
+        data : bytes
+            The file's content (at most :data:`session.MAX_UPLOAD_BYTES`).
+        filename : str
+
+        Returns
+        -------
+        bool
+            Whether the case was added and selected.
+        """
+        base = self.base_case_name()
+        try:
+            text = session.decode_upload(data, filename, kind="measurements CSV")
+            case = with_measurements(cases.load(base, seed=0), text, source=filename)
+        except ValueError as exc:
+            for problem in getattr(exc, "problems", (str(exc),)):
+                self.report_error(problem)
+            return False
+        self._add_case(case, base, text, filename)
+        return True
+
+    def _add_case(self, case: Case, base: str | None, text: str | None,
+                  filename: str | None) -> None:
+        """Add (or replace) a session case and select it."""
+        self._kept.pop(case.name, None)
+        self._own[case.name] = (case, base, text, filename)
+        names = list(cases.names()) + list(self._own)
+        self.param.case_name.objects = names
+        if self.case_name == case.name:              # replaced: load the new data
+            self.case = None
+            self._load_case()
+        else:
+            self.case_name = case.name
+
+    def case_run(self):
+        """The current history match and shown results as a :class:`~mdcore.reproduce.CaseRun`
+        (what the CLI's ``--json``, ``--csv`` and ``--out`` write), or None before any
+        result."""
+        from mdcore.reproduce import CaseRun
+        if not self.results or self.history_match is None:
+            return None
+        results = tuple(self.results[m] for m in sorted(self.results, key=method_order))
+        return CaseRun(self.case, self.history_match, self.method_settings(), self.seed,
+                       results)
+
+    def session_json(self) -> str:
+        """The session as JSON (the layout of :mod:`mdcore_app.session`)."""
+        own = self._own.get(self.case_name)
+        controls = {k: getattr(self, k) for k in session.CONTROLS}
+        controls["scenarios"] = [m.value for m in sorted(self.scenarios, key=method_order)]
+        run = self.case_run()
+        doc = session.session_document(
+            case_name=self.case_name, based_on=None if own is None else own[1],
+            measurements_csv=None if own is None else own[2],
+            measurements_file=None if own is None else own[3], controls=controls,
+            n_waves=len(self.waves) if self._problem_key == self._settings_key() else 0,
+            run=None if run is None else run.to_dict())
+        return json.dumps(doc, indent=1, allow_nan=False)
+
+    def open_session(self, data: bytes, filename: str) -> bool:
+        """Restore a saved session: its case (with uploaded data), controls, waves and
+        methods, recomputed and checked against the saved metrics.
+
+        Returns whether the file was accepted; each problem with it is one notification,
+        and the session is unchanged.
+        """
+        before = {k: getattr(self, k) for k in ("case_name", *session.CONTROLS)}
+        try:
+            doc = session.parse_session(
+                session.decode_upload(data, filename, kind="session JSON"), filename)
+            case = doc["case"]
+            if case["measurements_csv"] is not None:
+                base = case["based_on"]
+                if base not in cases.names():
+                    raise session.SessionError([f"{filename}: case.based_on must be one of "
+                                                f"{list(cases.names())}; found {base!r}."])
+                own = with_measurements(cases.load(base, seed=0), case["measurements_csv"],
+                                        source=case["measurements_file"] or "measurements.csv")
+                self._add_case(own, base, case["measurements_csv"],
+                               case["measurements_file"])
+            elif case["name"] not in self.param.case_name.objects:
+                raise session.SessionError([
+                    f"{filename}: the case {case['name']!r} is not in this app (it has "
+                    f"{', '.join(self.param.case_name.objects)}); start the app with "
+                    f"`--args --case <its case file>.toml` to add it."])
+            else:
+                self.case_name = case["name"]
+            controls = dict(doc["controls"])
+            controls["scenarios"] = [Method.parse(v) for v in controls["scenarios"]]
+            self._restoring = True
+            try:
+                for k, v in controls.items():
+                    try:
+                        setattr(self, k, v)
+                    except ValueError as exc:        # the parameter's own bounds or choices
+                        raise session.SessionError([
+                            f"{filename}: controls.{k} = {v!r} is not allowed for "
+                            f"{self.param[k].label} ({exc})."]) from None
+            finally:
+                self._restoring = False
+            settings = self.method_settings()
+        except ValueError as exc:
+            self._restoring = True
+            try:
+                self.param.update(**before)              # the session keeps its state
+            finally:
+                self._restoring = False
+            for problem in getattr(exc, "problems", (str(exc),)):
+                self.report_error(problem)
+            return False
+        saved = (doc["run"] or {}).get("methods")
+        if doc["n_waves"] == 0:
+            self.status = f"Session opened from {filename} (it had no waves yet)."
+            return True
+        if not saved:
+            self._jobs.submit("waves", self._discrepancy_compute(
+                settings, n_waves=doc["n_waves"], waves_only=True), self._apply)
+            return True
+        self._jobs.submit("session", self._discrepancy_compute(
+            settings, n_waves=doc["n_waves"], expected=saved), self._apply)
+        return True
+
+    # ------------------------------------------------------------------------------
+    # Things to try
+
+    def try_experiment(self, key: str) -> None:
+        """Set the controls of the guided experiment ``key`` (see
+        :mod:`mdcore_app.experiments`) and say in the status line what to press next."""
+        from .experiments import EXPERIMENTS
+        exp = next((e for e in EXPERIMENTS if e.key == key), None)
+        if exp is None:
+            self.report_error(f"Unknown experiment {key!r}; choose one of "
+                              f"{[e.key for e in EXPERIMENTS]}.")
+            return
+        settings = dict(exp.settings)
+        self.case_name = settings.pop("case_name", self.case_name)
+        if "preset" in settings:
+            self.preset = settings.pop("preset")        # sets runs per wave etc. first
+        self.param.update(**settings)
+        self.status = f"{exp.title}: {exp.then}"

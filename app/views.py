@@ -6,6 +6,9 @@ button presses into calls of the state's methods.
 
 from __future__ import annotations
 
+import html
+import io
+import re
 import time
 
 import holoviews as hv
@@ -13,9 +16,15 @@ import pandas as pd
 import panel as pn
 import param
 
+from mdcore.case_file import TEST_COLUMN, measurements_template
+from mdcore.export import nroy_csv, predictions_csv
 from mdcore.pipeline import Method, MethodResult
+from mdcore.study import PAPER
 
 from . import plots
+from .experiments import EXPERIMENTS
+from .report import report_html
+from .session import MAX_UPLOAD_BYTES
 from .state import ExplorerState, method_order
 
 SIDEBAR_WIDTH = 330
@@ -98,14 +107,15 @@ class ExplorerView(pn.viewable.Viewer):
         w = pn.Param(s.param, parameters=["case_name"], show_name=False,
                      widgets={"case_name": pn.widgets.Select})
         hm = pn.Column(
-            self._number_input("v_m", pn.widgets.FloatInput, step=0.005),
-            self._number_input("threshold", pn.widgets.FloatInput, step=0.5),
-            pn.Param(s.param, parameters=["rule"], show_name=False,
-                     widgets={"rule": pn.widgets.RadioButtonGroup}),
+            self._choice("preset"),
+            self._number_input("v_m", pn.widgets.FloatInput, step=0.005, format="0.[0000]"),
+            self._number_input("threshold", pn.widgets.FloatInput, step=0.5, format="0.[00]"),
+            self._choice("rule"),
             self._number_input("n_runs", pn.widgets.IntInput),
             self._number_input("n_candidates", pn.widgets.IntInput, step=10_000),
             pn.Param(s.param, parameters=["max_waves"], show_name=False),
-            self._number_input("convergence_ratio", pn.widgets.FloatInput, step=0.1))
+            self._number_input("convergence_ratio", pn.widgets.FloatInput, step=0.1,
+                               format="0.[000]"))
         next_btn = pn.widgets.Button(label="Next wave", color="primary")
         conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
         next_btn.on_click(lambda _: s.next_wave())
@@ -113,25 +123,37 @@ class ExplorerView(pn.viewable.Viewer):
         disc = pn.Column(
             self._number_input("n_s", pn.widgets.IntInput),
             self._number_input("n_phi", pn.widgets.IntInput),
-            pn.Param(s.param, parameters=["paper_sizes", "scenarios", "proposal", "koh_chain",
-                                          "band"], show_name=False,
-                     widgets={"scenarios": pn.widgets.CheckButtonGroup,
-                              "koh_chain": pn.widgets.RadioButtonGroup,
-                              "proposal": pn.widgets.RadioButtonGroup,
-                              "band": pn.widgets.RadioButtonGroup}),
+            pn.Param(s.param, parameters=["paper_sizes"], show_name=False),
+            self._choice("scenarios", pn.widgets.CheckButtonGroup),
+            self._choice("proposal"), self._choice("koh_chain"), self._choice("band"),
             self._number_input("seed", pn.widgets.IntInput))
         run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
         run_btn.on_click(lambda _: s.run_discrepancy())
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
+        # The buttons and the progress line come first, so they stay above the fold of a
+        # 1280×720 projector; the settings follow in cards that can be folded away.
         return pn.Column(
-            pn.pane.Markdown("### Model Discrepancy Explorer\nGardner et al., MSSP 2021: "
+            pn.pane.Markdown("**Model Discrepancy Explorer** · Gardner et al., MSSP 2021: "
                              "history matching, then GP discrepancy (scenarios 1–3), "
-                             "against the joint Kennedy–O'Hagan baseline (koh)."),
-            w, self._case_info, pn.pane.Markdown("#### History matching"), hm,
-            pn.Row(next_btn, conv_btn), pn.pane.Markdown("#### Discrepancy"), disc, run_btn,
-            self._progress_panel(), width=SIDEBAR_WIDTH)
+                             "against the joint Kennedy–O'Hagan baseline (koh).",
+                             styles={"font-size": "0.9em"}),
+            w, self._case_info, pn.Row(next_btn, conv_btn), run_btn, self._progress_panel(),
+            pn.Card(hm, title="History matching", sizing_mode="stretch_width"),
+            pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width"),
+            width=SIDEBAR_WIDTH)
+
+    def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):
+        """A button group for the state's parameter ``name``, with its label above it (a
+        bare group of buttons does not say what it chooses)."""
+        p = self.state.param[name]
+        widget = cls.from_param(p, name="", description=None, sizing_mode="stretch_width")
+        label = pn.pane.HTML(f"<label>{html.escape(p.label)}</label>", margin=(5, 0, 0, 10),
+                             css_classes=["group-label"])
+        head = pn.Row(label, pn.widgets.TooltipIcon(value=p.doc, margin=(5, 0, 0, 0))) \
+            if p.doc else label
+        return pn.Column(head, widget, sizing_mode="stretch_width", margin=0)
 
     def _number_input(self, name: str, cls, **kw):
         """A number field for the state's parameter ``name`` whose typed value the parameter
@@ -222,8 +244,10 @@ class ExplorerView(pn.viewable.Viewer):
         if not s.waves:
             return pn.pane.Markdown("Press **Next wave** to run the first wave.")
         upto = s.selected_wave or len(s.waves)
+        hm = s.history_match
+        theta_map = hm.theta_map if upto == len(s.waves) else None   # of the final wave
         pairs = plots.nroy_samples(s.waves, c.theta_names, c.theta_units, c.theta_bounds,
-                                   c.theta_true, upto)
+                                   c.theta_true, upto, theta_map=theta_map)
         rows = [pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width", height=300,
                                            css_classes=["hm-plot"]) for o in pairs[i:i + 3]],
                        sizing_mode="stretch_width") for i in range(0, len(pairs), 3)]
@@ -231,7 +255,8 @@ class ExplorerView(pn.viewable.Viewer):
             t1, t2, I = s.implausibility_maps[upto]
             rows.append(pn.pane.HoloViews(
                 plots.implausibility_map(t1, t2, I, s.threshold, c.theta_names,
-                                         c.theta_units, c.theta_true, upto),
+                                         c.theta_units, c.theta_true, upto,
+                                         theta_map=theta_map),
                 sizing_mode="stretch_width", css_classes=["hm-plot"]))
         shown = [w for w in s.waves if w.index <= upto]
         # Each plot its own pane, every pane stretching: responsive plots inside one
@@ -241,6 +266,36 @@ class ExplorerView(pn.viewable.Viewer):
                                            sizing_mode="stretch_width"),
                          sizing_mode="stretch_width")
         return pn.Column(*rows, summary, sizing_mode="stretch_width")
+
+    @param.depends("state.waves")
+    def calibration_view(self):
+        """θ_MAP in numbers, the weighted θ posterior over NROY, and the simulator at θ_MAP
+        against the data (the paper's Fig. 12 for shear-5)."""
+        s = self.state
+        hm = s.history_match
+        if hm is None or hm.status == "ruled_out":
+            return pn.Spacer(height=0)
+        c = s.case
+        theta = ", ".join(f"{n} = {v:.4g}" + ("" if u in ("", "-") else f" {u}")
+                          for n, v, u in zip(c.theta_names, hm.theta_map, c.theta_units))
+        truth = "" if c.theta_true is None else " (true: " + ", ".join(
+            f"{v:.4g}" for v in c.theta_true) + ")"
+        objs = [pn.pane.Markdown(f"**θ_MAP** (most likely non-implausible θ): {theta}{truth}. "
+                                 "Below: the weighted θ posterior of history matching (green) "
+                                 "over the NROY samples (grey)", css_classes=["theta-map"])]
+        post = plots.theta_posterior(c, hm)
+        objs.append(pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width", height=260,
+                                               css_classes=["hm-plot"]) for o in post],
+                           sizing_mode="stretch_width"))
+        sim = plots.simulator_at_map(c, hm)
+        if sim:
+            objs.append(pn.pane.Markdown("**The simulator at θ_MAP against the data**: what "
+                                         "is left between them is the discrepancy δ."))
+            for i in range(0, len(sim), 3):
+                objs.append(pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
+                                                       height=260, css_classes=["hm-plot"])
+                                     for o in sim[i:i + 3]], sizing_mode="stretch_width"))
+        return pn.Column(*objs, sizing_mode="stretch_width")
 
     @param.depends("state.waves")
     def wave_selector(self):
@@ -298,10 +353,13 @@ class ExplorerView(pn.viewable.Viewer):
         if not shown:
             return pn.pane.Markdown("No scenario has run yet.")
         df = metrics_frame(s.case, shown)
+        chart = pn.pane.HoloViews(
+            plots.metrics_chart(s.case, shown, PAPER.get(s.base_case_name())),
+            sizing_mode="stretch_width", height=300, css_classes=["metrics-chart"])
         table = pn.pane.DataFrame(df.drop(columns=list(DIAGNOSTICS)), index=False,
                                   float_format="{:.4g}".format, sizing_mode="stretch_width",
                                   css_classes=["metrics-table"])
-        objs = [table]
+        objs = [chart, table]
         if Method.S3 in shown or Method.KOH in shown:
             rows = df["method"].isin([Method.S3.label, Method.KOH.label])
             objs += [pn.pane.Markdown("Diagnostics: importance weights of scenario 3 (ESS "
@@ -311,6 +369,15 @@ class ExplorerView(pn.viewable.Viewer):
                      pn.pane.DataFrame(df.loc[rows, ["method", "output", *DIAGNOSTICS]],
                                        index=False, float_format="{:.4g}".format,
                                        css_classes=["diagnostics-table"])]
+        if Method.S3 in shown:
+            phi = plots.phi_posterior(s.case, shown[Method.S3], output=0)
+            objs.append(pn.pane.Markdown(
+                "**Scenario 3: the GP hyperparameters φ, posterior (weighted draws) against "
+                f"prior** (the paper's Figs 6, 9, 16; output {s.case.output_names[0]})."))
+            for i in range(0, len(phi), 4):
+                objs.append(pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
+                                                       height=240, css_classes=["phi-plot"])
+                                     for o in phi[i:i + 4]], sizing_mode="stretch_width"))
         if Method.KOH not in shown:
             return pn.Column(*objs, sizing_mode="stretch_width")
         r = shown[Method.KOH]
@@ -332,9 +399,127 @@ class ExplorerView(pn.viewable.Viewer):
                                  sizing_mode="stretch_width", css_classes=["koh-plot"])
         return pn.Column(*objs, summary, post, sizing_mode="stretch_width")
 
+    # --- files: your data in, results out -------------------------------------------------
+    def _slug(self) -> str:
+        return re.sub(r"[^A-Za-z0-9_.-]+", "_", self.state.case_name).strip("_")
+
+    def _dropper(self, accept: list[str], handler, css: str):
+        """A file drop area (chunked upload, size cap in the browser) calling
+        ``handler(data, filename)`` once per file."""
+        drop = pn.widgets.FileDropper(accepted_filetypes=accept, multiple=False,
+                                      max_file_size=f"{MAX_UPLOAD_BYTES // 2**20}MB",
+                                      layout="compact", css_classes=[css],
+                                      sizing_mode="stretch_width")
+
+        def received(event):
+            for filename, data in (event.new or {}).items():
+                handler(data.encode("utf-8") if isinstance(data, str) else data, filename)
+
+        drop.param.watch(received, "value")
+        return drop
+
+    def _download(self, label: str, css: str, make, filename):
+        """A download button whose file is made when pressed; disabled while ``make``
+        has nothing to give (no waves, no results)."""
+        def callback():
+            text = make()
+            return io.BytesIO(b"" if text is None else text.encode("utf-8"))
+
+        button = pn.widgets.FileDownload(callback=callback, filename=filename(), label=label,
+                                         button_type="primary", button_style="outline",
+                                         css_classes=[css], sizing_mode="stretch_width")
+        return button
+
+    @param.depends("state.case")
+    def _upload_help(self):
+        s = self.state
+        c = s.case
+        columns = ", ".join(f"`{n}`" for n in (*c.x_names, *c.output_names, TEST_COLUMN))
+        return pn.pane.Markdown(
+            "#### Your measurements\nA CSV for the simulator of the case selected on the left "
+            f"(now {s.base_case_name()}): a header row with the columns {columns} "
+            f"(`{TEST_COLUMN}`: 1 = held-out test row, 0 = training row), one row per "
+            "observation, replicates as repeated rows, `#` lines as comments. Start from "
+            f"the template. At most {MAX_UPLOAD_BYTES // 2**20} MB; the file is only read, "
+            "never run. It becomes a new case of this session, named after the file.",
+            css_classes=["upload-help"])
+
+    def files_view(self):
+        """The Files tab: your measurements in, a saved session in, results out."""
+        s = self.state
+
+        def nroy():
+            hm = s.history_match
+            return None if hm is None else nroy_csv(hm, s.case.theta_names, s.case.theta_units)
+
+        def predictions():
+            run = s.case_run()
+            return None if run is None else predictions_csv(run)
+
+        def report():
+            run = s.case_run()
+            return None if run is None else report_html(run)
+
+        downloads = {
+            "template": self._download("Template CSV (this case's data)", "dl-template",
+                                       lambda: measurements_template(s.case),
+                                       lambda: f"{self._slug()}_measurements.csv"),
+            "session": self._download("Session (JSON)", "dl-session", s.session_json,
+                                      lambda: f"{self._slug()}_session.json"),
+            "nroy": self._download("NROY samples (CSV)", "dl-nroy", nroy,
+                                   lambda: f"{self._slug()}_nroy.csv"),
+            "predictions": self._download("Predictions and δ bands (CSV)", "dl-predictions",
+                                          predictions, lambda: f"{self._slug()}_predictions.csv"),
+            "report": self._download("Report (HTML, opens offline)", "dl-report", report,
+                                     lambda: f"{self._slug()}_report.html"),
+        }
+
+        def refresh(*_):
+            slug = self._slug()
+            for key, ext in (("template", "_measurements.csv"), ("session", "_session.json"),
+                             ("nroy", "_nroy.csv"), ("predictions", "_predictions.csv"),
+                             ("report", "_report.html")):
+                downloads[key].filename = slug + ext
+            downloads["nroy"].disabled = not s.waves
+            downloads["predictions"].disabled = downloads["report"].disabled = not s.results
+
+        s.param.watch(refresh, ["case_name", "waves", "results"])
+        refresh()
+        return pn.Column(
+            self._upload_help,
+            pn.Row(self._dropper([".csv", "text/csv"], s.upload_measurements, "upload-csv"),
+                   downloads["template"], sizing_mode="stretch_width"),
+            pn.pane.Markdown("#### Results out\nCSV tables (every wave's NROY samples with "
+                             "their implausibility; z and δ means and sds per method at the "
+                             "test inputs), a report with the plots that opens offline, and "
+                             "the session: settings and metrics as JSON, no pickle."),
+            pn.Row(downloads["nroy"], downloads["predictions"], sizing_mode="stretch_width"),
+            pn.Row(downloads["report"], downloads["session"], sizing_mode="stretch_width"),
+            pn.pane.Markdown("#### Open session…\nA session JSON saved here. Its case, "
+                             "settings, waves and methods are recomputed (every step is "
+                             "seeded) and checked against the saved metrics; the status line "
+                             "says whether they agree."),
+            self._dropper([".json", "application/json"], s.open_session, "open-session"),
+            sizing_mode="stretch_width", max_width=900)
+
+    def try_view(self):
+        """The "Things to try" tab: guided experiments, each a prediction to make and one
+        button that sets the controls."""
+        cards = []
+        for exp in EXPERIMENTS:
+            button = pn.widgets.Button(label="Set it up", button_type="primary",
+                                       css_classes=[f"try-{exp.key}"], width=120)
+            button.on_click(lambda _, k=exp.key: self.state.try_experiment(k))
+            cards.append(pn.Column(
+                pn.pane.Markdown(f"**{exp.title}**\n\n**Predict first:** {exp.predict} "
+                                 f"*Then:* {exp.then}", margin=(0, 10)),
+                button, styles={"border-bottom": "1px solid #ddd"},
+                sizing_mode="stretch_width"))
+        return pn.Column(*cards, sizing_mode="stretch_width", max_width=900)
+
     def __panel__(self):
         hm_tab = pn.Column(self.status_view, self.wave_selector, self.waves_view,
-                           sizing_mode="stretch_width")
+                           self.calibration_view, sizing_mode="stretch_width")
         disc_tab = pn.Column(pn.widgets.RadioButtonGroup.from_param(self.param.quantity),
                              self.discrepancy_view, sizing_mode="stretch_width")
         metrics_tab = pn.Column(
@@ -346,5 +531,6 @@ class ExplorerView(pn.viewable.Viewer):
             self.metrics_view, sizing_mode="stretch_width")
         tabs = pn.Tabs(("Data", self.data_view), ("History matching", hm_tab),
                        ("Discrepancy", disc_tab), ("Metrics", metrics_tab),
-                       dynamic=False, sizing_mode="stretch_width")
+                       ("Files", self.files_view()), ("Things to try", self.try_view()),
+                       dynamic=True, sizing_mode="stretch_width")
         return pn.Row(self._controls(), tabs, sizing_mode="stretch_width")

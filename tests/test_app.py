@@ -21,7 +21,7 @@ from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.views import NOT_APPLICABLE, ExplorerView, metrics_frame  # noqa: E402
 
 hv.extension("bokeh")
-SMALL = {"n_candidates": 4000, "n_s": 30, "n_phi": 8}
+SMALL = {"preset": "paper", "n_candidates": 4000, "n_s": 30, "n_phi": 8}
 S123 = [Method.S1, Method.S2, Method.S3]
 NA = NOT_APPLICABLE
 
@@ -62,7 +62,9 @@ def test_first_screen_is_the_paper_fig1():
 
 @pytest.mark.parametrize("case", ["beam-1d", "beam-2d", "shear-5"])
 def test_waves_then_scenarios_for_each_case(case):
-    s = small_state(case, max_waves=3, convergence_ratio=0.01)
+    s = small_state(case)
+    s.preset = "paper"                       # the paper's design, refined past SPEC §5
+    s.param.update(max_waves=3, convergence_ratio=0.01)
     v = ExplorerView(state=s)
     s.next_wave()
     assert len(s.waves) == 1 and s.error == ""
@@ -156,13 +158,37 @@ def test_everything_ruled_out_is_an_error_and_keeps_the_earlier_state():
     assert s.waves is waves and s.threshold == 3.0
     s.param.update(v_m=0.05, threshold=3.0)
     s.next_wave()                                      # still usable afterwards
-    assert len(s.waves) == 1
+    assert s.waves is waves and s.status.startswith("Already converged")
+    s.v_m = 0.06
+    s.next_wave()
+    assert len(s.waves) == 1 and s.waves[0].index == 1     # a new match, wave 1
 
 
-def test_discrepancy_before_any_wave_is_an_error():
-    s = ExplorerState()
+def test_discrepancy_before_any_wave_runs_the_history_match_first():
+    """The app knows what a request needs: on a fresh case, "Run discrepancy" runs the
+    waves to convergence, then the methods, and the outcome equals doing it by hand."""
+    s = small_state(scenarios=[Method.S1])
+    notes = []
+    s.param.watch(lambda e: notes.append(e.new), "status")
     s.run_discrepancy()
-    assert "Run history matching first" in s.error and s.results == {}
+    assert s.error == "" and list(s.results) == [Method.S1]
+    assert any("running the waves until convergence" in n for n in notes)
+    assert s.waves[-1].done
+    by_hand = small_state(scenarios=[Method.S1])
+    by_hand.run_to_convergence()
+    by_hand.run_discrepancy()
+    assert len(by_hand.waves) == len(s.waves)
+    np.testing.assert_array_equal(by_hand.results[Method.S1].on_test.delta_mean,
+                                  s.results[Method.S1].on_test.delta_mean)
+
+
+def test_next_wave_after_convergence_is_a_calm_status():
+    s = small_state()
+    s.run_to_convergence()
+    n = len(s.waves)
+    s.next_wave()
+    assert s.error == "" and len(s.waves) == n
+    assert s.status.startswith(f"Already converged after {n} wave(s)")
 
 
 def test_newer_request_supersedes_older_one():
@@ -358,3 +384,68 @@ def test_typed_values_the_parameter_refuses_notify_once_and_revert():
         assert field.label in s.error and "is not allowed" in s.error
     s.v_m = 0.1                                         # the state moves the field too
     assert vm.value == 0.1 and s.n_errors == 4
+
+
+@pytest.mark.parametrize("case, waves", [("beam-1d", (3, 5)), ("beam-2d", (3, 5))])
+def test_the_teaching_preset_shows_waves_shrinking(case, waves):
+    """The default preset: a few wave-1 runs, so 3–5 waves each cut NROY, and the true θ
+    stays non-implausible; the paper preset converges after one wave."""
+    s = ExplorerState()
+    s.case_name = case
+    assert s.preset == "teaching"
+    s.run_to_convergence()
+    f = [w.nroy_fraction for w in s.waves]
+    assert waves[0] <= len(f) <= waves[1] and s.waves[-1].status == "converged"
+    assert all(b < a for a, b in pairwise(f)) or f[-1] < 0.8 * f[0]
+    assert all(b <= a + 1e-12 for a, b in pairwise(f))
+    assert s.history_match.contains(s.case.theta_true)[0]
+    assert len(s.waves[0].runs_theta) <= 4
+    s.preset = "paper"
+    assert (s.n_runs, s.convergence_ratio) == (max(10, 5 * s.case.p), 1.0)
+    s.run_to_convergence()
+    assert len(s.waves) == 1 and len(s.waves[0].runs_theta) == s.case.initial_design.shape[0]
+
+
+def test_things_to_try_set_the_controls_and_say_what_to_press():
+    from mdcore_app.experiments import EXPERIMENTS
+    s = ExplorerState()
+    for exp in EXPERIMENTS:
+        s.try_experiment(exp.key)
+        assert s.case_name == exp.settings["case_name"] and s.error == ""
+        for name, value in exp.settings.items():
+            assert getattr(s, name) == value, (exp.key, name)
+        assert s.status.endswith(exp.then)
+    s.try_experiment("rule-out")
+    s.run_to_convergence()                 # the experiment does what it says
+    assert "nothing is non-implausible" in s.error or not s.history_match.contains(
+        s.case.theta_true)[0]
+    s.try_experiment("nope")
+    assert "Unknown experiment 'nope'" in s.error
+
+
+def test_the_papers_missing_views_have_data():
+    """θ_MAP in numbers and on the plots, the weighted θ posterior, the simulator at θ_MAP,
+    scenario 3's φ posterior against its prior, and the metrics chart."""
+    s = small_state()
+    v = ExplorerView(state=s)
+    s.scenarios = S123
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s.run_discrepancy()
+    hm = s.history_match
+    cal = pn.panel(v.calibration_view)
+    root = cal.get_root(Document())
+    text = " ".join(m.object for m in cal.select(pn.pane.Markdown))
+    assert f"l_cr = {hm.theta_map[0]:.4g} mm" in text and "θ_MAP" in text
+    data = [d for d in glyph_data(root) if d]
+    assert len(data) >= 2 * s.case.p + 1
+    one_point = [sorted(float(np.asarray(c)[0]) for c in d.values() if np.size(c) == 1)
+                 for d in glyph_data(render(v.waves_view)) if d and all(
+                     np.size(c) == 1 for c in d.values())]
+    assert any(np.allclose(pt, sorted(hm.theta_map)) for pt in one_point if len(pt) == 2)
+    metrics = pn.panel(v.metrics_view)
+    mroot = metrics.get_root(Document())
+    assert metrics.select(lambda o: "metrics-chart" in getattr(o, "css_classes", []))
+    phi = [o for o in metrics.select(pn.pane.HoloViews) if "phi-plot" in o.css_classes]
+    assert len(phi) == s.case.phi_prior.mean.size               # one per φ component
+    assert all(d for d in glyph_data(mroot))

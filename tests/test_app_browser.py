@@ -42,14 +42,16 @@ class ServerLog:
         return "".join(self.lines)
 
 
-def _serve(script: str = "main.py"):
-    """Start ``panel serve app/<script>`` on a free port; return (process, url, log)."""
+def _serve(script: str = "main.py", args: tuple[str, ...] = ()):
+    """Start ``panel serve app/<script> [--args ARGS]`` on a free port; return (process,
+    url, log)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     proc = subprocess.Popen(
         [sys.executable, "-m", "panel", "serve", str(ROOT / "app" / script), "--address",
-         "127.0.0.1", "--port", str(port), "--allow-websocket-origin", f"127.0.0.1:{port}"],
+         "127.0.0.1", "--port", str(port), "--allow-websocket-origin", f"127.0.0.1:{port}",
+         *(["--args", *args] if args else [])],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
     log = ServerLog(proc)
     end = time.monotonic() + 60
@@ -154,8 +156,8 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     page.locator("select").first.select_option("shear-5")
     # Ten shear-5 plots take headless Chromium 10–20 s to build on a loaded 2-core machine.
     page.wait_for_selector("text=/SYNTHETIC stand-in/", timeout=90_000)   # case-sensitive
-    page.wait_for_selector(".hm-status:has-text('Five-storey')", state="attached",
-                           timeout=30_000)
+    tab(page, "History matching")          # tabs are drawn when shown (dynamic)
+    page.wait_for_selector(".hm-status:has-text('Five-storey')", timeout=30_000)
     tab(page, "Data")
     wait_drawn(page, ".data-plot", n=10)              # data and true δ of five modes
     page.screenshot(path=str(ARTIFACTS / "05-shear5.png"))
@@ -231,8 +233,8 @@ def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_hm, n_
         from mdcore import cases
         title = cases.load(case).title[-10:]          # "paper §4.2)": unique per case
         page.locator("select").first.select_option(case)
-        page.wait_for_selector(f".hm-status:has-text('{title}')", state="attached",
-                               timeout=90_000)
+        tab(page, "History matching")      # tabs are drawn when shown (dynamic)
+        page.wait_for_selector(f".hm-status:has-text('{title}')", timeout=90_000)
     tab(page, "Data")
     assert_drawn(page, ".data-plot", 1)
     page.get_by_role("button", name="Run to convergence").click()
@@ -248,3 +250,86 @@ def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_hm, n_
     assert log.errors == []
     assert log.hosts <= {"127.0.0.1", "localhost"}, log.hosts
     page.close()
+
+
+def test_own_data_in_and_a_session_out_and_back(browser, tmp_path):
+    """Served with ``--args --case`` (an own TOML case), at 1280×720: the case is in the
+    list; the Files tab takes uploaded measurements (a new case, run from scratch by "Run
+    discrepancy"), gives the session JSON, and "Open session…" in a new session recomputes
+    the same metrics. Nothing leaves localhost."""
+    proc, url, _log = _serve(args=("--case", "examples/beam_lab/beam_lab.toml"))
+    try:
+        page = browser.new_page(viewport={"width": 1280, "height": 720})
+        log = PageLog(page)
+        page.goto(url)
+        page.wait_for_selector(".data-plot canvas", timeout=60_000)
+        options = page.locator("select").first.locator("option").all_inner_texts()
+        assert "beam-lab" in options
+        tab(page, "Files")
+        page.wait_for_selector(".upload-help", timeout=30_000)
+        ARTIFACTS.mkdir(exist_ok=True)
+        page.screenshot(path=str(ARTIFACTS / "files-tab.png"))
+        with page.expect_download() as got:
+            page.locator(".dl-template").get_by_role("button").click()
+        template = got.value.path().read_text(encoding="utf-8")
+        lines = template.splitlines()
+        shifted = lines[:3] + [",".join([r.split(",")[0], repr(float(r.split(",")[1]) + 0.02),
+                                         r.split(",")[2]]) for r in lines[3:]]
+        csv = tmp_path / "my_beam.csv"
+        csv.write_text("\n".join(shifted) + "\n", encoding="utf-8")
+        page.locator(".upload-csv .filepond--drop-label").wait_for(timeout=30_000)
+        page.locator(".upload-csv input[type=file]").set_input_files(str(csv))
+        page.locator(".upload-csv").get_by_text("Upload complete", exact=True).wait_for(
+            timeout=30_000)
+        from playwright.sync_api import expect
+        expect(page.locator("select").first).to_have_value("beam-1d · my_beam.csv",
+                                                           timeout=60_000)
+        tab(page, "History matching")
+        try:
+            page.wait_for_selector(".hm-status:has-text('your measurements')", timeout=60_000)
+        except Exception:
+            page.screenshot(path=str(ARTIFACTS / "files-upload-failed.png"))
+            raise
+        assert page.locator("select").first.input_value() == "beam-1d · my_beam.csv"
+        page.get_by_role("button", name="Run discrepancy").click()
+        tab(page, "Discrepancy")
+        assert_drawn(page, ".disc-plot", 6)
+        tab(page, "Files")
+        page.locator(".dl-report").get_by_role("button").wait_for(timeout=30_000)
+        assert page.locator(".dl-report").get_by_role("button").is_enabled()
+        with page.expect_download() as got:
+            page.locator(".dl-session").get_by_role("button").click()
+        saved = tmp_path / "session.json"
+        got.value.save_as(str(saved))
+        assert '"measurements_csv"' in saved.read_text(encoding="utf-8")
+        page.screenshot(path=str(ARTIFACTS / "files-after-run.png"))
+
+        other = browser.new_page(viewport={"width": 1280, "height": 720})
+        other_log = PageLog(other)
+        other.goto(url)
+        other.wait_for_selector(".data-plot canvas", timeout=60_000)
+        tab(other, "Files")
+        # The drop area is ready once FilePond has drawn its label (the tab is drawn when
+        # shown, so right after the click the input exists but nothing listens to it yet).
+        other.locator(".open-session .filepond--drop-label").wait_for(timeout=30_000)
+        other.locator(".open-session input[type=file]").set_input_files(str(saved))
+        other.locator(".open-session").get_by_text("Upload complete", exact=True).wait_for(
+            timeout=30_000)
+        tab(other, "History matching")
+        try:
+            other.wait_for_selector(".hm-status:has-text('every metric equals the saved one')",
+                                    timeout=90_000)
+        except Exception:
+            other.screenshot(path=str(ARTIFACTS / "files-open-failed.png"))
+            raise
+        assert other.locator("select").first.input_value() == "beam-1d · my_beam.csv"
+        tab(other, "Discrepancy")
+        assert_drawn(other, ".disc-plot", 6)
+        for lg in (log, other_log):
+            assert lg.errors == []
+            assert lg.hosts <= {"127.0.0.1", "localhost"}, lg.hosts
+        page.close()
+        other.close()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)

@@ -1,0 +1,290 @@
+"""The plotting functions of issue 17's missing views, rendered to Bokeh and checked in numbers.
+
+Each plot is rendered with ``hv.render``; its glyphs are found by legend label and their data
+sources are compared with independent computations from mdcore: θ_MAP, the θ posterior,
+scenario 3's importance weights and prior, the simulator, and the metrics.
+"""
+
+import warnings
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+pytest.importorskip("holoviews")
+import holoviews as hv  # noqa: E402
+from bokeh.models import GlyphRenderer  # noqa: E402
+
+from mdcore import cases  # noqa: E402
+from mdcore.history_matching import history_match_case  # noqa: E402
+from mdcore.pipeline import Method, Settings, run_method  # noqa: E402
+from mdcore.study import PAPER  # noqa: E402
+from mdcore_app import plots  # noqa: E402
+from mdcore_app.report import metric_bars  # noqa: E402
+
+hv.extension("bokeh")
+
+
+# --- helpers -----------------------------------------------------------------------------
+
+def render(obj):
+    """The Bokeh figure of ``obj``; every glyph renderer must have non-empty data."""
+    fig = hv.render(obj)
+    renderers = list(fig.select({"type": GlyphRenderer}))
+    assert renderers, "the plot has no glyphs"
+    for r in renderers:
+        lengths = {len(v) for v in r.data_source.data.values()}
+        assert lengths and min(lengths) > 0, (type(r.glyph).__name__, r.data_source.data)
+    return fig
+
+
+def legend(fig) -> dict:
+    """Legend label -> list of its glyph renderers."""
+    out: dict = {}
+    for item in fig.legend[0].items:
+        label = item.label.value if hasattr(item.label, "value") else str(item.label)
+        out.setdefault(label, []).extend(item.renderers)
+    return out
+
+
+def renderer(fig, label: str) -> GlyphRenderer:
+    """The one renderer whose legend label starts with ``label``."""
+    found = [r for k, rs in legend(fig).items() if k.startswith(label) for r in rs]
+    assert len(found) == 1, (label, list(legend(fig)))
+    return found[0]
+
+
+def one(fig, label: str) -> dict:
+    """The data of the one renderer whose legend label starts with ``label``."""
+    return dict(renderer(fig, label).data_source.data)
+
+
+def histogram(data: dict):
+    """Centres, widths and heights of a rendered hv.Histogram (a Quad glyph)."""
+    left, right = np.asarray(data["left"]), np.asarray(data["right"])
+    return 0.5 * (left + right), right - left, np.asarray(data["top"])
+
+
+def column(data: dict, name: str) -> np.ndarray:
+    """The column of a rendered source named ``name``, or the one column starting with it
+    (dimension names carry their units: "E [GPa]")."""
+    if name in data:
+        return np.asarray(data[name])
+    keys = [k for k in data if k.startswith(name)]
+    assert len(keys) == 1, (name, list(data))
+    return np.asarray(data[keys[0]])
+
+
+# --- fixtures ----------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def beam():
+    case = cases.load("beam-1d")
+    return case, history_match_case(case, n_candidates=4000)
+
+
+@pytest.fixture(scope="module")
+def results(beam):
+    case, hm = beam
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # low ESS at these sizes, on purpose
+        return {m: run_method(case, hm, m, Settings(n_s=30, n_phi=8), seed=0)
+                for m in (Method.S1, Method.S3)}
+
+
+# --- θ posterior and θ_MAP ---------------------------------------------------------------
+
+def test_theta_posterior_matches_the_posterior_samples(beam):
+    case, hm = beam
+    figs = [render(o) for o in plots.theta_posterior(case, hm, n=4000, seed=0)]
+    assert len(figs) == case.p
+    # Independent: SIR draws of p(θ | z) on NROY (another pool, another seed).
+    draws = hm.posterior_samples(4000, seed=1)
+    # The same weighting the plot shows, computed here: the weighted mean of its pool.
+    pool = hm.nroy_samples(4000, seed=0)
+    ll = hm.log_likelihood(pool)
+    w = np.exp(ll - ll.max())
+    w /= w.sum()
+    for j, fig in enumerate(figs):
+        name, unit = case.theta_names[j], case.theta_units[j]
+        assert fig.title.text == f"{name}: θ_MAP = {hm.theta_map[j]:.4g} {unit}"
+        lo, hi = case.theta_bounds[j]
+        assert (fig.x_range.start, fig.x_range.end) == (lo, hi)
+        x, width, post = histogram(one(fig, "posterior"))
+        assert x.min() > lo and x.max() < hi
+        assert abs(np.sum(post * width) - 1.0) < 1e-9                 # a density
+        mean = np.sum(x * post * width)
+        # Binning moves the mean by less than half a bin; the two Monte Carlo estimates
+        # (ESS ≈ 850 and 4000 draws) differ by a few hundredths of a posterior sd.
+        assert abs(mean - w @ pool[:, j]) < 0.5 * width[0]
+        assert abs(mean - draws[:, j].mean()) < 0.15 * draws[:, j].std(), (mean, draws.mean(0))
+        xn, wn, nroy = histogram(one(fig, "NROY"))
+        assert abs(np.sum(nroy * wn) - 1.0) < 1e-9 and np.count_nonzero(nroy) > 5
+        assert list(column(one(fig, "θ_MAP"), name)) == [hm.theta_map[j]]
+        assert list(column(one(fig, "true θ"), name)) == [case.theta_true[j]]
+
+
+def test_theta_map_on_nroy_and_implausibility_plots(beam):
+    case, hm = beam
+    args = (hm.waves, case.theta_names, case.theta_units, case.theta_bounds, case.theta_true, 5)
+    plain = render(plots.nroy_samples(*args)[0])          # the old call still works
+    assert not any(k == "θ_MAP" for k in legend(plain))
+    fig = render(plots.nroy_samples(*args, theta_map=hm.theta_map)[0])
+    star = one(fig, "θ_MAP")
+    assert np.array_equal([column(star, "l_cr")[0], column(star, "E")[0]], hm.theta_map)
+    assert renderer(fig, "θ_MAP").glyph.marker == "star"
+
+    t1 = np.linspace(*case.theta_bounds[0], 12)
+    t2 = np.linspace(*case.theta_bounds[1], 10)
+    grid = np.stack(np.meshgrid(t1, t2), axis=-1).reshape(-1, 2)
+    I = hm.waves[-1].implausibility(grid).reshape(10, 12)
+    amap = plots.implausibility_map(t1, t2, I, 3.0, case.theta_names, case.theta_units,
+                                    case.theta_true, 1, theta_map=hm.theta_map)
+    fig = render(amap)
+    star = one(fig, "θ_MAP")
+    assert np.array_equal([column(star, "l_cr")[0], column(star, "E")[0]], hm.theta_map)
+    render(plots.implausibility_map(t1, t2, I, 3.0, case.theta_names, case.theta_units,
+                                    case.theta_true, 1))     # the old call still works
+
+
+def test_one_parameter_case_marks_theta_map_with_a_line():
+    case = cases.load("beam-2d")
+    hm = history_match_case(case, n_candidates=4000)
+    fig = render(plots.nroy_samples(hm.waves, case.theta_names, case.theta_units,
+                                    case.theta_bounds, case.theta_true, 5,
+                                    theta_map=hm.theta_map)[0])
+    assert list(column(one(fig, "θ_MAP"), "E")) == [hm.theta_map[0]]
+    (post,) = plots.theta_posterior(case, hm, n=2000)
+    assert render(post).title.text == f"E: θ_MAP = {hm.theta_map[0]:.4g} GPa"
+    assert plots.simulator_at_map(case, hm) == []            # d_x = 2
+
+
+# --- scenario 3's φ posterior ------------------------------------------------------------
+
+def test_phi_posterior_is_the_weighted_draws_against_the_prior(beam, results):
+    case, _ = beam
+    model = results[Method.S3].model
+    P = model.log_params.shape[-1]
+    names = plots.phi_names(case.n_out, case.d_x)
+    assert names == ["log σ_f", "log ℓ_y", "log ℓ_x", "log σ_n"] and len(names) == P
+    w = np.exp(model.log_weights[0]).ravel()                   # independent of the plot
+    assert abs(w.sum() - 1.0) < 1e-12
+    ess = 1.0 / np.sum(w * w)
+    phi = model.log_params[0].reshape(-1, P)
+    overlays = plots.phi_posterior(case, results[Method.S3])
+    assert len(overlays) == case.n_out * P
+    for c, obj in enumerate(overlays):
+        fig = render(obj)
+        assert fig.title.text == f"tip deflection: {names[c]} (ESS {ess:,.1f} of {w.size})"
+        assert fig.xaxis[0].axis_label.startswith(names[c])
+        x, width, dens = histogram(one(fig, "weighted posterior"))
+        assert abs(np.sum(dens * width) - 1.0) < 1e-9             # the weights sum to 1
+        assert abs(np.sum(x * dens * width) - w @ phi[:, c]) < 0.5 * width[0]
+        mean_line = column(one(fig, "posterior mean"), names[c])
+        assert np.allclose(mean_line, [w @ phi[:, c]], rtol=0, atol=1e-12)
+        prior = one(fig, "prior")
+        xs, ys = column(prior, names[c]), column(prior, "density")
+        assert abs(np.trapezoid(ys, xs) - 1.0) < 1e-3              # ±4 sd at least
+        mu, var = case.phi_prior.mean[c], case.phi_prior.var[c]
+        assert np.allclose(ys, np.exp(-0.5 * (xs - mu) ** 2 / var) / np.sqrt(2 * np.pi * var))
+    assert len(plots.phi_posterior(case, results[Method.S3], output=0)) == P
+    assert plots.phi_posterior(case, results[Method.S1]) == []
+
+
+def test_phi_posterior_of_the_adaptive_proposal_keeps_all_the_weight(beam):
+    case, hm = beam
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = run_method(case, hm, Method.S3, Settings(n_s=30, n_phi=8, proposal="adaptive"),
+                            seed=0)
+    P = result.model.log_params.shape[-1]
+    w = np.exp(result.model.log_weights[0]).ravel()
+    phi = result.model.log_params[0].reshape(-1, P)
+    for c, obj in enumerate(plots.phi_posterior(case, result)):
+        x, width, dens = histogram(one(render(obj), "weighted posterior"))
+        assert abs(np.sum(dens * width) - 1.0) < 1e-9
+        assert abs(np.sum(x * dens * width) - w @ phi[:, c]) < width[0]
+
+
+# --- the simulator at θ_MAP --------------------------------------------------------------
+
+def test_simulator_at_map_equals_the_simulator(beam):
+    case, hm = beam
+    (obj,) = plots.simulator_at_map(case, hm)
+    fig = render(obj)
+    curve = one(fig, "simulator at θ_MAP")
+    x, y = column(curve, "crack"), column(curve, "tip")
+    assert x.size == 201 and np.allclose(y, case.simulate(x[:, None], hm.theta_map)[0, :, 0],
+                                         rtol=1e-12, atol=0)
+    truth = one(fig, "simulator at true θ")
+    assert np.allclose(column(truth, "tip"),
+                       case.simulate(x[:, None], case.theta_true)[0, :, 0], rtol=1e-12)
+    train = one(fig, "training data")
+    assert np.array_equal(column(train, "tip"), case.z_train[:, 0])
+    assert np.array_equal(column(one(fig, "test data"), "crack"), case.X_test[:, 0])
+    rmse = np.sqrt(np.mean((case.simulate(case.X_train, hm.theta_map)[0] - case.z_train) ** 2))
+    assert f"RMSE {rmse:.4g} mm" in [k for k in legend(fig) if k.startswith("simulator at θ")][0]
+
+
+def test_simulator_at_map_shows_every_mode_of_shear_5():
+    case = cases.load("shear-5")
+    hm = history_match_case(case, n_candidates=4000)
+    overlays = plots.simulator_at_map(case, hm)
+    assert len(overlays) == 5
+    for o, obj in enumerate(overlays):
+        fig = render(obj)
+        assert fig.title.text == f"ω{o + 1}: simulator at θ_MAP vs data"
+        curve = one(fig, "simulator at θ_MAP")
+        x = column(curve, "added")
+        assert np.allclose(column(curve, f"ω{o + 1}"),
+                           case.simulate(x[:, None], hm.theta_map)[0, :, o], rtol=1e-12)
+
+
+# --- the metrics chart -------------------------------------------------------------------
+
+def test_metrics_chart_bars_are_the_metrics_and_markers_the_paper(beam, results):
+    case, _ = beam
+    paper = PAPER["beam-1d"]
+    fig = render(plots.metrics_chart(case, results, paper))
+    ticks = fig.xaxis[0].major_label_overrides
+    assert list(ticks.values()) == ["NMSE z", "NMSE δ"]
+    labels = legend(fig)
+    assert set(labels) == {"Scenario 1", "Scenario 3", "paper"}
+    marks = one(fig, "paper")
+    for m, r in results.items():
+        bars = one(fig, m.label)
+        want = [r.metrics.nmse_z[0], r.metrics.nmse_delta[0]]
+        assert np.allclose(bars["top"], want, rtol=1e-12, atol=0)
+        assert np.all(np.asarray(bars["bottom"]) < min(want))   # bars start below, log axis
+        for g, metric in enumerate(("nmse_z", "nmse_delta")):
+            right = bars["right"][g]
+            # the paper's value sits just right of its bar, inside the method's slot
+            i = [k for k, x in enumerate(marks["x"]) if right < x < right + 0.1]
+            assert len(i) == 1 and marks["NMSE [%]"][i[0]] == paper[metric][m.value]
+            assert abs(bars["left"][g] - g) < 0.5
+    assert fig.y_scale.__class__.__name__ == "LogScale"
+
+
+def test_metrics_chart_groups_by_output_and_shares_the_reports_pairing():
+    case = cases.load("shear-5")
+    z = {Method.S1: (1.0, 2.0, 3.0, 4.0, 5.0), Method.KOH: (1.5, 2.5, 3.5, 4.5, 5.5)}
+    results = {m: SimpleNamespace(method=m, metrics=SimpleNamespace(nmse_z=v, nmse_delta=None))
+               for m, v in z.items()}
+    fig = render(plots.metrics_chart(case, results))
+    assert list(fig.xaxis[0].major_label_overrides.values()) == \
+        [f"NMSE z · ω{o}" for o in range(1, 6)]
+    assert "paper" not in legend(fig)
+    for m, v in z.items():
+        assert np.allclose(one(fig, m.label)["top"], v)
+    # The pairing with the paper's values is one function, shared with the report:
+    # a scalar stands for single-output cases only, a sequence gives one per output.
+    paper = {"nmse_z": {"1": 9.0, "koh": list(z[Method.S1])}}
+    rows = metric_bars(case, results.values(), "nmse_z", paper)
+    assert [(r[0], r[1], r[2]) for r in rows] == [(m, o, v[o]) for m, v in z.items()
+                                                  for o in range(5)]
+    assert all(np.isnan(r[3]) for r in rows[:5])
+    assert [r[3] for r in rows[5:]] == list(z[Method.S1])
+    marks = one(render(plots.metrics_chart(case, results, paper)), "paper")
+    assert list(marks["NMSE [%]"]) == list(z[Method.S1])
+    with pytest.raises(ValueError, match="run a method first"):
+        plots.metrics_chart(case, {})

@@ -188,8 +188,11 @@ def _run(case, args, methods, settings_name: str) -> int:
                                Method.KOH: (settings.n_iter, "iterations")}[method]
                 return bars.enter_context(_Bar(method.label, total, unit)).fraction
 
-            results = run_methods(case, hm, methods, settings, seed=args.seed,
-                                  report=lambda line: (bars.close(), print(line, flush=True)),
+            def report(line: str) -> None:
+                bars.close()                        # end the bar before the line
+                print(line, flush=True)
+
+            results = run_methods(case, hm, methods, settings, seed=args.seed, report=report,
                                   progress_for=bar_for, executor=executor)
     run = CaseRun(case, hm, settings, as_seed_int(args.seed), results)
     return _print_run(run, args)

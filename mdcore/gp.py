@@ -23,7 +23,7 @@ from . import compiled
 from .kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
 from .linalg import JitterLog, cholesky, chunks, for_each_chunk, gather, solve_lower_inplace
 from .threads import single_threaded_blas
-from .validation import as_float_array
+from .validation import as_float_array, as_log_params
 
 __all__ = ["LOG_2PI", "GPPrediction", "Problem", "check_problem",
            "neg_log_marginal_likelihood", "predict", "nlml_and_gradient"]
@@ -75,12 +75,7 @@ def check_problem(log_params, Y, X, z) -> Problem:
         raise ValueError(f"Y must have shape (..., N, d_y) with N = {N} rows to match X "
                          f"{X.shape}; received {Y.shape}.")
     d_y = Y.shape[-1]
-    lp = as_float_array(log_params, "log_params", min_ndim=1)
-    P = 2 + d_y + d_x
-    if lp.shape[-1] != P:
-        raise ValueError(
-            f"log_params must have last dimension P = 2 + d_y + d_x = 2 + {d_y} + {d_x} = {P} "
-            f"([log σ_f, log ℓ_y×{d_y}, log ℓ_x×{d_x}, log σ_n]); received shape {lp.shape}.")
+    lp = as_log_params(log_params, d_y, d_x)
     try:
         batch = np.broadcast_shapes(lp.shape[:-1], Y.shape[:-2])
     except ValueError:

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from .linalg import workspace
-from .validation import as_float_array
+from .validation import as_float_array, as_log_params
 
 __all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "split_log_params",
            "separable_matern", "kernel", "train_cov", "cross_cov"]
@@ -137,12 +137,7 @@ def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
         raise ValueError(f"Yb must have d_y = {Ya.shape[-1]} columns like Ya {Ya.shape}; "
                          f"received {Yb.shape}.")
     d_y, d_x = Ya.shape[-1], Xa.shape[1]
-    lp = as_float_array(log_params, "log_params", min_ndim=1)
-    P = 2 + d_y + d_x
-    if lp.shape[-1] != P:
-        raise ValueError(
-            f"log_params must have last dimension P = 2 + d_y + d_x = 2 + {d_y} + {d_x} = {P} "
-            f"([log σ_f, log ℓ_y×{d_y}, log ℓ_x×{d_x}, log σ_n]); received shape {lp.shape}.")
+    lp = as_log_params(log_params, d_y, d_x)
     try:
         np.broadcast_shapes(lp.shape[:-1], Ya.shape[:-2], Yb.shape[:-2])
     except ValueError:

@@ -139,3 +139,15 @@ def as_outputs(z, n_rows: int, name: str = "z") -> np.ndarray:
         raise ValueError(f"{name} must have shape (N, n_out) with N = {n_rows} rows like X "
                          f"(or (N,) for one output); received {arr.shape}.")
     return arr
+
+
+def as_log_params(log_params, d_y: int, d_x: int) -> np.ndarray:
+    """GP log hyperparameters, shape (..., P) with P = 2 + d_y + d_x (SPEC §2 layout
+    ``[log σ_f, log ℓ_y×d_y, log ℓ_x×d_x, log σ_n]``), as a finite float64 array."""
+    lp = as_float_array(log_params, "log_params", min_ndim=1)
+    P = 2 + d_y + d_x
+    if lp.shape[-1] != P:
+        raise ValueError(
+            f"log_params must have last dimension P = 2 + d_y + d_x = 2 + {d_y} + {d_x} = {P} "
+            f"([log σ_f, log ℓ_y×{d_y}, log ℓ_x×{d_x}, log σ_n]); received shape {lp.shape}.")
+    return lp

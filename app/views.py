@@ -426,7 +426,7 @@ class ExplorerView(pn.viewable.Viewer):
             return io.BytesIO(b"" if text is None else text.encode("utf-8"))
 
         button = pn.widgets.FileDownload(callback=callback, filename=filename(), label=label,
-                                         button_type="primary", button_style="outline",
+                                         color="primary", variant="outline",
                                          css_classes=[css], sizing_mode="stretch_width")
         return button
 
@@ -507,7 +507,7 @@ class ExplorerView(pn.viewable.Viewer):
         button that sets the controls."""
         cards = []
         for exp in EXPERIMENTS:
-            button = pn.widgets.Button(label="Set it up", button_type="primary",
+            button = pn.widgets.Button(label="Set it up", color="primary",
                                        css_classes=[f"try-{exp.key}"], width=120)
             button.on_click(lambda _, k=exp.key: self.state.try_experiment(k))
             cards.append(pn.Column(

@@ -95,3 +95,24 @@ def test_method_selection():
         parse_methods(["4"])
     with pytest.raises(ValueError, match="'beam-3d' is not a valid case name"):
         reproduce("beam-3d")
+
+
+def test_run_methods_refuses_bad_input():
+    """run_methods (shared by run_case and the CLI): no methods, an unknown label, or a
+    history match that ruled everything out are ValueErrors naming what is wrong."""
+    from mdcore import cases
+    from mdcore.history_matching import history_match_case
+    from mdcore.pipeline import Settings
+    from mdcore.reproduce import run_methods
+
+    case = cases.load("beam-1d")
+    hm = history_match_case(case, n_candidates=2000)
+    small = Settings(n_s=5, n_phi=2)
+    with pytest.raises(ValueError, match="methods is empty"):
+        run_methods(case, hm, [], small)
+    with pytest.raises(ValueError, match="4"):
+        run_methods(case, hm, ["4"], small)
+    ruled_out = history_match_case(case, n_candidates=2000, V_m=[1e-7], threshold=0.5)
+    assert ruled_out.status == "ruled_out"
+    with pytest.raises(ValueError, match="beam-1d: .*nothing is non-implausible"):
+        run_methods(case, ruled_out, [1], small)

@@ -449,3 +449,11 @@ def test_the_papers_missing_views_have_data():
     phi = [o for o in metrics.select(pn.pane.HoloViews) if "phi-plot" in o.css_classes]
     assert len(phi) == s.case.phi_prior.mean.size               # one per φ component
     assert all(d for d in glyph_data(mroot))
+
+
+def test_shear5_teaching_keeps_its_own_design():
+    s = ExplorerState()
+    s.case_name = "shear-5"
+    s.param.update(n_candidates=20_000)
+    s.next_wave()
+    assert len(s.waves[0].runs_theta) == s.case.initial_design.shape[0] and s.n_runs == 15

@@ -135,6 +135,7 @@ class JobRunner:
         self.interval = float(interval)
         self._clock = clock
         self._job: Job | None = None
+        self._closed = False
 
     # ------------------------------------------------------------------------------
     # Public
@@ -179,6 +180,12 @@ class JobRunner:
         """Retire the running job without any callback (the state is being reset)."""
         self._retire()
 
+    def close(self) -> None:
+        """The session has ended: retire the running job, and hand nothing more to
+        ``schedule`` (the session's document is gone)."""
+        self._closed = True
+        self._retire()
+
     # ------------------------------------------------------------------------------
     # Worker side
 
@@ -202,7 +209,7 @@ class JobRunner:
                 return                                    # at most ~4 updates a second
             last[:] = now, fraction
             f = min(max(float(fraction), 0.0), 1.0)
-            self.schedule(lambda: self._live(job) and self._on_progress(f, message))
+            self._post(lambda: self._live(job) and self._on_progress(f, message))
 
         return report
 
@@ -211,11 +218,24 @@ class JobRunner:
             for partial in compute(self._reporter(job), job.cancel):
                 if not self._live(job):
                     break
-                self.schedule(lambda p=partial: self._apply(job, apply, p))
+                self._post(lambda p=partial: self._apply(job, apply, p))
         except Exception as exc:                          # noqa: BLE001 - every failure ends the job
-            self.schedule(lambda e=exc: self._end(job, e))
+            self._post(lambda e=exc: self._end(job, e), job)
             return
-        self.schedule(lambda: self._end(job, None))
+        self._post(lambda: self._end(job, None), job)
+
+    def _post(self, fn: Callable[[], Any], ending: Job | None = None) -> None:
+        """``schedule(fn)`` unless the session has ended; ``ending``: the job that ``fn``
+        would end, marked ended here instead."""
+        if not self._closed:
+            try:
+                self.schedule(fn)
+                return
+            except Exception:
+                if not self._closed:                      # closed while scheduling: expected
+                    raise
+        if ending is not None:
+            ending._ended.set()
 
     # ------------------------------------------------------------------------------
     # Session side (through schedule)

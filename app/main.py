@@ -62,6 +62,10 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
     state = ExplorerState(background=doc is not None and doc.session_context is not None,
                           schedule=_scheduler(doc), own_cases=tuple(cases))
     view = ExplorerView(state=state)
+    if state.background:
+        # A closed tab stops its running job: nobody will see the result, and the CPU is
+        # shared by every session of the server.
+        doc.on_session_destroyed(lambda _context: state.jobs.close())
     for message in errors:                        # shown once the page is there
         pn.state.onload(lambda m=message: state.report_error(m))
     return view

@@ -49,7 +49,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
-from browser import CHROMIUM, FLAGS  # noqa: E402
+from browser import launch, tab  # noqa: E402
 
 VIEWPORT = {"width": 1280, "height": 720}
 CASES = ("beam-1d", "beam-2d", "shear-5")
@@ -294,10 +294,6 @@ def settle(page, before: dict | None, *, ready: tuple[str, object] = ALWAYS,
                   s["server_cpu"] - b["server_cpu"], s["browser_cpu"] - b["browser_cpu"])
 
 
-def tab(page, name):
-    page.locator(".bk-tab", has_text=name).click()
-
-
 def button_group(page, labels: list[str]):
     """The button group whose buttons read exactly ``labels``."""
     groups = page.locator(".bk-btn-group")
@@ -480,7 +476,7 @@ def main() -> None:
     METER.server_pid = None if proc is None else proc.pid
     try:
         with sync_playwright() as p:
-            browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+            browser = launch(p)
             first_paint(browser, url, args.quiet)      # warm-up: imports, kernels, caches
             paint = first_paint(browser, url, args.quiet)
             rows = []

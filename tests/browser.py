@@ -26,3 +26,28 @@ def require_browser() -> None:
         if os.environ.get("MDCORE_REQUIRE_BROWSER") == "1":
             pytest.fail(f"browser test required (MDCORE_REQUIRE_BROWSER=1) but {reason}")
         pytest.skip(reason)
+
+
+def launch(playwright):
+    """Debian's Chromium, headless, with the project's flags."""
+    return playwright.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+
+
+def tab(page, name: str, timeout: float = 30.0) -> None:
+    """Show the tab ``name`` and wait until the page says it is the active one.
+
+    A click that lands while Bokeh re-lays-out the page can be lost; the tab header is
+    clicked again (at most once a second) until the tab is active.
+    """
+    import time
+
+    header = page.locator(".bk-tab", has_text=name)
+    end = time.monotonic() + timeout
+    while True:
+        header.click()
+        try:
+            page.locator(".bk-tab.bk-active", has_text=name).wait_for(timeout=1_000)
+            return
+        except Exception:                   # noqa: BLE001 - playwright's TimeoutError
+            if time.monotonic() > end:
+                raise AssertionError(f"the tab {name!r} did not become active") from None

@@ -13,7 +13,7 @@ from pathlib import Path
 from urllib.parse import urlparse
 
 import pytest
-from browser import CHROMIUM, FLAGS, require_browser
+from browser import launch, require_browser, tab
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 ROOT = Path(__file__).resolve().parent.parent
@@ -75,7 +75,7 @@ def server():
 def browser(server):
     from playwright.sync_api import sync_playwright
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        b = launch(p)
         yield b
         b.close()
 
@@ -102,10 +102,6 @@ def open_page(browser, url):
     page.goto(url)
     page.wait_for_selector(".data-plot canvas", timeout=60_000)
     return page, log
-
-
-def tab(page, name):
-    page.locator(".bk-tab", has_text=name).click()
 
 
 def wait_drawn(page, selector, n=1, timeout=30_000):
@@ -293,7 +289,13 @@ def test_own_data_in_and_a_session_out_and_back(browser, tmp_path):
         assert page.locator("select").first.input_value() == "beam-1d · my_beam.csv"
         page.get_by_role("button", name="Run discrepancy").click()
         tab(page, "Discrepancy")
-        assert_drawn(page, ".disc-plot", 6)
+        try:
+            assert_drawn(page, ".disc-plot", 6)
+        except Exception:
+            page.screenshot(path=str(ARTIFACTS / "files-run-failed.png"), full_page=True)
+            print("server log:\n" + _log.text(), "\npage errors:", log.errors,
+                  "\npage text:", page.inner_text("body", timeout=5_000)[:3000])
+            raise
         tab(page, "Files")
         page.locator(".dl-report").get_by_role("button").wait_for(timeout=30_000)
         assert page.locator(".dl-report").get_by_role("button").is_enabled()

@@ -23,7 +23,7 @@ import warnings
 from pathlib import Path
 
 import pytest
-from browser import CHROMIUM, FLAGS, require_browser
+from browser import launch, require_browser, tab
 
 ROOT = Path(__file__).resolve().parent.parent
 APP = ROOT / "app" / "main.py"
@@ -67,7 +67,10 @@ def server():
     port = _free_port()
     thread = pn.serve({"main": str(APP)}, port=port, address="127.0.0.1",
                       websocket_origin=[f"127.0.0.1:{port}"], show=False, threaded=True,
-                      verbose=False, title="Model Discrepancy Explorer")
+                      verbose=False, title="Model Discrepancy Explorer",
+                      # A closed page's session ends 1–1.5 s later (Bokeh's default: 15–32 s).
+                      unused_session_lifetime_milliseconds=1_000,
+                      check_unused_sessions_milliseconds=500)
     url = f"http://127.0.0.1:{port}/main"
     end = time.monotonic() + 60
     while True:
@@ -86,13 +89,9 @@ def server():
 def browser(server):
     from playwright.sync_api import sync_playwright
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
+        b = launch(p)
         yield b
         b.close()
-
-
-def tab(page, name):
-    page.locator(".bk-tab", has_text=name).click()
 
 
 def shown_text(page, css_class: str) -> str:
@@ -378,3 +377,21 @@ def test_cancel_frees_the_cpu_within_one_second(browser, server):
     finally:
         context.close()
         wait_no_job_threads(60)
+
+
+def test_closing_the_page_stops_its_job(browser, server):
+    """A paper-sized discrepancy run stops soon after its page is closed (the session ends
+    and drops its job), instead of using the CPU for the ~10 s nobody will see."""
+    context = browser.new_context(viewport={"width": 1280, "height": 720})
+    page = context.new_page()
+    try:
+        page.goto(server)
+        page.wait_for_selector(".data-plot canvas", timeout=60_000)
+        _start_paper_sizes_job(page)
+        assert job_threads(), "the paper-sized run ended before the page was closed"
+    finally:
+        context.close()
+    closed = time.monotonic()
+    left = wait_no_job_threads(6.0)
+    print(f"\nclosed page: its job ended {time.monotonic() - closed:.2f} s after the close")
+    assert not left, f"the job still runs 6 s after its page was closed: {left}"

@@ -217,6 +217,42 @@ def test_drop_retires_without_callbacks():
     assert host.busy                                  # drop leaves busy to the caller
 
 
+def test_close_stops_the_job_and_schedules_nothing_more():
+    """A closed session (its browser tab gone): the running job stops at its next check,
+    and the worker hands nothing to ``schedule``, which would fail on a destroyed document."""
+    host = Host()
+    scheduled = []
+    closed = threading.Event()
+
+    def schedule(fn):
+        if closed.is_set():
+            raise AttributeError("the document is gone")   # as Bokeh does after destroy
+        scheduled.append(fn)
+
+    runner = host.runner(background=True, schedule=schedule)
+    started = threading.Event()
+    steps = []
+
+    def endless(report, cancel):
+        started.set()
+        while True:
+            steps.append(1)
+            report(0.5, "working")                    # raises Cancelled once closed
+            cancel.wait(0.01)
+        yield "never"
+
+    job = runner.submit("endless", endless, host.apply)
+    assert started.wait(TIMEOUT)
+    runner.close()
+    closed.set()
+    n_scheduled = len(scheduled)
+    assert job.wait(TIMEOUT)                          # ended, without any scheduled callback
+    n = len(steps)
+    assert job.status == "superseded" and host.errors == []
+    assert len(scheduled) == n_scheduled
+    assert not runner.cancel() and len(steps) == n
+
+
 # --- progress ------------------------------------------------------------------------------
 
 def test_progress_is_throttled_on_a_clock():

@@ -24,7 +24,7 @@ THETA_MAP_MARKER = {"color": THETA_MAP_COLOR, "marker": "star", "size": 18,
 PLOT = {"responsive": True, "height": 300, "min_width": 200, "tools": ["hover"], "show_grid": True}
 
 
-def _label(name: str, unit: str) -> str:
+def axis_label(name: str, unit: str) -> str:
     return f"{name} [{unit}]" if unit and unit != "-" else name
 
 
@@ -39,7 +39,7 @@ def data_overview(case, var_bar: np.ndarray, *, output: int = 0) -> hv.Layout:
     output : int
         Which output to show (1-D input cases); shear-5 shows every mode.
     """
-    xname = _label(case.x_names[0], case.x_units[0])
+    xname = axis_label(case.x_names[0], case.x_units[0])
     if case.d_x == 2:
         return _data_overview_2d(case, var_bar)
     outputs = range(case.n_out) if case.n_out > 1 else [output]
@@ -50,7 +50,7 @@ def data_overview(case, var_bar: np.ndarray, *, output: int = 0) -> hv.Layout:
     delta = case.true_delta(xs)
     panels = []
     for o in outputs:
-        yname = _label(case.output_names[o], case.output_units[o])
+        yname = axis_label(case.output_names[o], case.output_units[o])
         bar = 2.0 * np.sqrt(var_bar[o])
         train = hv.ErrorBars((case.X_train[:, 0], case.z_train[:, o],
                               np.full(len(case.X_train), bar)),
@@ -68,7 +68,7 @@ def data_overview(case, var_bar: np.ndarray, *, output: int = 0) -> hv.Layout:
         panels.append(overlay)
         if delta is not None:
             panels.append(hv.Curve((xs[:, 0], delta[:, o]), xname,
-                                   _label("δ " + case.output_names[o], case.output_units[o]),
+                                   axis_label("δ " + case.output_names[o], case.output_units[o]),
                                    label="true δ").opts(color="#9467bd",
                                                         title=f"true discrepancy δ, "
                                                               f"{case.output_names[o]}", **PLOT))
@@ -76,9 +76,9 @@ def data_overview(case, var_bar: np.ndarray, *, output: int = 0) -> hv.Layout:
 
 
 def _data_overview_2d(case, var_bar) -> hv.Layout:
-    x1 = _label(case.x_names[0], case.x_units[0])
-    x2 = _label(case.x_names[1], case.x_units[1])
-    yname = _label(case.output_names[0], case.output_units[0])
+    x1 = axis_label(case.x_names[0], case.x_units[0])
+    x2 = axis_label(case.x_names[1], case.x_units[1])
+    yname = axis_label(case.output_names[0], case.output_units[0])
     pts = hv.Points((case.X_train[:, 0], case.X_train[:, 1], case.z_train[:, 0]), [x1, x2],
                     [yname]).opts(color=yname, cmap="viridis", size=9, colorbar=True,
                                   title=f"training data (±2√(V_o+V_m) = "
@@ -123,7 +123,7 @@ def nroy_samples(waves, names, units, bounds, truth, upto: int, *,
     list of hv.Overlay
         One for p = 1, ``p (p − 1) / 2`` for p ≥ 2.
     """
-    labels = [_label(n, u) for n, u in zip(names, units)]
+    labels = [axis_label(n, u) for n, u in zip(names, units)]
     p = len(labels)
     shown = [w for w in waves if w.index <= upto]
     rng = np.random.default_rng(0)
@@ -183,7 +183,7 @@ def implausibility_map(t1, t2, I, threshold, names, units, truth, wave_index, *,
     theta_map : ndarray of shape (2,), optional
         θ_MAP: a red star with a black outline, legend "θ_MAP".
     """
-    l1, l2 = (_label(n, u) for n, u in zip(names, units))
+    l1, l2 = (axis_label(n, u) for n, u in zip(names, units))
     img = hv.Image((t1, t2, np.minimum(I, 3 * threshold)), [l1, l2], "implausibility").opts(
         cmap="viridis_r", colorbar=True, clim=(0.0, 3 * threshold),
         title=f"wave {wave_index}: implausibility (clipped at 3T; contour at T = {threshold:g})",
@@ -226,88 +226,10 @@ def emulator_variance(waves, output_names) -> hv.Overlay:
                                    logy=True, ylim=(lo, hi), xticks=k or None, **PLOT)
 
 
-def band_1d(x, mean, var, k, *, color, label, xname, yname) -> hv.Overlay:
-    """Mean ± k·sd band over a 1-D input."""
-    sd = k * np.sqrt(var)
-    return (hv.Area((x, mean - sd, mean + sd), xname, [yname, f"{yname} (upper)"],
-                    label=f"{label} ±{k}σ").opts(color=color, alpha=0.25, line_alpha=0) *
-            hv.Curve((x, mean), xname, yname, label=f"{label} mean").opts(color=color))
-
-
-def discrepancy_1d(case, grid, results, methods, k, output, quantity) -> list:
-    """Per method, one plot of z* (with data) or δ* (with the true δ), 1-D input.
-
-    ``grid`` (G, 1) are the inputs of each result's ``on_extra`` prediction.
-    """
-    xname = _label(case.x_names[0], case.x_units[0])
-    unit = case.output_units[output]
-    x = grid[:, 0]
-    truth = case.true_delta(grid)
-    plots = []
-    for s in methods:
-        on_grid = results[s].on_extra
-        if quantity == "z":
-            yname = _label(case.output_names[output], unit)
-            layers = [band_1d(x, on_grid.z_mean[:, output], on_grid.z_var[:, output], k,
-                              color=METHOD_COLORS[s], label=s.label, xname=xname,
-                              yname=yname),
-                      hv.Scatter((case.X_test[:, 0], case.z_test[:, output]), xname, yname,
-                                 label="test data").opts(color="grey", size=3, alpha=0.6),
-                      hv.Scatter((case.X_train[:, 0], case.z_train[:, output]), xname, yname,
-                                 label="training data").opts(color="black", size=6)]
-            title = f"{s.label}: z (bias-corrected)"
-        else:
-            yname = _label("δ " + case.output_names[output], unit)
-            layers = [band_1d(x, on_grid.delta_mean[:, output], on_grid.delta_var[:, output],
-                              k, color=METHOD_COLORS[s], label=s.label, xname=xname,
-                              yname=yname)]
-            if truth is not None:
-                layers.append(hv.Curve((x, truth[:, output]), xname, yname,
-                                       label="true δ").opts(color="black", line_dash="dashed"))
-            title = f"{s.label}: δ" + (f", {case.output_names[output]}"
-                                       if case.n_out > 1 else "")
-        # The legend below the plot: inside, it covered the data at 1280 px.
-        plots.append(hv.Overlay(layers).opts(title=title, legend_position="bottom",
-                                             legend_cols=2, **PLOT))
-    return plots
-
-
-def discrepancy_2d(case, grid, result, k, x2_slice) -> list:
-    """beam-2d: δ mean and band width on the (x₁, x₂) plane, and a slice at x₂.
-
-    ``grid`` (G, 2) is the square grid of ``result.on_extra`` (x₁ fastest).
-    """
-    x1 = _label(case.x_names[0], case.x_units[0])
-    x2 = _label(case.x_names[1], case.x_units[1])
-    u1, u2 = np.unique(grid[:, 0]), np.unique(grid[:, 1])
-    shape = (u2.size, u1.size)
-    on_grid = result.on_extra
-    mean = on_grid.delta_mean[:, 0].reshape(shape)
-    width = (2 * k * np.sqrt(on_grid.delta_var[:, 0])).reshape(shape)
-    s = result.method
-    img = hv.Image((u1, u2, mean), [x1, x2], "δ mean [mm]").opts(
-        cmap="RdBu_r", colorbar=True, title=f"{s.label}: δ mean", **PLOT)
-    band = hv.Image((u1, u2, width), [x1, x2], f"band width ±{k}σ [mm]").opts(
-        cmap="magma", colorbar=True, title=f"{s.label}: band width (±{k}σ)", **PLOT)
-    row = int(np.argmin(np.abs(u2 - x2_slice)))      # nearest grid row to the slice
-    xs = u1
-    var = on_grid.delta_var[:, 0].reshape(shape)
-    slice_plot = band_1d(xs, mean[row], var[row], k, color=METHOD_COLORS[s],
-                         label=s.label, xname=x1, yname="δ [mm]")
-    truth = case.true_delta(np.column_stack([xs, np.full_like(xs, u2[row])]))
-    layers = [slice_plot]
-    if truth is not None:
-        layers.append(hv.Curve((xs, truth[:, 0]), x1, "δ [mm]", label="true δ").opts(
-            color="black", line_dash="dashed"))
-    return [img, band, hv.Overlay(layers).opts(
-        title=f"{s.label}: slice at {case.x_names[1]} = {u2[row]:.4f} m",
-        legend_position="top_right", **PLOT)]
-
-
 def true_delta_2d(case) -> hv.Image:
     """beam-2d: the true δ on the plotting grid (for comparison with the scenarios)."""
-    x1 = _label(case.x_names[0], case.x_units[0])
-    x2 = _label(case.x_names[1], case.x_units[1])
+    x1 = axis_label(case.x_names[0], case.x_units[0])
+    x2 = axis_label(case.x_names[1], case.x_units[1])
     n = 60
     g1, g2 = np.meshgrid(np.linspace(*_span(case, 0), n), np.linspace(*_span(case, 1), n))
     delta = case.true_delta(np.column_stack([g1.ravel(), g2.ravel()]))
@@ -323,7 +245,7 @@ def koh_posterior(case, model) -> list:
     """
     out = []
     for j, (name, unit) in enumerate(zip(case.theta_names, case.theta_units)):
-        label = _label(name, unit)
+        label = axis_label(name, unit)
         samples = model.theta[:, j]
         lo, hi = case.theta_bounds[j]
         edges = np.linspace(lo, hi, 61)
@@ -411,7 +333,7 @@ def theta_posterior(case, hm, n: int = 4000, seed=0, *, bins: int = 40) -> list:
     theta_map = hm.theta_map
     out = []
     for j, (name, unit) in enumerate(zip(case.theta_names, case.theta_units)):
-        label = _label(name, unit)
+        label = axis_label(name, unit)
         lo, hi = (float(b) for b in case.theta_bounds[j])
         edges = np.linspace(lo, hi, bins + 1)
         nroy, _ = np.histogram(theta[:, j], bins=edges, density=True)
@@ -559,7 +481,7 @@ def simulator_at_map(case, hm, *, n_grid: int = 201) -> list:
     """
     if case.d_x != 1 or hm.waves[-1].nroy.shape[0] == 0:
         return []
-    xname = _label(case.x_names[0], case.x_units[0])
+    xname = axis_label(case.x_names[0], case.x_units[0])
     grid = np.linspace(*_span(case, 0), n_grid)[:, None]                       # (G, 1)
     theta_map = hm.theta_map
     at_map = case.simulate(grid, theta_map)[0]                                 # (G, n_out)
@@ -568,7 +490,7 @@ def simulator_at_map(case, hm, *, n_grid: int = 201) -> list:
     out = []
     for o in range(case.n_out):
         unit = case.output_units[o]
-        yname = _label(case.output_names[o], unit)
+        yname = axis_label(case.output_names[o], unit)
         rmse = float(np.sqrt(np.mean((at_data[:, o] - case.z_train[:, o]) ** 2)))
         layers = [hv.Scatter((case.X_test[:, 0], case.z_test[:, o]), xname, yname,
                              label="test data").opts(color="grey", size=4, alpha=0.6),

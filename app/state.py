@@ -14,6 +14,7 @@ a failure of any kind becomes one notification with the earlier state put back.
 
 from __future__ import annotations
 
+import contextlib
 import json
 from collections.abc import Callable
 from typing import NamedTuple
@@ -487,11 +488,16 @@ class ExplorerState(param.Parameterized):
 
     @param.depends("n_s", "n_phi", "seed", "scenarios", "koh_chain", "proposal", watch=True)
     def _discrepancy_settings_changed(self):
-        self._refresh_results()
-        if self._restoring:
-            return                      # open_session submits one job for everything
-        if self.results.keys() != set(self.scenarios) and self.waves and self._cache:
-            self.run_discrepancy()      # only when the user has run discrepancy before
+        # Served, one batch: the views see the cleared results together with the busy flag
+        # of the recompute, so they keep the earlier plots (dimmed) instead of blanking
+        # them. (Inline, the job runs inside this call, and its partial results must show.)
+        with (param.parameterized.batch_call_watchers(self) if self.background
+              else contextlib.nullcontext()):
+            self._refresh_results()
+            if self._restoring:
+                return                  # open_session submits one job for everything
+            if self.results.keys() != set(self.scenarios) and self.waves and self._cache:
+                self.run_discrepancy()  # only when the user has run discrepancy before
 
     def _cached_phi_hat(self, key: ResultKey):
         """φ̂ of a cached scenario-1 result on the same match and seed, or None.

@@ -22,6 +22,7 @@ from mdcore.pipeline import Method, MethodResult
 from mdcore.study import PAPER
 
 from . import plots
+from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .report import report_html
 from .session import MAX_UPLOAD_BYTES
@@ -79,15 +80,12 @@ class ExplorerView(pn.viewable.Viewer):
     """The whole page: controls on the left, tabs of plots on the right."""
 
     state = param.ClassSelector(class_=ExplorerState)
-    quantity = param.Selector(objects=["z and δ", "δ", "z"], default="z and δ",
-                              label="Show")
 
     def __init__(self, **params):
         super().__init__(**params)
         self.state.param.watch(self._notify_error, "n_errors")
         self.state.param.watch(self._notify_warning, "n_notices")
-        self.state.param.watch(self._case_changed, "case_name")
-        self._case_changed()
+        self._discrepancy = DiscrepancyPanel(state=self.state)
 
     # --- events ------------------------------------------------------------------------
     def _notify_error(self, *_):
@@ -97,9 +95,6 @@ class ExplorerView(pn.viewable.Viewer):
     def _notify_warning(self, *_):
         if pn.state.notifications is not None:
             pn.state.notifications.warning(self.state.notice, duration=10_000)
-
-    def _case_changed(self, *_):
-        self.quantity = "δ" if self.state.case.n_out > 1 else "z and δ"
 
     # --- controls ----------------------------------------------------------------------
     def _controls(self):
@@ -305,46 +300,10 @@ class ExplorerView(pn.viewable.Viewer):
         return pn.widgets.Player.from_param(self.state.param.selected_wave, start=1, end=n,
                                             loop_policy="once", interval=800, name="Wave shown")
 
-    @param.depends("state.results", "state.band", "state.scenarios", "state.slice_x2", "quantity")
-    def discrepancy_view(self):
-        s = self.state
-        c = s.case
-        shown = [k for k in sorted(s.scenarios, key=method_order) if k in s.results]
-        if not shown:
-            return pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
-                                    css_classes=["disc-empty"])
-        k = int(s.band)
-        # The diagnostics' warnings stay beside the bands they concern (the notification
-        # that also reports them fades).
-        advice = [w for m in shown for w in s.results[m].warnings]
-        head = [pn.pane.Alert("\n\n".join(f"**{w.split(':', 1)[0]}**:{w.split(':', 1)[1]}"
-                                            for w in advice),
-                              alert_type="warning", css_classes=["disc-warnings"])] \
-            if advice else []
-        if c.d_x == 2:
-            # A fixed width on this (responsive) plot collapsed the scenario rows below the
-            # slider to zero width in the browser.
-            rows = [pn.pane.HoloViews(plots.true_delta_2d(c), height=320,
-                                      sizing_mode="stretch_width")]
-            for sc in shown:
-                # One pane per plot in a Row: responsive plots inside one hv.Layout pane
-                # collapsed to zero width in the browser (blank panels).
-                rows.append(pn.Row(*[pn.pane.HoloViews(p, sizing_mode="stretch_width",
-                                                       height=300, css_classes=["disc-plot"])
-                                     for p in plots.discrepancy_2d(c, s.grid, s.results[sc],
-                                                                   k, s.slice_x2)],
-                                   sizing_mode="stretch_width"))
-            slider = pn.widgets.FloatSlider.from_param(s.param.slice_x2, step=0.001)
-            return pn.Column(*head, slider, *rows, sizing_mode="stretch_width")
-        quantities = {"z and δ": ["z", "δ"], "δ": ["δ"], "z": ["z"]}[self.quantity]
-        cells = []
-        for o in range(c.n_out):
-            for q in quantities:
-                cells += plots.discrepancy_1d(c, s.grid, s.results, shown, k, o,
-                                              "z" if q == "z" else "delta")
-        layout = hv.Layout(cells).cols(len(shown))
-        plot = pn.pane.HoloViews(layout, sizing_mode="stretch_width", css_classes=["disc-plot"])
-        return pn.Column(*head, plot, sizing_mode="stretch_width") if head else plot
+    @property
+    def discrepancy_view(self) -> DiscrepancyPanel:
+        """The Discrepancy tab (its plots are updated in place)."""
+        return self._discrepancy
 
     @param.depends("state.results", "state.scenarios")
     def metrics_view(self):
@@ -520,8 +479,6 @@ class ExplorerView(pn.viewable.Viewer):
     def __panel__(self):
         hm_tab = pn.Column(self.status_view, self.wave_selector, self.waves_view,
                            self.calibration_view, sizing_mode="stretch_width")
-        disc_tab = pn.Column(pn.widgets.RadioButtonGroup.from_param(self.param.quantity),
-                             self.discrepancy_view, sizing_mode="stretch_width")
         metrics_tab = pn.Column(
             pn.pane.Markdown("SPEC §8 metrics at the test inputs. NMSE in percent; RMSE δ "
                              "in the output's units (NMSE δ divides by the variance of the "
@@ -530,7 +487,7 @@ class ExplorerView(pn.viewable.Viewer):
                              "band."),
             self.metrics_view, sizing_mode="stretch_width")
         tabs = pn.Tabs(("Data", self.data_view), ("History matching", hm_tab),
-                       ("Discrepancy", disc_tab), ("Metrics", metrics_tab),
+                       ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
                        ("Files", self.files_view()), ("Things to try", self.try_view()),
                        dynamic=True, sizing_mode="stretch_width")
         return pn.Row(self._controls(), tabs, sizing_mode="stretch_width")

@@ -1,0 +1,243 @@
+"""The Discrepancy tab, updated in place (issue 17: display-only changes in a blink).
+
+Each plot is a Bokeh figure built once (:mod:`.live_figures`): new results, a new band or a
+new beam-2d slice replace the arrays of the figures they change, and the browser redraws
+those glyphs; no layout is rebuilt. Hiding a method or a quantity only changes a
+visibility. The plots of a method are built when its first result arrives (and a
+quantity's when it is first shown); everything is rebuilt only when the case changes.
+
+While a recompute runs (the results were cleared by a new setting), the earlier plots stay,
+dimmed, until the new results replace them.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import panel as pn
+import param
+
+from mdcore.pipeline import Method
+
+from . import plots
+from .live_figures import BandFigure, MapFigure
+from .plots import METHOD_COLORS, axis_label
+from .state import ExplorerState, method_order
+
+#: The "Show" choices of a 1-D case and the quantities they show.
+QUANTITIES = {"z and δ": ("z", "delta"), "δ": ("delta",), "z": ("z",)}
+#: Opacity of the earlier plots while their recompute runs.
+STALE_OPACITY = "0.45"
+
+
+class DiscrepancyPanel(pn.viewable.Viewer):
+    """Bands of the shown methods: z* and δ* per output (1-D input), or δ maps and a slice
+    (beam-2d), one column (1-D) or row (2-D) per method."""
+
+    state = param.ClassSelector(class_=ExplorerState)
+    quantity = param.Selector(objects=list(QUANTITIES), default="z and δ", label="Show")
+
+    def __init__(self, **params):
+        super().__init__(**params)
+        s = self.state
+        self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
+        self._empty = pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
+                                       css_classes=["disc-empty"])
+        # The diagnostics' warnings stay beside the bands they concern (the notification
+        # that also reports them fades).
+        self._warnings = pn.pane.Alert("", alert_type="warning", visible=False,
+                                       css_classes=["disc-warnings"])
+        self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
+        self._methods = pn.Row(sizing_mode="stretch_width")        # 1-D: one column each
+        self._layout = pn.Column(self._show, self._empty, self._warnings, self._head,
+                                 self._methods, sizing_mode="stretch_width")
+        self._case = None
+        self._truth = None
+        #: (method, cell key) -> [pane, figure, payload last drawn]
+        self._cells: dict[tuple[Method, Any], list] = {}
+        self._groups: dict[Method, pn.layout.ListPanel] = {}
+        s.param.watch(self._rebuild, "case")
+        s.param.watch(self._update, ["results", "band", "busy", "scenarios"])
+        s.param.watch(self._slice_moved, "slice_x2")
+        self.param.watch(self._quantity_changed, "quantity")
+        self._rebuild()
+
+    def __panel__(self):
+        return self._layout
+
+    # --- structure -----------------------------------------------------------------------
+    def _rebuild(self, *_):
+        """A new case: drop every plot, then draw what the state holds."""
+        c = self.state.case
+        self._case = c
+        self._truth = c.true_delta(self.state.grid)       # None when δ is unknown
+        self._cells, self._groups = {}, {}
+        self._methods.objects = []
+        self._show.visible = c.d_x == 1
+        if c.d_x == 1:
+            self._head.objects = []
+            # Many outputs: δ only at first (z and δ of five modes is 40 plots).
+            with param.parameterized.discard_events(self):
+                self.quantity = "δ" if c.n_out > 1 else "z and δ"
+        else:
+            slider = pn.widgets.FloatSlider.from_param(self.state.param.slice_x2, step=0.001)
+            self._head.objects = [
+                slider,
+                pn.pane.HoloViews(plots.true_delta_2d(c), height=320,
+                                  sizing_mode="stretch_width", css_classes=["disc-truth"])]
+        self._update()
+
+    def _keys(self, method: Method) -> list:
+        """The cell keys of a method's plots, in display order."""
+        c = self._case
+        if c.d_x == 2:
+            return [0, 1, 2]                    # δ mean, band width, slice
+        return [(o, q) for o in range(c.n_out) for q in ("z", "delta")]
+
+    def _wanted(self, key) -> bool:
+        return self._case.d_x == 2 or key[1] in QUANTITIES[self.quantity]
+
+    def _ensure(self, method: Method) -> None:
+        """Build the method's missing plots (those of the quantities shown) and its group."""
+        added = False
+        for key in self._keys(method):
+            if (method, key) in self._cells or not self._wanted(key):
+                continue
+            payload = self._payload(method, key)
+            fig = self._figure(method, key)
+            self._draw(fig, key, payload)
+            pane = pn.pane.Bokeh(fig.figure, height=300, sizing_mode="stretch_width",
+                                 css_classes=["disc-plot"])
+            self._cells[method, key] = [pane, fig, payload]
+            added = True
+        if not added and method in self._groups:
+            return
+        panes = [self._cells[method, k][0] for k in self._keys(method)
+                 if (method, k) in self._cells]
+        if method in self._groups:
+            self._groups[method].objects = panes
+        else:
+            group = (pn.Row if self._case.d_x == 2 else pn.Column)(
+                *panes, sizing_mode="stretch_width")
+            self._groups[method] = group
+            if self._case.d_x == 2:
+                self._head.append(group)        # one row per method, under the truth
+            else:
+                self._methods.objects = [self._groups[m] for m in
+                                         sorted(self._groups, key=method_order)]
+
+    # --- data ----------------------------------------------------------------------------
+    def _payload(self, method: Method, key) -> tuple:
+        s = self.state
+        result = s.results[method]
+        if self._case.d_x == 2 and key == 2:
+            return (result, int(s.band), float(s.slice_x2))
+        return (result, int(s.band))
+
+    def _figure(self, method: Method, key):
+        """The empty figure of one cell."""
+        c = self._case
+        color, label = METHOD_COLORS[method], method.label
+        x1 = axis_label(c.x_names[0], c.x_units[0])
+        if c.d_x == 2:
+            x2 = axis_label(c.x_names[1], c.x_units[1])
+            unit = c.output_units[0]
+            if key == 2:
+                return BandFigure(title="", xname=x1, yname=axis_label("δ", unit), color=color,
+                                  label=label, reference=None if self._truth is None
+                                  else "true δ")
+            u1, u2 = np.unique(self.state.grid[:, 0]), np.unique(self.state.grid[:, 1])
+            zname = axis_label("δ mean" if key == 0 else "band width", unit)
+            return MapFigure(title="", xname=x1, yname=x2, zname=zname, u1=u1, u2=u2,
+                             diverging=key == 0)
+        o, q = key
+        name, unit = c.output_names[o], c.output_units[o]
+        if q == "z":
+            points = [(c.X_test[:, 0], c.z_test[:, o], "test data",
+                       {"color": "grey", "size": 4, "alpha": 0.6}),
+                      (c.X_train[:, 0], c.z_train[:, o], "training data",
+                       {"color": "black", "size": 7})]
+            return BandFigure(title=f"{label}: z (bias-corrected)", xname=x1,
+                              yname=axis_label(name, unit), color=color, label=label,
+                              points=points)
+        return BandFigure(title=f"{label}: δ" + (f", {name}" if c.n_out > 1 else ""),
+                          xname=x1, yname=axis_label("δ " + name, unit), color=color,
+                          label=label, reference=None if self._truth is None else "true δ")
+
+    def _draw(self, fig, key, data) -> None:
+        """Show ``data`` (result, band[, slice]) in a cell's figure."""
+        c, grid = self._case, self.state.grid
+        result, k = data[0], data[1]
+        on_grid = result.on_extra
+        if c.d_x == 1:
+            o, q = key
+            mean, var = ((on_grid.z_mean, on_grid.z_var) if q == "z"
+                         else (on_grid.delta_mean, on_grid.delta_var))
+            fig.show(grid[:, 0], mean[:, o], var[:, o], k,
+                     reference=None if q == "z" or self._truth is None
+                     else self._truth[:, o])
+            return
+        # beam-2d: grid is the square grid of on_extra, x1 fastest.
+        u1, u2 = np.unique(grid[:, 0]), np.unique(grid[:, 1])
+        shape = (u2.size, u1.size)
+        mean = on_grid.delta_mean[:, 0].reshape(shape)
+        var = on_grid.delta_var[:, 0].reshape(shape)
+        label = result.method.label
+        if key == 0:
+            fig.show(mean, title=f"{label}: δ mean")
+        elif key == 1:
+            fig.show(2 * k * np.sqrt(np.maximum(var, 0.0)),
+                     title=f"{label}: band width (±{k}σ)")
+        else:
+            row = int(np.argmin(np.abs(u2 - data[2])))      # nearest grid row to the slice
+            truth = None if self._truth is None else self._truth.reshape(shape)[row]
+            fig.show(u1, mean[row], var[row], k, reference=truth,
+                     title=f"{label}: slice at {c.x_names[1]} = {u2[row]:.4f} "
+                           f"{c.x_units[1]}")
+
+    def _send(self, method: Method, key) -> None:
+        cell = self._cells[method, key]
+        payload = self._payload(method, key)
+        if payload[0] is cell[2][0] and payload[1:] == cell[2][1:]:
+            return                               # this plot already shows it
+        cell[2] = payload
+        self._draw(cell[1], key, payload)
+
+    def _update(self, *_):
+        """New results, band, scenarios or busy state: update the plots in place."""
+        s = self.state
+        if s.case is not self._case:
+            return                               # the case watcher rebuilds first
+        for method in sorted(s.results, key=method_order):
+            self._ensure(method)
+            for key in self._keys(method):
+                if (method, key) in self._cells:
+                    self._send(method, key)
+        # A recompute is running (the new settings cleared the results): keep the earlier
+        # plots, dimmed, until the new ones arrive.
+        stale = s.busy and not s.results
+        for method, group in self._groups.items():
+            group.visible = method in s.scenarios and (method in s.results or stale)
+            group.styles = {"opacity": STALE_OPACITY} if method not in s.results else {}
+        advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
+        self._warnings.param.update(
+            object="\n\n".join("**{}**{}{}".format(*w.partition(":")) for w in advice),
+            visible=bool(advice))
+        self._empty.visible = not any(g.visible for g in self._groups.values())
+
+    def _slice_moved(self, *_):
+        if self._case is not None and self._case.d_x == 2:
+            for method in self._groups:
+                if method in self.state.results:
+                    self._send(method, 2)
+
+    def _quantity_changed(self, *_):
+        if self._case.d_x == 2:
+            return
+        for method in list(self._groups):
+            if method in self.state.results:
+                self._ensure(method)             # a quantity shown for the first time
+        for (_method, key), cell in self._cells.items():
+            cell[0].visible = self._wanted(key)
+        self._update()

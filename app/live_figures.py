@@ -1,0 +1,133 @@
+"""Bokeh figures whose data are replaced in place: the plots of the Discrepancy tab.
+
+HoloViews re-ran a plot's whole pipeline (elements, options, ranges) for every change,
+0.1–0.2 s per plot on the server (issue 17). Here the figure is built once; a new band, new
+results or a new slice only replace the arrays of a few ``ColumnDataSource`` objects, and
+the browser redraws and re-ranges the glyphs itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from bokeh.models import (
+    ColorBar,
+    ColumnDataSource,
+    HoverTool,
+    Legend,
+    LegendItem,
+    LinearColorMapper,
+    Range1d,
+)
+from bokeh.palettes import Magma256, RdBu11
+from bokeh.plotting import figure
+
+TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
+
+
+def _figure(title: str, xname: str, yname: str, **kw):
+    fig = figure(title=title, x_axis_label=xname, y_axis_label=yname, tools=TOOLS,
+                 height=300, min_width=200, sizing_mode="stretch_width", **kw)
+    fig.toolbar.logo = None
+    fig.grid.grid_line_alpha = 0.6
+    return fig
+
+
+class BandFigure:
+    """Mean ± k·sd of one method over a 1-D input, with fixed points (the data) or a
+    reference line (the true δ).
+
+    Parameters
+    ----------
+    title, xname, yname : str
+        Title and axis labels (with units).
+    color : str
+        The method's colour.
+    label : str
+        The method's name in the legend.
+    points : sequence of (x, y, label, style)
+        Fixed scatter layers, e.g. the training and test data; ``style`` is passed to
+        ``figure.scatter``.
+    reference : str, optional
+        Legend label of a dashed black reference line (set by :meth:`show`).
+    """
+
+    def __init__(self, *, title: str, xname: str, yname: str, color: str, label: str,
+                 points=(), reference: str | None = None):
+        self.figure = fig = _figure(title, xname, yname)
+        self._label = label
+        self._band = ColumnDataSource({"x": [], "lower": [], "upper": []})
+        self._mean = ColumnDataSource({"x": [], "mean": []})
+        band = fig.varea("x", "lower", "upper", source=self._band, fill_color=color,
+                         fill_alpha=0.25)
+        mean = fig.line("x", "mean", source=self._mean, line_color=color, line_width=2)
+        self._band_item = LegendItem(label=f"{label} band", renderers=[band])
+        items = [self._band_item, LegendItem(label=f"{label} mean", renderers=[mean])]
+        for x, y, name, style in points:
+            items.append(LegendItem(label=name, renderers=[fig.scatter(
+                np.asarray(x, float), np.asarray(y, float), **style)]))
+        self._reference = None
+        if reference is not None:
+            self._reference = ColumnDataSource({"x": [], "y": []})
+            line = fig.line("x", "y", source=self._reference, line_color="black",
+                            line_dash="dashed", line_width=1.5)
+            items.append(LegendItem(label=reference, renderers=[line]))
+        # The legend below the plot: inside, it covered the data at 1280 px.
+        fig.add_layout(Legend(items=items, ncols=2, click_policy="hide", margin=0,
+                              padding=2, label_text_font_size="9pt"), "below")
+        fig.add_tools(HoverTool(renderers=[mean], tooltips=[
+            (xname, "@x{0.[0000]}"), ("mean", "@mean{0.[0000]}"),
+            ("± band", "@lower{0.[0000]} to @upper{0.[0000]}")]))
+
+    def show(self, x, mean, var, k: int, *, reference=None, title: str | None = None) -> None:
+        """Draw mean ± ``k``·sqrt(``var``) over ``x`` (all (G,)); optionally a new
+        reference line (y on ``x``) and title."""
+        x, mean = np.asarray(x, float), np.asarray(mean, float)
+        sd = k * np.sqrt(np.maximum(np.asarray(var, float), 0.0))
+        self._band.data = {"x": x, "lower": mean - sd, "upper": mean + sd}
+        self._mean.data = {"x": x, "mean": mean}
+        self._band_item.label = f"{self._label} ±{k}σ"
+        if self._reference is not None and reference is not None:
+            self._reference.data = {"x": x, "y": np.asarray(reference, float)}
+        if title is not None:
+            self.figure.title.text = title
+
+
+class MapFigure:
+    """A field over two inputs on a regular grid, with a colour bar.
+
+    Parameters
+    ----------
+    title, xname, yname, zname : str
+        Title, axis labels and the colour bar's title.
+    u1, u2 : ndarray, shape (n1,), (n2,)
+        The grid's coordinates (increasing).
+    diverging : bool
+        Blue–white–red, symmetric about 0 (a signed δ); else magma from the minimum.
+    """
+
+    def __init__(self, *, title: str, xname: str, yname: str, zname: str, u1, u2,
+                 diverging: bool):
+        u1, u2 = np.asarray(u1, float), np.asarray(u2, float)
+        self.figure = fig = _figure(title, xname, yname,
+                                    x_range=Range1d(u1[0], u1[-1]),
+                                    y_range=Range1d(u2[0], u2[-1]))
+        self._diverging = diverging
+        self._mapper = LinearColorMapper(palette=RdBu11 if diverging else Magma256)
+        self._image = ColumnDataSource({"image": []})
+        fig.image(image="image", x=u1[0], y=u2[0], dw=u1[-1] - u1[0], dh=u2[-1] - u2[0],
+                  color_mapper=self._mapper, source=self._image)
+        fig.add_layout(ColorBar(color_mapper=self._mapper, title=zname, width=10), "right")
+
+    def show(self, values, *, title: str | None = None) -> None:
+        """Draw ``values`` (n2, n1): row j at u2[j]."""
+        values = np.asarray(values, float)
+        lo, hi = float(np.nanmin(values)), float(np.nanmax(values))
+        if self._diverging:
+            m = max(abs(lo), abs(hi)) or 1.0
+            lo, hi = -m, m
+        elif hi <= lo:
+            hi = lo + 1.0
+        self._mapper.update(low=lo, high=hi)
+        self._image.data = {"image": [values]}
+        if title is not None:
+            self.figure.title.text = title

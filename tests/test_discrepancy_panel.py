@@ -1,0 +1,164 @@
+"""The Discrepancy tab updates in place (issue 17): a new band, hidden or shown methods,
+the quantity shown, a new slice and new results change data sources and visibilities of
+the figures already built, never the figures themselves; the numbers drawn are the
+results' own (mean ± k·sd, checked against the closed form)."""
+
+import warnings
+
+import numpy as np
+import param
+import pytest
+
+pytest.importorskip("panel")
+import holoviews as hv  # noqa: E402
+import panel as pn  # noqa: E402
+from bokeh.document import Document  # noqa: E402
+from bokeh.models import ColumnDataSource, Plot  # noqa: E402
+
+from mdcore.pipeline import Method  # noqa: E402
+from mdcore_app.discrepancy_panel import STALE_OPACITY, DiscrepancyPanel  # noqa: E402
+from mdcore_app.state import ExplorerState  # noqa: E402
+
+hv.extension("bokeh")
+SMALL = {"preset": "paper", "n_candidates": 4000, "n_s": 30, "n_phi": 8}
+S123 = [Method.S1, Method.S2, Method.S3]
+
+
+def run(case="beam-1d", **extra):
+    s = ExplorerState()
+    s.case_name = case
+    s.param.update(**{**SMALL, **extra})
+    s.run_to_convergence()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s.run_discrepancy()
+    assert s.error == "" and list(s.results) == S123
+    return s
+
+
+def figures(root) -> dict[str, Plot]:
+    return {p.title.text: p for p in root.select({"type": Plot})}
+
+
+def source(fig: Plot, column: str) -> dict:
+    (src,) = [s for s in fig.select({"type": ColumnDataSource}) if column in s.data]
+    return src.data
+
+
+@pytest.fixture(scope="module")
+def beam1d():
+    s = run()
+    panel = DiscrepancyPanel(state=s)
+    root = pn.panel(panel).get_root(Document())
+    return s, panel, root
+
+
+def test_band_change_patches_the_data_of_the_same_figures(beam1d):
+    s, panel, root = beam1d
+    before = {t: f.id for t, f in figures(root).items()}
+    assert len(before) == 6                         # z and δ of three scenarios
+    s.band = 2
+    try:
+        after = figures(root)
+        assert {t: f.id for t, f in after.items()} == before
+        on_grid = s.results[Method.S2].on_extra
+        band = source(after["Scenario 2: δ"], "lower")
+        sd = 2 * np.sqrt(on_grid.delta_var[:, 0])
+        np.testing.assert_allclose(band["x"], s.grid[:, 0])
+        np.testing.assert_allclose(band["lower"], on_grid.delta_mean[:, 0] - sd, rtol=1e-12)
+        np.testing.assert_allclose(band["upper"], on_grid.delta_mean[:, 0] + sd, rtol=1e-12)
+        z = source(after["Scenario 2: z (bias-corrected)"], "lower")
+        np.testing.assert_allclose(z["upper"] - z["lower"],
+                                   4 * np.sqrt(on_grid.z_var[:, 0]), rtol=1e-10)
+        truth = source(after["Scenario 2: δ"], "y")
+        np.testing.assert_allclose(truth["y"], s.case.true_delta(s.grid)[:, 0])
+        labels = [item.label for f in after.values() for item in f.legend[0].items]
+        assert "Scenario 2 ±2σ" in str(labels) and "±3σ" not in str(labels)
+    finally:
+        s.band = 3
+
+
+def test_hiding_a_method_or_a_quantity_changes_only_visibility(beam1d):
+    s, panel, root = beam1d
+    before = {t: f.id for t, f in figures(root).items()}
+    groups = panel._groups
+    s.scenarios = [Method.S1, Method.S3]
+    assert not groups[Method.S2].visible and groups[Method.S1].visible
+    assert {t: f.id for t, f in figures(root).items()} == before
+    s.scenarios = S123
+    assert all(g.visible for g in groups.values())
+    panel.quantity = "δ"
+    shown = [cell[0] for (m, (o, q)), cell in panel._cells.items() if cell[0].visible]
+    assert len(shown) == 3 and all(p.object.title.text.endswith("δ") for p in shown)
+    panel.quantity = "z and δ"
+    assert {t: f.id for t, f in figures(root).items()} == before
+
+
+def test_a_recompute_keeps_the_earlier_plots_dimmed_until_its_results_arrive(beam1d):
+    s, panel, root = beam1d
+    results = dict(s.results)
+    with param.parameterized.batch_call_watchers(s):  # as the served app clears and starts
+        s.results = {}
+        s.busy = True
+    try:
+        assert all(g.visible and g.styles.get("opacity") == STALE_OPACITY
+                   for g in panel._groups.values())
+        assert not panel._empty.visible
+        s.busy = False                                 # cancelled: nothing to show
+        assert not any(g.visible for g in panel._groups.values()) and panel._empty.visible
+    finally:
+        s.results = results
+    assert all(g.visible and not g.styles for g in panel._groups.values())
+
+
+def test_new_results_are_drawn_in_the_same_figures():
+    s = run()
+    panel = DiscrepancyPanel(state=s)
+    root = pn.panel(panel).get_root(Document())
+    before = {t: f.id for t, f in figures(root).items()}
+    old = s.results[Method.S3].on_extra.delta_mean[:, 0].copy()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s.seed = 1                                     # recomputes the three scenarios
+    assert list(s.results) == S123
+    after = figures(root)
+    assert {t: f.id for t, f in after.items()} == before
+    mean = source(after["Scenario 3: δ"], "mean")["mean"]       # seed-dependent draws
+    np.testing.assert_allclose(mean, s.results[Method.S3].on_extra.delta_mean[:, 0])
+    assert not np.allclose(mean, old)
+
+
+def test_beam_2d_maps_and_slice_follow_the_band_and_the_slider():
+    s = run("beam-2d")
+    panel = DiscrepancyPanel(state=s)
+    assert not panel._show.visible                     # "Show z/δ" means nothing here
+    root = pn.panel(panel).get_root(Document())
+    figs = figures(root)
+    before = {t: f.id for t, f in figs.items()}
+    r = s.results[Method.S3].on_extra
+    u1, u2 = np.unique(s.grid[:, 0]), np.unique(s.grid[:, 1])
+    shape = (u2.size, u1.size)
+    mean = source(figs["Scenario 3: δ mean"], "image")["image"][0]
+    np.testing.assert_allclose(mean, r.delta_mean[:, 0].reshape(shape))
+    s.band = 2
+    width = source(figures(root)["Scenario 3: band width (±2σ)"], "image")["image"][0]
+    np.testing.assert_allclose(width, 4 * np.sqrt(r.delta_var[:, 0].reshape(shape)))
+    row = 3
+    s.slice_x2 = float(u2[row])
+    (title,) = [t for t in figures(root) if t.startswith("Scenario 3: slice")]
+    assert f"{u2[row]:.4f}" in title
+    sliced = source(figures(root)[title], "mean")
+    np.testing.assert_allclose(sliced["x"], u1)
+    np.testing.assert_allclose(sliced["mean"], r.delta_mean[:, 0].reshape(shape)[row])
+    truth = s.case.true_delta(np.column_stack([u1, np.full_like(u1, u2[row])]))[:, 0]
+    np.testing.assert_allclose(source(figures(root)[title], "y")["y"], truth, rtol=1e-12)
+    assert {f.id for f in figures(root).values()} == set(before.values())
+
+
+def test_a_case_switch_rebuilds_for_the_new_case(beam1d):
+    s = run()
+    panel = DiscrepancyPanel(state=s)
+    s.case_name = "shear-5"
+    assert panel._groups == {} and panel._empty.visible and panel.quantity == "δ"
+    s.case_name = "beam-1d"                            # results kept per case come back
+    assert set(panel._groups) == set(S123) and panel.quantity == "z and δ"

@@ -27,6 +27,8 @@ from .state import ExplorerState, method_order
 
 #: The "Show" choices of a 1-D case and the quantities they show.
 QUANTITIES = {"z and δ": ("z", "delta"), "δ": ("delta",), "z": ("z",)}
+#: CSS class of every plot of the tab (the browser tests find them by it).
+CSS = "disc-plot"
 #: Opacity of the earlier plots while their recompute runs.
 STALE_OPACITY = "0.45"
 
@@ -107,8 +109,7 @@ class DiscrepancyPanel(pn.viewable.Viewer):
             payload = self._payload(method, key)
             fig = self._figure(method, key)
             self._draw(fig, key, payload)
-            pane = pn.pane.Bokeh(fig.figure, height=300, sizing_mode="stretch_width",
-                                 css_classes=["disc-plot"])
+            pane = pn.pane.Bokeh(fig.figure, height=300, sizing_mode="stretch_width")
             self._cells[method, key] = [pane, fig, payload]
             added = True
         if not added and method in self._groups:
@@ -146,11 +147,11 @@ class DiscrepancyPanel(pn.viewable.Viewer):
             if key == 2:
                 return BandFigure(title="", xname=x1, yname=axis_label("δ", unit), color=color,
                                   label=label, reference=None if self._truth is None
-                                  else "true δ")
+                                  else "true δ", css_class=CSS)
             u1, u2 = np.unique(self.state.grid[:, 0]), np.unique(self.state.grid[:, 1])
             zname = axis_label("δ mean" if key == 0 else "band width", unit)
             return MapFigure(title="", xname=x1, yname=x2, zname=zname, u1=u1, u2=u2,
-                             diverging=key == 0)
+                             diverging=key == 0, css_class=CSS)
         o, q = key
         name, unit = c.output_names[o], c.output_units[o]
         if q == "z":
@@ -160,10 +161,11 @@ class DiscrepancyPanel(pn.viewable.Viewer):
                        {"color": "black", "size": 7})]
             return BandFigure(title=f"{label}: z (bias-corrected)", xname=x1,
                               yname=axis_label(name, unit), color=color, label=label,
-                              points=points)
+                              points=points, css_class=CSS)
         return BandFigure(title=f"{label}: δ" + (f", {name}" if c.n_out > 1 else ""),
                           xname=x1, yname=axis_label("δ " + name, unit), color=color,
-                          label=label, reference=None if self._truth is None else "true δ")
+                          label=label, reference=None if self._truth is None else "true δ",
+                          css_class=CSS)
 
     def _draw(self, fig, key, data) -> None:
         """Show ``data`` (result, band[, slice]) in a cell's figure."""

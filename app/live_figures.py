@@ -9,6 +9,7 @@ the browser redraws and re-ranges the glyphs itself.
 from __future__ import annotations
 
 import numpy as np
+from bokeh.core.properties import value
 from bokeh.models import (
     ColorBar,
     ColumnDataSource,
@@ -24,9 +25,10 @@ from bokeh.plotting import figure
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
 
 
-def _figure(title: str, xname: str, yname: str, **kw):
+def _figure(title: str, xname: str, yname: str, css_class: str, **kw):
     fig = figure(title=title, x_axis_label=xname, y_axis_label=yname, tools=TOOLS,
-                 height=300, min_width=200, sizing_mode="stretch_width", **kw)
+                 height=300, min_width=200, sizing_mode="stretch_width",
+                 css_classes=[css_class], **kw)
     fig.toolbar.logo = None
     fig.grid.grid_line_alpha = 0.6
     return fig
@@ -49,11 +51,13 @@ class BandFigure:
         ``figure.scatter``.
     reference : str, optional
         Legend label of a dashed black reference line (set by :meth:`show`).
+    css_class : str
+        The figure's CSS class (what the browser tests look for).
     """
 
     def __init__(self, *, title: str, xname: str, yname: str, color: str, label: str,
-                 points=(), reference: str | None = None):
-        self.figure = fig = _figure(title, xname, yname)
+                 points=(), reference: str | None = None, css_class: str = "live-plot"):
+        self.figure = fig = _figure(title, xname, yname, css_class)
         self._label = label
         self._band = ColumnDataSource({"x": [], "lower": [], "upper": []})
         self._mean = ColumnDataSource({"x": [], "mean": []})
@@ -85,7 +89,7 @@ class BandFigure:
         sd = k * np.sqrt(np.maximum(np.asarray(var, float), 0.0))
         self._band.data = {"x": x, "lower": mean - sd, "upper": mean + sd}
         self._mean.data = {"x": x, "mean": mean}
-        self._band_item.label = f"{self._label} ±{k}σ"
+        self._band_item.label = value(f"{self._label} ±{k}σ")   # a text, not a column
         if self._reference is not None and reference is not None:
             self._reference.data = {"x": x, "y": np.asarray(reference, float)}
         if title is not None:
@@ -103,12 +107,14 @@ class MapFigure:
         The grid's coordinates (increasing).
     diverging : bool
         Blue–white–red, symmetric about 0 (a signed δ); else magma from the minimum.
+    css_class : str
+        The figure's CSS class.
     """
 
     def __init__(self, *, title: str, xname: str, yname: str, zname: str, u1, u2,
-                 diverging: bool):
+                 diverging: bool, css_class: str = "live-plot"):
         u1, u2 = np.asarray(u1, float), np.asarray(u2, float)
-        self.figure = fig = _figure(title, xname, yname,
+        self.figure = fig = _figure(title, xname, yname, css_class,
                                     x_range=Range1d(u1[0], u1[-1]),
                                     y_range=Range1d(u2[0], u2[-1]))
         self._diverging = diverging

@@ -25,13 +25,23 @@ from bokeh.plotting import figure
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
 
 
-def _figure(title: str, xname: str, yname: str, css_class: str, **kw):
+def live_figure(title: str, xname: str, yname: str, css_class: str, **kw):
+    """A responsive Bokeh figure, 300 px high, with the app's tools and CSS class."""
     fig = figure(title=title, x_axis_label=xname, y_axis_label=yname, tools=TOOLS,
                  height=300, min_width=200, sizing_mode="stretch_width",
                  css_classes=[css_class], **kw)
     fig.toolbar.logo = None
     fig.grid.grid_line_alpha = 0.6
     return fig
+
+
+def below_legend(fig, items, ncols: int = 4) -> Legend:
+    """A legend under the plot (inside, it covered the data at 1280 px); a click on an
+    item hides its glyphs."""
+    legend = Legend(items=items, ncols=ncols, click_policy="hide", margin=0, padding=2,
+                    label_text_font_size="9pt")
+    fig.add_layout(legend, "below")
+    return legend
 
 
 class BandFigure:
@@ -57,7 +67,7 @@ class BandFigure:
 
     def __init__(self, *, title: str, xname: str, yname: str, color: str, label: str,
                  points=(), reference: str | None = None, css_class: str = "live-plot"):
-        self.figure = fig = _figure(title, xname, yname, css_class)
+        self.figure = fig = live_figure(title, xname, yname, css_class)
         self._label = label
         self._band = ColumnDataSource({"x": [], "lower": [], "upper": []})
         self._mean = ColumnDataSource({"x": [], "mean": []})
@@ -75,9 +85,7 @@ class BandFigure:
             line = fig.line("x", "y", source=self._reference, line_color="black",
                             line_dash="dashed", line_width=1.5)
             items.append(LegendItem(label=reference, renderers=[line]))
-        # The legend below the plot: inside, it covered the data at 1280 px.
-        fig.add_layout(Legend(items=items, ncols=2, click_policy="hide", margin=0,
-                              padding=2, label_text_font_size="9pt"), "below")
+        below_legend(fig, items, ncols=2)
         fig.add_tools(HoverTool(renderers=[mean], tooltips=[
             (xname, "@x{0.[0000]}"), ("mean", "@mean{0.[0000]}"),
             ("± band", "@lower{0.[0000]} to @upper{0.[0000]}")]))
@@ -114,7 +122,7 @@ class MapFigure:
     def __init__(self, *, title: str, xname: str, yname: str, zname: str, u1, u2,
                  diverging: bool, css_class: str = "live-plot"):
         u1, u2 = np.asarray(u1, float), np.asarray(u2, float)
-        self.figure = fig = _figure(title, xname, yname, css_class,
+        self.figure = fig = live_figure(title, xname, yname, css_class,
                                     x_range=Range1d(u1[0], u1[-1]),
                                     y_range=Range1d(u2[0], u2[-1]))
         self._diverging = diverging

@@ -97,7 +97,8 @@ class BandFigure:
         sd = k * np.sqrt(np.maximum(np.asarray(var, float), 0.0))
         self._band.data = {"x": x, "lower": mean - sd, "upper": mean + sd}
         self._mean.data = {"x": x, "mean": mean}
-        self._band_item.label = value(f"{self._label} ±{k}σ")   # a text, not a column
+        if self._band_item.label != value(f"{self._label} ±{k}σ"):
+            self._band_item.label = value(f"{self._label} ±{k}σ")   # a text, not a column
         if self._reference is not None and reference is not None:
             self._reference.data = {"x": x, "y": np.asarray(reference, float)}
         if title is not None:

@@ -458,3 +458,32 @@ def test_shear5_teaching_keeps_its_own_design():
     s.param.update(n_candidates=20_000)
     s.next_wave()
     assert len(s.waves[0].runs_theta) == s.case.initial_design.shape[0] and s.n_runs == 15
+
+
+def test_hidden_tabs_are_rebuilt_when_shown_not_on_every_change():
+    """The metrics (rebuilt from scratch on each change) wait until their tab is shown; a
+    shown tab follows every change."""
+    s = small_state()
+    page = pn.panel(ExplorerView(state=s))
+    page.get_root(Document())
+    (tabs,) = page.select(pn.Tabs)
+    metrics_box = tabs[3][1]
+    s.run_to_convergence()
+    s.run_discrepancy()
+    assert metrics_box.objects == []                       # never shown: nothing built
+    tabs.active = 3
+    (table,) = [o for o in metrics_box.select(pn.pane.DataFrame)
+                if "metrics-table" in o.css_classes]
+    assert list(table.object["method"]) == ["Scenario 1", "Scenario 2", "Scenario 3"]
+    s.scenarios = [Method.S1]                              # shown: follows at once
+    (table,) = [o for o in metrics_box.select(pn.pane.DataFrame)
+                if "metrics-table" in o.css_classes]
+    assert list(table.object["method"]) == ["Scenario 1"]
+    tabs.active = 2
+    built = metrics_box.objects
+    s.scenarios = S123                                     # hidden again: left as it was
+    assert metrics_box.objects == built
+    tabs.active = 3
+    (table,) = [o for o in metrics_box.select(pn.pane.DataFrame)
+                if "metrics-table" in o.css_classes]
+    assert list(table.object["method"]) == ["Scenario 1", "Scenario 2", "Scenario 3"]

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 import panel as pn
 import param
+from bokeh.models import DataRange1d
 
 from mdcore.pipeline import Method
 
@@ -75,6 +76,7 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         self._case = c
         self._truth = c.true_delta(self.state.grid)       # None when δ is unknown
         self._cells, self._groups = {}, {}
+        self._ranges: dict = {}                  # cell key -> axes shared by the methods
         self._methods.objects = []
         self._show.visible = c.d_x == 1
         if c.d_x == 1:
@@ -136,6 +138,13 @@ class DiscrepancyPanel(pn.viewable.Viewer):
             return (result, int(s.band), float(s.slice_x2))
         return (result, int(s.band))
 
+    def _linked(self, key) -> dict:
+        """The x and y ranges of cell ``key``, shared by every method's figure, so their
+        bands compare at one scale (as the paper's panels do)."""
+        if key not in self._ranges:
+            self._ranges[key] = {"x_range": DataRange1d(), "y_range": DataRange1d()}
+        return self._ranges[key]
+
     def _figure(self, method: Method, key):
         """The empty figure of one cell."""
         c = self._case
@@ -147,7 +156,7 @@ class DiscrepancyPanel(pn.viewable.Viewer):
             if key == 2:
                 return BandFigure(title="", xname=x1, yname=axis_label("δ", unit), color=color,
                                   label=label, reference=None if self._truth is None
-                                  else "true δ", css_class=CSS)
+                                  else "true δ", css_class=CSS, **self._linked(key))
             u1, u2 = np.unique(self.state.grid[:, 0]), np.unique(self.state.grid[:, 1])
             zname = axis_label("δ mean" if key == 0 else "band width", unit)
             return MapFigure(title="", xname=x1, yname=x2, zname=zname, u1=u1, u2=u2,
@@ -161,11 +170,11 @@ class DiscrepancyPanel(pn.viewable.Viewer):
                        {"color": "black", "size": 7})]
             return BandFigure(title=f"{label}: z (bias-corrected)", xname=x1,
                               yname=axis_label(name, unit), color=color, label=label,
-                              points=points, css_class=CSS)
+                              points=points, css_class=CSS, **self._linked(key))
         return BandFigure(title=f"{label}: δ" + (f", {name}" if c.n_out > 1 else ""),
                           xname=x1, yname=axis_label("δ " + name, unit), color=color,
                           label=label, reference=None if self._truth is None else "true δ",
-                          css_class=CSS)
+                          css_class=CSS, **self._linked(key))
 
     def _draw(self, fig, key, data) -> None:
         """Show ``data`` (result, band[, slice]) in a cell's figure."""

@@ -63,11 +63,15 @@ class BandFigure:
         Legend label of a dashed black reference line (set by :meth:`show`).
     css_class : str
         The figure's CSS class (what the browser tests look for).
+    x_range, y_range : bokeh Range, optional
+        Ranges shared with other figures (linked axes); default: the figure's own.
     """
 
     def __init__(self, *, title: str, xname: str, yname: str, color: str, label: str,
-                 points=(), reference: str | None = None, css_class: str = "live-plot"):
-        self.figure = fig = live_figure(title, xname, yname, css_class)
+                 points=(), reference: str | None = None, css_class: str = "live-plot",
+                 x_range=None, y_range=None):
+        ranges = {k: v for k, v in (("x_range", x_range), ("y_range", y_range)) if v}
+        self.figure = fig = live_figure(title, xname, yname, css_class, **ranges)
         self._label = label
         self._band = ColumnDataSource({"x": [], "lower": [], "upper": []})
         self._mean = ColumnDataSource({"x": [], "mean": []})

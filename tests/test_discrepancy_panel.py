@@ -162,3 +162,13 @@ def test_a_case_switch_rebuilds_for_the_new_case(beam1d):
     assert panel._groups == {} and panel._empty.visible and panel.quantity == "δ"
     s.case_name = "beam-1d"                            # results kept per case come back
     assert set(panel._groups) == set(S123) and panel.quantity == "z and δ"
+
+
+def test_the_methods_plots_of_one_quantity_share_their_axes(beam1d):
+    """Scenario 1's narrow δ band and scenario 2's wide one are compared at one scale."""
+    s, panel, root = beam1d
+    figs = figures(root)
+    for q in ("δ", "z (bias-corrected)"):
+        plots = [figs[f"{m.label}: {q}"] for m in S123]
+        assert len({p.y_range.id for p in plots}) == 1 and len({p.x_range.id for p in plots}) == 1
+    assert figs["Scenario 1: δ"].y_range is not figs["Scenario 1: z (bias-corrected)"].y_range

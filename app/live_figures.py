@@ -35,6 +35,16 @@ def live_figure(title: str, xname: str, yname: str, css_class: str, **kw):
     return fig
 
 
+def replace_data(source: ColumnDataSource, data: dict) -> None:
+    """``source.data = data`` unless every column is already equal (each assignment is
+    sent to the browser and redraws the plot)."""
+    old = source.data
+    if old.keys() == data.keys() and all(
+            np.array_equal(np.asarray(old[k]), np.asarray(v)) for k, v in data.items()):
+        return
+    source.data = data
+
+
 def below_legend(fig, items, ncols: int = 4) -> Legend:
     """A legend under the plot (inside, it covered the data at 1280 px); a click on an
     item hides its glyphs."""
@@ -99,12 +109,12 @@ class BandFigure:
         reference line (y on ``x``) and title."""
         x, mean = np.asarray(x, float), np.asarray(mean, float)
         sd = k * np.sqrt(np.maximum(np.asarray(var, float), 0.0))
-        self._band.data = {"x": x, "lower": mean - sd, "upper": mean + sd}
-        self._mean.data = {"x": x, "mean": mean}
+        replace_data(self._band, {"x": x, "lower": mean - sd, "upper": mean + sd})
+        replace_data(self._mean, {"x": x, "mean": mean})     # a new band keeps the mean
         if self._band_item.label != value(f"{self._label} ±{k}σ"):
             self._band_item.label = value(f"{self._label} ±{k}σ")   # a text, not a column
         if self._reference is not None and reference is not None:
-            self._reference.data = {"x": x, "y": np.asarray(reference, float)}
+            replace_data(self._reference, {"x": x, "y": np.asarray(reference, float)})
         if title is not None:
             self.figure.title.text = title
 
@@ -147,6 +157,6 @@ class MapFigure:
         elif hi <= lo:
             hi = lo + 1.0
         self._mapper.update(low=lo, high=hi)
-        self._image.data = {"image": [values]}
+        replace_data(self._image, {"image": [values]})
         if title is not None:
             self.figure.title.text = title

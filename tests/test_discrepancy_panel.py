@@ -172,3 +172,18 @@ def test_the_methods_plots_of_one_quantity_share_their_axes(beam1d):
         plots = [figs[f"{m.label}: {q}"] for m in S123]
         assert len({p.y_range.id for p in plots}) == 1 and len({p.x_range.id for p in plots}) == 1
     assert figs["Scenario 1: δ"].y_range is not figs["Scenario 1: z (bias-corrected)"].y_range
+
+
+def test_a_new_band_sends_the_band_only(beam1d):
+    """Each data assignment is sent to the browser and redraws the plot: a new band
+    replaces the band's data, never the unchanged mean or true δ."""
+    s, panel, root = beam1d
+    fig = figures(root)["Scenario 2: δ"]
+    sources = {c: [x for x in fig.select({"type": ColumnDataSource}) if c in x.data][0]
+               for c in ("lower", "mean", "y")}
+    changed = []
+    for name, src in sources.items():
+        src.on_change("data", lambda attr, old, new, name=name: changed.append(name))
+    s.band = 2
+    s.band = 3
+    assert changed == ["lower", "lower"]

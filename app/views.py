@@ -77,6 +77,21 @@ def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+class ShowingTabs(pn.Tabs):
+    """Tabs that call each ``before_show(active)`` hook when a tab is about to be drawn,
+    so a stale tab is refreshed before it is drawn (drawn once, with the new content),
+    not drawn stale and then patched."""
+
+    def __init__(self, *objects, **params):
+        self.before_show: list = []
+        super().__init__(*objects, **params)
+
+    def _update_active(self, *events):
+        for hook in self.before_show:
+            hook(self.active)
+        super()._update_active(*events)
+
+
 class ExplorerView(pn.viewable.Viewer):
     """The whole page: controls on the left, tabs of plots on the right."""
 
@@ -453,7 +468,7 @@ class ExplorerView(pn.viewable.Viewer):
                 sizing_mode="stretch_width"))
         return pn.Column(*cards, sizing_mode="stretch_width", max_width=900)
 
-    def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:
+    def _shown_only(self, tabs: ShowingTabs, index: int, view, params: list[str]) -> pn.Column:
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes
         while tab ``index`` is shown, or when that tab is shown after such a change."""
         box = pn.Column(sizing_mode="stretch_width")
@@ -467,12 +482,12 @@ class ExplorerView(pn.viewable.Viewer):
                 stale[0] = True
 
         self.state.param.watch(refresh, params)
-        tabs.param.watch(lambda e: stale[0] and e.new == index and refresh(), "active")
+        tabs.before_show.append(lambda active: stale[0] and active == index and refresh())
         refresh()
         return box
 
     def __panel__(self):
-        tabs = pn.Tabs(dynamic=True, sizing_mode="stretch_width")
+        tabs = ShowingTabs(dynamic=True, sizing_mode="stretch_width")
         # Views rebuilt from scratch on a change are built only while their tab is shown,
         # else when it is next shown: Panel keeps updating a dynamic tab once it has been
         # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.

@@ -121,14 +121,17 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         if method in self._groups:
             self._groups[method].objects = panes
         else:
-            group = (pn.Row if self._case.d_x == 2 else pn.Column)(
+            self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
                 *panes, sizing_mode="stretch_width")
-            self._groups[method] = group
-            if self._case.d_x == 2:
-                self._head.append(group)        # one row per method, under the truth
-            else:
-                self._methods.objects = [self._groups[m] for m in
-                                         sorted(self._groups, key=method_order)]
+
+    def _place(self) -> None:
+        """Put the groups in method order into the layout: one assignment per change
+        (each assignment is one message to the browser)."""
+        groups = [self._groups[m] for m in sorted(self._groups, key=method_order)]
+        parent, objects = ((self._head, [*self._head.objects[:2], *groups])
+                           if self._case.d_x == 2 else (self._methods, groups))
+        if list(parent.objects) != objects:
+            parent.objects = objects
 
     # --- data ----------------------------------------------------------------------------
     def _payload(self, method: Method, key) -> tuple:
@@ -222,6 +225,8 @@ class DiscrepancyPanel(pn.viewable.Viewer):
             return                               # the case watcher rebuilds first
         for method in sorted(s.results, key=method_order):
             self._ensure(method)
+        self._place()
+        for method in sorted(s.results, key=method_order):
             for key in self._keys(method):
                 if (method, key) in self._cells:
                     self._send(method, key)
@@ -249,6 +254,7 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         for method in list(self._groups):
             if method in self.state.results:
                 self._ensure(method)             # a quantity shown for the first time
+        self._place()
         for (_method, key), cell in self._cells.items():
             cell[0].visible = self._wanted(key)
         self._update()

@@ -27,7 +27,6 @@ from .experiments import EXPERIMENTS
 from .report import report_html
 from .session import MAX_UPLOAD_BYTES
 from .state import ExplorerState, method_order
-from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
 #: A job's progress bar and Cancel button appear once it has run this long (seconds), so
@@ -102,7 +101,6 @@ class ExplorerView(pn.viewable.Viewer):
         self.state.param.watch(self._notify_error, "n_errors")
         self.state.param.watch(self._notify_warning, "n_notices")
         self._discrepancy = DiscrepancyPanel(state=self.state)
-        self._waves = WavesPanel(state=self.state)
 
     # --- events ------------------------------------------------------------------------
     def _notify_error(self, *_):
@@ -249,10 +247,35 @@ class ExplorerView(pn.viewable.Viewer):
         return {"converged": "success", "max_waves": "warning",
                 "ruled_out": "danger"}.get(w[-1].status, "info")
 
-    @property
-    def waves_view(self) -> WavesPanel:
-        """The waves of the History matching tab (updated in place)."""
-        return self._waves
+    @param.depends("state.waves", "state.selected_wave", "state.implausibility_maps")
+    def waves_view(self):
+        s = self.state
+        c = s.case
+        if not s.waves:
+            return pn.pane.Markdown("Press **Next wave** to run the first wave.")
+        upto = s.selected_wave or len(s.waves)
+        hm = s.history_match
+        theta_map = hm.theta_map if upto == len(s.waves) else None   # of the final wave
+        pairs = plots.nroy_samples(s.waves, c.theta_names, c.theta_units, c.theta_bounds,
+                                   c.theta_true, upto, theta_map=theta_map)
+        rows = [pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width", height=300,
+                                           css_classes=["hm-plot"]) for o in pairs[i:i + 3]],
+                       sizing_mode="stretch_width") for i in range(0, len(pairs), 3)]
+        if upto in s.implausibility_maps:
+            t1, t2, I = s.implausibility_maps[upto]
+            rows.append(pn.pane.HoloViews(
+                plots.implausibility_map(t1, t2, I, s.threshold, c.theta_names,
+                                         c.theta_units, c.theta_true, upto,
+                                         theta_map=theta_map),
+                sizing_mode="stretch_width", css_classes=["hm-plot"]))
+        shown = [w for w in s.waves if w.index <= upto]
+        # Each plot its own pane, every pane stretching: responsive plots inside one
+        # HoloViews layout, or beside a fixed-width sibling, collapsed to zero width.
+        summary = pn.Row(pn.pane.HoloViews(plots.nroy_fraction(shown), sizing_mode="stretch_width"),
+                         pn.pane.HoloViews(plots.emulator_variance(shown, c.output_names),
+                                           sizing_mode="stretch_width"),
+                         sizing_mode="stretch_width")
+        return pn.Column(*rows, summary, sizing_mode="stretch_width")
 
     @param.depends("state.waves")
     def calibration_view(self):

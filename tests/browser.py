@@ -33,6 +33,16 @@ def launch(playwright):
     return playwright.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
 
 
+def chromium():
+    """Yield a launched Chromium, closed afterwards: the body of a ``browser`` fixture
+    (``yield from chromium()``)."""
+    from playwright.sync_api import sync_playwright
+    with sync_playwright() as p:
+        browser = launch(p)
+        yield browser
+        browser.close()
+
+
 def tab(page, name: str, timeout: float = 30.0) -> None:
     """Show the tab ``name`` and wait until the page says it is the active one.
 

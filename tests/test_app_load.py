@@ -23,7 +23,7 @@ import warnings
 from pathlib import Path
 
 import pytest
-from browser import launch, require_browser, tab
+from browser import chromium, require_browser, tab
 
 ROOT = Path(__file__).resolve().parent.parent
 APP = ROOT / "app" / "main.py"
@@ -87,11 +87,7 @@ def server():
 
 @pytest.fixture(scope="module")
 def browser(server):
-    from playwright.sync_api import sync_playwright
-    with sync_playwright() as p:
-        b = launch(p)
-        yield b
-        b.close()
+    yield from chromium()
 
 
 def shown_text(page, css_class: str) -> str:

@@ -22,6 +22,8 @@ from bokeh.models import (
 from bokeh.palettes import Magma256, RdBu11
 from bokeh.plotting import figure
 
+from mdcore.validation import as_float_array, as_int, check_positive
+
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
 
 
@@ -106,15 +108,32 @@ class BandFigure:
 
     def show(self, x, mean, var, k: int, *, reference=None, title: str | None = None) -> None:
         """Draw mean ± ``k``·sqrt(``var``) over ``x`` (all (G,)); optionally a new
-        reference line (y on ``x``) and title."""
-        x, mean = np.asarray(x, float), np.asarray(mean, float)
-        sd = k * np.sqrt(np.maximum(np.asarray(var, float), 0.0))
+        reference line (y on ``x``) and title.
+
+        Raises
+        ------
+        ValueError
+            For arrays that are not 1-D, empty, of different lengths or not finite, a
+            negative variance, or ``k`` < 1.
+        """
+        x = as_float_array(x, "x", ndim=1)
+        columns = {"mean": mean, "var": var}
+        if reference is not None:
+            columns["reference"] = reference
+        for name, column in columns.items():
+            columns[name] = as_float_array(column, name, ndim=1)
+            if columns[name].shape != x.shape:
+                raise ValueError(f"{name} must have the shape of x, {x.shape}; received "
+                                 f"{columns[name].shape}.")
+        mean, reference = columns["mean"], columns.get("reference")
+        k = as_int(k, "k", 1)
+        sd = k * np.sqrt(check_positive(columns["var"], "var", strict=False))
         replace_data(self._band, {"x": x, "lower": mean - sd, "upper": mean + sd})
         replace_data(self._mean, {"x": x, "mean": mean})     # a new band keeps the mean
         if self._band_item.label != value(f"{self._label} ±{k}σ"):
             self._band_item.label = value(f"{self._label} ±{k}σ")   # a text, not a column
         if self._reference is not None and reference is not None:
-            replace_data(self._reference, {"x": x, "y": np.asarray(reference, float)})
+            replace_data(self._reference, {"x": x, "y": reference})
         if title is not None:
             self.figure.title.text = title
 
@@ -141,6 +160,7 @@ class MapFigure:
                                     x_range=Range1d(u1[0], u1[-1]),
                                     y_range=Range1d(u2[0], u2[-1]))
         self._diverging = diverging
+        self._shape = (u2.size, u1.size)
         self._mapper = LinearColorMapper(palette=RdBu11 if diverging else Magma256)
         self._image = ColumnDataSource({"image": []})
         fig.image(image="image", x=u1[0], y=u2[0], dw=u1[-1] - u1[0], dh=u2[-1] - u2[0],
@@ -148,9 +168,18 @@ class MapFigure:
         fig.add_layout(ColorBar(color_mapper=self._mapper, title=zname, width=10), "right")
 
     def show(self, values, *, title: str | None = None) -> None:
-        """Draw ``values`` (n2, n1): row j at u2[j]."""
-        values = np.asarray(values, float)
-        lo, hi = float(np.nanmin(values)), float(np.nanmax(values))
+        """Draw ``values`` (n2, n1): row j at u2[j].
+
+        Raises
+        ------
+        ValueError
+            For values that are not finite or not of the grid's shape (n2, n1).
+        """
+        values = as_float_array(values, "values", ndim=2)
+        if values.shape != self._shape:
+            raise ValueError(f"values must have the grid's shape (n2, n1) = {self._shape}; "
+                             f"received {values.shape}.")
+        lo, hi = float(values.min()), float(values.max())
         if self._diverging:
             m = max(abs(lo), abs(hi)) or 1.0
             lo, hi = -m, m

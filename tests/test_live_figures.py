@@ -1,0 +1,60 @@
+"""The app's in-place figures refuse bad arrays with a ValueError naming the argument, and
+keep what they showed."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("bokeh")
+from mdcore_app.live_figures import BandFigure, MapFigure  # noqa: E402
+
+X = np.linspace(0.0, 1.0, 5)
+GOOD = {"x": X, "mean": X ** 2, "var": np.full(5, 0.01), "k": 2}
+
+
+def band():
+    fig = BandFigure(title="t", xname="x", yname="y", color="red", label="S1",
+                     reference="true δ")
+    fig.show(**GOOD, reference=X)
+    return fig
+
+
+def test_a_good_band_is_mean_plus_minus_k_sd():
+    fig = band()
+    np.testing.assert_allclose(fig._band.data["upper"] - fig._band.data["lower"],
+                               2 * 2 * 0.1 * np.ones(5))
+
+
+@pytest.mark.parametrize("change, name", [
+    ({"mean": np.r_[X[:4], np.nan]}, "mean"),
+    ({"var": np.full(4, 0.01)}, "var"),
+    ({"var": np.r_[np.full(4, 0.01), -1e-3]}, "var"),
+    ({"x": np.array([]), "mean": np.array([]), "var": np.array([])}, "x"),
+    ({"x": X[:, None]}, "x"),
+    ({"k": 0}, "k"),
+    ({"reference": X[:3]}, "reference"),
+    ({"reference": np.r_[X[:4], np.inf]}, "reference"),
+])
+def test_bad_band_arrays_are_refused_and_the_plot_kept(change, name):
+    fig = band()
+    before = {k: np.array(v) for k, v in fig._band.data.items()}
+    kwargs = {**GOOD, "reference": X, **change}
+    with pytest.raises(ValueError, match=name):
+        fig.show(**kwargs)
+    for k, v in before.items():
+        np.testing.assert_array_equal(fig._band.data[k], v)
+
+
+@pytest.mark.parametrize("values, name", [
+    (np.full((3, 4), np.nan), "values"),
+    (np.zeros((4, 3)), "values"),
+    (np.zeros(12), "values"),
+    (np.zeros((0, 4)), "values"),
+])
+def test_bad_maps_are_refused(values, name):
+    fig = MapFigure(title="t", xname="x1", yname="x2", zname="z", u1=np.arange(4.0),
+                    u2=np.arange(3.0), diverging=True)
+    fig.show(np.arange(12.0).reshape(3, 4))
+    with pytest.raises(ValueError, match=name):
+        fig.show(values)
+    np.testing.assert_array_equal(fig._image.data["image"][0], np.arange(12.0).reshape(3, 4))
+    assert (fig._mapper.low, fig._mapper.high) == (-11.0, 11.0)     # symmetric about 0

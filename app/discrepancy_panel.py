@@ -81,9 +81,9 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         self._show.visible = c.d_x == 1
         if c.d_x == 1:
             self._head.objects = []
-            # Many outputs: δ only at first (z and δ of five modes is 40 plots).
-            with param.parameterized.discard_events(self):
-                self.quantity = "δ" if c.n_out > 1 else "z and δ"
+            # Many outputs: δ only at first (z and δ of five modes is 40 plots). Set with
+            # its event, so the "Show" buttons say so too.
+            self.quantity = "δ" if c.n_out > 1 else "z and δ"
         else:
             slider = pn.widgets.FloatSlider.from_param(self.state.param.slice_x2, step=0.001)
             self._head.objects = [

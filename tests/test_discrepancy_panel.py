@@ -160,8 +160,10 @@ def test_a_case_switch_rebuilds_for_the_new_case(beam1d):
     panel = DiscrepancyPanel(state=s)
     s.case_name = "shear-5"
     assert panel._groups == {} and panel._empty.visible and panel.quantity == "δ"
+    assert panel._show.value == "δ"                    # the buttons say what is shown
     s.case_name = "beam-1d"                            # results kept per case come back
     assert set(panel._groups) == set(S123) and panel.quantity == "z and δ"
+    assert panel._show.value == "z and δ"
 
 
 def test_the_methods_plots_of_one_quantity_share_their_axes(beam1d):

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import panel as pn
 import param
-from bokeh.models import DataRange1d
+from bokeh.models import Range1d
 
 from mdcore.pipeline import Method
 
@@ -32,6 +32,11 @@ QUANTITIES = {"z and δ": ("z", "delta"), "δ": ("delta",), "z": ("z",)}
 CSS = "disc-plot"
 #: Opacity of the earlier plots while their recompute runs.
 STALE_OPACITY = "0.45"
+#: The axes of a band plot hold mean ± this many sd (the widest band offered), so a new
+#: band redraws only the band: the axes, and the plot's layout, stay put.
+WIDEST_BAND = 3
+#: Margin around the data of a plot, as a fraction of its span.
+PAD = 0.05
 
 
 class DiscrepancyPanel(pn.viewable.Viewer):
@@ -143,10 +148,54 @@ class DiscrepancyPanel(pn.viewable.Viewer):
 
     def _linked(self, key) -> dict:
         """The x and y ranges of cell ``key``, shared by every method's figure, so their
-        bands compare at one scale (as the paper's panels do)."""
+        bands compare at one scale (as the paper's panels do). :meth:`_fit_ranges` sets
+        them."""
         if key not in self._ranges:
-            self._ranges[key] = {"x_range": DataRange1d(), "y_range": DataRange1d()}
+            self._ranges[key] = {"x_range": Range1d(0.0, 1.0), "y_range": Range1d(0.0, 1.0)}
         return self._ranges[key]
+
+    def _extent(self, key) -> tuple[tuple[float, float], tuple[float, float]] | None:
+        """x and y extents of cell ``key`` over every result held (shown or hidden) at the
+        widest band, with the data (z) or the true δ: fixed axes, so that neither a new
+        band nor hiding a method rescales them, and a narrower band looks narrower."""
+        s, c = self.state, self._case
+        held = s.held_results()
+        if not s.results or not held:
+            return None
+        xs, ys = [s.grid[:, 0]], []
+        for result in held.values():
+            on_grid = result.on_extra
+            if c.d_x == 2:
+                mean, var = on_grid.delta_mean[:, 0], on_grid.delta_var[:, 0]
+            else:
+                o, q = key
+                mean, var = ((on_grid.z_mean[:, o], on_grid.z_var[:, o]) if q == "z"
+                             else (on_grid.delta_mean[:, o], on_grid.delta_var[:, o]))
+            sd = WIDEST_BAND * np.sqrt(np.maximum(var, 0.0))
+            ys += [mean - sd, mean + sd]
+        if c.d_x == 1 and key[1] == "z":
+            xs += [c.X_train[:, 0], c.X_test[:, 0]]
+            ys += [c.z_train[:, key[0]], c.z_test[:, key[0]]]
+        elif self._truth is not None:                # a δ plot or the beam-2d slice
+            ys.append(self._truth[:, 0 if c.d_x == 2 else key[0]])
+
+        def padded(parts):
+            lo = float(min(np.min(p) for p in parts))
+            hi = float(max(np.max(p) for p in parts))
+            pad = PAD * (hi - lo) if hi > lo else max(abs(lo), 1.0) * PAD
+            return lo - pad, hi + pad
+
+        return padded(xs), padded(ys)
+
+    def _fit_ranges(self) -> None:
+        """Set the shared axes of every band plot to :meth:`_extent` (when it changed)."""
+        for key, ranges in self._ranges.items():
+            extent = self._extent(key)
+            if extent is None:
+                continue
+            for rng, (lo, hi) in zip((ranges["x_range"], ranges["y_range"]), extent):
+                if (rng.start, rng.end) != (lo, hi):
+                    rng.update(start=lo, end=hi)
 
     def _figure(self, method: Method, key):
         """The empty figure of one cell."""
@@ -226,6 +275,7 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         for method in sorted(s.results, key=method_order):
             self._ensure(method)
         self._place()
+        self._fit_ranges()
         for method in sorted(s.results, key=method_order):
             for key in self._keys(method):
                 if (method, key) in self._cells:

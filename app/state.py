@@ -476,6 +476,16 @@ class ExplorerState(param.Parameterized):
                          len(self.waves) if n_waves is None else n_waves,
                          settings.key(method), self.seed)
 
+    def held_results(self) -> dict[Method, MethodResult]:
+        """Every method's cached result for the current settings, shown or hidden (what a
+        plot's axes must hold so that showing a method again does not rescale them)."""
+        try:
+            settings = self.method_settings()
+        except ValueError:
+            return {}
+        keys = {m: self._key(m, settings) for m in Method}
+        return {m: self._cache[k] for m, k in keys.items() if k in self._cache}
+
     def _refresh_results(self) -> None:
         """Show the cached results that match the current settings (no computation)."""
         try:

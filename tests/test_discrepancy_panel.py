@@ -176,6 +176,42 @@ def test_the_methods_plots_of_one_quantity_share_their_axes(beam1d):
     assert figs["Scenario 1: δ"].y_range is not figs["Scenario 1: z (bias-corrected)"].y_range
 
 
+def test_axes_hold_every_method_at_the_widest_band_and_stay_put(beam1d):
+    """The shared axes cover mean ± 3 sd of every result (shown or not) and the data or
+    true δ, 5 % beyond; a new band or a hidden method leaves them where they are (in the
+    browser, rescaled axes re-laid-out every plot: 0.9 s per band click)."""
+    s, panel, root = beam1d
+    figs = figures(root)
+
+    def axes():
+        return {t: (f.x_range.start, f.x_range.end, f.y_range.start, f.y_range.end)
+                for t, f in figures(root).items()}
+
+    before = axes()
+    for q, o in (("delta", 0), ("z", 0)):
+        fig = figs["Scenario 2: δ" if q == "delta" else "Scenario 2: z (bias-corrected)"]
+        lo, hi = [], []
+        for r in s.results.values():                         # independent of the panel
+            mean = getattr(r.on_extra, f"{q}_mean")[:, o]
+            sd = 3 * np.sqrt(getattr(r.on_extra, f"{q}_var")[:, o])
+            lo.append((mean - sd).min())
+            hi.append((mean + sd).max())
+        extra = (s.case.true_delta(s.grid)[:, o] if q == "delta"
+                 else np.concatenate([s.case.z_train[:, o], s.case.z_test[:, o]]))
+        y0, y1 = min(min(lo), extra.min()), max(max(hi), extra.max())
+        pad = 0.05 * (y1 - y0)
+        assert fig.y_range.start == pytest.approx(y0 - pad, rel=1e-12)
+        assert fig.y_range.end == pytest.approx(y1 + pad, rel=1e-12)
+        assert fig.x_range.start <= s.grid[:, 0].min() < s.grid[:, 0].max() <= fig.x_range.end
+    s.band = 2
+    s.scenarios = [Method.S1, Method.S3]
+    try:
+        assert axes() == before
+    finally:
+        s.band = 3
+        s.scenarios = S123
+
+
 def test_a_new_band_sends_the_band_only(beam1d):
     """Each data assignment is sent to the browser and redraws the plot: a new band
     replaces the band's data, never the unchanged mean or true δ."""

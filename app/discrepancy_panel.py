@@ -37,6 +37,9 @@ STALE_OPACITY = "0.45"
 WIDEST_BAND = 3
 #: Margin around the data of a plot, as a fraction of its span.
 PAD = 0.05
+#: New results keep the axes while their extent fits inside and spans at least this
+#: fraction of them (another seed, or N_s, seen at the same scale, and not re-laid-out).
+KEEP_SPAN = 0.6
 
 
 class DiscrepancyPanel(pn.viewable.Viewer):
@@ -82,6 +85,7 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         self._truth = c.true_delta(self.state.grid)       # None when δ is unknown
         self._cells, self._groups = {}, {}
         self._ranges: dict = {}                  # cell key -> axes shared by the methods
+        self._fitted: set = set()                # cell keys whose axes have been set
         self._methods.objects = []
         self._show.visible = c.d_x == 1
         if c.d_x == 1:
@@ -188,14 +192,20 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         return padded(xs), padded(ys)
 
     def _fit_ranges(self) -> None:
-        """Set the shared axes of every band plot to :meth:`_extent` (when it changed)."""
+        """Set the shared axes of every band plot to :meth:`_extent`: at once for a new
+        plot, else only when the extent leaves them or fills less than
+        :data:`KEEP_SPAN` of them."""
         for key, ranges in self._ranges.items():
             extent = self._extent(key)
             if extent is None:
                 continue
             for rng, (lo, hi) in zip((ranges["x_range"], ranges["y_range"]), extent):
-                if (rng.start, rng.end) != (lo, hi):
-                    rng.update(start=lo, end=hi)
+                start, end = rng.start, rng.end
+                fits = start <= lo and hi <= end and hi - lo >= KEEP_SPAN * (end - start)
+                if key in self._fitted and fits:
+                    continue
+                rng.update(start=lo, end=hi)
+            self._fitted.add(key)
 
     def _figure(self, method: Method, key):
         """The empty figure of one cell."""
@@ -286,6 +296,8 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         for method, group in self._groups.items():
             group.visible = method in s.scenarios and (method in s.results or stale)
             group.styles = {"opacity": STALE_OPACITY} if method not in s.results else {}
+        if stale:
+            return                     # the warnings stay with the dimmed plots they concern
         advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
         self._warnings.param.update(
             object="\n\n".join("**{}**{}{}".format(*w.partition(":")) for w in advice),

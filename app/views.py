@@ -32,6 +32,20 @@ SIDEBAR_WIDTH = 330
 #: A job's progress bar and Cancel button appear once it has run this long (seconds), so
 #: that runs at the default sizes (a fraction of a second) do not flash them.
 SHOW_PROGRESS_AFTER = 0.5
+#: Height of the busy line (two lines of text), fixed so that a new message never
+#: changes the page's layout.
+STATUS_HEIGHT = 40
+#: Styles of the progress bar and Cancel button between jobs: hidden, in their place.
+HIDDEN = {"visibility": "hidden"}
+
+
+def _status_html(busy: bool, task: str, detail: str = "") -> str:
+    """The busy line: "Idle." or "Running <task> … <detail>", in a span whose class
+    (``mdcore-busy`` or ``mdcore-idle``) says which."""
+    if not busy:
+        return '<span class="mdcore-idle">Idle.</span>'
+    tail = f" {html.escape(detail)}" if detail else ""
+    return f'<span class="mdcore-busy">Running <b>{html.escape(task)}</b> …{tail}</span>'
 #: Shown in the metrics table where a diagnostic does not apply to a method.
 NOT_APPLICABLE = "—"
 #: The columns of :func:`metrics_frame` shown in the diagnostics table, not the metrics one.
@@ -198,14 +212,18 @@ class ExplorerView(pn.viewable.Viewer):
     def _progress_panel(self):
         """Busy line, progress bar and a Cancel button, updated in place.
 
-        Replacing the widgets on each report made the browser re-lay-out the whole page
-        every time (seconds per report with eight plots on screen); changing a few
-        properties does not.
+        Nothing here changes the page's layout while a job runs: in the browser, any
+        change of a size, a visibility or a CSS class re-lays-out the whole page, which
+        redraws every plot (0.5–0.8 s each time on 2 cores, several times per run). So the
+        line has a fixed height and says busy or idle with a class *inside* its text, and
+        the bar and the Cancel button keep their place, hidden by ``visibility``.
         """
-        text = pn.pane.Markdown("Idle.", css_classes=["mdcore-idle"])
-        bar = pn.indicators.Progress(value=0, max=100, visible=False,
-                                     sizing_mode="stretch_width")
-        cancel = pn.widgets.Button(label="Cancel", color="warning", visible=False,
+        text = pn.pane.HTML(_status_html(False, ""), height=STATUS_HEIGHT,
+                            sizing_mode="stretch_width",
+                            styles={"overflow": "hidden", "font-size": "0.9em"})
+        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width",
+                                     styles=dict(HIDDEN))
+        cancel = pn.widgets.Button(label="Cancel", color="warning", styles=dict(HIDDEN),
                                    css_classes=["cancel-job"])
         cancel.on_click(lambda _: self.state.cancel())
         since: list[float | None] = [None]          # when the current job started
@@ -216,12 +234,13 @@ class ExplorerView(pn.viewable.Viewer):
                 since[0] = None
             elif since[0] is None:
                 since[0] = time.monotonic()
-            detail = f" {s.progress_message}" if s.busy and s.progress_message else ""
-            text.param.update(object=f"Running **{s.task}** …{detail}" if s.busy else "Idle.",
-                              css_classes=["mdcore-busy" if s.busy else "mdcore-idle"])
             show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
-            bar.param.update(visible=show, value=int(100 * s.progress))
-            cancel.visible = show
+            text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
+            styles = {} if show else dict(HIDDEN)
+            if bar.styles != styles:
+                bar.styles = styles
+                cancel.styles = styles
+            bar.value = int(100 * s.progress)
 
         self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
         update()

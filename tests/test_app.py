@@ -18,7 +18,12 @@ from event_loop import drain  # noqa: E402
 import mdcore_app.state as state_module  # noqa: E402
 from mdcore.pipeline import Method  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
-from mdcore_app.views import NOT_APPLICABLE, ExplorerView, metrics_frame  # noqa: E402
+from mdcore_app.views import (  # noqa: E402
+    NOT_APPLICABLE,
+    STATUS_HEIGHT,
+    ExplorerView,
+    metrics_frame,
+)
 
 hv.extension("bokeh")
 SMALL = {"preset": "paper", "n_candidates": 4000, "n_s": 30, "n_phi": 8}
@@ -348,24 +353,37 @@ def test_a_case_that_fails_to_load_is_one_error_and_keeps_the_current_case(monke
 
 
 def test_progress_bar_appears_only_for_runs_longer_than_half_a_second(monkeypatch):
+    """The bar and Cancel keep their place (hidden by ``visibility``, never by ``visible``,
+    whose change re-lays-out the whole page in the browser); the busy line says busy or
+    idle by a class inside its text, at a fixed height."""
     import mdcore_app.views as views_module
 
     s = ExplorerState()
     panel = ExplorerView(state=s)._progress_panel()
-    bar, cancel = panel[1][0], panel[1][1]
+    text, bar, cancel = panel[0], panel[1][0], panel[1][1]
+    shown = [bar.visible, cancel.visible, text.height]
     clock = [100.0]
     monkeypatch.setattr(views_module.time, "monotonic", lambda: clock[0])
+
+    def hidden(w):
+        return w.styles.get("visibility") == "hidden"
+
     s.param.update(busy=True, task="scenario 1")
-    s.progress = 0.5
-    assert not bar.visible and not cancel.visible          # a short run: no flash
+    s.param.update(progress=0.5, progress_message="pairs 10 of 20")
+    assert hidden(bar) and hidden(cancel)                  # a short run: no flash
+    assert 'class="mdcore-busy"' in text.object and "scenario 1" in text.object
+    assert "pairs" not in text.object
     s.busy = False
+    assert 'class="mdcore-idle"' in text.object and "Idle." in text.object
     clock[0] += 10.0
     s.param.update(busy=True, task="scenario 3")
     clock[0] += views_module.SHOW_PROGRESS_AFTER
-    s.progress = 0.2
-    assert bar.visible and cancel.visible and bar.value == 20
+    s.param.update(progress=0.2, progress_message="pairs 1 of 5 <b>")
+    assert not hidden(bar) and not hidden(cancel) and bar.value == 20
+    assert "pairs 1 of 5 &lt;b&gt;" in text.object        # messages are text, not HTML
     s.busy = False
-    assert not bar.visible and not cancel.visible
+    assert hidden(bar) and hidden(cancel)
+    assert [bar.visible, cancel.visible, text.height] == shown == [True, True, STATUS_HEIGHT]
 
 
 def test_typed_values_the_parameter_refuses_notify_once_and_revert():

@@ -212,6 +212,31 @@ def test_axes_hold_every_method_at_the_widest_band_and_stay_put(beam1d):
         s.scenarios = S123
 
 
+def test_new_results_keep_the_axes_while_they_fit(beam1d, monkeypatch):
+    """Another seed is seen at the same scale: the axes move only when the new extent
+    leaves them or fills less than KEEP_SPAN of them."""
+    s, panel, root = beam1d
+    key = (0, "delta")
+    rng = panel._ranges[key]["y_range"]
+    start = (rng.start, rng.end)
+
+    def fit(y):
+        monkeypatch.setattr(panel, "_extent", lambda k: ((0.1, 0.9), y))
+        panel._fit_ranges()
+        return rng.start, rng.end
+
+    try:
+        assert fit((0.0, 10.0)) == (0.0, 10.0)
+        assert fit((1.0, 9.0)) == (0.0, 10.0)          # inside, 80 % of the span: kept
+        assert fit((4.0, 6.0)) == (4.0, 6.0)           # 20 %: refitted
+        assert fit((3.0, 6.5)) == (3.0, 6.5)           # outside: refitted
+    finally:
+        monkeypatch.undo()
+        panel._fitted.discard(key)
+        panel._fit_ranges()
+    assert (rng.start, rng.end) == start
+
+
 def test_a_new_band_sends_the_band_only(beam1d):
     """Each data assignment is sent to the browser and redraws the plot: a new band
     replaces the band's data, never the unchanged mean or true δ."""

@@ -32,6 +32,9 @@ QUANTITIES = {"z and δ": ("z", "delta"), "δ": ("delta",), "z": ("z",)}
 CSS = "disc-plot"
 #: Opacity of the earlier plots while their recompute runs.
 STALE_OPACITY = "0.45"
+#: Styles of a group whose results are current. Explicit: styles of ``{}`` would leave
+#: the browser's dimmed opacity on.
+CURRENT = {"opacity": "1"}
 #: The axes of a band plot hold mean ± this many sd (the widest band offered), so a new
 #: band redraws only the band: the axes, and the plot's layout, stay put.
 WIDEST_BAND = 3
@@ -295,7 +298,7 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         stale = s.busy and not s.results
         for method, group in self._groups.items():
             group.visible = method in s.scenarios and (method in s.results or stale)
-            group.styles = {"opacity": STALE_OPACITY} if method not in s.results else {}
+            group.styles = {"opacity": STALE_OPACITY} if method not in s.results else CURRENT
         if stale:
             return                     # the warnings stay with the dimmed plots they concern
         advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]

@@ -35,8 +35,10 @@ SHOW_PROGRESS_AFTER = 0.5
 #: Height of the busy line (two lines of text), fixed so that a new message never
 #: changes the page's layout.
 STATUS_HEIGHT = 40
-#: Styles of the progress bar and Cancel button between jobs: hidden, in their place.
+#: Styles of the progress bar and Cancel button between jobs (hidden, in their place) and
+#: during a long one. Explicit: styles of ``{}`` would leave the browser's "hidden" on.
 HIDDEN = {"visibility": "hidden"}
+SHOWN = {"visibility": "visible"}
 
 
 def _status_html(busy: bool, task: str, detail: str = "") -> str:
@@ -236,7 +238,7 @@ class ExplorerView(pn.viewable.Viewer):
                 since[0] = time.monotonic()
             show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
             text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
-            styles = {} if show else dict(HIDDEN)
+            styles = dict(SHOWN if show else HIDDEN)
             if bar.styles != styles:
                 bar.styles = styles
                 cancel.styles = styles

@@ -115,6 +115,25 @@ def wait_drawn(page, selector, n=1, timeout=30_000):
         page.wait_for_function("() => new Promise(r => requestAnimationFrame(() => r(true)))")
 
 
+#: The smallest effective opacity of the plots of ``css_class`` (the product over each
+#: plot's ancestors, across shadow roots): 1 unless something is dimmed.
+DIMMEST = """(cls) => {
+  const found = [];
+  const walk = root => { for (const e of root.querySelectorAll('*')) {
+    if (e.classList.contains(cls)) found.push(e);
+    if (e.shadowRoot) walk(e.shadowRoot); } };
+  walk(document);
+  let least = 1;
+  for (let e of found) {
+    let o = 1;
+    while (e) { o *= Number(getComputedStyle(e).opacity);
+                e = e.parentElement || (e.getRootNode() && e.getRootNode().host); }
+    least = Math.min(least, o);
+  }
+  return found.length ? least : -1;
+}"""
+
+
 def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     ARTIFACTS.mkdir(exist_ok=True)
     page, log = open_page(browser, server)
@@ -130,6 +149,12 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     tab(page, "Discrepancy")
     page.wait_for_selector(".disc-plot canvas", timeout=60_000)
     page.screenshot(path=str(ARTIFACTS / "03-scenarios.png"))
+    seed = page.get_by_label("Seed", exact=True)      # a recompute: dimmed while it runs
+    seed.fill("1")
+    seed.press("Enter")
+    page.wait_for_selector(".mdcore-busy", state="attached", timeout=30_000)
+    page.wait_for_selector(".mdcore-idle", state="attached", timeout=60_000)
+    page.wait_for_function(f"() => ({DIMMEST})('disc-plot') === 1", timeout=30_000)
     tab(page, "Metrics")
     table = page.wait_for_selector(".metrics-table table", timeout=30_000)
     text = table.inner_text()

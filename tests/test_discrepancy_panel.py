@@ -16,7 +16,11 @@ from bokeh.document import Document  # noqa: E402
 from bokeh.models import ColumnDataSource, Plot  # noqa: E402
 
 from mdcore.pipeline import Method  # noqa: E402
-from mdcore_app.discrepancy_panel import STALE_OPACITY, DiscrepancyPanel  # noqa: E402
+from mdcore_app.discrepancy_panel import (  # noqa: E402
+    CURRENT,
+    STALE_OPACITY,
+    DiscrepancyPanel,
+)
 from mdcore_app.state import ExplorerState  # noqa: E402
 
 hv.extension("bokeh")
@@ -108,7 +112,8 @@ def test_a_recompute_keeps_the_earlier_plots_dimmed_until_its_results_arrive(bea
         assert not any(g.visible for g in panel._groups.values()) and panel._empty.visible
     finally:
         s.results = results
-    assert all(g.visible and not g.styles for g in panel._groups.values())
+    # Back to full opacity, said explicitly (styles of {} leave the browser's dimming on).
+    assert all(g.visible and g.styles == CURRENT for g in panel._groups.values())
 
 
 def test_new_results_are_drawn_in_the_same_figures():

@@ -84,6 +84,7 @@ class PageLog:
         page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
         page.on("pageerror", lambda e: self.errors.append(str(e)))
         page.on("request", self._request)
+        page.on("requestfailed", lambda r: self.errors.append(f"request failed: {r.url[:300]}"))
         page.on("websocket", lambda ws: self.hosts.add(urlparse(ws.url).hostname))
 
     def _request(self, request):

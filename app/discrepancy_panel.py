@@ -161,14 +161,12 @@ class DiscrepancyPanel(pn.viewable.Viewer):
             self._ranges[key] = {"x_range": Range1d(0.0, 1.0), "y_range": Range1d(0.0, 1.0)}
         return self._ranges[key]
 
-    def _extent(self, key) -> tuple[tuple[float, float], tuple[float, float]] | None:
-        """x and y extents of cell ``key`` over every result held (shown or hidden) at the
-        widest band, with the data (z) or the true δ: fixed axes, so that neither a new
-        band nor hiding a method rescales them, and a narrower band looks narrower."""
+    def _extent(self, key, held: dict) -> tuple[tuple[float, float], tuple[float, float]]:
+        """x and y extents of cell ``key`` over the ``held`` results (shown or hidden,
+        :meth:`ExplorerState.held_results`) at the widest band, with the data (z) or the
+        true δ: fixed axes, so that neither a new band nor hiding a method rescales them,
+        and a narrower band looks narrower."""
         s, c = self.state, self._case
-        held = s.held_results()
-        if not s.results or not held:
-            return None
         xs, ys = [s.grid[:, 0]], []
         for result in held.values():
             on_grid = result.on_extra
@@ -198,11 +196,12 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         """Set the shared axes of every band plot to :meth:`_extent`: at once for a new
         plot, else only when the extent leaves them or fills less than
         :data:`KEEP_SPAN` of them."""
+        held = self.state.held_results()
+        if not self.state.results or not held:
+            return                               # nothing to fit to (or a recompute runs)
         for key, ranges in self._ranges.items():
-            extent = self._extent(key)
-            if extent is None:
-                continue
-            for rng, (lo, hi) in zip((ranges["x_range"], ranges["y_range"]), extent):
+            for rng, (lo, hi) in zip((ranges["x_range"], ranges["y_range"]),
+                                     self._extent(key, held)):
                 start, end = rng.start, rng.end
                 fits = start <= lo and hi <= end and hi - lo >= KEEP_SPAN * (end - start)
                 if key in self._fitted and fits:

@@ -488,13 +488,8 @@ class ExplorerState(param.Parameterized):
 
     def _refresh_results(self) -> None:
         """Show the cached results that match the current settings (no computation)."""
-        try:
-            settings = self.method_settings()
-        except ValueError:
-            self.results = {}
-            return
-        keys = {m: self._key(m, settings) for m in self.scenarios}
-        self.results = {m: self._cache[k] for m, k in keys.items() if k in self._cache}
+        held = self.held_results()
+        self.results = {m: held[m] for m in self.scenarios if m in held}
 
     @param.depends("n_s", "n_phi", "seed", "scenarios", "koh_chain", "proposal", watch=True)
     def _discrepancy_settings_changed(self):

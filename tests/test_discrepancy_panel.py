@@ -226,7 +226,7 @@ def test_new_results_keep_the_axes_while_they_fit(beam1d, monkeypatch):
     start = (rng.start, rng.end)
 
     def fit(y):
-        monkeypatch.setattr(panel, "_extent", lambda k: ((0.1, 0.9), y))
+        monkeypatch.setattr(panel, "_extent", lambda k, held: ((0.1, 0.9), y))
         panel._fit_ranges()
         return rng.start, rng.end
 

@@ -84,8 +84,14 @@ class PageLog:
         page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
         page.on("pageerror", lambda e: self.errors.append(str(e)))
         page.on("request", self._request)
-        page.on("requestfailed", lambda r: self.errors.append(f"request failed: {r.url[:300]}"))
+        page.on("requestfailed", self._failed)
         page.on("websocket", lambda ws: self.hosts.add(urlparse(ws.url).hostname))
+
+    def _failed(self, request):
+        """A failed request, with its address (the console line has none). Aborted ones
+        are not errors: a style sheet of a widget replaced while it loads is aborted."""
+        if request.failure != "net::ERR_ABORTED":
+            self.errors.append(f"request failed ({request.failure}): {request.url[:300]}")
 
     def _request(self, request):
         url = urlparse(request.url)

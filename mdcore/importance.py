@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
+from scipy.linalg import solve_triangular
 from scipy.special import gammaln, logsumexp
 
 from .validation import as_float_array, as_int, as_positive_float
@@ -260,7 +261,7 @@ class StudentT:
         x = np.asarray(x, dtype=np.float64)
         P, nu = self.size, self.df
         d = (x - self.mean).reshape(-1, P)
-        u = np.linalg.solve(self._chol, d.T)                    # L⁻¹ (x − μ)
+        u = solve_triangular(self._chol, d.T, lower=True)      # L⁻¹ (x − μ)
         q = np.sum(u * u, axis=0)
         log_det = 2.0 * np.sum(np.log(np.diag(self._chol)))
         out = (gammaln(0.5 * (nu + P)) - gammaln(0.5 * nu) - 0.5 * P * np.log(nu * np.pi)
@@ -372,27 +373,37 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     n_total = sum(sizes)
     x = np.empty((S, n_total, P))
     loglik = np.empty((S, n_total))
+    log_prior = np.empty((S, n_total))
+    # log Σ_s n_s q_s(x) over the proposals so far, for every draw so far: each stage adds
+    # its proposal to the old draws and all proposals to its new draws, so each q_s is
+    # evaluated once per draw (O(n × stages), not O(n × stages²) as recomputing it would).
+    log_mass = np.empty((S, n_total))
     proposals: list = []
-    log_q: list = [prior.logpdf]
     floor = 0.02 * np.sqrt(np.asarray(prior.var, dtype=np.float64))
     col = 0
     for t, n_t in enumerate(sizes):
         if t == 0:
             draws = prior.sample(S * n_t, seed=rng)
         else:
-            lw = _mixture_log_weights(x[:, :col], loglik[:, :col], prior, log_q, sizes[:t])
+            lw = _mixture_log_weights(loglik[:, :col], log_prior[:, :col],
+                                      log_mass[:, :col], col)
             q = StudentT.fit(x[:, :col].reshape(-1, P), lw.ravel(), df=df, inflate=inflate,
                              floor=floor)
             proposals.append(q)
-            log_q.append(q.logpdf)
             draws = q.sample(S * n_t, seed=rng)
+            np.logaddexp(log_mass[:, :col], np.log(n_t) + q.logpdf(x[:, :col]),
+                         out=log_mass[:, :col])
         sl = slice(col, col + n_t)
         x[:, sl] = draws.reshape(S, n_t, P)
+        log_prior[:, sl] = prior.logpdf(x[:, sl])
+        log_mass[:, sl] = logsumexp([np.log(sizes[0]) + log_prior[:, sl]]
+                                    + [np.log(sizes[s + 1]) + f.logpdf(x[:, sl])
+                                       for s, f in enumerate(proposals)], axis=0)
         loglik[:, sl] = log_likelihood(x[:, sl])
         col += n_t
         if progress is not None:
             progress((t + 1) / len(sizes))
-    lw = _mixture_log_weights(x, loglik, prior, log_q, sizes)
+    lw = _mixture_log_weights(loglik, log_prior, log_mass, n_total)
     total = logsumexp(lw)
     if not np.isfinite(total):
         raise ValueError("every adaptive importance weight is zero: the likelihood is zero "
@@ -400,10 +411,18 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     return AdaptiveSample(x, lw - total, loglik, tuple(proposals), tuple(sizes))
 
 
-def _mixture_log_weights(x, loglik, prior, log_q, sizes) -> np.ndarray:
-    """``log L + log p − log Σ_t (n_t / n) q_t`` for draws ``x`` (S, m, P)."""
-    n = sum(sizes)
-    mix = logsumexp([np.log(n_t / n) + f(x) for f, n_t in zip(log_q, sizes)], axis=0)
+def _mixture_log_weights(loglik, log_prior, log_mass, n: int) -> np.ndarray:
+    """Deterministic-mixture log weights ``log L + log p − log Σ_t (n_t / n) q_t``.
+
+    Parameters
+    ----------
+    loglik, log_prior : ndarray of shape (S, m)
+        ``log L(x)`` and ``log p(x)`` of the draws.
+    log_mass : ndarray of shape (S, m)
+        ``log Σ_t n_t q_t(x)`` over the stages' proposals (the prior first).
+    n : int
+        ``Σ_t n_t``, the draws per group of those stages.
+    """
     with np.errstate(invalid="ignore"):
-        lw = loglik + prior.logpdf(x) - mix
+        lw = loglik + log_prior - (log_mass - np.log(n))
     return np.where(np.isnan(lw), -np.inf, lw)

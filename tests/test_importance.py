@@ -171,6 +171,16 @@ def test_adaptive_sampling_against_a_conjugate_gaussian():
     plain = adaptive_importance_sampling(loglik, prior, 3, 4000, seed=0, n_stages=1)
     assert ess_adaptive > 1000 and ess_adaptive > 20 * effective_sample_size(plain.log_weights)
     assert psis(out.log_weights.ravel()).k_hat < 0.7
+    # The deterministic-mixture weights, recomputed per draw from the returned proposals
+    # with SciPy's densities: log L + log p − log Σ_t (n_t / n) q_t, normalised jointly.
+    x = out.samples.reshape(-1, P)
+    sizes = np.array(out.stage_sizes)
+    dens = [stats.multivariate_normal(np.zeros(P), v0 * np.eye(P)).logpdf(x)]
+    dens += [stats.multivariate_t(q.mean, q.scale, df=q.df).logpdf(x) for q in out.proposals]
+    mixture = np.logaddexp.reduce(np.log(sizes / sizes.sum())[:, None] + np.array(dens), axis=0)
+    naive = out.log_likelihood.ravel() + dens[0] - mixture
+    np.testing.assert_allclose(out.log_weights.ravel(), naive - np.logaddexp.reduce(naive),
+                               rtol=1e-10, atol=1e-10)
     same = adaptive_importance_sampling(loglik, prior, 3, 4000, seed=0)
     np.testing.assert_array_equal(same.log_weights, out.log_weights)
     with pytest.raises(ValueError, match="every adaptive importance weight is zero"):

@@ -9,10 +9,12 @@ the browser redraws and re-ranges the glyphs itself.
 from __future__ import annotations
 
 import numpy as np
+import panel as pn
 from bokeh.core.properties import value
 from bokeh.models import (
     ColorBar,
     ColumnDataSource,
+    Div,
     HoverTool,
     Legend,
     LegendItem,
@@ -37,14 +39,36 @@ def live_figure(title: str, xname: str, yname: str, css_class: str, **kw):
     return fig
 
 
+def live_text(css_class: str, height: int | None = None) -> tuple[pn.pane.Bokeh, Div]:
+    """A line of HTML whose text is replaced in place: ``(pane for the layout, Div)``; set
+    ``div.text``.
+
+    A Bokeh ``Div`` and not a Panel HTML pane: updating a Panel pane re-sends its style
+    sheets, and one updated while its tab was hidden came back with Panel's CDN addresses
+    (``cdn.holoviz.org/.../loading.css``), which an offline app must never request.
+    """
+    div = Div(text="", css_classes=[css_class], sizing_mode="stretch_width",
+              **({} if height is None else {"height": height}))
+    return pn.pane.Bokeh(div, sizing_mode="stretch_width", margin=(0, 10)), div
+
+
 def replace_data(source: ColumnDataSource, data: dict) -> None:
     """``source.data = data`` unless every column is already equal (each assignment is
     sent to the browser and redraws the plot)."""
     old = source.data
-    if old.keys() == data.keys() and all(
-            np.array_equal(np.asarray(old[k]), np.asarray(v)) for k, v in data.items()):
+    if old.keys() == data.keys() and all(_same(old[k], v) for k, v in data.items()):
         return
     source.data = data
+
+
+def _same(a, b) -> bool:
+    """Whether two columns hold the same values (a ragged column: the same lines)."""
+    if len(a) != len(b):
+        return False
+    try:
+        return np.array_equal(np.asarray(a), np.asarray(b))
+    except ValueError:                       # ragged (multi_line): compare line by line
+        return all(np.array_equal(np.asarray(x), np.asarray(y)) for x, y in zip(a, b))
 
 
 def below_legend(fig, items, ncols: int = 4) -> Legend:

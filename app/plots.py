@@ -19,7 +19,7 @@ METHOD_COLORS = {Method.S1: "#1f77b4", Method.S2: "#ff7f0e", Method.S3: "#2ca02c
                  Method.KOH: "#d62728"}
 #: θ_MAP's marker on every θ plot: a red star (the truth is a cross or a dashed line).
 THETA_MAP_COLOR = "red"
-THETA_MAP_MARKER = {"color": THETA_MAP_COLOR, "marker": "star", "size": 18,
+THETA_MAP_MARKER = {"marker": "star", "size": 18, "fill_color": THETA_MAP_COLOR,
                     "line_color": "black", "line_width": 1}
 PLOT = {"responsive": True, "height": 300, "min_width": 200, "tools": ["hover"], "show_grid": True}
 
@@ -89,141 +89,10 @@ def _data_overview_2d(case, var_bar) -> hv.Layout:
     return hv.Layout(panels).cols(2).opts(shared_axes=False)
 
 
-def _span(case, d):
+def input_span(case, d: int) -> tuple[float, float]:
+    """(min, max) of input ``d`` over the training and test inputs."""
     X = np.vstack([case.X_train, case.X_test])
     return float(X[:, d].min()), float(X[:, d].max())
-
-
-def nroy_samples(waves, names, units, bounds, truth, upto: int, *,
-                 max_points: int = 1500, theta_map=None) -> list:
-    """NROY samples of waves 1..upto in θ space, coloured by wave, with the true θ.
-
-    One overlaid histogram per wave for p = 1; one scatter plot per pair of parameters for
-    p ≥ 2. A list of plots: the view gives each its own pane (responsive plots inside one
-    HoloViews layout collapsed to zero width in the browser).
-
-    Parameters
-    ----------
-    waves : sequence of mdcore.history_matching.Wave
-    names, units : sequence of str, length p
-    bounds : ndarray of shape (p, 2)
-        The prior box (the axis ranges).
-    truth : ndarray of shape (p,) or None
-        The true θ (a black cross; a dashed line for p = 1).
-    upto : int
-        Show waves 1..upto.
-    max_points : int, default=1500
-        At most this many samples per wave are drawn.
-    theta_map : ndarray of shape (p,), optional
-        θ_MAP (:attr:`mdcore.history_matching.HistoryMatchResult.theta_map`): a red star
-        (a red line for p = 1), legend "θ_MAP".
-
-    Returns
-    -------
-    list of hv.Overlay
-        One for p = 1, ``p (p − 1) / 2`` for p ≥ 2.
-    """
-    labels = [axis_label(n, u) for n, u in zip(names, units)]
-    p = len(labels)
-    shown = [w for w in waves if w.index <= upto]
-    rng = np.random.default_rng(0)
-    samples = []
-    for w in shown:
-        nroy = w.nroy
-        if nroy.shape[0] > max_points:
-            nroy = nroy[rng.choice(nroy.shape[0], max_points, replace=False)]
-        samples.append((w.index, nroy))
-    if p == 1:
-        hists = [hv.Histogram(np.histogram(s[:, 0], bins=40, range=tuple(bounds[0])),
-                              kdims=[labels[0]], label=f"wave {k}").opts(
-                                  alpha=0.5, color=WAVE_COLORS[(k - 1) % 10])
-                 for k, s in samples if s.shape[0]]
-        if truth is not None:
-            hists.append(hv.VLine(truth[0]).opts(color="black", line_dash="dashed"))
-        if theta_map is not None:
-            hists.append(_map_line(theta_map[0], labels[0]))
-        return [hv.Overlay(hists).opts(title="NROY samples", **PLOT)]
-    panels = []
-    for i in range(p):
-        for j in range(i + 1, p):
-            layers = [hv.Scatter((s[:, i], s[:, j]), labels[i], labels[j],
-                                 label=f"wave {k}").opts(color=WAVE_COLORS[(k - 1) % 10], size=3,
-                                                         alpha=0.5)
-                      for k, s in samples if s.shape[0]]
-            if truth is not None:
-                layers.append(hv.Scatter(([truth[i]], [truth[j]]), labels[i], labels[j],
-                                         label="true θ").opts(color="black", marker="x",
-                                                              size=14, line_width=3))
-            if theta_map is not None:
-                layers.append(_map_marker(theta_map[i], theta_map[j], labels[i], labels[j]))
-            panels.append(hv.Overlay(layers).opts(
-                title=f"NROY samples: {names[i]} vs {names[j]}",
-                xlim=tuple(bounds[i]), ylim=tuple(bounds[j]), legend_position="top_right",
-                **PLOT))
-    return panels
-
-
-def implausibility_map(t1, t2, I, threshold, names, units, truth, wave_index, *,
-                       theta_map=None):
-    """Combined implausibility over the θ plane for one wave, with the T contour.
-
-    Parameters
-    ----------
-    t1 : ndarray of shape (n1,)
-    t2 : ndarray of shape (n2,)
-        The grid of the two parameters.
-    I : ndarray of shape (n2, n1)
-        Combined implausibility on the grid.
-    threshold : float
-        T; the contour is drawn at it.
-    names, units : sequence of str, length 2
-    truth : ndarray of shape (2,) or None
-        The true θ (a red cross).
-    wave_index : int
-    theta_map : ndarray of shape (2,), optional
-        θ_MAP: a red star with a black outline, legend "θ_MAP".
-    """
-    l1, l2 = (axis_label(n, u) for n, u in zip(names, units))
-    img = hv.Image((t1, t2, np.minimum(I, 3 * threshold)), [l1, l2], "implausibility").opts(
-        cmap="viridis_r", colorbar=True, clim=(0.0, 3 * threshold),
-        title=f"wave {wave_index}: implausibility (clipped at 3T; contour at T = {threshold:g})",
-        **PLOT)
-    contour = hv.operation.contours(hv.Image((t1, t2, I), [l1, l2], "I"),
-                                    levels=[threshold]).opts(color="white", line_width=2)
-    layers = [img, contour]
-    if truth is not None:
-        layers.append(hv.Scatter(([truth[0]], [truth[1]]), l1, l2, label="true θ").opts(
-            color="red", marker="x", size=14, line_width=3))
-    if theta_map is not None:
-        layers.append(_map_marker(theta_map[0], theta_map[1], l1, l2))
-    return hv.Overlay(layers)
-
-
-def nroy_fraction(waves) -> hv.Overlay:
-    """NROY fraction of the original box after each wave (percent)."""
-    k = [w.index for w in waves]
-    f = [100 * w.nroy_fraction for w in waves]
-    return (hv.Curve((k, f), "wave", "NROY [% of box]") *
-            hv.Scatter((k, f), "wave", "NROY [% of box]").opts(size=8)).opts(
-        title="NROY fraction per wave", xticks=k or None, **PLOT)
-
-
-def emulator_variance(waves, output_names) -> hv.Overlay:
-    """Largest emulator variance at retained points ÷ (V_o + V_m); converged below 1."""
-    k = [w.index for w in waves]
-    ylabel = "max var / (V_o + V_m)"
-    layers = [hv.HLine(1.0, kdims=["wave", ylabel]).opts(color="black", line_dash="dashed")]
-    ratios = np.array([[w.max_var[o] / w.var_threshold[o] for w in waves]
-                       for o in range(len(output_names))], dtype=float)
-    finite = ratios[np.isfinite(ratios) & (ratios > 0)]
-    lo = min(float(finite.min()) if finite.size else 1.0, 1.0) / 3
-    hi = max(float(finite.max()) if finite.size else 1.0, 1.0) * 3
-    for o, name in enumerate(output_names):
-        r = ratios[o].tolist()
-        layers.append(hv.Curve((k, r), "wave", ylabel, label=name))
-        layers.append(hv.Scatter((k, r), "wave", ylabel, label=name).opts(size=7))
-    return hv.Overlay(layers).opts(title="emulator variance vs V_o + V_m (converged below 1)",
-                                   logy=True, ylim=(lo, hi), xticks=k or None, **PLOT)
 
 
 def true_delta_2d(case) -> hv.Image:
@@ -231,7 +100,7 @@ def true_delta_2d(case) -> hv.Image:
     x1 = axis_label(case.x_names[0], case.x_units[0])
     x2 = axis_label(case.x_names[1], case.x_units[1])
     n = 60
-    g1, g2 = np.meshgrid(np.linspace(*_span(case, 0), n), np.linspace(*_span(case, 1), n))
+    g1, g2 = np.meshgrid(np.linspace(*input_span(case, 0), n), np.linspace(*input_span(case, 1), n))
     delta = case.true_delta(np.column_stack([g1.ravel(), g2.ravel()]))
     return hv.Image((g1[0], g2[:, 0], delta[:, 0].reshape(n, n)), [x1, x2], "δ mean [mm]").opts(
         cmap="RdBu_r", colorbar=True, title="true δ", **PLOT)
@@ -268,90 +137,6 @@ def koh_posterior(case, model) -> list:
 
 # --- θ_MAP, the weighted θ posterior, scenario 3's φ posterior, the simulator at θ_MAP and
 # --- the metrics chart (issue 17, "the missing views").
-
-def _map_marker(x: float, y: float, xname: str, yname: str) -> hv.Scatter:
-    """θ_MAP in a θ plane: a red star with a black outline, legend "θ_MAP"."""
-    return hv.Scatter(([float(x)], [float(y)]), xname, yname, label="θ_MAP").opts(
-        **THETA_MAP_MARKER)
-
-
-def _map_line(x: float, xname: str) -> hv.VLines:
-    """θ_MAP on a one-parameter axis: a solid red vertical line, legend "θ_MAP"."""
-    return hv.VLines([float(x)], kdims=[xname], label="θ_MAP").opts(
-        color=THETA_MAP_COLOR, line_width=3)
-
-
-def _truth_line(x: float, xname: str) -> hv.VLines:
-    """The true value on a one-parameter axis: a dashed black vertical line."""
-    return hv.VLines([float(x)], kdims=[xname], label="true θ").opts(
-        color="black", line_dash="dashed", line_width=2)
-
-
-def _number(value: float, unit: str) -> str:
-    """``value`` to four significant figures, with its unit when it has one."""
-    return f"{value:.4g} {unit}" if unit and unit != "-" else f"{value:.4g}"
-
-
-def theta_posterior(case, hm, n: int = 4000, seed=0, *, bins: int = 40) -> list:
-    """The weighted θ posterior of Bayesian history matching, one plot per θ component.
-
-    The posterior is the Gaussian likelihood behind the implausibility measure
-    (:meth:`mdcore.history_matching.HistoryMatchResult.log_likelihood`) restricted to NROY,
-    under the uniform prior on the box. It is drawn as ``n`` samples uniform in the final
-    NROY set (:meth:`~mdcore.history_matching.HistoryMatchResult.nroy_samples`), each
-    weighted by its normalised likelihood: the same density that
-    :meth:`~mdcore.history_matching.HistoryMatchResult.posterior_samples` resamples from,
-    without the resampling noise. Behind it, faint, the unweighted NROY samples: the
-    support that history matching leaves.
-
-    Parameters
-    ----------
-    case : mdcore.cases.Case
-    hm : mdcore.history_matching.HistoryMatchResult
-    n : int, default=4000
-        NROY samples weighted.
-    seed : int or numpy.random.Generator, default=0
-    bins : int, default=40
-        Histogram bins over each parameter's prior box.
-
-    Returns
-    -------
-    list of hv.Overlay, length p
-        Per component j: the weighted histogram (density, green), the NROY histogram
-        (density, grey), θ_MAP (solid red line) and the truth (dashed black line, when
-        ``case.theta_true`` is known), over the prior box; titled with θ_MAP in numbers
-        and units, e.g. "E: θ_MAP = 68.27 GPa". Empty when the history match ruled out
-        every θ (there is no posterior).
-    """
-    if hm.waves[-1].nroy.shape[0] == 0:
-        return []
-    theta = hm.nroy_samples(n, seed=seed)                                   # (n, p)
-    log_l = hm.log_likelihood(theta)                                        # (n,)
-    w = np.exp(log_l - log_l.max())
-    w /= w.sum()
-    ess = 1.0 / float(np.sum(w * w))
-    theta_map = hm.theta_map
-    out = []
-    for j, (name, unit) in enumerate(zip(case.theta_names, case.theta_units)):
-        label = axis_label(name, unit)
-        lo, hi = (float(b) for b in case.theta_bounds[j])
-        edges = np.linspace(lo, hi, bins + 1)
-        nroy, _ = np.histogram(theta[:, j], bins=edges, density=True)
-        post, _ = np.histogram(theta[:, j], bins=edges, weights=w, density=True)
-        layers = [hv.Histogram((edges, nroy), kdims=[label], vdims=["density"],
-                               label="NROY (uniform)").opts(color="grey", alpha=0.25,
-                                                            line_alpha=0),
-                  hv.Histogram((edges, post), kdims=[label], vdims=["density"],
-                               label=f"posterior (ESS {ess:,.0f} of {n:,})").opts(
-                      color="#2ca02c", alpha=0.6, line_alpha=0),
-                  _map_line(theta_map[j], label)]
-        if case.theta_true is not None:
-            layers.append(_truth_line(case.theta_true[j], label))
-        out.append(hv.Overlay(layers).opts(
-            title=f"{name}: θ_MAP = {_number(theta_map[j], unit)}", xlim=(lo, hi),
-            legend_position="top_right", **PLOT))
-    return out
-
 
 def phi_names(n_out: int, d_x: int) -> list[str]:
     """Names of the discrepancy GP's log hyperparameters in the SPEC §2 layout.
@@ -456,56 +241,6 @@ def phi_posterior(case, result, *, output: int | None = None, bins: int = 30) ->
                     color=METHOD_COLORS[Method.S3], line_width=2),
             ]).opts(title=f"{case.output_names[o]}: {name} (ESS {ess:,.1f} of {w.size:,})",
                     xlim=(lo, hi), legend_position="top_right", **PLOT))
-    return out
-
-
-def simulator_at_map(case, hm, *, n_grid: int = 201) -> list:
-    """The simulator at θ_MAP against the data, per output (the paper's Fig. 12).
-
-    Parameters
-    ----------
-    case : mdcore.cases.Case
-    hm : mdcore.history_matching.HistoryMatchResult
-    n_grid : int, default=201
-        Points of the input grid over the span of the training and test inputs.
-
-    Returns
-    -------
-    list of hv.Overlay, length n_out
-        Per output (shear-5: each mode ω1…ω5): the training data (black), the test data
-        (grey), ``η(x, θ_MAP)`` (``case.simulate(grid, hm.theta_map)``, solid red) and
-        ``η(x, θ_true)`` when the truth is known (dashed black). The θ_MAP curve's legend
-        gives its RMSE to the training data. Empty for ``d_x = 2`` (beam-2d: a
-        surface per output is not a comparison one reads) and when the history match
-        ruled out every θ.
-    """
-    if case.d_x != 1 or hm.waves[-1].nroy.shape[0] == 0:
-        return []
-    xname = axis_label(case.x_names[0], case.x_units[0])
-    grid = np.linspace(*_span(case, 0), n_grid)[:, None]                       # (G, 1)
-    theta_map = hm.theta_map
-    at_map = case.simulate(grid, theta_map)[0]                                 # (G, n_out)
-    at_data = case.simulate(case.X_train, theta_map)[0]                        # (N, n_out)
-    truth = None if case.theta_true is None else case.simulate(grid, case.theta_true)[0]
-    out = []
-    for o in range(case.n_out):
-        unit = case.output_units[o]
-        yname = axis_label(case.output_names[o], unit)
-        rmse = float(np.sqrt(np.mean((at_data[:, o] - case.z_train[:, o]) ** 2)))
-        layers = [hv.Scatter((case.X_test[:, 0], case.z_test[:, o]), xname, yname,
-                             label="test data").opts(color="grey", size=4, alpha=0.6),
-                  hv.Scatter((case.X_train[:, 0], case.z_train[:, o]), xname, yname,
-                             label="training data").opts(color="black", size=6),
-                  hv.Curve((grid[:, 0], at_map[:, o]), xname, yname,
-                           label=f"simulator at θ_MAP (RMSE {_number(rmse, unit)})").opts(
-                      color=THETA_MAP_COLOR, line_width=2)]
-        if truth is not None:
-            layers.append(hv.Curve((grid[:, 0], truth[:, o]), xname, yname,
-                                   label="simulator at true θ").opts(color="black",
-                                                                      line_dash="dashed"))
-        out.append(hv.Overlay(layers).opts(
-            title=f"{case.output_names[o]}: simulator at θ_MAP vs data",
-            legend_position="top_right", **PLOT))
     return out
 
 

@@ -1,6 +1,8 @@
 """Views of the Model Discrepancy Explorer, built from an :class:`ExplorerState`.
 
-The views hold no results: they read the state, draw with :mod:`app.plots`, and turn
+The views hold no results: they read the state, draw with :mod:`app.plots` (the Data and
+Metrics tabs, rebuilt when shown after a change) or with the panels updated in place
+(:mod:`.waves_panel`, :mod:`.calibration_panel`, :mod:`.discrepancy_panel`), and turn
 button presses into calls of the state's methods.
 """
 
@@ -22,11 +24,14 @@ from mdcore.pipeline import Method, MethodResult
 from mdcore.study import PAPER
 
 from . import plots
+from .calibration_panel import CalibrationPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
+from .live_figures import live_text
 from .report import report_html
 from .session import MAX_UPLOAD_BYTES
 from .state import ExplorerState, method_order
+from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
 #: A job's progress bar and Cancel button appear once it has run this long (seconds), so
@@ -52,6 +57,22 @@ def _status_html(busy: bool, task: str, detail: str = "") -> str:
 NOT_APPLICABLE = "—"
 #: The columns of :func:`metrics_frame` shown in the diagnostics table, not the metrics one.
 DIAGNOSTICS = ("ESS pairs", "ESS φ", "Pareto k", "acceptance", "IAT (max)", "chain ESS (min)")
+
+
+#: Colours (text, background, border) of the status line, as Bootstrap's alerts.
+ALERT_COLORS = {"info": ("#055160", "#cff4fc", "#b6effb"),
+                "success": ("#0f5132", "#d1e7dd", "#badbcc"),
+                "warning": ("#664d03", "#fff3cd", "#ffecb5"),
+                "danger": ("#842029", "#f8d7da", "#f5c2c7")}
+
+
+def _alert_html(text: str, kind: str) -> str:
+    """``text`` (escaped) in an alert box of ``kind`` (a key of :data:`ALERT_COLORS`); its
+    colour is in the HTML, so a new status changes no CSS class and no layout."""
+    color, background, border = ALERT_COLORS[kind]
+    return (f'<div class="mdcore-alert-{kind}" style="color:{color};background:{background};'
+            f'border:1px solid {border};border-radius:4px;padding:12px 16px;margin:0">'
+            f"{html.escape(text)}</div>")
 
 
 def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
@@ -117,6 +138,11 @@ class ExplorerView(pn.viewable.Viewer):
         self.state.param.watch(self._notify_error, "n_errors")
         self.state.param.watch(self._notify_warning, "n_notices")
         self._discrepancy = DiscrepancyPanel(state=self.state)
+        self._waves = WavesPanel(state=self.state)
+        self._calibration = CalibrationPanel(state=self.state)
+        self._status, self._status_div = live_text("hm-status")
+        self.state.param.watch(self._show_status, ["status", "waves"])
+        self._show_status()
 
     # --- events ------------------------------------------------------------------------
     def _notify_error(self, *_):
@@ -256,10 +282,20 @@ class ExplorerView(pn.viewable.Viewer):
         return pn.pane.HoloViews(plots.data_overview(c, c.noise_var + self.state.v_m_vector()),
                                  sizing_mode="stretch_width", css_classes=["data-plot"])
 
-    @param.depends("state.status", "state.waves")
-    def status_view(self):
-        return pn.pane.Alert(self.state.status or "No waves yet.", alert_type=self._alert(),
-                             css_classes=["hm-status"])
+    @property
+    def status_view(self) -> pn.pane.Bokeh:
+        """The history match's status line, coloured by the last wave's status."""
+        return self._status
+
+    @property
+    def status_html(self) -> str:
+        """The status line's HTML as shown."""
+        return self._status_div.text
+
+    def _show_status(self, *_):
+        """New text and colour in the same line (a new pane re-laid-out the page)."""
+        self._status_div.text = _alert_html(self.state.status or "No waves yet.",
+                                            self._alert())
 
     def _alert(self):
         w = self.state.waves
@@ -268,73 +304,15 @@ class ExplorerView(pn.viewable.Viewer):
         return {"converged": "success", "max_waves": "warning",
                 "ruled_out": "danger"}.get(w[-1].status, "info")
 
-    @param.depends("state.waves", "state.selected_wave", "state.implausibility_maps")
-    def waves_view(self):
-        s = self.state
-        c = s.case
-        if not s.waves:
-            return pn.pane.Markdown("Press **Next wave** to run the first wave.")
-        upto = s.selected_wave or len(s.waves)
-        hm = s.history_match
-        theta_map = hm.theta_map if upto == len(s.waves) else None   # of the final wave
-        pairs = plots.nroy_samples(s.waves, c.theta_names, c.theta_units, c.theta_bounds,
-                                   c.theta_true, upto, theta_map=theta_map)
-        rows = [pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width", height=300,
-                                           css_classes=["hm-plot"]) for o in pairs[i:i + 3]],
-                       sizing_mode="stretch_width") for i in range(0, len(pairs), 3)]
-        if upto in s.implausibility_maps:
-            t1, t2, I = s.implausibility_maps[upto]
-            rows.append(pn.pane.HoloViews(
-                plots.implausibility_map(t1, t2, I, s.threshold, c.theta_names,
-                                         c.theta_units, c.theta_true, upto,
-                                         theta_map=theta_map),
-                sizing_mode="stretch_width", css_classes=["hm-plot"]))
-        shown = [w for w in s.waves if w.index <= upto]
-        # Each plot its own pane, every pane stretching: responsive plots inside one
-        # HoloViews layout, or beside a fixed-width sibling, collapsed to zero width.
-        summary = pn.Row(pn.pane.HoloViews(plots.nroy_fraction(shown), sizing_mode="stretch_width"),
-                         pn.pane.HoloViews(plots.emulator_variance(shown, c.output_names),
-                                           sizing_mode="stretch_width"),
-                         sizing_mode="stretch_width")
-        return pn.Column(*rows, summary, sizing_mode="stretch_width")
+    @property
+    def waves_view(self) -> WavesPanel:
+        """The waves of the History matching tab (their plots are updated in place)."""
+        return self._waves
 
-    @param.depends("state.waves")
-    def calibration_view(self):
-        """θ_MAP in numbers, the weighted θ posterior over NROY, and the simulator at θ_MAP
-        against the data (the paper's Fig. 12 for shear-5)."""
-        s = self.state
-        hm = s.history_match
-        if hm is None or hm.status == "ruled_out":
-            return pn.Spacer(height=0)
-        c = s.case
-        theta = ", ".join(f"{n} = {v:.4g}" + ("" if u in ("", "-") else f" {u}")
-                          for n, v, u in zip(c.theta_names, hm.theta_map, c.theta_units))
-        truth = "" if c.theta_true is None else " (true: " + ", ".join(
-            f"{v:.4g}" for v in c.theta_true) + ")"
-        objs = [pn.pane.Markdown(f"**θ_MAP** (most likely non-implausible θ): {theta}{truth}. "
-                                 "Below: the weighted θ posterior of history matching (green) "
-                                 "over the NROY samples (grey)", css_classes=["theta-map"])]
-        post = plots.theta_posterior(c, hm)
-        objs.append(pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width", height=260,
-                                               css_classes=["hm-plot"]) for o in post],
-                           sizing_mode="stretch_width"))
-        sim = plots.simulator_at_map(c, hm)
-        if sim:
-            objs.append(pn.pane.Markdown("**The simulator at θ_MAP against the data**: what "
-                                         "is left between them is the discrepancy δ."))
-            for i in range(0, len(sim), 3):
-                objs.append(pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
-                                                       height=260, css_classes=["hm-plot"])
-                                     for o in sim[i:i + 3]], sizing_mode="stretch_width"))
-        return pn.Column(*objs, sizing_mode="stretch_width")
-
-    @param.depends("state.waves")
-    def wave_selector(self):
-        n = len(self.state.waves)
-        if n < 2:
-            return pn.Spacer(height=0)
-        return pn.widgets.Player.from_param(self.state.param.selected_wave, start=1, end=n,
-                                            loop_policy="once", interval=800, name="Wave shown")
+    @property
+    def calibration_view(self) -> CalibrationPanel:
+        """θ_MAP, the θ posterior and the simulator at θ_MAP (updated in place)."""
+        return self._calibration
 
     @property
     def discrepancy_view(self) -> DiscrepancyPanel:
@@ -536,10 +514,9 @@ class ExplorerView(pn.viewable.Viewer):
         # else when it is next shown: Panel keeps updating a dynamic tab once it has been
         # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.
         data = self._shown_only(tabs, 0, self.data_view, ["case", "v_m"])
-        calibration = self._shown_only(tabs, 1, self.calibration_view, ["waves"])
         metrics = self._shown_only(tabs, 3, self.metrics_view, ["results"])
-        hm_tab = pn.Column(self.status_view, self.wave_selector, self.waves_view,
-                           calibration, sizing_mode="stretch_width")
+        hm_tab = pn.Column(self.status_view, self.waves_view,
+                           self.calibration_view, sizing_mode="stretch_width")
         metrics_tab = pn.Column(
             pn.pane.Markdown("SPEC §8 metrics at the test inputs. NMSE in percent; RMSE δ "
                              "in the output's units (NMSE δ divides by the variance of the "

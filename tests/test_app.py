@@ -455,14 +455,14 @@ def test_the_papers_missing_views_have_data():
     hm = s.history_match
     cal = pn.panel(v.calibration_view)
     root = cal.get_root(Document())
-    text = " ".join(m.object for m in cal.select(pn.pane.Markdown))
+    from bokeh.models import Div
+    text = " ".join(d.text for d in root.select({"type": Div}))
     assert f"l_cr = {hm.theta_map[0]:.4g} mm" in text and "θ_MAP" in text
     data = [d for d in glyph_data(root) if d]
     assert len(data) >= 2 * s.case.p + 1
-    one_point = [sorted(float(np.asarray(c)[0]) for c in d.values() if np.size(c) == 1)
-                 for d in glyph_data(render(v.waves_view)) if d and all(
-                     np.size(c) == 1 for c in d.values())]
-    assert any(np.allclose(pt, sorted(hm.theta_map)) for pt in one_point if len(pt) == 2)
+    stars = [[d["t0"][0], d["t1"][0]] for d in glyph_data(render(v.waves_view))
+             if set(d) == {"t0", "t1"} and len(d["t0"]) == 1]          # θ_MAP's marker
+    assert stars and all(np.array_equal(pt, hm.theta_map) for pt in stars)
     metrics = pn.panel(v.metrics_view)
     mroot = metrics.get_root(Document())
     assert metrics.select(lambda o: "metrics-chart" in getattr(o, "css_classes", []))
@@ -506,3 +506,17 @@ def test_hidden_tabs_are_rebuilt_when_shown_not_on_every_change():
     (table,) = [o for o in metrics_box.select(pn.pane.DataFrame)
                 if "metrics-table" in o.css_classes]
     assert list(table.object["method"]) == ["Scenario 1", "Scenario 2", "Scenario 3"]
+
+
+def test_status_line_is_one_pane_whose_text_and_colour_change():
+    """The status line is updated in place (a new pane per wave re-laid-out the page):
+    its colour says how the last wave ended, and its text is escaped."""
+    s = small_state()
+    v = ExplorerView(state=s)
+    pane = v.status_view
+    assert "mdcore-alert-info" in v.status_html and "Press “Next wave”" in v.status_html
+    s.run_to_convergence()
+    assert v.status_view is pane
+    assert s.waves[-1].status == "converged" and "mdcore-alert-success" in v.status_html
+    s.status = "a <b>tag</b> & more"
+    assert "a &lt;b&gt;tag&lt;/b&gt; &amp; more" in v.status_html

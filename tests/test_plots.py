@@ -1,8 +1,9 @@
 """The plotting functions of issue 17's missing views, rendered to Bokeh and checked in numbers.
 
 Each plot is rendered with ``hv.render``; its glyphs are found by legend label and their data
-sources are compared with independent computations from mdcore: θ_MAP, the θ posterior,
-scenario 3's importance weights and prior, the simulator, and the metrics.
+sources are compared with independent computations from mdcore: scenario 3's importance
+weights and prior, and the metrics. (θ_MAP, the θ posterior and the simulator at θ_MAP are
+live figures: tests/test_calibration_panel.py and tests/test_waves_panel.py.)
 """
 
 import warnings
@@ -92,74 +93,7 @@ def results(beam):
                 for m in (Method.S1, Method.S3)}
 
 
-# --- θ posterior and θ_MAP ---------------------------------------------------------------
-
-def test_theta_posterior_matches_the_posterior_samples(beam):
-    case, hm = beam
-    figs = [render(o) for o in plots.theta_posterior(case, hm, n=4000, seed=0)]
-    assert len(figs) == case.p
-    # Independent: SIR draws of p(θ | z) on NROY (another pool, another seed).
-    draws = hm.posterior_samples(4000, seed=1)
-    # The same weighting the plot shows, computed here: the weighted mean of its pool.
-    pool = hm.nroy_samples(4000, seed=0)
-    ll = hm.log_likelihood(pool)
-    w = np.exp(ll - ll.max())
-    w /= w.sum()
-    for j, fig in enumerate(figs):
-        name, unit = case.theta_names[j], case.theta_units[j]
-        assert fig.title.text == f"{name}: θ_MAP = {hm.theta_map[j]:.4g} {unit}"
-        lo, hi = case.theta_bounds[j]
-        assert (fig.x_range.start, fig.x_range.end) == (lo, hi)
-        x, width, post = histogram(one(fig, "posterior"))
-        assert x.min() > lo and x.max() < hi
-        assert abs(np.sum(post * width) - 1.0) < 1e-9                 # a density
-        mean = np.sum(x * post * width)
-        # Binning moves the mean by less than half a bin; the two Monte Carlo estimates
-        # (ESS ≈ 850 and 4000 draws) differ by a few hundredths of a posterior sd.
-        assert abs(mean - w @ pool[:, j]) < 0.5 * width[0]
-        assert abs(mean - draws[:, j].mean()) < 0.15 * draws[:, j].std(), (mean, draws.mean(0))
-        xn, wn, nroy = histogram(one(fig, "NROY"))
-        assert abs(np.sum(nroy * wn) - 1.0) < 1e-9 and np.count_nonzero(nroy) > 5
-        assert list(column(one(fig, "θ_MAP"), name)) == [hm.theta_map[j]]
-        assert list(column(one(fig, "true θ"), name)) == [case.theta_true[j]]
-
-
-def test_theta_map_on_nroy_and_implausibility_plots(beam):
-    case, hm = beam
-    args = (hm.waves, case.theta_names, case.theta_units, case.theta_bounds, case.theta_true, 5)
-    plain = render(plots.nroy_samples(*args)[0])          # the old call still works
-    assert not any(k == "θ_MAP" for k in legend(plain))
-    fig = render(plots.nroy_samples(*args, theta_map=hm.theta_map)[0])
-    star = one(fig, "θ_MAP")
-    assert np.array_equal([column(star, "l_cr")[0], column(star, "E")[0]], hm.theta_map)
-    assert renderer(fig, "θ_MAP").glyph.marker == "star"
-
-    t1 = np.linspace(*case.theta_bounds[0], 12)
-    t2 = np.linspace(*case.theta_bounds[1], 10)
-    grid = np.stack(np.meshgrid(t1, t2), axis=-1).reshape(-1, 2)
-    I = hm.waves[-1].implausibility(grid).reshape(10, 12)
-    amap = plots.implausibility_map(t1, t2, I, 3.0, case.theta_names, case.theta_units,
-                                    case.theta_true, 1, theta_map=hm.theta_map)
-    fig = render(amap)
-    star = one(fig, "θ_MAP")
-    assert np.array_equal([column(star, "l_cr")[0], column(star, "E")[0]], hm.theta_map)
-    render(plots.implausibility_map(t1, t2, I, 3.0, case.theta_names, case.theta_units,
-                                    case.theta_true, 1))     # the old call still works
-
-
-def test_one_parameter_case_marks_theta_map_with_a_line():
-    case = cases.load("beam-2d")
-    hm = history_match_case(case, n_candidates=4000)
-    fig = render(plots.nroy_samples(hm.waves, case.theta_names, case.theta_units,
-                                    case.theta_bounds, case.theta_true, 5,
-                                    theta_map=hm.theta_map)[0])
-    assert list(column(one(fig, "θ_MAP"), "E")) == [hm.theta_map[0]]
-    (post,) = plots.theta_posterior(case, hm, n=2000)
-    assert render(post).title.text == f"E: θ_MAP = {hm.theta_map[0]:.4g} GPa"
-    assert plots.simulator_at_map(case, hm) == []            # d_x = 2
-
-
-# --- scenario 3's φ posterior ------------------------------------------------------------
+# --- scenario 3's φ posterior -------------------------------------------------------------
 
 def test_phi_posterior_is_the_weighted_draws_against_the_prior(beam, results):
     case, _ = beam
@@ -204,40 +138,6 @@ def test_phi_posterior_of_the_adaptive_proposal_keeps_all_the_weight(beam):
         x, width, dens = histogram(one(render(obj), "weighted posterior"))
         assert abs(np.sum(dens * width) - 1.0) < 1e-9
         assert abs(np.sum(x * dens * width) - w @ phi[:, c]) < width[0]
-
-
-# --- the simulator at θ_MAP --------------------------------------------------------------
-
-def test_simulator_at_map_equals_the_simulator(beam):
-    case, hm = beam
-    (obj,) = plots.simulator_at_map(case, hm)
-    fig = render(obj)
-    curve = one(fig, "simulator at θ_MAP")
-    x, y = column(curve, "crack"), column(curve, "tip")
-    assert x.size == 201 and np.allclose(y, case.simulate(x[:, None], hm.theta_map)[0, :, 0],
-                                         rtol=1e-12, atol=0)
-    truth = one(fig, "simulator at true θ")
-    assert np.allclose(column(truth, "tip"),
-                       case.simulate(x[:, None], case.theta_true)[0, :, 0], rtol=1e-12)
-    train = one(fig, "training data")
-    assert np.array_equal(column(train, "tip"), case.z_train[:, 0])
-    assert np.array_equal(column(one(fig, "test data"), "crack"), case.X_test[:, 0])
-    rmse = np.sqrt(np.mean((case.simulate(case.X_train, hm.theta_map)[0] - case.z_train) ** 2))
-    assert f"RMSE {rmse:.4g} mm" in [k for k in legend(fig) if k.startswith("simulator at θ")][0]
-
-
-def test_simulator_at_map_shows_every_mode_of_shear_5():
-    case = cases.load("shear-5")
-    hm = history_match_case(case, n_candidates=4000)
-    overlays = plots.simulator_at_map(case, hm)
-    assert len(overlays) == 5
-    for o, obj in enumerate(overlays):
-        fig = render(obj)
-        assert fig.title.text == f"ω{o + 1}: simulator at θ_MAP vs data"
-        curve = one(fig, "simulator at θ_MAP")
-        x = column(curve, "added")
-        assert np.allclose(column(curve, f"ω{o + 1}"),
-                           case.simulate(x[:, None], hm.theta_map)[0, :, o], rtol=1e-12)
 
 
 # --- the metrics chart -------------------------------------------------------------------

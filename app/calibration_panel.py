@@ -1,0 +1,218 @@
+"""What history matching calibrated, on the History matching tab, updated in place: θ_MAP in
+numbers, the weighted θ posterior (one histogram per parameter), and the simulator at θ_MAP
+against the data per output (the paper's Fig. 12 for shear-5).
+
+As in :mod:`.waves_panel`, the figures are built once per case and a new wave only replaces
+the arrays they draw (HoloViews rebuilt the eight shear-5 plots for each wave: about 2 s on
+the server, and a re-layout of the page in the browser).
+"""
+
+from __future__ import annotations
+
+import html
+from typing import NamedTuple
+
+import numpy as np
+import panel as pn
+import param
+from bokeh.core.properties import value
+from bokeh.models import ColumnDataSource, LegendItem, Range1d
+
+from .live_figures import below_legend, live_figure, live_text, replace_data
+from .plots import THETA_MAP_COLOR, axis_label, input_span
+from .state import ExplorerState
+
+#: CSS class of the plots (shared with the waves: the browser tests count them together).
+CSS = "hm-plot"
+#: NROY samples weighted for the θ posterior, and its histogram bins per parameter.
+POSTERIOR_SAMPLES, BINS = 4000, 40
+#: Points of the input grid of the simulator curves.
+GRID = 201
+POSTERIOR_COLOR = "#2ca02c"
+
+
+class ThetaPosterior(NamedTuple):
+    """The weighted θ posterior of Bayesian history matching, binned per parameter.
+
+    Attributes
+    ----------
+    edges : list of ndarray of shape (bins + 1,)
+        Bin edges over each parameter's prior box.
+    nroy, posterior : list of ndarray of shape (bins,)
+        Densities (each integrates to 1): the unweighted NROY samples, and the same
+        samples weighted by their normalised likelihood.
+    ess : float
+        Effective sample size of the weights (of ``n``).
+    n : int
+    """
+
+    edges: list
+    nroy: list
+    posterior: list
+    ess: float
+    n: int
+
+
+def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
+                    bins: int = BINS) -> ThetaPosterior | None:
+    """The weighted θ posterior of history matching; None when NROY is empty.
+
+    The posterior is the Gaussian likelihood behind the implausibility measure
+    (:meth:`mdcore.history_matching.HistoryMatchResult.log_likelihood`) restricted to NROY,
+    under the uniform prior on the box: ``n`` samples uniform in the final NROY set, each
+    weighted by its normalised likelihood (the density that
+    :meth:`~mdcore.history_matching.HistoryMatchResult.posterior_samples` resamples from,
+    without the resampling noise).
+    """
+    if hm.waves[-1].nroy.shape[0] == 0:
+        return None
+    theta = hm.nroy_samples(n, seed=seed)                                   # (n, p)
+    log_l = hm.log_likelihood(theta)                                        # (n,)
+    w = np.exp(log_l - log_l.max())                                         # log space
+    w /= w.sum()
+    edges, nroy, post = [], [], []
+    for j in range(case.p):
+        e = np.linspace(*(float(b) for b in case.theta_bounds[j]), bins + 1)
+        edges.append(e)
+        nroy.append(np.histogram(theta[:, j], bins=e, density=True)[0])
+        post.append(np.histogram(theta[:, j], bins=e, weights=w, density=True)[0])
+    return ThetaPosterior(edges, nroy, post, 1.0 / float(np.sum(w * w)), n)
+
+
+def input_grid(case, n: int = GRID) -> np.ndarray:
+    """(n, 1): the span of the training and test inputs of a 1-D case."""
+    return np.linspace(*input_span(case, 0), n)[:, None]
+
+
+def number(v: float, unit: str) -> str:
+    """``v`` to four significant figures, with its unit when it has one."""
+    return f"{v:.4g} {unit}" if unit and unit != "-" else f"{v:.4g}"
+
+
+def map_text(case, theta_map) -> str:
+    """θ_MAP in numbers (with the truth when known), as HTML for the text above the plots."""
+    theta = ", ".join(f"{n} = {number(v, u)}"
+                      for n, v, u in zip(case.theta_names, theta_map, case.theta_units))
+    truth = "" if case.theta_true is None else " (true: " + ", ".join(
+        f"{v:.4g}" for v in case.theta_true) + ")"
+    return html.escape(f"θ_MAP (most likely non-implausible θ): {theta}{truth}. Below: the "
+                       "weighted θ posterior of history matching (green) over the NROY "
+                       "samples (grey).").replace("θ_MAP", "<b>θ_MAP</b>", 1)
+
+
+class CalibrationPanel(pn.viewable.Viewer):
+    """θ_MAP, the θ posterior per parameter and (1-D inputs) the simulator at θ_MAP."""
+
+    state = param.ClassSelector(class_=ExplorerState)
+
+    def __init__(self, **params):
+        super().__init__(**params)
+        self._layout = pn.Column(sizing_mode="stretch_width")
+        self.state.param.watch(self._rebuild, "case")
+        self.state.param.watch(self._update, "waves")
+        self._rebuild()
+
+    def __panel__(self):
+        return self._layout
+
+    # --- structure -----------------------------------------------------------------------
+    def _rebuild(self, *_):
+        c = self.state.case
+        self._case = c
+        self._text, self._text_div = live_text("theta-map")
+        self._posterior = [self._posterior_figure(j) for j in range(c.p)]
+        objects = [self._text, pn.Row(*[self._pane(f[0]) for f in self._posterior],
+                                      sizing_mode="stretch_width")]
+        self._simulator = []
+        if c.d_x == 1:
+            grid = input_grid(c)
+            truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
+            self._simulator = [self._simulator_figure(o, grid, truth) for o in range(c.n_out)]
+            objects.append(pn.pane.Markdown(
+                "**The simulator at θ_MAP against the data**: what is left between them is "
+                "the discrepancy δ (the RMSE is to the training data)."))
+            objects += [pn.Row(*[self._pane(f[0]) for f in self._simulator[i:i + 3]],
+                               sizing_mode="stretch_width")
+                        for i in range(0, len(self._simulator), 3)]
+        self._objects = objects
+        self._update()
+
+    @staticmethod
+    def _pane(fig):
+        return pn.pane.Bokeh(fig, height=300, sizing_mode="stretch_width")
+
+    def _posterior_figure(self, j: int):
+        """Parameter j: NROY and posterior histograms, θ_MAP (solid) and the truth (dashed)."""
+        c = self._case
+        name, unit = c.theta_names[j], c.theta_units[j]
+        fig = live_figure(name, axis_label(name, unit), "density", CSS,
+                          x_range=Range1d(*(float(b) for b in c.theta_bounds[j])))
+        sources = [ColumnDataSource({"left": [], "right": [], "top": []}) for _ in range(2)]
+        nroy = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[0],
+                        fill_color="grey", fill_alpha=0.25, line_alpha=0)
+        post = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[1],
+                        fill_color=POSTERIOR_COLOR, fill_alpha=0.6, line_alpha=0)
+        at_map = ColumnDataSource({"x": []})
+        line = fig.vspan(x="x", source=at_map, line_color=THETA_MAP_COLOR, line_width=3)
+        post_item = LegendItem(label="posterior", renderers=[post])
+        items = [LegendItem(label="NROY (uniform)", renderers=[nroy]), post_item,
+                 LegendItem(label="θ_MAP", renderers=[line])]
+        if c.theta_true is not None:
+            truth = fig.vspan(x=[float(c.theta_true[j])], line_color="black",
+                              line_dash="dashed", line_width=2)
+            items.append(LegendItem(label="true θ", renderers=[truth]))
+        below_legend(fig, items, ncols=2)
+        return fig, sources, at_map, post_item
+
+    def _simulator_figure(self, o: int, grid, truth):
+        """Output o: the test (grey) and training (black) data, η(x, θ_MAP) (red) and
+        η(x, θ_true) (dashed)."""
+        c = self._case
+        xname = axis_label(c.x_names[0], c.x_units[0])
+        yname = axis_label(c.output_names[o], c.output_units[o])
+        fig = live_figure(f"{c.output_names[o]} at θ_MAP", xname, yname, CSS)
+        items = [
+            LegendItem(label="test data", renderers=[fig.scatter(
+                c.X_test[:, 0], c.z_test[:, o], color="grey", size=4, alpha=0.6)]),
+            LegendItem(label="training data", renderers=[fig.scatter(
+                c.X_train[:, 0], c.z_train[:, o], color="black", size=6)])]
+        curve = ColumnDataSource({"x": [], "y": []})
+        items.append(LegendItem(label="simulator at θ_MAP", renderers=[fig.line(
+            "x", "y", source=curve, line_color=THETA_MAP_COLOR, line_width=2)]))
+        if truth is not None:
+            items.append(LegendItem(label="simulator at true θ", renderers=[fig.line(
+                grid[:, 0], truth[:, o], line_color="black", line_dash="dashed")]))
+        below_legend(fig, items, ncols=2)
+        return fig, curve
+
+    # --- data ----------------------------------------------------------------------------
+    def _update(self, *_):
+        s, c = self.state, self._case
+        hm = s.history_match
+        post = None if hm is None else theta_posterior(c, hm)
+        if post is None:                         # no wave, or everything ruled out
+            if self._layout.objects:
+                self._layout.objects = []
+            return
+        theta_map = hm.theta_map
+        self._text_div.text = map_text(c, theta_map)
+        for j, (fig, (nroy, weighted), at_map, item) in enumerate(self._posterior):
+            e = post.edges[j]
+            replace_data(nroy, {"left": e[:-1], "right": e[1:], "top": post.nroy[j]})
+            replace_data(weighted, {"left": e[:-1], "right": e[1:], "top": post.posterior[j]})
+            replace_data(at_map, {"x": [float(theta_map[j])]})
+            item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
+            fig.title.text = (f"{c.theta_names[j]}: θ_MAP = "
+                              f"{number(theta_map[j], c.theta_units[j])}")
+        if self._simulator:
+            grid = input_grid(c)
+            at_map = c.simulate(grid, theta_map)[0]                           # (G, n_out)
+            at_data = c.simulate(c.X_train, theta_map)[0]                     # (N, n_out)
+            for o, (fig, curve) in enumerate(self._simulator):
+                replace_data(curve, {"x": grid[:, 0], "y": at_map[:, o]})
+                rmse = float(np.sqrt(np.mean((at_data[:, o] - c.z_train[:, o]) ** 2)))
+                # In the title: the legend's two columns must fit a third of 1280 px.
+                fig.title.text = (f"{c.output_names[o]} at θ_MAP (RMSE "
+                                  f"{number(rmse, c.output_units[o])})")
+        if list(self._layout.objects) != self._objects:
+            self._layout.objects = self._objects

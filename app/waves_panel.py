@@ -1,0 +1,333 @@
+"""The waves of the History matching tab, updated in place (issue 17: "watch the waves
+shrink" in a blink).
+
+The figures are built once per case (:mod:`.live_figures`): a new wave, the wave player or a
+new implausibility map only replace the arrays of a few ``ColumnDataSource`` objects, and
+the browser redraws those glyphs; no layout is rebuilt. HoloViews rebuilt every plot of
+the tab for each wave and each step of the player (shear-5: 922 models, about 1.5 s on the
+server and ten in the browser).
+
+What is drawn, for the waves 1..k shown (k: the player's wave, default the last):
+
+* the NROY samples in θ space, coloured by wave: one scatter per pair of parameters
+  (p ≥ 2), or stacked histograms (p = 1), with the true θ (black cross or dashed line) and,
+  at the last wave, θ_MAP (red star or line);
+* p = 2: wave k's combined implausibility over the θ box, clipped at 3T, with the contour
+  at T;
+* the NROY fraction per wave, and the largest emulator variance at the retained points
+  ÷ (V_o + V_m) per output (converged below 1).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import panel as pn
+import param
+from bokeh.models import (
+    ColorBar,
+    ColumnDataSource,
+    FixedTicker,
+    HoverTool,
+    LegendItem,
+    LinearColorMapper,
+    Range1d,
+    Span,
+)
+from bokeh.palettes import Category10_10, Viridis256
+
+from .live_figures import below_legend, live_figure, live_text, replace_data
+from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, WAVE_COLORS, axis_label
+from .state import ExplorerState
+
+#: CSS class of every plot of the panel (the browser tests find them by it).
+CSS = "hm-plot"
+#: At most this many NROY samples of a wave are drawn.
+MAX_POINTS = 1500
+#: Histogram bins over a single parameter's prior box (p = 1).
+BINS = 40
+#: The implausibility colours stop at this multiple of T.
+CLIP = 3.0
+#: Height of the legend line above the plots (fixed: a new wave changes no layout).
+LEGEND_HEIGHT = 28
+
+
+def wave_samples(wave, max_points: int = MAX_POINTS) -> np.ndarray:
+    """At most ``max_points`` of a wave's NROY samples (n, p): a subset drawn with a seed of
+    the wave's index, so a wave shows the same points whichever wave the player is at."""
+    nroy = wave.nroy
+    if nroy.shape[0] > max_points:
+        rng = np.random.default_rng(wave.index)
+        nroy = nroy[np.sort(rng.choice(nroy.shape[0], max_points, replace=False))]
+    return nroy
+
+
+def nroy_columns(waves, p: int, max_points: int = MAX_POINTS) -> dict:
+    """The scatter data of waves (in order, later waves drawn on top): columns ``t0`` …
+    ``t{p-1}`` (θ), ``wave`` (index) and ``color``."""
+    parts = [(w.index, wave_samples(w, max_points)) for w in waves]
+    theta = np.concatenate([s for _, s in parts]) if parts else np.empty((0, p))
+    index = np.concatenate([np.full(s.shape[0], k) for k, s in parts]) if parts \
+        else np.empty(0, int)
+    return {**{f"t{i}": theta[:, i] for i in range(p)}, "wave": index,
+            "color": [WAVE_COLORS[(k - 1) % len(WAVE_COLORS)] for k in index]}
+
+
+def histogram_columns(waves, bounds, bins: int = BINS) -> dict:
+    """Per wave, the histogram (counts) of its NROY samples of a single parameter over the
+    prior box: columns ``left``, ``right``, ``top``, ``wave``, ``color`` (``bins`` rows a
+    wave)."""
+    edges = np.linspace(float(bounds[0][0]), float(bounds[0][1]), bins + 1)
+    cols: dict[str, list] = {"left": [], "right": [], "top": [], "wave": [], "color": []}
+    for w in waves:
+        counts, _ = np.histogram(wave_samples(w)[:, 0], bins=edges)
+        cols["left"] += list(edges[:-1])
+        cols["right"] += list(edges[1:])
+        cols["top"] += list(counts.astype(float))
+        cols["wave"] += [w.index] * bins
+        cols["color"] += [WAVE_COLORS[(w.index - 1) % len(WAVE_COLORS)]] * bins
+    return cols
+
+
+def contour_lines(t1, t2, I, level: float) -> dict:
+    """The contour of ``I`` (n2, n1) at ``level`` on the grid (t1, t2): columns ``xs``,
+    ``ys`` (one list of points per line) for a ``multi_line`` glyph."""
+    from contourpy import contour_generator
+    if not np.isfinite(I).all() or I.min() > level or I.max() < level:
+        return {"xs": [], "ys": []}
+    lines = contour_generator(t1, t2, I).lines(level)
+    return {"xs": [ln[:, 0] for ln in lines], "ys": [ln[:, 1] for ln in lines]}
+
+
+def variance_ratios(waves, n_out: int) -> np.ndarray:
+    """(n_out, n_waves): the largest emulator variance at retained points ÷ (V_o + V_m)."""
+    return np.array([[w.max_var[o] / w.var_threshold[o] for w in waves]
+                     for o in range(n_out)], dtype=float).reshape(n_out, len(waves))
+
+
+def legend_html(waves, truth: bool, theta_map: bool, lines: bool = False) -> str:
+    """A legend line: a swatch per wave shown, then the true θ and θ_MAP markers (a cross
+    and a star, or for ``lines`` (p = 1) a dashed and a solid vertical line)."""
+    items = [f'<span style="color:{WAVE_COLORS[(w.index - 1) % len(WAVE_COLORS)]}">■</span> '
+             f"wave {w.index}" for w in waves]
+    if truth:
+        items.append("<b>┆</b> true θ" if lines else "<b>×</b> true θ")
+    if theta_map:
+        mark = "│" if lines else "★"
+        items.append(f'<span style="color:{THETA_MAP_COLOR}"><b>{mark}</b></span> θ_MAP '
+                     "(last wave)")
+    return " &nbsp; ".join(items)
+
+
+class WavesPanel(pn.viewable.Viewer):
+    """NROY samples per wave, the implausibility map (p = 2) and the per-wave summary."""
+
+    state = param.ClassSelector(class_=ExplorerState)
+
+    def __init__(self, **params):
+        super().__init__(**params)
+        s = self.state
+        self._empty = pn.pane.Markdown("Press **Next wave** to run the first wave.")
+        # One player for the session, kept in the layout: rebuilding it for each wave
+        # re-laid-out the page. Hidden until there are two waves to step through.
+        self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
+                                         loop_policy="once", interval=800,
+                                         show_loop_controls=False, visible=False)
+        self._player.param.watch(self._player_moved, "value")
+        self._syncing = False
+        self._layout = pn.Column(self._empty, sizing_mode="stretch_width")
+        s.param.watch(self._rebuild, "case")
+        s.param.watch(self._update, ["waves", "selected_wave", "implausibility_maps"])
+        self._rebuild()
+
+    def __panel__(self):
+        return self._layout
+
+    # --- structure -----------------------------------------------------------------------
+    def _rebuild(self, *_):
+        """A new case: build its figures (shown once it has a wave)."""
+        c = self.state.case
+        self._case = c
+        labels = [axis_label(n, u) for n, u in zip(c.theta_names, c.theta_units)]
+        bounds = np.asarray(c.theta_bounds, float)
+        self._legend, self._legend_div = live_text("hm-legend", height=LEGEND_HEIGHT)
+        self._map_point = ColumnDataSource({f"t{i}": [] for i in range(c.p)})
+        figs = self._histogram(labels, bounds) if c.p == 1 else self._pairs(labels, bounds)
+        self._image = self._implausibility(labels, bounds) if c.p == 2 else None
+        if self._image is not None:
+            figs.append(self._image_fig)
+        rows = [pn.Row(*[self._pane(f) for f in figs[i:i + 3]], sizing_mode="stretch_width")
+                for i in range(0, len(figs), 3)]
+        summary = pn.Row(self._pane(self._fraction_figure()),
+                         self._pane(self._variance_figure(c.output_names)),
+                         sizing_mode="stretch_width")
+        self._figures = [self._player, self._legend, *rows, summary]
+        self._update()
+
+    @staticmethod
+    def _pane(fig):
+        return pn.pane.Bokeh(fig, height=300, sizing_mode="stretch_width")
+
+    def _pairs(self, labels, bounds) -> list:
+        """One scatter per pair of parameters, all drawing from one source of samples."""
+        c = self._case
+        self._nroy = ColumnDataSource(nroy_columns([], c.p))
+        figs = []
+        for i in range(c.p):
+            for j in range(i + 1, c.p):
+                fig = live_figure(f"NROY samples: {c.theta_names[i]} vs {c.theta_names[j]}",
+                                  labels[i], labels[j], CSS,
+                                  x_range=Range1d(*bounds[i]), y_range=Range1d(*bounds[j]))
+                dots = fig.scatter(f"t{i}", f"t{j}", source=self._nroy, color="color",
+                                   size=3, alpha=0.5)
+                fig.add_tools(HoverTool(renderers=[dots], tooltips=[
+                    (labels[i], f"@t{i}{{0.[000]}}"), (labels[j], f"@t{j}{{0.[000]}}"),
+                    ("wave", "@wave")]))
+                if c.theta_true is not None:
+                    fig.scatter([c.theta_true[i]], [c.theta_true[j]], marker="x",
+                                color="black", size=14, line_width=3)
+                fig.scatter(f"t{i}", f"t{j}", source=self._map_point, **THETA_MAP_MARKER)
+                figs.append(fig)
+        return figs
+
+    def _histogram(self, labels, bounds) -> list:
+        """p = 1: each wave's NROY histogram, overlaid, with the truth and θ_MAP lines."""
+        c = self._case
+        self._nroy = ColumnDataSource(histogram_columns([], bounds))
+        fig = live_figure("NROY samples", labels[0], "count", CSS,
+                          x_range=Range1d(*bounds[0]))
+        fig.quad(left="left", right="right", top="top", bottom=0.0, source=self._nroy,
+                 fill_color="color", line_color="color", fill_alpha=0.5, line_alpha=0.8)
+        if c.theta_true is not None:
+            fig.add_layout(Span(location=float(c.theta_true[0]), dimension="height",
+                                line_color="black", line_dash="dashed", line_width=2))
+        self._map_line = Span(location=None, dimension="height", line_color=THETA_MAP_COLOR,
+                              line_width=3)
+        fig.add_layout(self._map_line)
+        return [fig]
+
+    def _implausibility(self, labels, bounds) -> ColumnDataSource:
+        """p = 2: the combined implausibility image, its contour at T and the markers."""
+        c = self._case
+        fig = live_figure("implausibility", labels[0], labels[1], CSS,
+                          x_range=Range1d(*bounds[0]), y_range=Range1d(*bounds[1]))
+        self._mapper = LinearColorMapper(palette=Viridis256[::-1], low=0.0, high=1.0)
+        image = ColumnDataSource({"image": []})
+        fig.image(image="image", x=bounds[0][0], y=bounds[1][0],
+                  dw=bounds[0][1] - bounds[0][0], dh=bounds[1][1] - bounds[1][0],
+                  color_mapper=self._mapper, source=image)
+        self._contour = ColumnDataSource({"xs": [], "ys": []})
+        fig.multi_line("xs", "ys", source=self._contour, line_color="white", line_width=2)
+        if c.theta_true is not None:
+            fig.scatter([c.theta_true[0]], [c.theta_true[1]], marker="x", color="red",
+                        size=14, line_width=3)
+        fig.scatter("t0", "t1", source=self._map_point, **THETA_MAP_MARKER)
+        fig.add_layout(ColorBar(color_mapper=self._mapper, title="implausibility", width=10),
+                       "right")
+        self._image_fig = fig
+        return image
+
+    def _fraction_figure(self):
+        self._fraction = ColumnDataSource({"wave": [], "percent": []})
+        fig = live_figure("NROY fraction per wave", "wave", "NROY [% of box]", CSS)
+        fig.line("wave", "percent", source=self._fraction, line_width=2)
+        dots = fig.scatter("wave", "percent", source=self._fraction, size=8)
+        fig.add_tools(HoverTool(renderers=[dots], tooltips=[
+            ("wave", "@wave"), ("NROY", "@percent{0.[000]} %")]))
+        self._fraction_ticks = fig.xaxis[0].ticker = FixedTicker(ticks=[])
+        return fig
+
+    def _variance_figure(self, output_names):
+        fig = live_figure("emulator variance vs V_o + V_m (converged below 1)", "wave",
+                          "max var / (V_o + V_m)", CSS, y_axis_type="log",
+                          y_range=Range1d(0.1, 10.0))
+        fig.add_layout(Span(location=1.0, dimension="width", line_color="black",
+                            line_dash="dashed"))
+        self._ratios, items = [], []
+        for o, name in enumerate(output_names):
+            source = ColumnDataSource({"wave": [], "ratio": []})
+            color = Category10_10[o % 10]
+            line = fig.line("wave", "ratio", source=source, line_color=color, line_width=2)
+            dots = fig.scatter("wave", "ratio", source=source, color=color, size=7)
+            self._ratios.append(source)
+            items.append(LegendItem(label=name, renderers=[line, dots]))
+        below_legend(fig, items, ncols=5)
+        self._variance_ticks = fig.xaxis[0].ticker = FixedTicker(ticks=[])
+        self._variance_range = fig.y_range
+        return fig
+
+    # --- data ----------------------------------------------------------------------------
+    def _update(self, *_):
+        s, c = self.state, self._case
+        if not s.waves:
+            if list(self._layout.objects) != [self._empty]:
+                self._layout.objects = [self._empty]
+            return
+        upto = s.selected_wave or len(s.waves)
+        shown = [w for w in s.waves if w.index <= upto]
+        self._sync_player(len(s.waves), upto)
+        hm = s.history_match
+        theta_map = hm.theta_map if upto == len(s.waves) else None     # of the final wave
+        bounds = np.asarray(c.theta_bounds, float)
+        replace_data(self._nroy, histogram_columns(shown, bounds) if c.p == 1
+                     else nroy_columns(shown, c.p))
+        replace_data(self._map_point, {f"t{i}": [] if theta_map is None
+                                       else [float(theta_map[i])] for i in range(c.p)})
+        if c.p == 1:
+            self._map_line.location = None if theta_map is None else float(theta_map[0])
+        if self._image is not None:
+            self._show_map(s.implausibility_maps.get(upto), hm.problem.threshold, upto)
+        self._legend_div.text = legend_html(shown, c.theta_true is not None,
+                                          theta_map is not None, lines=c.p == 1)
+        k = [w.index for w in shown]
+        replace_data(self._fraction, {"wave": k,
+                                      "percent": [100 * w.nroy_fraction for w in shown]})
+        ratios = variance_ratios(shown, c.n_out)
+        for o, source in enumerate(self._ratios):
+            replace_data(source, {"wave": k, "ratio": ratios[o]})
+        finite = ratios[np.isfinite(ratios) & (ratios > 0)]
+        lo = min(float(finite.min()) if finite.size else 1.0, 1.0) / 3
+        hi = max(float(finite.max()) if finite.size else 1.0, 1.0) * 3
+        if (self._variance_range.start, self._variance_range.end) != (lo, hi):
+            self._variance_range.update(start=lo, end=hi)
+        for ticker in (self._fraction_ticks, self._variance_ticks):
+            if list(ticker.ticks) != k:
+                ticker.ticks = k
+        if list(self._layout.objects) != self._figures:
+            self._layout.objects = self._figures
+
+    def _sync_player(self, n: int, upto: int) -> None:
+        """The player shows wave ``upto`` of ``n`` (one message; hidden below 2 waves)."""
+        p = self._player
+        want = {"end": max(n, 2), "value": upto, "visible": n >= 2}
+        changed = {k: v for k, v in want.items() if getattr(p, k) != v}
+        if changed:
+            self._syncing = True
+            try:
+                p.param.update(**changed)
+            finally:
+                self._syncing = False
+
+    def _player_moved(self, event) -> None:
+        """The user stepped the player: show waves 1..its value."""
+        n = len(self.state.waves)
+        if not self._syncing and 1 <= event.new <= n and event.new != self.state.selected_wave:
+            self.state.selected_wave = event.new
+
+    def _show_map(self, grid, threshold: float, wave: int) -> None:
+        """Wave ``wave``'s implausibility ``grid`` = (t1, t2, I), or a blank image."""
+        fig = self._image_fig
+        if grid is None:
+            replace_data(self._image, {"image": []})
+            replace_data(self._contour, {"xs": [], "ys": []})
+            fig.title.text = f"wave {wave}: no implausibility map"
+            return
+        t1, t2, I = grid
+        self._mapper.update(low=0.0, high=CLIP * threshold)
+        replace_data(self._image, {"image": [np.minimum(I, CLIP * threshold)]})
+        replace_data(self._contour, contour_lines(t1, t2, I, threshold))
+        fig.title.text = (f"wave {wave}: implausibility (clipped at {CLIP:g}T; contour at "
+                          f"T = {threshold:g})")
+
+
+__all__ = ["WavesPanel", "contour_lines", "histogram_columns", "legend_html", "nroy_columns",
+           "variance_ratios", "wave_samples"]

@@ -1,0 +1,112 @@
+"""The History matching tab's waves, updated in place (app/waves_panel.py): the data each
+figure draws against the waves it comes from, and no figure rebuilt by a wave or a step of
+the wave player."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("panel")
+from mdcore_app.state import ExplorerState  # noqa: E402
+from mdcore_app.waves_panel import (  # noqa: E402
+    MAX_POINTS,
+    WavesPanel,
+    contour_lines,
+    histogram_columns,
+    nroy_columns,
+    variance_ratios,
+)
+
+
+@pytest.fixture(scope="module")
+def beam():
+    """beam-1d (p = 2) with the teaching preset: several waves, each cutting NROY."""
+    s = ExplorerState()
+    s.run_to_convergence()
+    assert len(s.waves) >= 3 and s.error == ""
+    return s
+
+
+def test_contour_is_the_level_set_of_a_closed_form():
+    t1, t2 = np.linspace(-2, 2, 81), np.linspace(-1.5, 1.5, 61)
+    T1, T2 = np.meshgrid(t1, t2)
+    lines = contour_lines(t1, t2, np.hypot(T1, T2), 1.0)
+    assert len(lines["xs"]) == 1                          # one closed circle
+    r = np.hypot(lines["xs"][0], lines["ys"][0])
+    np.testing.assert_allclose(r, 1.0, atol=2e-3)         # linear interpolation on h = 0.05
+    assert contour_lines(t1, t2, np.hypot(T1, T2), 5.0) == {"xs": [], "ys": []}
+
+
+def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
+    s = beam
+    panel = WavesPanel(state=s)
+    layout = list(panel._layout.objects)
+    figures = [o.object for row in layout[2:] for o in row]
+    n = len(s.waves)
+    data = panel._nroy.data
+    # Every shown wave's samples (at most MAX_POINTS each, all of them NROY points of that
+    # wave), later waves after earlier ones, coloured by wave.
+    for w in s.waves:
+        mine = np.column_stack([data["t0"], data["t1"]])[np.asarray(data["wave"]) == w.index]
+        assert mine.shape[0] == min(MAX_POINTS, w.nroy.shape[0])
+        assert {tuple(r) for r in mine} <= {tuple(r) for r in w.nroy}
+    assert list(data["wave"]) == sorted(data["wave"])
+    np.testing.assert_array_equal(panel._fraction.data["percent"],
+                                  [100 * w.nroy_fraction for w in s.waves])
+    np.testing.assert_array_equal(panel._ratios[0].data["ratio"],
+                                  [w.max_var[0] / w.var_threshold[0] for w in s.waves])
+    np.testing.assert_array_equal(panel._map_point.data["t0"], [s.history_match.theta_map[0]])
+    stars = [r for f in figures for r in f.renderers if getattr(r, "data_source", None)
+             is panel._map_point]
+    assert len(stars) == 2 and all(r.glyph.marker == "star" for r in stars)   # pair, map
+    t1, t2, I = s.implausibility_maps[n]
+    np.testing.assert_array_equal(panel._image.data["image"][0],
+                                  np.minimum(I, 3 * s.history_match.problem.threshold))
+
+    player = panel._player
+    assert (player.visible, player.end, player.value) == (True, n, n)
+    player.value = 2                                       # the player: waves 1–2 only
+    assert s.selected_wave == 2
+    assert set(panel._nroy.data["wave"]) == {1, 2}
+    assert len(panel._fraction.data["wave"]) == 2
+    assert panel._map_point.data["t0"] == []               # θ_MAP is the final wave's
+    assert panel._image_fig.title.text.startswith("wave 2:")
+    np.testing.assert_array_equal(panel._image.data["image"][0], np.minimum(
+        s.implausibility_maps[2][2], 3 * s.history_match.problem.threshold))
+    # A wave keeps its points whichever wave the player is at.
+    assert np.array_equal(
+        np.asarray(panel._nroy.data["t0"])[np.asarray(panel._nroy.data["wave"]) == 1],
+        np.asarray(data["t0"])[np.asarray(data["wave"]) == 1])
+    s.selected_wave = n
+    assert player.value == n
+    assert list(panel._layout.objects) == layout           # nothing re-laid-out
+    assert [o.object for row in layout[2:] for o in row] == figures
+
+
+def test_one_parameter_histograms_count_each_waves_samples():
+    s = ExplorerState(case_name="beam-2d")
+    s.run_to_convergence()
+    panel = WavesPanel(state=s)
+    cols = panel._nroy.data
+    for w in s.waves:
+        rows = np.asarray(cols["wave"]) == w.index
+        assert np.sum(np.asarray(cols["top"])[rows]) == min(MAX_POINTS, w.nroy.shape[0])
+    assert panel._map_line.location == s.history_match.theta_map[0]
+    s.selected_wave = 1
+    assert panel._player.value == 1
+    assert panel._map_line.location is None
+    assert set(panel._nroy.data["wave"]) == {1}
+    assert histogram_columns([], s.case.theta_bounds)["top"] == []
+
+
+def test_many_outputs_each_have_a_variance_line():
+    s = ExplorerState(case_name="shear-5")
+    s.next_wave()
+    w = s.waves[0]
+    ratios = variance_ratios(s.waves, s.case.n_out)
+    np.testing.assert_allclose(ratios[:, 0], w.max_var / w.var_threshold)
+    panel = WavesPanel(state=s)
+    assert len(panel._ratios) == 5
+    # Three pairs of (E, ν, ρ) share one source.
+    assert set(nroy_columns(s.waves, 3)) == {"t0", "t1", "t2", "wave", "color"}
+    assert len(panel._figures) == 4 and panel._image is None   # player, legend, 2 rows
+    assert not panel._player.visible                            # one wave: nothing to step

@@ -9,7 +9,9 @@ Debian's Chromium (tests/browser.py) at 1280×720 with Playwright and prints, pe
 * first paint (beam-1d, the default case): navigation start → the Data tab drawn;
 * case switch: choosing the case in the selector → its Data tab drawn (beam-1d: switched
   to from beam-2d);
-* history-match wave: "Next wave" → the History matching tab drawn;
+* history-match wave: "Next wave" → the History matching tab drawn; then the next wave
+  (on a case that has converged, shear-5, the calm note that says so), and one step back
+  of the wave player (display only);
 * discrepancy at the defaults: "Run discrepancy" → the Discrepancy tab drawn;
 * display-only changes: the band ±3σ → ±2σ, hiding scenario 2 and showing it again;
 * seed change: typing a new seed (a recompute of the shown scenarios);
@@ -372,6 +374,13 @@ def journey(browser, url, case, quiet) -> Row:
     calm(page, quiet)
     row.figures["wave"] = act(page, lambda: page.get_by_role("button", name="Next wave").click(),
                               ready=has("hm-status"), quiet=quiet)
+    # The next wave redraws the plots the first one built (shear-5 has converged: a note).
+    row.figures["wave 2"] = act(page,
+                                lambda: page.get_by_role("button", name="Next wave").click(),
+                                ready=has("hm-status"), quiet=quiet)
+    back = page.locator("button.previous")              # the wave player, once 2 waves
+    if back.count() and back.first.is_visible():
+        row.figures["player"] = act(page, lambda: back.first.click(), quiet=quiet)
 
     tab(page, "Discrepancy")
     calm(page, quiet)
@@ -406,7 +415,8 @@ def journey(browser, url, case, quiet) -> Row:
 # Report
 
 COLUMNS = [("first paint", "first paint", FIRST_PAINT), ("case switch", "case switch", SWITCH),
-           ("wave", "HM wave", None), ("discrepancy", "discrepancy", None),
+           ("wave", "HM wave", None), ("wave 2", "next wave", None),
+           ("player", "wave player", DISPLAY), ("discrepancy", "discrepancy", None),
            ("band ±2σ", "band ±2σ", DISPLAY), ("hide S2", "hide S2", DISPLAY),
            ("show S2", "show S2", DISPLAY), ("seed", "seed change", None),
            ("tab", "tab → HM", 0.0)]

@@ -18,7 +18,14 @@ import param
 from bokeh.core.properties import value
 from bokeh.models import ColumnDataSource, LegendItem, Range1d
 
-from .live_figures import below_legend, live_figure, live_text, replace_data
+from .live_figures import (
+    LivePanel,
+    below_legend,
+    figure_pane,
+    live_figure,
+    live_text,
+    replace_data,
+)
 from .plots import THETA_MAP_COLOR, axis_label, input_span
 from .state import ExplorerState
 
@@ -100,20 +107,11 @@ def map_text(case, theta_map) -> str:
                        "samples (grey).").replace("θ_MAP", "<b>θ_MAP</b>", 1)
 
 
-class CalibrationPanel(pn.viewable.Viewer):
+class CalibrationPanel(LivePanel):
     """θ_MAP, the θ posterior per parameter and (1-D inputs) the simulator at θ_MAP."""
 
     state = param.ClassSelector(class_=ExplorerState)
-
-    def __init__(self, **params):
-        super().__init__(**params)
-        self._layout = pn.Column(sizing_mode="stretch_width")
-        self.state.param.watch(self._rebuild, "case")
-        self.state.param.watch(self._update, "waves")
-        self._rebuild()
-
-    def __panel__(self):
-        return self._layout
+    UPDATE_ON = ("waves",)
 
     # --- structure -----------------------------------------------------------------------
     def _rebuild(self, *_):
@@ -121,7 +119,7 @@ class CalibrationPanel(pn.viewable.Viewer):
         self._case = c
         self._text, self._text_div = live_text("theta-map")
         self._posterior = [self._posterior_figure(j) for j in range(c.p)]
-        objects = [self._text, pn.Row(*[self._pane(f[0]) for f in self._posterior],
+        objects = [self._text, pn.Row(*[figure_pane(f[0]) for f in self._posterior],
                                       sizing_mode="stretch_width")]
         self._simulator = []
         if c.d_x == 1:
@@ -131,15 +129,11 @@ class CalibrationPanel(pn.viewable.Viewer):
             objects.append(pn.pane.Markdown(
                 "**The simulator at θ_MAP against the data**: what is left between them is "
                 "the discrepancy δ (the RMSE is to the training data)."))
-            objects += [pn.Row(*[self._pane(f[0]) for f in self._simulator[i:i + 3]],
+            objects += [pn.Row(*[figure_pane(f[0]) for f in self._simulator[i:i + 3]],
                                sizing_mode="stretch_width")
                         for i in range(0, len(self._simulator), 3)]
         self._objects = objects
         self._update()
-
-    @staticmethod
-    def _pane(fig):
-        return pn.pane.Bokeh(fig, height=300, sizing_mode="stretch_width")
 
     def _posterior_figure(self, j: int):
         """Parameter j: NROY and posterior histograms, θ_MAP (solid) and the truth (dashed)."""

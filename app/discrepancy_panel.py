@@ -12,6 +12,7 @@ dimmed, until the new results replace them.
 
 from __future__ import annotations
 
+import html
 from typing import Any
 
 import numpy as np
@@ -22,7 +23,14 @@ from bokeh.models import Range1d
 from mdcore.pipeline import Method
 
 from . import plots
-from .live_figures import BandFigure, MapFigure
+from .live_figures import (
+    BandFigure,
+    LivePanel,
+    MapFigure,
+    alert_box,
+    figure_pane,
+    live_text,
+)
 from .plots import METHOD_COLORS, axis_label
 from .state import ExplorerState, method_order
 
@@ -45,40 +53,43 @@ PAD = 0.05
 KEEP_SPAN = 0.6
 
 
-class DiscrepancyPanel(pn.viewable.Viewer):
+def warnings_html(advice: list[str]) -> str:
+    """The diagnostics' warnings in a warning box (HTML, escaped), each "subject: text"
+    with its subject in bold; '' for none."""
+    if not advice:
+        return ""
+    return alert_box("".join("<p style='margin:4px 0'><b>{}</b>{}{}</p>".format(
+        *(html.escape(part) for part in w.partition(":"))) for w in advice), "warning")
+
+
+class DiscrepancyPanel(LivePanel):
     """Bands of the shown methods: z* and δ* per output (1-D input), or δ maps and a slice
     (beam-2d), one column (1-D) or row (2-D) per method."""
 
     state = param.ClassSelector(class_=ExplorerState)
     quantity = param.Selector(objects=list(QUANTITIES), default="z and δ", label="Show")
 
-    def __init__(self, **params):
-        super().__init__(**params)
-        s = self.state
+    UPDATE_ON = ("results", "band", "busy", "scenarios")
+
+    def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
         self._empty = pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
                                        css_classes=["disc-empty"])
         # The diagnostics' warnings stay beside the bands they concern (the notification
-        # that also reports them fades).
-        self._warnings = pn.pane.Alert("", alert_type="warning", visible=False,
-                                       css_classes=["disc-warnings"])
+        # that also reports them fades). A Bokeh Div: see live_figures.live_text.
+        self._warnings, self._warnings_div = live_text("disc-warnings")
+        self._warnings_div.visible = False      # the Div's own (the pane copies the Div's)
         self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
         self._methods = pn.Row(sizing_mode="stretch_width")        # 1-D: one column each
-        self._layout = pn.Column(self._show, self._empty, self._warnings, self._head,
-                                 self._methods, sizing_mode="stretch_width")
+        self._layout.objects = [self._show, self._empty, self._warnings, self._head,
+                                self._methods]
         self._case = None
         self._truth = None
         #: (method, cell key) -> [pane, figure, payload last drawn]
         self._cells: dict[tuple[Method, Any], list] = {}
         self._groups: dict[Method, pn.layout.ListPanel] = {}
-        s.param.watch(self._rebuild, "case")
-        s.param.watch(self._update, ["results", "band", "busy", "scenarios"])
-        s.param.watch(self._slice_moved, "slice_x2")
+        self.state.param.watch(self._slice_moved, "slice_x2")
         self.param.watch(self._quantity_changed, "quantity")
-        self._rebuild()
-
-    def __panel__(self):
-        return self._layout
 
     # --- structure -----------------------------------------------------------------------
     def _rebuild(self, *_):
@@ -123,7 +134,7 @@ class DiscrepancyPanel(pn.viewable.Viewer):
             payload = self._payload(method, key)
             fig = self._figure(method, key)
             self._draw(fig, key, payload)
-            pane = pn.pane.Bokeh(fig.figure, height=300, sizing_mode="stretch_width")
+            pane = figure_pane(fig.figure)
             self._cells[method, key] = [pane, fig, payload]
             added = True
         if not added and method in self._groups:
@@ -301,9 +312,11 @@ class DiscrepancyPanel(pn.viewable.Viewer):
         if stale:
             return                     # the warnings stay with the dimmed plots they concern
         advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
-        self._warnings.param.update(
-            object="\n\n".join("**{}**{}{}".format(*w.partition(":")) for w in advice),
-            visible=bool(advice))
+        text = warnings_html(advice)
+        if self._warnings_div.text != text:
+            self._warnings_div.text = text
+        if self._warnings_div.visible != bool(advice):
+            self._warnings_div.visible = bool(advice)
         self._empty.visible = not any(g.visible for g in self._groups.values())
 
     def _slice_moved(self, *_):

@@ -39,6 +39,62 @@ def live_figure(title: str, xname: str, yname: str, css_class: str, **kw):
     return fig
 
 
+def figure_pane(fig, height: int = 300) -> pn.pane.Bokeh:
+    """A Bokeh figure in the layout, ``height`` px high, stretching to the width."""
+    return pn.pane.Bokeh(fig, height=height, sizing_mode="stretch_width")
+
+
+class LivePanel(pn.viewable.Viewer):
+    """A view of the app's state whose figures are built per case and then updated in
+    place.
+
+    Subclasses set :attr:`UPDATE_ON` and define ``_rebuild`` (a new case: build the
+    figures and call ``_update``) and ``_update`` (draw what the state holds);
+    ``_setup`` makes what outlives a case. ``state`` is the session's
+    :class:`mdcore_app.state.ExplorerState`.
+    """
+
+    #: State parameters whose change calls ``_update``.
+    UPDATE_ON: tuple[str, ...] = ()
+
+    def __init__(self, **params):
+        super().__init__(**params)
+        self._layout = pn.Column(sizing_mode="stretch_width")
+        self._setup()
+        self.state.param.watch(self._rebuild, "case")
+        self.state.param.watch(self._update, list(self.UPDATE_ON))
+        self._rebuild()
+
+    def __panel__(self):
+        return self._layout
+
+    def _setup(self) -> None:
+        """Widgets and watchers kept across cases (none by default)."""
+
+    def _rebuild(self, *_) -> None:
+        raise NotImplementedError
+
+    def _update(self, *_) -> None:
+        raise NotImplementedError
+
+
+#: Colours (text, background, border) of a message box, as Bootstrap's alerts.
+ALERT_COLORS = {"info": ("#055160", "#cff4fc", "#b6effb"),
+                "success": ("#0f5132", "#d1e7dd", "#badbcc"),
+                "warning": ("#664d03", "#fff3cd", "#ffecb5"),
+                "danger": ("#842029", "#f8d7da", "#f5c2c7")}
+
+
+def alert_box(inner_html: str, kind: str) -> str:
+    """``inner_html`` (escaped by the caller) in a message box of ``kind`` (a key of
+    :data:`ALERT_COLORS`), with a class ``mdcore-alert-<kind>``. The colour is in the HTML,
+    so a new kind changes no CSS class and no layout."""
+    color, background, border = ALERT_COLORS[kind]
+    return (f'<div class="mdcore-alert-{kind}" style="color:{color};background:{background};'
+            f'border:1px solid {border};border-radius:4px;padding:12px 16px;margin:0">'
+            f"{inner_html}</div>")
+
+
 def live_text(css_class: str, height: int | None = None) -> tuple[pn.pane.Bokeh, Div]:
     """A line of HTML whose text is replaced in place: ``(pane for the layout, Div)``; set
     ``div.text``.

@@ -27,7 +27,7 @@ from . import plots
 from .calibration_panel import CalibrationPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
-from .live_figures import live_text
+from .live_figures import alert_box, live_text
 from .report import report_html
 from .session import MAX_UPLOAD_BYTES
 from .state import ExplorerState, method_order
@@ -57,22 +57,6 @@ def _status_html(busy: bool, task: str, detail: str = "") -> str:
 NOT_APPLICABLE = "—"
 #: The columns of :func:`metrics_frame` shown in the diagnostics table, not the metrics one.
 DIAGNOSTICS = ("ESS pairs", "ESS φ", "Pareto k", "acceptance", "IAT (max)", "chain ESS (min)")
-
-
-#: Colours (text, background, border) of the status line, as Bootstrap's alerts.
-ALERT_COLORS = {"info": ("#055160", "#cff4fc", "#b6effb"),
-                "success": ("#0f5132", "#d1e7dd", "#badbcc"),
-                "warning": ("#664d03", "#fff3cd", "#ffecb5"),
-                "danger": ("#842029", "#f8d7da", "#f5c2c7")}
-
-
-def _alert_html(text: str, kind: str) -> str:
-    """``text`` (escaped) in an alert box of ``kind`` (a key of :data:`ALERT_COLORS`); its
-    colour is in the HTML, so a new status changes no CSS class and no layout."""
-    color, background, border = ALERT_COLORS[kind]
-    return (f'<div class="mdcore-alert-{kind}" style="color:{color};background:{background};'
-            f'border:1px solid {border};border-radius:4px;padding:12px 16px;margin:0">'
-            f"{html.escape(text)}</div>")
 
 
 def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
@@ -294,8 +278,8 @@ class ExplorerView(pn.viewable.Viewer):
 
     def _show_status(self, *_):
         """New text and colour in the same line (a new pane re-laid-out the page)."""
-        self._status_div.text = _alert_html(self.state.status or "No waves yet.",
-                                            self._alert())
+        self._status_div.text = alert_box(html.escape(self.state.status or "No waves yet."),
+                                          self._alert())
 
     def _alert(self):
         w = self.state.waves

@@ -35,7 +35,14 @@ from bokeh.models import (
 )
 from bokeh.palettes import Category10_10, Viridis256
 
-from .live_figures import below_legend, live_figure, live_text, replace_data
+from .live_figures import (
+    LivePanel,
+    below_legend,
+    figure_pane,
+    live_figure,
+    live_text,
+    replace_data,
+)
 from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, WAVE_COLORS, axis_label
 from .state import ExplorerState
 
@@ -118,15 +125,15 @@ def legend_html(waves, truth: bool, theta_map: bool, lines: bool = False) -> str
     return " &nbsp; ".join(items)
 
 
-class WavesPanel(pn.viewable.Viewer):
+class WavesPanel(LivePanel):
     """NROY samples per wave, the implausibility map (p = 2) and the per-wave summary."""
 
     state = param.ClassSelector(class_=ExplorerState)
+    UPDATE_ON = ("waves", "selected_wave", "implausibility_maps")
 
-    def __init__(self, **params):
-        super().__init__(**params)
-        s = self.state
+    def _setup(self):
         self._empty = pn.pane.Markdown("Press **Next wave** to run the first wave.")
+        self._layout.objects = [self._empty]
         # One player for the session, kept in the layout: rebuilding it for each wave
         # re-laid-out the page. Hidden until there are two waves to step through.
         self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
@@ -134,13 +141,6 @@ class WavesPanel(pn.viewable.Viewer):
                                          show_loop_controls=False, visible=False)
         self._player.param.watch(self._player_moved, "value")
         self._syncing = False
-        self._layout = pn.Column(self._empty, sizing_mode="stretch_width")
-        s.param.watch(self._rebuild, "case")
-        s.param.watch(self._update, ["waves", "selected_wave", "implausibility_maps"])
-        self._rebuild()
-
-    def __panel__(self):
-        return self._layout
 
     # --- structure -----------------------------------------------------------------------
     def _rebuild(self, *_):
@@ -155,17 +155,13 @@ class WavesPanel(pn.viewable.Viewer):
         self._image = self._implausibility(labels, bounds) if c.p == 2 else None
         if self._image is not None:
             figs.append(self._image_fig)
-        rows = [pn.Row(*[self._pane(f) for f in figs[i:i + 3]], sizing_mode="stretch_width")
+        rows = [pn.Row(*[figure_pane(f) for f in figs[i:i + 3]], sizing_mode="stretch_width")
                 for i in range(0, len(figs), 3)]
-        summary = pn.Row(self._pane(self._fraction_figure()),
-                         self._pane(self._variance_figure(c.output_names)),
+        summary = pn.Row(figure_pane(self._fraction_figure()),
+                         figure_pane(self._variance_figure(c.output_names)),
                          sizing_mode="stretch_width")
         self._figures = [self._player, self._legend, *rows, summary]
         self._update()
-
-    @staticmethod
-    def _pane(fig):
-        return pn.pane.Bokeh(fig, height=300, sizing_mode="stretch_width")
 
     def _pairs(self, labels, bounds) -> list:
         """One scatter per pair of parameters, all drawing from one source of samples."""

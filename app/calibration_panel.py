@@ -18,6 +18,8 @@ import param
 from bokeh.core.properties import value
 from bokeh.models import ColumnDataSource, LegendItem, Range1d
 
+from mdcore.validation import as_int
+
 from .live_figures import (
     LivePanel,
     below_legend,
@@ -71,6 +73,7 @@ def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
     :meth:`~mdcore.history_matching.HistoryMatchResult.posterior_samples` resamples from,
     without the resampling noise).
     """
+    n, bins = as_int(n, "n", 1), as_int(bins, "bins", 1)
     if hm.waves[-1].nroy.shape[0] == 0:
         return None
     theta = hm.nroy_samples(n, seed=seed)                                   # (n, p)
@@ -88,7 +91,7 @@ def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
 
 def input_grid(case, n: int = GRID) -> np.ndarray:
     """(n, 1): the span of the training and test inputs of a 1-D case."""
-    return np.linspace(*input_span(case, 0), n)[:, None]
+    return np.linspace(*input_span(case, 0), as_int(n, "n", 2))[:, None]
 
 
 def number(v: float, unit: str) -> str:

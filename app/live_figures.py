@@ -89,6 +89,8 @@ def alert_box(inner_html: str, kind: str) -> str:
     """``inner_html`` (escaped by the caller) in a message box of ``kind`` (a key of
     :data:`ALERT_COLORS`), with a class ``mdcore-alert-<kind>``. The colour is in the HTML,
     so a new kind changes no CSS class and no layout."""
+    if kind not in ALERT_COLORS:
+        raise ValueError(f"kind must be one of {sorted(ALERT_COLORS)}; received {kind!r}.")
     color, background, border = ALERT_COLORS[kind]
     return (f'<div class="mdcore-alert-{kind}" style="color:{color};background:{background};'
             f'border:1px solid {border};border-radius:4px;padding:12px 16px;margin:0">'
@@ -103,8 +105,8 @@ def live_text(css_class: str, height: int | None = None) -> tuple[pn.pane.Bokeh,
     sheets, and one updated while its tab was hidden came back with Panel's CDN addresses
     (``cdn.holoviz.org/.../loading.css``), which an offline app must never request.
     """
-    div = Div(text="", css_classes=[css_class], sizing_mode="stretch_width",
-              **({} if height is None else {"height": height}))
+    size = {} if height is None else {"height": as_int(height, "height", 1)}
+    div = Div(text="", css_classes=[css_class], sizing_mode="stretch_width", **size)
     return pn.pane.Bokeh(div, sizing_mode="stretch_width", margin=(0, 10)), div
 
 

@@ -7,18 +7,10 @@ import pytest
 
 pytest.importorskip("panel")
 from bokeh.models import GlyphRenderer  # noqa: E402
+from legends import legend  # noqa: E402
 
 from mdcore_app.calibration_panel import CalibrationPanel, map_text  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
-
-
-def legend(fig) -> dict:
-    """Legend label -> its glyph renderers."""
-    out: dict = {}
-    for item in fig.legend[0].items:
-        label = item.label.value if hasattr(item.label, "value") else str(item.label)
-        out.setdefault(label, []).extend(item.renderers)
-    return out
 
 
 def one(fig, label: str) -> tuple[dict, GlyphRenderer]:
@@ -118,3 +110,13 @@ def test_a_new_wave_redraws_in_place_and_a_new_case_rebuilds():
     (post,) = figures(panel)
     hm = s.history_match
     assert post.title.text == f"E: θ_MAP = {hm.theta_map[0]:.4g} GPa"
+
+
+def test_bad_sizes_name_the_argument(beam):
+    from mdcore_app.calibration_panel import input_grid, theta_posterior
+    s, _ = beam
+    for kw, match in [({"n": 0}, "n"), ({"bins": 0}, "bins"), ({"n": 2.5}, "n")]:
+        with pytest.raises(ValueError, match=match):
+            theta_posterior(s.case, s.history_match, **kw)
+    with pytest.raises(ValueError, match="n"):
+        input_grid(s.case, 1)

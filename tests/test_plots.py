@@ -15,6 +15,7 @@ import pytest
 pytest.importorskip("holoviews")
 import holoviews as hv  # noqa: E402
 from bokeh.models import GlyphRenderer  # noqa: E402
+from legends import legend  # noqa: E402
 
 from mdcore import cases  # noqa: E402
 from mdcore.history_matching import history_match_case  # noqa: E402
@@ -37,15 +38,6 @@ def render(obj):
         lengths = {len(v) for v in r.data_source.data.values()}
         assert lengths and min(lengths) > 0, (type(r.glyph).__name__, r.data_source.data)
     return fig
-
-
-def legend(fig) -> dict:
-    """Legend label -> list of its glyph renderers."""
-    out: dict = {}
-    for item in fig.legend[0].items:
-        label = item.label.value if hasattr(item.label, "value") else str(item.label)
-        out.setdefault(label, []).extend(item.renderers)
-    return out
 
 
 def renderer(fig, label: str) -> GlyphRenderer:

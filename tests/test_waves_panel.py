@@ -110,3 +110,29 @@ def test_many_outputs_each_have_a_variance_line():
     assert set(nroy_columns(s.waves, 3)) == {"t0", "t1", "t2", "wave", "color"}
     assert len(panel._figures) == 4 and panel._image is None   # player, legend, 2 rows
     assert not panel._player.visible                            # one wave: nothing to step
+
+
+def test_bad_inputs_name_the_argument(beam):
+    from mdcore_app.live_figures import alert_box, live_text
+    t = np.linspace(0.0, 1.0, 5)
+    I = np.ones((4, 5))
+    for args, match in [
+            ((t, t, np.ones((5, 5)) * np.nan, 1.0), "I"),              # NaN
+            ((t, t, I, 1.0), r"I must have shape \(len\(t2\), len\(t1\)\) = \(5, 5\)"),
+            ((t, np.empty(0), np.empty((0, 5)), 1.0), "t2"),           # empty
+            ((t, t, np.ones((5, 5)), 0.0), "level"),                   # T ≤ 0
+            ((t, t, np.ones((5, 5)), np.inf), "level")]:
+        with pytest.raises(ValueError, match=match):
+            contour_lines(*args)
+    with pytest.raises(ValueError, match="bins"):
+        histogram_columns([], [[0.0, 1.0]], bins=0)
+    with pytest.raises(ValueError, match="low < high"):
+        histogram_columns([], [[1.0, 0.0]])
+    with pytest.raises(ValueError, match="bounds"):
+        histogram_columns([], [[np.nan, 1.0]])
+    with pytest.raises(ValueError, match="max_points"):
+        nroy_columns(beam.waves, 2, max_points=0)
+    with pytest.raises(ValueError, match="kind must be one of"):
+        alert_box("x", "fatal")
+    with pytest.raises(ValueError, match="height"):
+        live_text("x", height=-1)

@@ -240,7 +240,8 @@ def phi_posterior(case, result, *, output: int | None = None, bins: int = 30) ->
                 hv.VLines([float(w @ phi[:, c])], kdims=[label], label="posterior mean").opts(
                     color=METHOD_COLORS[Method.S3], line_width=2),
             ]).opts(title=f"{case.output_names[o]}: {name} (ESS {ess:,.1f} of {w.size:,})",
-                    xlim=(lo, hi), legend_position="top_right", **PLOT))
+                    xlim=(lo, hi), legend_position="bottom",
+                    legend_opts={"orientation": "horizontal"}, **PLOT))
     return out
 
 

@@ -331,10 +331,12 @@ class ExplorerView(pn.viewable.Viewer):
             objs.append(pn.pane.Markdown(
                 "**Scenario 3: the GP hyperparameters φ, posterior (weighted draws) against "
                 f"prior** (the paper's Figs 6, 9, 16; output {s.case.output_names[0]})."))
-            for i in range(0, len(phi), 4):
+            # Two a row, the legend below: four a row at 1280 px clipped the titles and
+            # axis labels, and a legend inside covered the histogram.
+            for i in range(0, len(phi), 2):
                 objs.append(pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
-                                                       height=240, css_classes=["phi-plot"])
-                                     for o in phi[i:i + 4]], sizing_mode="stretch_width"))
+                                                       height=300, css_classes=["phi-plot"])
+                                     for o in phi[i:i + 2]], sizing_mode="stretch_width"))
         if Method.KOH not in shown:
             return pn.Column(*objs, sizing_mode="stretch_width")
         r = shown[Method.KOH]

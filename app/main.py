@@ -15,13 +15,15 @@ from pathlib import Path
 import holoviews as hv
 import panel as pn
 
-from mdcore import compiled
+from mdcore import compiled, threads
 from mdcore.case_file import load_case_file
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 
 pn.extension("filedropper", notifications=True, design="bootstrap")
 hv.extension("bokeh")
+# One BLAS thread for the whole server: a second one only spins between the small calls.
+threads.single_threaded_blas_for_process()
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.
 compiled.warm_up_in_background()
 

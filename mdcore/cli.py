@@ -15,7 +15,7 @@ from collections import Counter
 
 import numpy as np
 
-from . import cases, compiled
+from . import cases, compiled, threads
 from .exceptions import LowESSWarning
 from .export import write_tables
 from .history_matching import HistoryMatchResult, case_problem, iter_waves
@@ -419,6 +419,14 @@ def _summarise(caught) -> None:
     for (category, message), n in counts.items():
         kind = WARNING_WORDS.get(category, category)
         print(f"  - {kind}{f' (×{n})' if n > 1 else ''}: {message}", file=sys.stderr)
+
+
+def console_main() -> int:
+    """``python -m mdcore`` and the ``mdcore`` script: :func:`main` in a process of its own,
+    so BLAS is limited to one thread for the whole process first (see
+    :func:`mdcore.threads.single_threaded_blas_for_process`)."""
+    threads.single_threaded_blas_for_process()
+    return main()
 
 
 def main(argv=None) -> int:

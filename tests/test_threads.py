@@ -4,6 +4,9 @@
 NumPy and SciPy ship ignores it once its thread server runs, so the limit is asserted
 from the main thread only.)"""
 
+import os
+import subprocess
+import sys
 import threading
 
 import numpy as np
@@ -58,3 +61,34 @@ def test_nested_calls_keep_the_limit_until_the_outermost_returns():
     first, after_inner = outer()
     assert set(first) == {1} and set(after_inner) == {1}
     assert blas_threads() == before
+
+
+def test_the_process_wide_limit_outlasts_a_section_that_began_before_it():
+    # In a subprocess: the limit is process-wide and not undone.
+    code = """
+import threading
+from threadpoolctl import threadpool_info
+from mdcore import threads
+blas = lambda: sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+before = blas()
+inside, go = threading.Event(), threading.Event()
+@threads.single_threaded_blas
+def section():
+    inside.set()
+    go.wait(30)
+t = threading.Thread(target=section)
+t.start()
+inside.wait(30)
+threads.single_threaded_blas_for_process()
+threads.single_threaded_blas_for_process()
+go.set()
+t.join(30)
+threads.single_threaded_blas(blas)()
+print(before, blas())
+"""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="2")           # two, even on one core
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True, env=env).stdout.split("] [")
+    before = [int(n) for n in out[0].strip("[] \n").split(",")]
+    after = [int(n) for n in out[1].strip("[] \n").split(",")]
+    assert before == [2] * len(before) and after == [1] * len(before)

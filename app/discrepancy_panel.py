@@ -22,7 +22,7 @@ from bokeh.models import Range1d
 
 from mdcore.pipeline import Method
 
-from . import plots
+from .data_panel import true_delta_figure
 from .live_figures import (
     BandFigure,
     LivePanel,
@@ -109,10 +109,8 @@ class DiscrepancyPanel(LivePanel):
             self.quantity = "δ" if c.n_out > 1 else "z and δ"
         else:
             slider = pn.widgets.FloatSlider.from_param(self.state.param.slice_x2, step=0.001)
-            self._head.objects = [
-                slider,
-                pn.pane.HoloViews(plots.true_delta_2d(c), height=320,
-                                  sizing_mode="stretch_width", css_classes=["disc-truth"])]
+            truth = true_delta_figure(c, "disc-truth")          # None: δ is unknown
+            self._head.objects = [slider] + ([] if truth is None else [figure_pane(truth)])
         self._update()
 
     def _keys(self, method: Method) -> list:

@@ -28,82 +28,10 @@ def axis_label(name: str, unit: str) -> str:
     return f"{name} [{unit}]" if unit and unit != "-" else name
 
 
-def data_overview(case, var_bar: np.ndarray, *, output: int = 0) -> hv.Layout:
-    """Paper Fig. 1: data with ±2√(V_o + V_m) bars, η(θ_true), and the true δ.
-
-    Parameters
-    ----------
-    case : mdcore.cases.Case
-    var_bar : ndarray of shape (n_out,)
-        ``V_o + V_m`` per output, output units squared.
-    output : int
-        Which output to show (1-D input cases); shear-5 shows every mode.
-    """
-    xname = axis_label(case.x_names[0], case.x_units[0])
-    if case.d_x == 2:
-        return _data_overview_2d(case, var_bar)
-    outputs = range(case.n_out) if case.n_out > 1 else [output]
-    lo, hi = case.X_train[:, 0].min(), case.X_train[:, 0].max()
-    lo, hi = min(lo, case.X_test[:, 0].min()), max(hi, case.X_test[:, 0].max())
-    xs = np.linspace(lo, hi, 201)[:, None]
-    sim = None if case.theta_true is None else case.simulate(xs, case.theta_true)[0]
-    delta = case.true_delta(xs)
-    panels = []
-    for o in outputs:
-        yname = axis_label(case.output_names[o], case.output_units[o])
-        bar = 2.0 * np.sqrt(var_bar[o])
-        train = hv.ErrorBars((case.X_train[:, 0], case.z_train[:, o],
-                              np.full(len(case.X_train), bar)),
-                             kdims=[xname], vdims=[yname, "±2σ"], label="train ±2√(V_o+V_m)")
-        pts = hv.Scatter((case.X_train[:, 0], case.z_train[:, o]), xname, yname,
-                         label="training data").opts(color="black", size=6)
-        test = hv.Scatter((case.X_test[:, 0], case.z_test[:, o]), xname, yname,
-                          label="test data").opts(color="grey", size=3, alpha=0.6)
-        layers = [train.opts(color="black", alpha=0.5), pts, test]
-        if sim is not None:
-            layers.append(hv.Curve((xs[:, 0], sim[:, o]), xname, yname,
-                                   label="simulator at true θ").opts(color="#d62728"))
-        overlay = hv.Overlay(layers).opts(title=f"{case.output_names[o]}: data and simulator",
-                                          legend_position="top_right", **PLOT)
-        panels.append(overlay)
-        if delta is not None:
-            panels.append(hv.Curve((xs[:, 0], delta[:, o]), xname,
-                                   axis_label("δ " + case.output_names[o], case.output_units[o]),
-                                   label="true δ").opts(color="#9467bd",
-                                                        title=f"true discrepancy δ, "
-                                                              f"{case.output_names[o]}", **PLOT))
-    return hv.Layout(panels).cols(2).opts(shared_axes=False)
-
-
-def _data_overview_2d(case, var_bar) -> hv.Layout:
-    x1 = axis_label(case.x_names[0], case.x_units[0])
-    x2 = axis_label(case.x_names[1], case.x_units[1])
-    yname = axis_label(case.output_names[0], case.output_units[0])
-    pts = hv.Points((case.X_train[:, 0], case.X_train[:, 1], case.z_train[:, 0]), [x1, x2],
-                    [yname]).opts(color=yname, cmap="viridis", size=9, colorbar=True,
-                                  title=f"training data (±2√(V_o+V_m) = "
-                                        f"±{2 * np.sqrt(var_bar[0]):.3g})", **PLOT)
-    panels = [pts]
-    if case.true_delta(case.X_train[:1]) is not None:
-        panels.append(true_delta_2d(case).opts(title="true discrepancy δ"))
-    return hv.Layout(panels).cols(2).opts(shared_axes=False)
-
-
 def input_span(case, d: int) -> tuple[float, float]:
     """(min, max) of input ``d`` over the training and test inputs."""
     X = np.vstack([case.X_train, case.X_test])
     return float(X[:, d].min()), float(X[:, d].max())
-
-
-def true_delta_2d(case) -> hv.Image:
-    """beam-2d: the true δ on the plotting grid (for comparison with the scenarios)."""
-    x1 = axis_label(case.x_names[0], case.x_units[0])
-    x2 = axis_label(case.x_names[1], case.x_units[1])
-    n = 60
-    g1, g2 = np.meshgrid(np.linspace(*input_span(case, 0), n), np.linspace(*input_span(case, 1), n))
-    delta = case.true_delta(np.column_stack([g1.ravel(), g2.ravel()]))
-    return hv.Image((g1[0], g2[:, 0], delta[:, 0].reshape(n, n)), [x1, x2], "δ mean [mm]").opts(
-        cmap="RdBu_r", colorbar=True, title="true δ", **PLOT)
 
 
 def koh_posterior(case, model) -> list:

@@ -25,6 +25,7 @@ from mdcore.study import PAPER
 
 from . import plots
 from .calibration_panel import CalibrationPanel
+from .data_panel import DataPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .live_figures import alert_box, live_text
@@ -121,6 +122,7 @@ class ExplorerView(pn.viewable.Viewer):
         super().__init__(**params)
         self.state.param.watch(self._notify_error, "n_errors")
         self.state.param.watch(self._notify_warning, "n_notices")
+        self._data = DataPanel(state=self.state)
         self._discrepancy = DiscrepancyPanel(state=self.state)
         self._waves = WavesPanel(state=self.state)
         self._calibration = CalibrationPanel(state=self.state)
@@ -260,11 +262,10 @@ class ExplorerView(pn.viewable.Viewer):
                          sizing_mode="stretch_width")
 
     # --- tabs --------------------------------------------------------------------------
-    @param.depends("state.case", "state.v_m")
-    def data_view(self):
-        c = self.state.case
-        return pn.pane.HoloViews(plots.data_overview(c, c.noise_var + self.state.v_m_vector()),
-                                 sizing_mode="stretch_width", css_classes=["data-plot"])
+    @property
+    def data_view(self) -> DataPanel:
+        """The Data tab: data, simulator at the true θ and true δ (bars follow V_m)."""
+        return self._data
 
     @property
     def status_view(self) -> pn.pane.Bokeh:
@@ -499,7 +500,6 @@ class ExplorerView(pn.viewable.Viewer):
         # Views rebuilt from scratch on a change are built only while their tab is shown,
         # else when it is next shown: Panel keeps updating a dynamic tab once it has been
         # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.
-        data = self._shown_only(tabs, 0, self.data_view, ["case", "v_m"])
         metrics = self._shown_only(tabs, 3, self.metrics_view, ["results"])
         hm_tab = pn.Column(self.status_view, self.waves_view,
                            self.calibration_view, sizing_mode="stretch_width")
@@ -510,7 +510,7 @@ class ExplorerView(pn.viewable.Viewer):
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
             metrics, sizing_mode="stretch_width")
-        tabs.extend([("Data", data), ("History matching", hm_tab),
+        tabs.extend([("Data", self._data), ("History matching", hm_tab),
                      ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
                      ("Files", self.files_view()), ("Things to try", self.try_view())])
         return pn.Row(self._controls(), tabs, sizing_mode="stretch_width")

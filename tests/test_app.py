@@ -53,15 +53,25 @@ def test_first_screen_is_the_paper_fig1():
     c = s.case
     assert c.name == "beam-1d"
     data = glyph_data(render(v.data_view))
-    xs = [np.asarray(d.get("crack location [m]", d.get("x", []))) for d in data]
+    xs = [np.asarray(d.get("x", [])) for d in data]
     assert any(x.shape == (13,) and np.allclose(x, c.X_train[:, 0]) for x in xs)
+    # the bars are ±2√(V_o + V_m) about the training data
+    (bars,) = [d for d in data if "y0" in d]
+    half = 2 * np.sqrt(c.noise_var[0] + s.v_m_vector()[0])
+    assert np.allclose(bars["y1"] - c.z_train[:, 0], half)
+    assert np.allclose(c.z_train[:, 0] - bars["y0"], half)
     # the simulator at θ_true and the true δ are drawn on a 201-point grid
-    ys = [np.asarray(d[k]) for d in data for k in d if k.startswith(("tip deflection",
-                                                                       "δ tip deflection"))]
+    ys = [np.asarray(d["y"]) for d in data if "y" in d]
     grid = np.linspace(0.1, 0.9, 201)[:, None]
     assert any(y.shape == (201,) and np.allclose(y, c.simulate(grid, c.theta_true)[0, :, 0])
                for y in ys)
     assert any(y.shape == (201,) and np.allclose(y, c.true_delta(grid)[:, 0]) for y in ys)
+    figures = [p.object for p in v.data_view._layout.select(pn.pane.Bokeh)]
+    s.v_m = 4 * s.v_m                                       # V_m moves the bars in place
+    assert [p.object for p in v.data_view._layout.select(pn.pane.Bokeh)] == figures
+    (moved,) = [d for d in glyph_data(render(v.data_view)) if "y0" in d]
+    wider = 2 * np.sqrt(c.noise_var[0] + s.v_m_vector()[0])
+    assert wider > half and np.allclose(moved["y1"] - c.z_train[:, 0], wider)
     render(v)                                               # the whole page renders
 
 
@@ -520,3 +530,4 @@ def test_status_line_is_one_pane_whose_text_and_colour_change():
     assert s.waves[-1].status == "converged" and "mdcore-alert-success" in v.status_html
     s.status = "a <b>tag</b> & more"
     assert "a &lt;b&gt;tag&lt;/b&gt; &amp; more" in v.status_html
+

@@ -1,0 +1,133 @@
+"""The Data tab (the paper's Fig. 1): the measurements with their ±2√(V_o + V_m) bars, the
+simulator at the true θ and the true discrepancy δ, built once per case in Bokeh.
+
+A new V_m only moves the bars (one array) and the title. The HoloViews version rebuilt the
+whole layout for it and cost 0.4 s of server time per new session on beam-1d; the ten
+shear-5 plots were most of a case switch.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import panel as pn
+import param
+from bokeh.models import ColorBar, ColumnDataSource, LegendItem, LinearColorMapper, Range1d
+from bokeh.palettes import RdBu11, Viridis256
+
+from .live_figures import LivePanel, below_legend, figure_pane, live_figure, replace_data
+from .plots import axis_label, input_span
+from .state import ExplorerState
+
+#: CSS class of the Data tab's plots (the browser tests and the bench wait for them).
+CSS = "data-plot"
+#: Points of the simulator and δ curves (1-D input), and of the true-δ image per side.
+GRID, GRID_2D = 201, 60
+SIMULATOR_COLOR, DELTA_COLOR = "#d62728", "#9467bd"
+
+
+def error_bars(x: np.ndarray, z: np.ndarray, half_width: float) -> dict:
+    """Columns of vertical bars ``z ± half_width`` at ``x`` (a Bokeh ``segment``)."""
+    return {"x": x, "y0": z - half_width, "y1": z + half_width}
+
+
+def true_delta_figure(case, css_class: str):
+    """2-D input: the true δ on a GRID_2D² grid of the inputs' span, blue (< 0) to red
+    (> 0) about zero as the scenarios' δ maps; None when δ is unknown."""
+    span = [input_span(case, d) for d in range(2)]
+    g1, g2 = np.meshgrid(np.linspace(*span[0], GRID_2D), np.linspace(*span[1], GRID_2D))
+    delta = case.true_delta(np.column_stack([g1.ravel(), g2.ravel()]))
+    if delta is None:
+        return None
+    d = delta[:, 0].reshape(GRID_2D, GRID_2D)
+    top = float(np.abs(d).max()) or 1.0
+    mapper = LinearColorMapper(palette=RdBu11, low=-top, high=top)
+    x1, x2 = (axis_label(n, u) for n, u in zip(case.x_names, case.x_units))
+    fig = live_figure("true discrepancy δ", x1, x2, css_class,
+                      x_range=Range1d(*span[0]), y_range=Range1d(*span[1]))
+    fig.image(image=[d], x=span[0][0], y=span[1][0], dw=span[0][1] - span[0][0],
+              dh=span[1][1] - span[1][0], color_mapper=mapper)
+    fig.add_layout(ColorBar(color_mapper=mapper, width=10, title=axis_label(
+        "δ " + case.output_names[0], case.output_units[0])), "right")
+    return fig
+
+
+class DataPanel(LivePanel):
+    """Data, simulator at the true θ and true δ, per output (1-D input) or as maps
+    (beam-2d); the bars follow V_m in place."""
+
+    state = param.ClassSelector(class_=ExplorerState)
+    UPDATE_ON = ("v_m",)
+
+    def _rebuild(self, *_):
+        c = self.state.case
+        self._case = c
+        self._bars: list[tuple[ColumnDataSource, np.ndarray, np.ndarray]] = []
+        self._titled: list = []            # (figure, output) whose title states the bars
+        figs = self._maps() if c.d_x == 2 else self._curves()
+        self._layout.objects = [
+            pn.Row(*[figure_pane(f) for f in figs[i:i + 2]], sizing_mode="stretch_width")
+            for i in range(0, len(figs), 2)]
+        self._update()
+
+    def _curves(self) -> list:
+        """1-D input: per output, the data with bars and the simulator, then the true δ."""
+        c = self._case
+        xname = axis_label(c.x_names[0], c.x_units[0])
+        xs = np.linspace(*input_span(c, 0), GRID)[:, None]
+        sim = None if c.theta_true is None else c.simulate(xs, c.theta_true)[0]
+        delta = c.true_delta(xs)
+        figs = []
+        for o in range(c.n_out):
+            yname = axis_label(c.output_names[o], c.output_units[o])
+            fig = live_figure(f"{c.output_names[o]}: data and simulator", xname, yname, CSS)
+            bars = ColumnDataSource(error_bars(c.X_train[:, 0], c.z_train[:, o], 0.0))
+            self._bars.append((bars, c.X_train[:, 0], c.z_train[:, o]))
+            items = [
+                LegendItem(label="train ±2√(V_o+V_m)", renderers=[fig.segment(
+                    "x", "y0", "x", "y1", source=bars, line_color="black", line_alpha=0.5,
+                    line_width=2)]),
+                LegendItem(label="training data", renderers=[fig.scatter(
+                    c.X_train[:, 0], c.z_train[:, o], color="black", size=6)]),
+                LegendItem(label="test data", renderers=[fig.scatter(
+                    c.X_test[:, 0], c.z_test[:, o], color="grey", size=4, alpha=0.6)])]
+            if sim is not None:
+                items.append(LegendItem(label="simulator at true θ", renderers=[fig.line(
+                    xs[:, 0], sim[:, o], line_color=SIMULATOR_COLOR, line_width=2)]))
+            below_legend(fig, items, ncols=2)
+            figs.append(fig)
+            if delta is not None:
+                d = live_figure(f"true discrepancy δ, {c.output_names[o]}", xname,
+                                axis_label("δ " + c.output_names[o], c.output_units[o]), CSS)
+                d.line(xs[:, 0], delta[:, o], line_color=DELTA_COLOR, line_width=2,
+                       legend_label="true δ")
+                d.legend.location = "top_left"
+                figs.append(d)
+        return figs
+
+    def _maps(self) -> list:
+        """2-D input: the training data coloured by the output, and the true δ map."""
+        c = self._case
+        x1, x2 = (axis_label(n, u) for n, u in zip(c.x_names, c.x_units))
+        span = [input_span(c, d) for d in range(2)]
+        ranges = {"x_range": Range1d(*span[0]), "y_range": Range1d(*span[1])}
+        z = c.z_train[:, 0]
+        fig = live_figure("training data", x1, x2, CSS, **ranges)
+        mapper = LinearColorMapper(palette=Viridis256, low=float(z.min()), high=float(z.max()))
+        points = ColumnDataSource({"x": c.X_train[:, 0], "y": c.X_train[:, 1], "z": z})
+        fig.scatter("x", "y", source=points, size=9, line_color="black",
+                    fill_color={"field": "z", "transform": mapper})
+        fig.add_layout(ColorBar(color_mapper=mapper, width=10, title=axis_label(
+            c.output_names[0], c.output_units[0])), "right")
+        self._titled.append((fig, 0))
+        figs = [fig]
+        delta = true_delta_figure(c, CSS)
+        return figs if delta is None else [*figs, delta]
+
+    def _update(self, *_):
+        """The bars at ±2√(V_o + V_m) of the current V_m."""
+        c = self._case
+        half = 2.0 * np.sqrt(c.noise_var + self.state.v_m_vector())
+        for o, (source, x, z) in enumerate(self._bars):
+            replace_data(source, error_bars(x, z, float(half[o])))
+        for fig, o in self._titled:
+            fig.title.text = f"training data (±2√(V_o+V_m) = ±{half[o]:.3g})"

@@ -1,0 +1,64 @@
+"""The Data tab in Bokeh: the paper's Fig. 1 numbers, in place updates and the 2-D maps."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("panel")
+import panel as pn  # noqa: E402
+from bokeh.models import GlyphRenderer, Image  # noqa: E402
+
+from mdcore_app.data_panel import DataPanel, error_bars, true_delta_figure  # noqa: E402
+from mdcore_app.state import ExplorerState  # noqa: E402
+
+
+def renderers(panel):
+    return [r for p in panel._layout.select(pn.pane.Bokeh)
+            for r in p.object.select({"type": GlyphRenderer})]
+
+
+def test_error_bars_are_symmetric_about_the_data():
+    bars = error_bars(np.array([1.0, 2.0]), np.array([3.0, -1.0]), 0.5)
+    assert np.array_equal(bars["y0"], [2.5, -1.5]) and np.array_equal(bars["y1"], [3.5, -0.5])
+
+
+def test_beam_2d_shows_the_training_data_and_the_true_delta_map():
+    s = ExplorerState(case_name="beam-2d")
+    panel = DataPanel(state=s)
+    c = s.case
+    (points,) = [r.data_source.data for r in renderers(panel) if "z" in r.data_source.data]
+    assert np.array_equal(points["x"], c.X_train[:, 0])
+    assert np.array_equal(points["y"], c.X_train[:, 1])
+    assert np.array_equal(points["z"], c.z_train[:, 0])
+    (image,) = [r for r in renderers(panel) if isinstance(r.glyph, Image)]
+    d = np.asarray(image.data_source.data["image"][0])
+    assert d.shape == (60, 60)
+    # the image's corners are the true δ at the corners of the inputs' span
+    X = np.vstack([c.X_train, c.X_test])
+    lo, hi = X.min(axis=0), X.max(axis=0)
+    # (Bokeh's row 0 is the bottom: x2 = lo; columns run along x1)
+    corners = c.true_delta(np.array([[lo[0], lo[1]], [hi[0], hi[1]], [hi[0], lo[1]]]))[:, 0]
+    assert np.allclose([d[0, 0], d[-1, -1], d[0, -1]], corners)
+    assert not np.isclose(d[0, -1], d[-1, 0])                     # not transposed
+    mapper = image.glyph.color_mapper
+    assert mapper.low == -mapper.high == -np.abs(d).max()          # centred on δ = 0
+    half = 2 * np.sqrt(c.noise_var[0] + s.v_m_vector()[0])
+    (fig,) = [p.object for p in panel._layout.select(pn.pane.Bokeh)
+              if p.object.title.text.startswith("training data")]
+    assert f"±{half:.3g}" in fig.title.text
+    s.v_m = 2 * s.v_m
+    assert f"±{2 * np.sqrt(c.noise_var[0] + s.v_m_vector()[0]):.3g}" in fig.title.text
+
+
+def test_no_true_delta_map_when_delta_is_unknown():
+    s = ExplorerState(case_name="beam-2d")
+    c = s.case
+
+    class Unknown:
+        def __getattr__(self, name):
+            return getattr(c, name)
+
+        def true_delta(self, X):
+            return None
+
+    assert true_delta_figure(Unknown(), "x") is None
+    assert true_delta_figure(c, "x") is not None

@@ -115,20 +115,35 @@ def _groups(X, n: int) -> np.ndarray:
     return np.unique(X.reshape(n, -1), axis=0, return_inverse=True)[1].ravel()
 
 
-def _mmd_one(a: np.ndarray, mu: float, s2: float) -> float:
-    """Biased MMD (square root) between points ``a`` and N(mu, s2), Gaussian kernel."""
-    r = a.size
+#: Groups of test inputs whose MMD terms are computed at once (bounds the (groups, n, n)
+#: kernel and distance arrays: n = r + max(r, 20) pooled points per group).
+MMD_CHUNK = 1024
+
+
+def _mmd_groups(a: np.ndarray, mu: np.ndarray, s2: np.ndarray) -> np.ndarray:
+    """Biased MMD (square root) between each row of points ``a`` (G, r) and N(mu, s2),
+    Gaussian kernel; ``mu``, ``s2`` of shape (G,). Returns (G,)."""
+    r = a.shape[1]
     q = max(r, 20)
     # Median heuristic over the pooled sample: the observations plus q predictive quantiles.
-    pooled = np.concatenate([a, mu + np.sqrt(s2) * norm.ppf((np.arange(q) + 0.5) / q)])
-    diff = np.abs(pooled[:, None] - pooled[None, :])[np.triu_indices(pooled.size, 1)]
-    ell2 = max(float(np.median(diff)) ** 2, 1e-300)
-    kaa = np.mean(np.exp(-(a[:, None] - a[None, :]) ** 2 / (2.0 * ell2)))
-    # Closed-form Gaussian expectations of the kernel:
-    # E_y k(a, y) = sqrt(ℓ²/(ℓ²+s²)) exp(−(a−μ)²/(2(ℓ²+s²))), E k(y, y') = sqrt(ℓ²/(ℓ²+2s²)).
-    kay = np.mean(np.sqrt(ell2 / (ell2 + s2)) * np.exp(-(a - mu) ** 2 / (2.0 * (ell2 + s2))))
-    kyy = np.sqrt(ell2 / (ell2 + 2.0 * s2))
-    return float(np.sqrt(max(kaa - 2.0 * kay + kyy, 0.0)))
+    quantiles = norm.ppf((np.arange(q) + 0.5) / q)
+    out = np.empty(a.shape[0])
+    for lo in range(0, a.shape[0], MMD_CHUNK):
+        sl = slice(lo, lo + MMD_CHUNK)
+        ag, m, v = a[sl], mu[sl, None], s2[sl, None]
+        pooled = np.concatenate([ag, m + np.sqrt(v) * quantiles], axis=1)
+        i, j = np.triu_indices(pooled.shape[1], 1)
+        ell2 = np.maximum(np.median(np.abs(pooled[:, i] - pooled[:, j]), axis=1) ** 2,
+                          1e-300)[:, None]
+        kaa = np.mean(np.exp(-(ag[:, :, None] - ag[:, None, :]) ** 2 / (2.0 * ell2[:, :, None])),
+                      axis=(1, 2))
+        # Closed-form Gaussian expectations of the kernel:
+        # E_y k(a, y) = sqrt(ℓ²/(ℓ²+s²)) exp(−(a−μ)²/(2(ℓ²+s²))), E k(y, y') = sqrt(ℓ²/(ℓ²+2s²)).
+        kay = np.mean(np.sqrt(ell2 / (ell2 + v)) * np.exp(-(ag - m) ** 2 / (2.0 * (ell2 + v))),
+                      axis=1)
+        kyy = np.sqrt(ell2 / (ell2 + 2.0 * v))[:, 0]
+        out[sl] = np.sqrt(np.maximum(kaa - 2.0 * kay + kyy, 0.0))
+    return out
 
 
 def mmd(target, mean, var, *, X=None):
@@ -157,12 +172,15 @@ def mmd(target, mean, var, *, X=None):
     t, m, v = _predictive(target, mean, var, strict=False)
     groups = _groups(X, t.shape[0])
     t2, m2, v2 = (a.reshape(t.shape[0], -1) for a in (t, m, v))
-    out = np.empty(t2.shape[1])
-    for o in range(t2.shape[1]):
-        vals = []
-        for g in np.unique(groups):
-            rows = groups == g
-            vals.append(_mmd_one(t2[rows, o], float(np.mean(m2[rows, o])),
-                                 float(np.mean(v2[rows, o]))))
-        out[o] = np.mean(vals)
-    return _squeeze(out, t)
+    # Rows of each group in their original order; groups of equal size r are one batch.
+    order = np.argsort(groups, kind="stable")
+    sizes = np.bincount(groups)
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    vals = np.empty((sizes.size, t2.shape[1]))
+    for r in np.unique(sizes[sizes > 0]):
+        labels = np.flatnonzero(sizes == r)
+        rows = order[starts[labels, None] + np.arange(r)]          # (groups, r)
+        for o in range(t2.shape[1]):
+            vals[labels, o] = _mmd_groups(t2[rows, o], np.mean(m2[rows, o], axis=1),
+                                          np.mean(v2[rows, o], axis=1))
+    return _squeeze(np.mean(vals[sizes > 0], axis=0), t)

@@ -10,10 +10,12 @@ its results back to the session's event loop.
 
 import argparse
 import sys
+from functools import partial
 from pathlib import Path
 
 import holoviews as hv
 import panel as pn
+from panel.io.state import set_curdoc
 
 from mdcore import compiled, threads
 from mdcore.case_file import load_case_file
@@ -74,10 +76,22 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
 
 
 def _scheduler(doc):
-    """Run callbacks on the session's event loop (with the document lock), or inline."""
+    """Run callbacks on the session's event loop (with the document lock), or inline.
+
+    Each callback runs under Panel's ``hold``: its changes to Panel objects and to raw
+    Bokeh models alike reach the browser in one message. Unheld, the two took different
+    routes (Panel writes to the websocket itself, Bokeh queues a patch), and a patch that
+    named a model the other route had not delivered yet failed in the page with
+    "reference pNNNN isn't known", losing the update (a status line that never changed).
+    """
     if doc is None or doc.session_context is None:
         return lambda fn: fn()
-    return lambda fn: doc.add_next_tick_callback(fn)
+
+    def run(fn):
+        with set_curdoc(doc), pn.io.hold(doc):
+            fn()
+
+    return lambda fn: doc.add_next_tick_callback(partial(run, fn))
 
 
 if pn.state.served:

@@ -64,10 +64,10 @@ class DataPanel(LivePanel):
         self._bars: list[tuple[ColumnDataSource, np.ndarray, np.ndarray]] = []
         self._titled: list = []            # (figure, output) whose title states the bars
         figs = self._maps() if c.d_x == 2 else self._curves()
+        self._update()                       # drawn before it is attached (see LivePanel)
         self._layout.objects = [
             pn.Row(*[figure_pane(f) for f in figs[i:i + 2]], sizing_mode="stretch_width")
             for i in range(0, len(figs), 2)]
-        self._update()
 
     def _curves(self) -> list:
         """1-D input: per output, the data with bars and the simulator, then the true δ."""

@@ -88,6 +88,7 @@ class DiscrepancyPanel(LivePanel):
         #: (method, cell key) -> [pane, figure, payload last drawn]
         self._cells: dict[tuple[Method, Any], list] = {}
         self._groups: dict[Method, pn.layout.ListPanel] = {}
+        self._pending: dict[Method, list] = {}   # a group's new panes, for _place
         self.state.param.watch(self._slice_moved, "slice_x2")
         self.param.watch(self._quantity_changed, "quantity")
 
@@ -97,7 +98,7 @@ class DiscrepancyPanel(LivePanel):
         c = self.state.case
         self._case = c
         self._truth = c.true_delta(self.state.grid)       # None when δ is unknown
-        self._cells, self._groups = {}, {}
+        self._cells, self._groups, self._pending = {}, {}, {}
         self._ranges: dict = {}                  # cell key -> axes shared by the methods
         self._fitted: set = set()                # cell keys whose axes have been set
         self._methods.objects = []
@@ -140,7 +141,7 @@ class DiscrepancyPanel(LivePanel):
         panes = [self._cells[method, k][0] for k in self._keys(method)
                  if (method, k) in self._cells]
         if method in self._groups:
-            self._groups[method].objects = panes
+            self._pending[method] = panes        # attached by _place, once drawn
         else:
             self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
                 *panes, sizing_mode="stretch_width")
@@ -148,6 +149,9 @@ class DiscrepancyPanel(LivePanel):
     def _place(self) -> None:
         """Put the groups in method order into the layout: one assignment per change
         (each assignment is one message to the browser)."""
+        for method, panes in self._pending.items():
+            self._groups[method].objects = panes
+        self._pending = {}
         groups = [self._groups[m] for m in sorted(self._groups, key=method_order)]
         parent, objects = ((self._head, [*self._head.objects[:2], *groups])
                            if self._case.d_x == 2 else (self._methods, groups))
@@ -295,8 +299,8 @@ class DiscrepancyPanel(LivePanel):
             return                               # the case watcher rebuilds first
         for method in sorted(s.results, key=method_order):
             self._ensure(method)
+        self._fit_ranges()                 # the new plots' axes, before they are attached
         self._place()
-        self._fit_ranges()
         for method in sorted(s.results, key=method_order):
             for key in self._keys(method):
                 if (method, key) in self._cells:
@@ -329,6 +333,7 @@ class DiscrepancyPanel(LivePanel):
         for method in list(self._groups):
             if method in self.state.results:
                 self._ensure(method)             # a quantity shown for the first time
+        self._fit_ranges()
         self._place()
         for (_method, key), cell in self._cells.items():
             cell[0].visible = self._wanted(key)

@@ -52,6 +52,12 @@ class LivePanel(pn.viewable.Viewer):
     figures and call ``_update``) and ``_update`` (draw what the state holds);
     ``_setup`` makes what outlives a case. ``state`` is the session's
     :class:`mdcore_app.state.ExplorerState`.
+
+    New figures are drawn completely *before* they are put into the layout. A Bokeh
+    model changed after it joined the document goes to the browser as its own patch, and
+    that patch can arrive before the one, sent through Panel, that defines the model: the
+    page then fails with "reference pNNNN isn't known" and drops later updates (seen in
+    the browser tests under load).
     """
 
     #: State parameters whose change calls ``_update``.

@@ -117,14 +117,19 @@ def test_a_line_search_stop_at_the_box_edge_is_not_reported_as_non_convergence(m
     minimize = scipy.optimize.minimize
 
     def spy(*args, **kwargs):
-        seen.append(minimize(*args, **kwargs))
-        return seen[-1]
+        res = minimize(*args, **kwargs)
+        # Whether this polish ends in a line-search stop depends on the CPU's rounding: it
+        # does with AVX2 kernels (NumPy's SIMD exp/log, OpenBLAS), not on an AVX-512 EPYC,
+        # where it converges one step earlier. Reported as that stop on every machine.
+        seen.append(res.status)
+        res.success, res.status, res.message = False, 2, "ABNORMAL_TERMINATION_IN_LNSRCH"
+        return res
 
     monkeypatch.setattr(hyperfit.scipy.optimize, "minimize", spy)
     with warnings.catch_warnings():
         warnings.simplefilter("error", ConvergenceWarning)
         fit = fit_hyperparameters(Y, X, z, log_prior=prior, seed=1)
-    assert [r.status for r in seen] == [2] and fit.converged      # the case this is about
+    assert len(seen) == 1 and seen[0] in (0, 2) and fit.converged   # the case this is about
     # Independent check that it is an optimum: Nelder–Mead (no gradient) from the fit, in the
     # box, finds nothing lower beyond the objective's noise.
     monkeypatch.undo()

@@ -30,22 +30,46 @@ def run():
     return small_run("numpy")
 
 
+#: Tolerance against the recorded file. It was written on a machine with AVX2 kernels; on
+#: another CPU NumPy's SIMD exp/log and OpenBLAS pick other kernels, and the optimisers
+#: carry the last-bit differences on (seen: 3.6e-7 on an AVX-512 AMD EPYC, 1e-10 passed on
+#: the recording kind). Same-machine checks below stay tight.
+ACROSS_MACHINES = 1e-5
+
+
 def test_numbers_unchanged_since_before_the_pipeline(run):
-    check_against_reference(run, rtol=1e-10)
+    check_against_reference(run, rtol=ACROSS_MACHINES)
 
 
-def test_compiled_backend_changes_no_number_beyond_1e_8():
-    # Issue 15: the numba kernels may reorder sums, never change a reproduce number.
+def test_compiled_backend_changes_no_number_beyond_1e_8(run):
+    # Issue 15: the numba kernels may reorder sums, never change a reproduce number; both
+    # backends run here, on the same machine.
     pytest.importorskip("numba")
-    check_against_reference(small_run("numba"), rtol=1e-8)
+    check_against_reference(small_run("numba"), rtol=1e-8, ref=as_reference(run))
 
 
-def check_against_reference(run, rtol):
+def as_reference(run) -> dict:
+    """A run's numbers in the recorded file's layout (to compare two runs of this machine)."""
+    d = run.to_dict()
+    methods = d["methods"]
+    scenarios = {label: dict(r["metrics"]) for label, r in methods.items()}
+    scenarios["3"].update(ess_per_output=methods["3"]["importance"]["ess"],
+                          skipped_mass=methods["3"]["importance"]["skipped_mass"])
+    chain, posterior = methods["koh"]["chain"], methods["koh"]["posterior"]
+    scenarios["koh"].update(acceptance_rate=chain["acceptance_rate"], iat_per_parameter=chain["iat"],
+                            ess_per_parameter=chain["ess"],
+                            **{k: posterior[k] for k in ("theta_mean", "theta_sd",
+                                                         "theta_interval_99", "log_phi")})
+    return {"history_matching": d["history_matching"], "scenarios": scenarios}
+
+
+def check_against_reference(run, rtol, ref=None):
     def close(new, old):
         np.testing.assert_allclose(np.asarray(new, dtype=float), np.asarray(old, dtype=float),
                                    rtol=rtol, atol=1e-12)
 
-    ref = json.loads(REFERENCE.read_text(encoding="utf-8"))
+    if ref is None:
+        ref = json.loads(REFERENCE.read_text(encoding="utf-8"))
     d = run.to_dict()
     hm = d["history_matching"]
     close(hm["theta_map"], ref["history_matching"]["theta_map"])

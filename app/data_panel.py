@@ -14,6 +14,8 @@ import param
 from bokeh.models import ColorBar, ColumnDataSource, LegendItem, LinearColorMapper, Range1d
 from bokeh.palettes import RdBu11, Viridis256
 
+from mdcore.validation import as_float_array, check_positive
+
 from .live_figures import LivePanel, below_legend, figure_pane, live_figure, replace_data
 from .plots import axis_label, input_span
 from .state import ExplorerState
@@ -26,8 +28,17 @@ SIMULATOR_COLOR, DELTA_COLOR = "#d62728", "#9467bd"
 
 
 def error_bars(x: np.ndarray, z: np.ndarray, half_width: float) -> dict:
-    """Columns of vertical bars ``z ± half_width`` at ``x`` (a Bokeh ``segment``)."""
-    return {"x": x, "y0": z - half_width, "y1": z + half_width}
+    """Columns of vertical bars ``z ± half_width`` at ``x`` (a Bokeh ``segment``).
+
+    ``x`` and ``z`` of shape (N,), finite; ``half_width`` finite and ≥ 0 (output units).
+    """
+    x, z = as_float_array(x, "x", ndim=1), as_float_array(z, "z", ndim=1)
+    if x.shape != z.shape:
+        raise ValueError(f"x and z must have the same shape (N,); received {x.shape} and "
+                         f"{z.shape}. Pass one bar per data point.")
+    half = float(check_positive(as_float_array([half_width], "half_width"), "half_width",
+                                strict=False)[0])
+    return {"x": x, "y0": z - half, "y1": z + half}
 
 
 def true_delta_figure(case, css_class: str):

@@ -89,6 +89,7 @@ class DiscrepancyPanel(LivePanel):
         self._cells: dict[tuple[Method, Any], list] = {}
         self._groups: dict[Method, pn.layout.ListPanel] = {}
         self._pending: dict[Method, list] = {}   # a group's new panes, for _place
+        self._head_fixed: list = []              # beam-2d: the slider and the truth map
         self.state.param.watch(self._slice_moved, "slice_x2")
         self.param.watch(self._quantity_changed, "quantity")
 
@@ -111,7 +112,8 @@ class DiscrepancyPanel(LivePanel):
         else:
             slider = pn.widgets.FloatSlider.from_param(self.state.param.slice_x2, step=0.001)
             truth = true_delta_figure(c, "disc-truth")          # None: δ is unknown
-            self._head.objects = [slider] + ([] if truth is None else [figure_pane(truth)])
+            self._head_fixed = [slider] + ([] if truth is None else [figure_pane(truth)])
+            self._head.objects = list(self._head_fixed)
         self._update()
 
     def _keys(self, method: Method) -> list:
@@ -153,7 +155,7 @@ class DiscrepancyPanel(LivePanel):
             self._groups[method].objects = panes
         self._pending = {}
         groups = [self._groups[m] for m in sorted(self._groups, key=method_order)]
-        parent, objects = ((self._head, [*self._head.objects[:2], *groups])
+        parent, objects = ((self._head, [*self._head_fixed, *groups])
                            if self._case.d_x == 2 else (self._methods, groups))
         if list(parent.objects) != objects:
             parent.objects = objects

@@ -255,3 +255,17 @@ def test_a_new_band_sends_the_band_only(beam1d):
     s.band = 2
     s.band = 3
     assert changed == ["lower", "lower"]
+
+
+def test_beam_2d_without_a_known_delta_keeps_one_group_per_method(monkeypatch):
+    """An own 2-D case whose δ is unknown has no truth map above the methods: the head is
+    the slider, then each method's group once, however often the groups are placed."""
+    import mdcore_app.discrepancy_panel as module
+    monkeypatch.setattr(module, "true_delta_figure", lambda case, css_class: None)
+    s = run("beam-2d")
+    panel = DiscrepancyPanel(state=s)
+    for band in (2, 3, 2):                            # each change places the groups again
+        s.band = band
+        head = list(panel._head.objects)
+        assert isinstance(head[0], pn.widgets.FloatSlider)
+        assert head[1:] == [panel._groups[m] for m in S123]

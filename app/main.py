@@ -22,7 +22,11 @@ from mdcore.case_file import load_case_file
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 
-pn.extension("filedropper", notifications=True, design="bootstrap")
+# Panel's default design, not "bootstrap": Bokeh reads every glyph's colours and widths
+# through getComputedStyle while it paints, and Bootstrap's style sheets in every
+# component's shadow root made each of those style recalculations 3-6x dearer (shear-5:
+# 1.5 s of a scenario toggle's 2.2 s of browser time).
+pn.extension("filedropper", notifications=True)
 hv.extension("bokeh")
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()

@@ -18,6 +18,7 @@ from bokeh.models import ColumnDataSource, Plot  # noqa: E402
 from mdcore.pipeline import Method  # noqa: E402
 from mdcore_app.discrepancy_panel import (  # noqa: E402
     CURRENT,
+    SLOT,
     STALE_OPACITY,
     DiscrepancyPanel,
 )
@@ -76,8 +77,10 @@ def test_band_change_patches_the_data_of_the_same_figures(beam1d):
                                    4 * np.sqrt(on_grid.z_var[:, 0]), rtol=1e-10)
         truth = source(after["Scenario 2: δ"], "y")
         np.testing.assert_allclose(truth["y"], s.case.true_delta(s.grid)[:, 0])
+        # The legend says "±kσ" (k of the Band control): a new legend text would re-lay-out
+        # every plot in the browser.
         labels = [item.label for f in after.values() for item in f.legend[0].items]
-        assert "Scenario 2 ±2σ" in str(labels) and "±3σ" not in str(labels)
+        assert "Scenario 2 ±kσ" in str(labels) and "±3σ" not in str(labels)
     finally:
         s.band = 3
 
@@ -87,10 +90,16 @@ def test_hiding_a_method_or_a_quantity_changes_only_visibility(beam1d):
     before = {t: f.id for t, f in figures(root).items()}
     groups = panel._groups
     s.scenarios = [Method.S1, Method.S3]
-    assert not groups[Method.S2].visible and groups[Method.S1].visible
+    # S2's column keeps its place, empty (CSS visibility): the others do not move
+    assert groups[Method.S2].visible and groups[Method.S2].styles == SLOT
+    assert groups[Method.S1].styles == CURRENT and not panel._empty.visible
     assert {t: f.id for t, f in figures(root).items()} == before
+    s.scenarios = [Method.S3]
+    s.scenarios = []
+    assert panel._empty.visible                    # every column hidden: say what to do
     s.scenarios = S123
-    assert all(g.visible for g in groups.values())
+    assert all(g.visible and g.styles == CURRENT for g in groups.values())
+    assert not panel._empty.visible
     panel.quantity = "δ"
     shown = [cell[0] for (m, (o, q)), cell in panel._cells.items() if cell[0].visible]
     assert len(shown) == 3 and all(p.object.title.text.endswith("δ") for p in shown)
@@ -145,9 +154,11 @@ def test_beam_2d_maps_and_slice_follow_the_band_and_the_slider():
     shape = (u2.size, u1.size)
     mean = source(figs["Scenario 3: δ mean"], "image")["image"][0]
     np.testing.assert_allclose(mean, r.delta_mean[:, 0].reshape(shape))
-    s.band = 2
-    width = source(figures(root)["Scenario 3: band width (±2σ)"], "image")["image"][0]
-    np.testing.assert_allclose(width, 4 * np.sqrt(r.delta_var[:, 0].reshape(shape)))
+    sd_map = figures(root)["Scenario 3: δ sd (σ)"]
+    sd = source(sd_map, "image")["image"][0]
+    np.testing.assert_allclose(sd, np.sqrt(r.delta_var[:, 0].reshape(shape)))
+    s.band = 2                                         # the maps show no band: unchanged
+    assert source(figures(root)["Scenario 3: δ sd (σ)"], "image")["image"][0] is sd
     row = 3
     s.slice_x2 = float(u2[row])
     (title,) = [t for t in figures(root) if t.startswith("Scenario 3: slice")]

@@ -174,17 +174,39 @@ def chunks(batch_shape: tuple, bytes_per_item: float):
     return out
 
 
+_POOL: list[ThreadPoolExecutor] = []       # the process's chunk pool, made on first use
+_POOL_LOCK = threading.Lock()
+
+
+def _forget_pool_after_fork() -> None:
+    """In a forked child the pool's threads are gone: start a new pool on first use."""
+    _POOL.clear()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool_after_fork)
+
+
+def _chunk_pool() -> ThreadPoolExecutor:
+    with _POOL_LOCK:
+        if not _POOL:
+            _POOL.append(ThreadPoolExecutor(max_workers=N_WORKERS,
+                                            thread_name_prefix="mdcore-chunks"))
+        return _POOL[0]
+
+
 def for_each_chunk(work: Callable, pieces: list) -> None:
     """Run ``work(slice, multi, n)`` on every chunk, on all cores.
 
     NumPy's element-wise loops and LAPACK release the GIL, so threads over independent
-    chunks scale on the machine's cores; each chunk writes a disjoint output slice.
+    chunks scale on the machine's cores; each chunk writes a disjoint output slice. The
+    threads are one process-wide pool: a pool per call started and joined two threads
+    every time, a third of a small call (the 120 swarm steps of a hyperparameter fit).
+    ``work`` must not call this function (the pool's threads would wait on themselves).
     """
-    workers = min(N_WORKERS, len(pieces))
-    if workers <= 1:
+    if min(N_WORKERS, len(pieces)) <= 1:
         for c in pieces:
             work(*c)
         return
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for f in [pool.submit(work, *c) for c in pieces]:
-            f.result()
+    for f in [_chunk_pool().submit(work, *c) for c in pieces]:
+        f.result()

@@ -3,8 +3,9 @@
 Each plot is a Bokeh figure built once (:mod:`.live_figures`): new results, a new band or a
 new beam-2d slice replace the arrays of the figures they change, and the browser redraws
 those glyphs; no layout is rebuilt. Hiding a method or a quantity only changes a
-visibility (a 1-D case's hidden method keeps its column's place, empty: see :data:`SLOT`). The plots of a method are built when its first result arrives (and a
-quantity's when it is first shown); everything is rebuilt only when the case changes.
+visibility (a 1-D case's hidden method keeps its column's place, empty: see :data:`SLOT`).
+The plots of a method are built when its first result arrives (and a quantity's when it
+is first shown); everything is rebuilt only when the case changes.
 
 While a recompute runs (the results were cleared by a new setting), the earlier plots stay,
 dimmed, until the new results replace them.

@@ -41,8 +41,9 @@ IDLE_CPU = 0.3
 #: Labels of the controls the test types into (param labels in app/state.py).
 THRESHOLD, SEED = "Threshold T", "Seed"
 #: Threads that run a session's jobs: app/jobs.py names them ``mdcore-<label>``; the
-#: compute pool (``mdcore-compiled…``) and the kernel warm-up are not jobs.
-JOB_THREADS = re.compile(r"^mdcore-(?!compiled|warm-up)")
+#: compute pools (``mdcore-compiled…``, NumPy's ``mdcore-chunks…``) and the kernel
+#: warm-up are not jobs.
+JOB_THREADS = re.compile(r"^mdcore-(?!compiled|chunks|warm-up)")
 
 
 # --------------------------------------------------------------------------------------

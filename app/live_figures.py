@@ -252,6 +252,8 @@ class MapFigure:
         fig.image(image="image", x=u1[0], y=u2[0], dw=u1[-1] - u1[0], dh=u2[-1] - u2[0],
                   color_mapper=self._mapper, source=self._image)
         fig.add_layout(ColorBar(color_mapper=self._mapper, title=zname, width=10), "right")
+        # A third of the page wide at 1280 px: six x ticks ran into each other
+        fig.xaxis.ticker.desired_num_ticks = 4
 
     def show(self, values, *, title: str | None = None) -> None:
         """Draw ``values`` (n2, n1): row j at u2[j].

@@ -58,3 +58,4 @@ def test_bad_maps_are_refused(values, name):
         fig.show(values)
     np.testing.assert_array_equal(fig._image.data["image"][0], np.arange(12.0).reshape(3, 4))
     assert (fig._mapper.low, fig._mapper.high) == (-11.0, 11.0)     # symmetric about 0
+    assert fig.figure.xaxis[0].ticker.desired_num_ticks == 4      # legible at 1280 px

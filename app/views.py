@@ -510,6 +510,10 @@ class ExplorerView(pn.viewable.Viewer):
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
             metrics, sizing_mode="stretch_width")
+        # A case switch rebuilds the live panels of the tab in view; the others when shown
+        self._data.defer_while_hidden(tabs, 0)
+        self._waves.defer_while_hidden(tabs, 1)
+        self._calibration.defer_while_hidden(tabs, 1)
         tabs.extend([("Data", self._data), ("History matching", hm_tab),
                      ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
                      ("Files", self.files_view()), ("Things to try", self.try_view())])

@@ -518,6 +518,35 @@ def test_hidden_tabs_are_rebuilt_when_shown_not_on_every_change():
     assert list(table.object["method"]) == ["Scenario 1", "Scenario 2", "Scenario 3"]
 
 
+def test_a_case_switch_rebuilds_only_the_live_panels_in_view():
+    """The History-matching panels of a case switched to from the Data tab are built when
+    their tab is shown (before it is drawn), from what the state holds then."""
+    from bokeh.models import Plot
+
+    s = small_state()
+    view = ExplorerView(state=s)
+    page = pn.panel(view)
+    page.get_root(Document())
+    (tabs,) = page.select(pn.Tabs)
+    waves, data = view._waves, view._data
+
+    def plots():
+        return [p.object for p in waves._layout.select(pn.pane.Bokeh)
+                if isinstance(p.object, Plot)]
+
+    s.case_name = "shear-5"
+    assert data._case is s.case                             # in view: rebuilt at once
+    assert waves._stale and waves._case is not s.case
+    s.next_wave()                                           # hidden and stale: no update
+    assert waves._stale and plots() == []
+    tabs.active = 1
+    assert not waves._stale and waves._case is s.case and view._calibration._case is s.case
+    titles = [p.title.text for p in plots()]
+    assert "NROY samples: E vs nu" in titles               # shear-5's pairs, with the wave
+    s.case_name = "beam-1d"                                 # in view now: at once
+    assert not waves._stale and waves._case is s.case
+
+
 def test_status_line_is_one_pane_whose_text_and_colour_change():
     """The status line is updated in place (a new pane per wave re-laid-out the page):
     its colour says how the last wave ended, and its text is escaped."""

@@ -69,6 +69,8 @@ MAX_FAILED_FRACTION = 0.5
 MAX_CANDIDATES = 10_000_000
 MAX_RUNS = 10_000
 MAX_MCMC_STEPS = 1_000
+#: Posterior draws kept per history match, by (n, seed): see ``posterior_samples``.
+POSTERIOR_MEMO = 4
 RULED_OUT_HINT = ("nothing is non-implausible: every candidate θ has I > T. Raise V_m (the "
                   "model-discrepancy variance) or the threshold T, or use the 2nd/3rd max rule.")
 
@@ -677,13 +679,26 @@ class HistoryMatchResult:
         proportion to :meth:`log_likelihood` (normalised in log space). These are the
         θ^(j) of the discrepancy scenarios (SPEC §1: θ^(j) ~ p(θ | z)); repeats are
         possible when the likelihood is concentrated.
+
+        With an integer ``seed`` the draws are kept (a few, the newest) and a repeated call
+        returns a copy of them: scenarios 2 and 3 of one run ask for the same θ^(j).
         """
         n = as_int(n, "n", 1, MAX_CANDIDATES // 20)
+        key = (n, int(seed)) if isinstance(seed, (int, np.integer)) \
+            and not isinstance(seed, bool) else None
+        memo = self.__dict__.setdefault("_posterior_memo", {})   # frozen: not an attribute
+        if key is not None and key in memo:
+            return memo[key].copy()
         rng = np.random.default_rng(seed)
         pool = self.nroy_samples(max(20 * n, 20_000), seed=rng)
         ll = self.log_likelihood(pool)
         w = np.exp(ll - scipy.special.logsumexp(ll))
-        return pool[rng.choice(pool.shape[0], size=n, p=w / w.sum())]
+        draws = pool[rng.choice(pool.shape[0], size=n, p=w / w.sum())]
+        if key is not None:
+            while len(memo) >= POSTERIOR_MEMO:
+                memo.pop(next(iter(memo)))                      # the oldest
+            memo[key] = draws.copy()
+        return draws
 
     def log_likelihood(self, theta) -> np.ndarray:
         """Gaussian log-likelihood behind the implausibility measure, shape (M,).

@@ -234,3 +234,26 @@ def test_seed_accepts_a_generator():
     for bad in (-1, 1.5, "0", True):
         with pytest.raises(ValueError, match="seed must be an integer ≥ 0 or a numpy.random"):
             history_match(toy_simulator, X, z, TOY_BOUNDS, seed=bad, **kw)
+
+
+def test_posterior_samples_are_kept_per_seed_and_equal_a_fresh_draw(beam1d_match):
+    """Scenarios 2 and 3 of one run ask for the same θ^(j): the second call returns the
+    kept draws, which equal those of a match that has drawn nothing yet (same seed)."""
+    _, result = beam1d_match
+    fresh = HistoryMatchResult(result.problem, result.waves)         # nothing kept yet
+    a = result.posterior_samples(300, seed=5)
+    a[0, 0] = np.nan                                  # the caller's copy, not the kept one
+    b = result.posterior_samples(300, seed=5)
+    np.testing.assert_array_equal(b, fresh.posterior_samples(300, seed=5))
+    assert np.all(np.isfinite(b))
+    assert not np.array_equal(b, result.posterior_samples(300, seed=6))
+    assert result.posterior_samples(299, seed=5).shape == (299, 2)
+    # A generator is a stream, not a key: two generators in the same state draw alike,
+    # and a used one draws anew.
+    g = np.random.default_rng(5)
+    first = result.posterior_samples(50, seed=g)
+    assert not np.array_equal(first, result.posterior_samples(50, seed=g))
+    np.testing.assert_array_equal(first, fresh.posterior_samples(50, seed=np.random.default_rng(5)))
+    for s in range(8):                                # the memo stays small
+        result.posterior_samples(20, seed=100 + s)
+    assert len(result.__dict__["_posterior_memo"]) <= 4

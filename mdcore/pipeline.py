@@ -441,6 +441,27 @@ def _advice(method: Method, settings: Settings, importance, chain) -> tuple:
     return tuple(out)
 
 
+def _union(X_extra: np.ndarray, X_test: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The inputs to predict at: the rows of ``X_extra`` that are not rows of ``X_test``,
+    then ``X_test``; and the row of every ``X_extra`` row in them.
+
+    A plotting grid that contains the test inputs (beam-2d's 20 × 20 grid is its test
+    grid) costs no second prediction there: every point's prediction is its own.
+
+    Returns
+    -------
+    X_all : ndarray of shape (M_new + N*, d_x)
+    rows : int ndarray of shape (M,)
+    """
+    at = {row.tobytes(): i for i, row in enumerate(X_test)}
+    where = np.fromiter((at.get(row.tobytes(), -1) for row in X_extra), dtype=np.int64,
+                        count=X_extra.shape[0])
+    new = where < 0
+    n_new = int(np.count_nonzero(new))
+    rows = np.where(new, np.cumsum(new) - 1, n_new + where)
+    return np.vstack([X_extra[new], X_test]), rows
+
+
 def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *, seed,
                X_extra=None, log_params_hat=None, progress: Progress | None = None,
                cancel: threading.Event | None = None,
@@ -512,7 +533,7 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
         if X_extra.shape[1] != case.d_x:
             raise ValueError(f"X_extra must have shape (M, d_x) with d_x = {case.d_x}; "
                              f"received {X_extra.shape}.")
-        X_all = np.vstack([X_extra, case.X_test])
+        X_all, extra_rows = _union(X_extra, case.X_test)
 
     def stage(lo: float, hi: float, message: str) -> Callable[[float], None]:
         """A core progress callback mapped onto [lo, hi] that also checks ``cancel``."""
@@ -544,9 +565,10 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     predicting = stage(0.9 if method is Method.KOH else 0.5, 1.0, f"{method.label}: predicting")
     pred = model.predict(X_all, progress=predicting, executor=executor) \
         if isinstance(model, DiscrepancyModel) else model.predict(X_all, progress=predicting)
-    n_extra = 0 if X_extra is None else X_extra.shape[0]
-    on_extra = None if X_extra is None else DiscrepancyPrediction(*(a[:n_extra] for a in pred))
-    on_test = DiscrepancyPrediction(*(a[n_extra:] for a in pred))
+    n_new = X_all.shape[0] - case.X_test.shape[0]
+    on_extra = None if X_extra is None else \
+        DiscrepancyPrediction(*(a[extra_rows] for a in pred))
+    on_test = DiscrepancyPrediction(*(a[n_new:] for a in pred))
     importance = importance_diagnostics(model) if isinstance(model, DiscrepancyModel) \
         and method is Method.S3 else None
     chain = _chain_diagnostics(model) if isinstance(model, KOHModel) else None

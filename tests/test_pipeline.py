@@ -15,6 +15,7 @@ from mdcore.pipeline import (
     Method,
     MethodKey,
     Settings,
+    _union,
     importance_diagnostics,
     run_method,
     scores,
@@ -115,6 +116,27 @@ def test_scenario3_predictions_metrics_and_importance_against_references(beam):
     assert 1.0 <= imp.ess_phi[0] <= 20.0
     assert imp.low == (imp.ess[0] < 30.0,)
     assert importance_diagnostics(r.model) == imp
+
+
+def test_extra_inputs_that_are_test_inputs_are_predicted_once(beam):
+    """A plotting grid holding test inputs (beam-2d's is its test grid): those rows are the
+    test prediction itself, the others the model's prediction there, in the grid's order."""
+    case, hm = beam
+    new_points = np.array([[0.123], [0.5555], [0.123]])
+    grid = np.vstack([case.X_test[[17, 3]], new_points, case.X_test[[3]]])
+    X_all, rows = _union(grid, case.X_test)
+    assert X_all.shape == (3 + case.X_test.shape[0], 1)       # the new points, then X_test
+    np.testing.assert_array_equal(X_all[:3], new_points)
+    np.testing.assert_array_equal(X_all[rows], grid)
+    r = quiet(run_method, case, hm, Method.S3, SMALL, seed=1, X_extra=grid)
+    direct = quiet(r.model.predict, grid)
+    for extra, test, d in zip(r.on_extra, r.on_test, direct):
+        assert extra.shape == (6, 1)
+        np.testing.assert_array_equal(extra[[0, 1, 5]], test[[17, 3, 3]])
+        np.testing.assert_allclose(extra, d, rtol=1e-10, atol=1e-14)
+    none_new, rows = _union(case.X_test[::-1], case.X_test)
+    np.testing.assert_array_equal(none_new, case.X_test)
+    np.testing.assert_array_equal(rows, np.arange(case.X_test.shape[0])[::-1])
 
 
 def test_scenarios_1_and_2_have_no_importance_diagnostics_and_reuse_phi_hat(beam):

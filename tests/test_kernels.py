@@ -2,11 +2,13 @@
 of the GP core's invariants (hypothesis): symmetric PSD covariances, non-negative predictive
 variance, invariance to the order of the training points."""
 
+from unittest import mock
+
 import naive_gp
 import numpy as np
 import pytest
 
-from mdcore import gp
+from mdcore import gp, kernels
 from mdcore.kernels import kernel, matern32, matern32_and_dlog_ell, train_cov
 
 hypothesis = pytest.importorskip("hypothesis")
@@ -102,3 +104,25 @@ def test_training_covariance_and_predictions_at_new_inputs(problem, random):
     scale = 1.0 + np.max(np.abs(p.mean))
     np.testing.assert_allclose(q.mean, p.mean, rtol=1e-7, atol=1e-7 * scale)
     np.testing.assert_allclose(q.var, p.var, rtol=1e-6, atol=1e-9 * sf2)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(2, 50), st.integers(2, 40), st.integers(0, 5), st.integers(0, 2**32 - 1))
+def test_a_shared_y_gives_the_bits_of_the_gathered_one(b, N, d_y, seed):
+    """train_cov takes the differences of a Y shared by the batch (a broadcast view: a fit's
+    particles) once; its covariances are the very bits it gave when it gathered them by
+    indexing the view, and the values of the naive covariance."""
+    rng = np.random.default_rng(seed)
+    Y = np.broadcast_to(rng.normal(size=(N, d_y)), (b, N, d_y))
+    X = rng.normal(size=(N, 2))
+    theta = rng.normal(scale=0.5, size=(b, 4 + d_y))
+    z = rng.normal(size=N)
+    K = train_cov(theta, Y, X, border=z)
+    with mock.patch.object(kernels, "_pair_diffs",
+                           lambda Y, I, J: Y[:, I, :] - Y[:, J, :]):     # the gathering
+        gathered = train_cov(theta, Y, X, border=z)
+    np.testing.assert_array_equal(K, gathered)
+    j = int(rng.integers(b))
+    naive = naive_gp.cov(theta[j], Y[j], X, Y[j], X)
+    np.testing.assert_allclose(np.tril(K[j, :N, :N], -1), np.tril(naive, -1), rtol=1e-10,
+                               atol=1e-13)

@@ -76,11 +76,19 @@ class DiscrepancyPanel(LivePanel):
 
     state = param.ClassSelector(class_=ExplorerState)
     quantity = param.Selector(objects=list(QUANTITIES), default="z and δ", label="Show")
+    output = param.String(default="", label="Output",
+                          doc="The output whose bands are shown (cases with several outputs, "
+                              "e.g. shear-5's five modes: one at a time).")
 
     UPDATE_ON = ("results", "band", "busy", "scenarios")
 
     def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
+        self._outputs = pn.widgets.RadioButtonGroup(options=[""], value="")
+        self._outputs.param.watch(lambda e: setattr(self, "output", e.new), "value")
+        self._output_row = pn.Row(
+            pn.pane.HTML("<label>Output</label>", margin=(10, 0, 0, 10),
+                         css_classes=["group-label"]), self._outputs, visible=False)
         self._empty = pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
                                        css_classes=["disc-empty"])
         # The diagnostics' warnings stay beside the bands they concern (the notification
@@ -89,8 +97,8 @@ class DiscrepancyPanel(LivePanel):
         self._warnings_div.visible = False      # the Div's own (the pane copies the Div's)
         self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
         self._methods = pn.Row(sizing_mode="stretch_width")        # 1-D: one column each
-        self._layout.objects = [self._show, self._empty, self._warnings, self._head,
-                                self._methods]
+        self._layout.objects = [pn.Row(self._show, self._output_row), self._empty,
+                                self._warnings, self._head, self._methods]
         self._case = None
         self._truth = None
         #: (method, cell key) -> [pane, figure, payload last drawn]
@@ -99,7 +107,7 @@ class DiscrepancyPanel(LivePanel):
         self._pending: dict[Method, list] = {}   # a group's new panes, for _place
         self._head_fixed: list = []              # beam-2d: the slider and the truth map
         self.state.param.watch(self._slice_moved, "slice_x2")
-        self.param.watch(self._quantity_changed, "quantity")
+        self.param.watch(self._quantity_changed, ["quantity", "output"])
 
     # --- structure -----------------------------------------------------------------------
     def _rebuild(self, *_):
@@ -112,11 +120,14 @@ class DiscrepancyPanel(LivePanel):
         self._fitted: set = set()                # cell keys whose axes have been set
         self._methods.objects = []
         self._show.visible = c.d_x == 1
+        # One output at a time: shear-5's five modes side by side were 20-40 plots of a
+        # third of the page each, and every change redrew them all (a scenario run 4.3 s
+        # in Chromium, 75 canvases). Set with their events, so the buttons say so too.
+        self._outputs.param.update(options=list(c.output_names), value=c.output_names[0])
+        self._output_row.visible = c.d_x == 1 and c.n_out > 1
         if c.d_x == 1:
             self._head.objects = []
-            # Many outputs: δ only at first (z and δ of five modes is 40 plots). Set with
-            # its event, so the "Show" buttons say so too.
-            self.quantity = "δ" if c.n_out > 1 else "z and δ"
+            self.quantity = "z and δ"
         else:
             slider = pn.widgets.FloatSlider.from_param(self.state.param.slice_x2, step=0.001)
             truth = true_delta_figure(c, "disc-truth")          # None: δ is unknown
@@ -132,7 +143,10 @@ class DiscrepancyPanel(LivePanel):
         return [(o, q) for o in range(c.n_out) for q in ("z", "delta")]
 
     def _wanted(self, key) -> bool:
-        return self._case.d_x == 2 or key[1] in QUANTITIES[self.quantity]
+        """Whether the plot of cell ``key`` is shown: its quantity and its output are."""
+        c = self._case
+        return c.d_x == 2 or (key[1] in QUANTITIES[self.quantity]
+                              and c.output_names[key[0]] == self.output)
 
     def _ensure(self, method: Method) -> None:
         """Build the method's missing plots (those of the quantities shown) and its group."""
@@ -255,7 +269,8 @@ class DiscrepancyPanel(LivePanel):
                        {"color": "grey", "size": 4, "alpha": 0.6}),
                       (c.X_train[:, 0], c.z_train[:, o], "training data",
                        {"color": "black", "size": 7})]
-            return BandFigure(title=f"{label}: z (bias-corrected)", xname=x1,
+            of = f", {name}" if c.n_out > 1 else ""
+            return BandFigure(title=f"{label}: z{of} (bias-corrected)", xname=x1,
                               yname=axis_label(name, unit), color=color, label=label,
                               points=points, css_class=CSS, **self._linked(key))
         return BandFigure(title=f"{label}: δ" + (f", {name}" if c.n_out > 1 else ""),
@@ -356,5 +371,11 @@ class DiscrepancyPanel(LivePanel):
         self._fit_ranges()
         self._place()
         for (_method, key), cell in self._cells.items():
-            cell[0].visible = self._wanted(key)
+            # Hiding the pane hides its figure too; the pane copies its figure's visible
+            # when shown again, so the figure is shown first (else the pane read the
+            # figure's False and stayed hidden).
+            wanted = self._wanted(key)
+            if wanted:
+                cell[1].figure.visible = True
+            cell[0].visible = wanted
         self._update()

@@ -105,6 +105,8 @@ def test_hiding_a_method_or_a_quantity_changes_only_visibility(beam1d):
     assert len(shown) == 3 and all(p.object.title.text.endswith("δ") for p in shown)
     panel.quantity = "z and δ"
     assert {t: f.id for t, f in figures(root).items()} == before
+    # shown again: the panes and their figures (a pane re-reads its figure's visible)
+    assert all(cell[0].visible and cell[1].figure.visible for cell in panel._cells.values())
 
 
 def test_a_recompute_keeps_the_earlier_plots_dimmed_until_its_results_arrive(beam1d):
@@ -175,11 +177,41 @@ def test_a_case_switch_rebuilds_for_the_new_case(beam1d):
     s = run()
     panel = DiscrepancyPanel(state=s)
     s.case_name = "shear-5"
-    assert panel._groups == {} and panel._empty.visible and panel.quantity == "δ"
-    assert panel._show.value == "δ"                    # the buttons say what is shown
+    assert panel._groups == {} and panel._empty.visible and panel.quantity == "z and δ"
+    assert panel.output == "ω1" and panel._outputs.value == "ω1"   # buttons say what is shown
+    assert panel._outputs.options == ["ω1", "ω2", "ω3", "ω4", "ω5"]
+    assert panel._output_row.visible
     s.case_name = "beam-1d"                            # results kept per case come back
     assert set(panel._groups) == set(S123) and panel.quantity == "z and δ"
-    assert panel._show.value == "z and δ"
+    assert panel._show.value == "z and δ" and not panel._output_row.visible
+
+
+def test_several_outputs_are_shown_one_at_a_time():
+    """shear-5: the plots of the chosen output only (two per method, not ten), each the
+    result's bands for that output; a new choice builds its plots once, then only their
+    visibility changes."""
+    s = run("shear-5", n_s=10, n_phi=4)
+    panel = DiscrepancyPanel(state=s)
+    root = pn.panel(panel).get_root(Document())
+
+    def shown():
+        return {cell[1].figure.title.text: (o, q) for (m, (o, q)), cell in panel._cells.items()
+                if cell[0].visible}
+
+    assert set(shown()) == {f"{m.label}: {t}" for m in S123
+                            for t in ("z, ω1 (bias-corrected)", "δ, ω1")}
+    assert set(shown().values()) == {(0, "z"), (0, "delta")}
+    panel._outputs.value = "ω4"                       # as a click on the "ω4" button
+    assert panel.output == "ω4" and set(shown().values()) == {(3, "z"), (3, "delta")}
+    on_grid = s.results[Method.S3].on_extra
+    band = source(figures(root)["Scenario 3: δ, ω4"], "lower")
+    sd = 3 * np.sqrt(on_grid.delta_var[:, 3])
+    np.testing.assert_allclose(band["lower"], on_grid.delta_mean[:, 3] - sd, rtol=1e-12)
+    ids = {f.id for f in figures(root).values()}
+    panel._outputs.value = "ω1"
+    panel._outputs.value = "ω4"
+    assert {f.id for f in figures(root).values()} == ids    # built once per output
+    assert len(shown()) == 6
 
 
 def test_the_methods_plots_of_one_quantity_share_their_axes(beam1d):

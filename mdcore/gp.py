@@ -87,8 +87,8 @@ def check_problem(log_params, Y, X, z) -> Problem:
 
 
 @single_threaded_blas
-def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "numpy"
-                                ) -> np.ndarray:
+def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "numpy",
+                                jitter_log: JitterLog | None = None) -> np.ndarray:
     """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``.
 
     ``NLML = ½ zᵀ K⁻¹ z + Σ log L_ii + (N/2) log 2π`` with ``K = K_ff + σ_n² I``,
@@ -110,6 +110,11 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
         ``"auto"`` is numba when installed; ``None`` reads ``MDCORE_BACKEND``
         (:func:`mdcore.compiled.resolve_backend`). The scenario-3 paths of
         :mod:`mdcore.discrepancy` choose the compiled one by default.
+    jitter_log : JitterLog, optional
+        Receives the counts of jittered and failed matrices instead of a warning (for
+        callers that report them once, or not at all: an optimiser's trial points).
+        Warnings filters are process-wide, so silencing them with ``catch_warnings``
+        from several threads at once is not safe; this is.
 
     Returns
     -------
@@ -126,10 +131,10 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     """
     prob = check_problem(log_params, Y, X, z)
     if compiled.resolve_backend(backend) == "numba":
-        return compiled.nlml(prob.log_params, prob.Y, prob.X, prob.z)
+        return compiled.nlml(prob.log_params, prob.Y, prob.X, prob.z, jitter_log=jitter_log)
     N = prob.X.shape[0]
     out = np.empty(int(np.prod(prob.batch_shape, dtype=np.int64)))
-    log = JitterLog()
+    log = JitterLog() if jitter_log is None else jitter_log
     per_item = 8.0 * N * (4 * N + 2 * prob.Y.shape[-1] + 4)
 
     def work(sl, multi, n):
@@ -142,7 +147,8 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
         out[sl] = np.where(ok, val, np.inf)
 
     for_each_chunk(work, chunks(prob.batch_shape, per_item))
-    log.warn("neg_log_marginal_likelihood")
+    if jitter_log is None:
+        log.warn("neg_log_marginal_likelihood")
     return out.reshape(prob.batch_shape)
 
 
@@ -225,7 +231,8 @@ def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy
                         noise.reshape(batch))
 
 
-def nlml_and_gradient(log_params, Y, X, z) -> tuple[float, np.ndarray]:
+def nlml_and_gradient(log_params, Y, X, z, *, jitter_log: JitterLog | None = None
+                      ) -> tuple[float, np.ndarray]:
     """NLML (Eq. 9) and its analytic gradient for one hyperparameter vector.
 
     Uses ``∂NLML/∂φ = ½ tr((K⁻¹ − ααᵀ) ∂K/∂φ)``, ``α = K⁻¹ z`` (Rasmussen & Williams
@@ -237,6 +244,9 @@ def nlml_and_gradient(log_params, Y, X, z) -> tuple[float, np.ndarray]:
     Y : ndarray of shape (N, d_y)
     X : ndarray of shape (N, d_x)
     z : ndarray of shape (N,)
+    jitter_log : JitterLog, optional
+        As in :func:`neg_log_marginal_likelihood`: receives the jitter counts instead of
+        a warning.
 
     Returns
     -------
@@ -255,9 +265,10 @@ def nlml_and_gradient(log_params, Y, X, z) -> tuple[float, np.ndarray]:
     mx, dmx = matern32_and_dlog_ell(X, lx)
     Kf = sf**2 * my * mx
     K = Kf + sn**2 * np.eye(N)
-    log = JitterLog()
+    log = JitterLog() if jitter_log is None else jitter_log
     L, ok = cholesky(K[None], log)
-    log.warn("nlml_and_gradient")
+    if jitter_log is None:
+        log.warn("nlml_and_gradient")
     if not ok[0]:
         return np.inf, np.zeros_like(lp)
     cf = (L[0], True)

@@ -16,8 +16,9 @@ from typing import NamedTuple
 import numpy as np
 import scipy.optimize
 
-from .exceptions import ConvergenceWarning, NumericalWarning
+from .exceptions import ConvergenceWarning
 from .gp import check_problem, neg_log_marginal_likelihood, nlml_and_gradient
+from .linalg import JitterLog
 from .priors import GaussianPrior
 from .threads import single_threaded_blas
 from .validation import as_float_array, choose
@@ -202,16 +203,16 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
     lo, hi = b[:, 0], b[:, 1]
     rng = np.random.default_rng(seed)
 
+    # The trial points' jitter is not reported (a swarm tries ill-posed corners on
+    # purpose); a log, not catch_warnings, which is not safe with fits on several threads.
+    trials = JitterLog()
+
     def batch_objective(theta):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", NumericalWarning)
-            f = neg_log_marginal_likelihood(theta, Y, X, z)
+        f = neg_log_marginal_likelihood(theta, Y, X, z, jitter_log=trials)
         return f if log_prior is None else f - log_prior.logpdf(theta)
 
     def objective_and_grad(theta):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", NumericalWarning)
-            f, g = nlml_and_gradient(theta, Y, X, z)
+        f, g = nlml_and_gradient(theta, Y, X, z, jitter_log=trials)
         if log_prior is not None:
             f, g = f - float(log_prior.logpdf(theta)), g - log_prior.grad(theta)
         if not np.isfinite(f):
@@ -243,3 +244,4 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
         float(neg_log_marginal_likelihood(best, Y, X, z))
     return HyperFit(np.asarray(best, dtype=np.float64), nlml, float(best_f), method, evals,
                     converged)
+

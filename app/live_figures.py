@@ -62,15 +62,21 @@ class LivePanel(pn.viewable.Viewer):
     #: State parameters whose change calls ``_update``.
     UPDATE_ON: tuple[str, ...] = ()
 
-    def __init__(self, **params):
+    def __init__(self, *, shown_in: tuple | None = None, **params):
+        """``shown_in = (tabs, index)``: the panel is tab ``index`` of ``tabs`` and is
+        built only when that tab is shown (:meth:`defer_while_hidden`); a new session's
+        first page then builds the figures of the tab in view only."""
         super().__init__(**params)
         self._layout = pn.Column(sizing_mode="stretch_width")
+        self._case = None                        # the case drawn (set by _rebuild)
         self._setup()
         self._shown = lambda: True               # see defer_while_hidden
         self._stale = False                      # a case change waits for the tab
         self.state.param.watch(self._case_changed, "case")
         self.state.param.watch(self._state_changed, list(self.UPDATE_ON))
-        self._rebuild()
+        if shown_in is not None:
+            self.defer_while_hidden(*shown_in)
+        self._case_changed()
 
     def __panel__(self):
         return self._layout

@@ -122,13 +122,18 @@ class ExplorerView(pn.viewable.Viewer):
         super().__init__(**params)
         self.state.param.watch(self._notify_error, "n_errors")
         self.state.param.watch(self._notify_warning, "n_notices")
-        self._data = DataPanel(state=self.state)
+        # The live panels of a hidden tab are built (for a new session, or rebuilt for a
+        # new case) just before their tab is shown: the History-matching ones were half
+        # of a new session's 0.6 s of server time, for a tab not yet in view.
+        self._tabs = ShowingTabs(dynamic=True, sizing_mode="stretch_width")
+        self._data = DataPanel(state=self.state, shown_in=(self._tabs, 0))
         self._discrepancy = DiscrepancyPanel(state=self.state)
-        self._waves = WavesPanel(state=self.state)
-        self._calibration = CalibrationPanel(state=self.state)
+        self._waves = WavesPanel(state=self.state, shown_in=(self._tabs, 1))
+        self._calibration = CalibrationPanel(state=self.state, shown_in=(self._tabs, 1))
         self._status, self._status_div = live_text("hm-status")
         self.state.param.watch(self._show_status, ["status", "waves"])
         self._show_status()
+        self._fill_tabs()
 
     # --- events ------------------------------------------------------------------------
     def _notify_error(self, *_):
@@ -495,8 +500,8 @@ class ExplorerView(pn.viewable.Viewer):
         refresh()
         return box
 
-    def __panel__(self):
-        tabs = ShowingTabs(dynamic=True, sizing_mode="stretch_width")
+    def _fill_tabs(self) -> None:
+        tabs = self._tabs
         # Views rebuilt from scratch on a change are built only while their tab is shown,
         # else when it is next shown: Panel keeps updating a dynamic tab once it has been
         # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.
@@ -510,11 +515,9 @@ class ExplorerView(pn.viewable.Viewer):
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
             metrics, sizing_mode="stretch_width")
-        # A case switch rebuilds the live panels of the tab in view; the others when shown
-        self._data.defer_while_hidden(tabs, 0)
-        self._waves.defer_while_hidden(tabs, 1)
-        self._calibration.defer_while_hidden(tabs, 1)
         tabs.extend([("Data", self._data), ("History matching", hm_tab),
                      ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
                      ("Files", self.files_view()), ("Things to try", self.try_view())])
-        return pn.Row(self._controls(), tabs, sizing_mode="stretch_width")
+
+    def __panel__(self):
+        return pn.Row(self._controls(), self._tabs, sizing_mode="stretch_width")

@@ -88,6 +88,7 @@ def test_waves_then_scenarios_for_each_case(case):
     assert len(f) >= 2 and all(b <= a + 1e-12 for a, b in pairwise(f))    # non-increasing
     assert s.history_match.contains(s.case.theta_true)[0]     # the truth is never ruled out
     assert s.selected_wave == len(s.waves)
+    v._tabs.active = 1                       # the History matching tab: built when shown
     hm = glyph_data(render(v.waves_view))
     assert len(hm) >= len(s.waves)
     if s.case.p == 2:
@@ -463,6 +464,7 @@ def test_the_papers_missing_views_have_data():
         warnings.simplefilter("ignore")
         s.run_discrepancy()
     hm = s.history_match
+    v._tabs.active = 1                       # the History matching tab: built when shown
     cal = pn.panel(v.calibration_view)
     root = cal.get_root(Document())
     from bokeh.models import Div
@@ -516,6 +518,28 @@ def test_hidden_tabs_are_rebuilt_when_shown_not_on_every_change():
     (table,) = [o for o in metrics_box.select(pn.pane.DataFrame)
                 if "metrics-table" in o.css_classes]
     assert list(table.object["method"]) == ["Scenario 1", "Scenario 2", "Scenario 3"]
+
+
+def test_a_new_session_builds_the_live_panels_of_the_tab_in_view_only():
+    """A new page shows the Data tab: the History-matching panels are built when their tab
+    is first shown (they were half of a new session's server time)."""
+    from bokeh.models import Plot
+
+    s = small_state()
+    view = ExplorerView(state=s)
+    pn.panel(view).get_root(Document())
+    waves, calibration = view._waves, view._calibration
+
+    def plots(panel):
+        return [p for p in panel._layout.select(pn.pane.Bokeh) if isinstance(p.object, Plot)]
+
+    assert view._data._case is s.case and plots(view._data)
+    assert waves._stale and calibration._stale and not plots(waves)
+    s.run_to_convergence()                                  # hidden: nothing drawn yet
+    assert not plots(waves)
+    view._tabs.active = 1
+    assert not waves._stale and plots(waves) and plots(calibration)
+    assert waves._case is s.case
 
 
 def test_a_case_switch_rebuilds_only_the_live_panels_in_view():

@@ -27,6 +27,7 @@ from .live_figures import (
     live_figure,
     live_text,
     replace_data,
+    show_pane,
 )
 from .plots import THETA_MAP_COLOR, axis_label, input_span
 from .state import ExplorerState
@@ -114,7 +115,7 @@ class CalibrationPanel(LivePanel):
     """θ_MAP, the θ posterior per parameter and (1-D inputs) the simulator at θ_MAP."""
 
     state = param.ClassSelector(class_=ExplorerState)
-    UPDATE_ON = ("waves",)
+    UPDATE_ON = ("waves", "output")
 
     # --- structure -----------------------------------------------------------------------
     def _rebuild(self, *_):
@@ -124,17 +125,15 @@ class CalibrationPanel(LivePanel):
         self._posterior = [self._posterior_figure(j) for j in range(c.p)]
         objects = [self._text, pn.Row(*[figure_pane(f[0]) for f in self._posterior],
                                       sizing_mode="stretch_width")]
-        self._simulator = []
+        #: output -> (figure, curve source) of the simulator at θ_MAP (1-D input), built
+        #: when the output is first shown (state.output: one at a time)
+        self._simulator: dict[int, tuple] = {}
+        self._simulator_row = pn.Row(sizing_mode="stretch_width")
         if c.d_x == 1:
-            grid = input_grid(c)
-            truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
-            self._simulator = [self._simulator_figure(o, grid, truth) for o in range(c.n_out)]
-            objects.append(pn.pane.Markdown(
+            objects += [pn.pane.Markdown(
                 "**The simulator at θ_MAP against the data**: what is left between them is "
-                "the discrepancy δ (the RMSE is to the training data)."))
-            objects += [pn.Row(*[figure_pane(f[0]) for f in self._simulator[i:i + 3]],
-                               sizing_mode="stretch_width")
-                        for i in range(0, len(self._simulator), 3)]
+                "the discrepancy δ (the RMSE is to the training data)."),
+                self._simulator_row]
         self._objects = objects
         self._update()
 
@@ -185,6 +184,8 @@ class CalibrationPanel(LivePanel):
     # --- data ----------------------------------------------------------------------------
     def _update(self, *_):
         s, c = self.state, self._case
+        if c is not s.case:
+            return                               # a new case: its rebuild draws it all
         hm = s.history_match
         post = None if hm is None else theta_posterior(c, hm)
         if post is None:                         # no wave, or everything ruled out
@@ -201,15 +202,25 @@ class CalibrationPanel(LivePanel):
             item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
             fig.title.text = (f"{c.theta_names[j]}: θ_MAP = "
                               f"{number(theta_map[j], c.theta_units[j])}")
-        if self._simulator:
+        if c.d_x == 1:
             grid = input_grid(c)
+            shown = c.output_names.index(s.output) if s.output in c.output_names else 0
+            new = shown not in self._simulator
+            if new:
+                truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
+                fig, curve = self._simulator_figure(shown, grid, truth)
+                self._simulator[shown] = (fig, curve, figure_pane(fig))
             at_map = c.simulate(grid, theta_map)[0]                           # (G, n_out)
             at_data = c.simulate(c.X_train, theta_map)[0]                     # (N, n_out)
-            for o, (fig, curve) in enumerate(self._simulator):
+            for o, (fig, curve, _) in self._simulator.items():
                 replace_data(curve, {"x": grid[:, 0], "y": at_map[:, o]})
                 rmse = float(np.sqrt(np.mean((at_data[:, o] - c.z_train[:, o]) ** 2)))
                 # In the title: the legend's two columns must fit a third of 1280 px.
                 fig.title.text = (f"{c.output_names[o]} at θ_MAP (RMSE "
                                   f"{number(rmse, c.output_units[o])})")
+            for o, (_, _, pane) in self._simulator.items():
+                show_pane(pane, o == shown)
+            if new:                              # attached once drawn (see LivePanel)
+                self._simulator_row.objects = [cell[2] for cell in self._simulator.values()]
         if list(self._layout.objects) != self._objects:
             self._layout.objects = self._objects

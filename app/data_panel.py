@@ -16,7 +16,14 @@ from bokeh.palettes import RdBu11, Viridis256
 
 from mdcore.validation import as_float_array, check_positive
 
-from .live_figures import LivePanel, below_legend, figure_pane, live_figure, replace_data
+from .live_figures import (
+    LivePanel,
+    below_legend,
+    figure_pane,
+    live_figure,
+    replace_data,
+    show_pane,
+)
 from .plots import axis_label, input_span
 from .state import ExplorerState
 
@@ -63,56 +70,64 @@ def true_delta_figure(case, css_class: str):
 
 
 class DataPanel(LivePanel):
-    """Data, simulator at the true θ and true δ, per output (1-D input) or as maps
-    (beam-2d); the bars follow V_m in place."""
+    """Data, simulator at the true θ and true δ of the output shown (1-D input; a case
+    with several outputs shows one at a time, ``state.output``) or as maps (beam-2d); the
+    bars follow V_m in place."""
 
     state = param.ClassSelector(class_=ExplorerState)
-    UPDATE_ON = ("v_m",)
+    UPDATE_ON = ("v_m", "output")
 
     def _rebuild(self, *_):
         c = self.state.case
         self._case = c
-        self._bars: list[tuple[ColumnDataSource, np.ndarray, np.ndarray]] = []
+        #: output -> (bars source, x, z) of its training data
+        self._bars: dict[int, tuple[ColumnDataSource, np.ndarray, np.ndarray]] = {}
         self._titled: list = []            # (figure, output) whose title states the bars
-        figs = self._maps() if c.d_x == 2 else self._curves()
-        self._update()                       # drawn before it is attached (see LivePanel)
-        self._layout.objects = [
-            pn.Row(*[figure_pane(f) for f in figs[i:i + 2]], sizing_mode="stretch_width")
-            for i in range(0, len(figs), 2)]
+        #: output -> its row of panes (1-D input), built when the output is first shown
+        self._rows: dict[int, pn.Row] = {}
+        if c.d_x == 2:
+            figs = self._maps()
+            self._update()                   # drawn before it is attached (see LivePanel)
+            self._layout.objects = [pn.Row(*[figure_pane(f) for f in figs],
+                                           sizing_mode="stretch_width")]
+            return
+        self._layout.objects = []
+        self._update()
 
-    def _curves(self) -> list:
-        """1-D input: per output, the data with bars and the simulator, then the true δ."""
+    def _output(self) -> int:
+        names = self._case.output_names
+        return names.index(self.state.output) if self.state.output in names else 0
+
+    def _curves(self, o: int) -> list:
+        """1-D input, output o: the data with bars and the simulator, then the true δ."""
         c = self._case
         xname = axis_label(c.x_names[0], c.x_units[0])
         xs = np.linspace(*input_span(c, 0), GRID)[:, None]
         sim = None if c.theta_true is None else c.simulate(xs, c.theta_true)[0]
         delta = c.true_delta(xs)
-        figs = []
-        for o in range(c.n_out):
-            yname = axis_label(c.output_names[o], c.output_units[o])
-            fig = live_figure(f"{c.output_names[o]}: data and simulator", xname, yname, CSS)
-            bars = ColumnDataSource(error_bars(c.X_train[:, 0], c.z_train[:, o], 0.0))
-            self._bars.append((bars, c.X_train[:, 0], c.z_train[:, o]))
-            items = [
-                LegendItem(label="train ±2√(V_o+V_m)", renderers=[fig.segment(
-                    "x", "y0", "x", "y1", source=bars, line_color="black", line_alpha=0.5,
-                    line_width=2)]),
-                LegendItem(label="training data", renderers=[fig.scatter(
-                    c.X_train[:, 0], c.z_train[:, o], color="black", size=6)]),
-                LegendItem(label="test data", renderers=[fig.scatter(
-                    c.X_test[:, 0], c.z_test[:, o], color="grey", size=4, alpha=0.6)])]
-            if sim is not None:
-                items.append(LegendItem(label="simulator at true θ", renderers=[fig.line(
-                    xs[:, 0], sim[:, o], line_color=SIMULATOR_COLOR, line_width=2)]))
-            below_legend(fig, items, ncols=2)
-            figs.append(fig)
-            if delta is not None:
-                d = live_figure(f"true discrepancy δ, {c.output_names[o]}", xname,
-                                axis_label("δ " + c.output_names[o], c.output_units[o]), CSS)
-                d.line(xs[:, 0], delta[:, o], line_color=DELTA_COLOR, line_width=2,
-                       legend_label="true δ")
-                d.legend.location = "top_left"
-                figs.append(d)
+        yname = axis_label(c.output_names[o], c.output_units[o])
+        fig = live_figure(f"{c.output_names[o]}: data and simulator", xname, yname, CSS)
+        bars = ColumnDataSource(error_bars(c.X_train[:, 0], c.z_train[:, o], 0.0))
+        self._bars[o] = (bars, c.X_train[:, 0], c.z_train[:, o])
+        items = [
+            LegendItem(label="train ±2√(V_o+V_m)", renderers=[fig.segment(
+                "x", "y0", "x", "y1", source=bars, line_color="black", line_alpha=0.5,
+                line_width=2)]),
+            LegendItem(label="training data", renderers=[fig.scatter(
+                c.X_train[:, 0], c.z_train[:, o], color="black", size=6)]),
+            LegendItem(label="test data", renderers=[fig.scatter(
+                c.X_test[:, 0], c.z_test[:, o], color="grey", size=4, alpha=0.6)])]
+        if sim is not None:
+            items.append(LegendItem(label="simulator at true θ", renderers=[fig.line(
+                xs[:, 0], sim[:, o], line_color=SIMULATOR_COLOR, line_width=2)]))
+        below_legend(fig, items, ncols=2)
+        figs = [fig]
+        if delta is not None:
+            d = live_figure(f"true discrepancy δ, {c.output_names[o]}", xname,
+                            axis_label("δ " + c.output_names[o], c.output_units[o]), CSS)
+            line = d.line(xs[:, 0], delta[:, o], line_color=DELTA_COLOR, line_width=2)
+            below_legend(d, [LegendItem(label="true δ", renderers=[line])], ncols=1)
+            figs.append(d)
         return figs
 
     def _maps(self) -> list:
@@ -135,10 +150,22 @@ class DataPanel(LivePanel):
         return figs if delta is None else [*figs, delta]
 
     def _update(self, *_):
-        """The bars at ±2√(V_o + V_m) of the current V_m."""
+        """The output shown (built the first time), and the bars at ±2√(V_o + V_m) of the
+        current V_m."""
         c = self._case
+        if c is not self.state.case:
+            return                               # a new case: its rebuild draws it all
         half = 2.0 * np.sqrt(c.noise_var + self.state.v_m_vector())
-        for o, (source, x, z) in enumerate(self._bars):
+        shown = self._output()
+        new_row = c.d_x == 1 and shown not in self._rows
+        if new_row:
+            panes = [figure_pane(f) for f in self._curves(shown)]
+            self._rows[shown] = pn.Row(*panes, sizing_mode="stretch_width")
+        for o, (source, x, z) in self._bars.items():
             replace_data(source, error_bars(x, z, float(half[o])))
         for fig, o in self._titled:
             fig.title.text = f"training data (±2√(V_o+V_m) = ±{half[o]:.3g})"
+        for o, row in self._rows.items():
+            show_pane(row, o == shown)
+        if new_row:                              # attached once drawn (see LivePanel)
+            self._layout.objects = list(self._rows.values())

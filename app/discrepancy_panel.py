@@ -31,6 +31,7 @@ from .live_figures import (
     alert_box,
     figure_pane,
     live_text,
+    show_pane,
 )
 from .plots import METHOD_COLORS, axis_label
 from .state import ExplorerState, method_order
@@ -76,19 +77,11 @@ class DiscrepancyPanel(LivePanel):
 
     state = param.ClassSelector(class_=ExplorerState)
     quantity = param.Selector(objects=list(QUANTITIES), default="z and δ", label="Show")
-    output = param.String(default="", label="Output",
-                          doc="The output whose bands are shown (cases with several outputs, "
-                              "e.g. shear-5's five modes: one at a time).")
 
     UPDATE_ON = ("results", "band", "busy", "scenarios")
 
     def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
-        self._outputs = pn.widgets.RadioButtonGroup(options=[""], value="")
-        self._outputs.param.watch(lambda e: setattr(self, "output", e.new), "value")
-        self._output_row = pn.Row(
-            pn.pane.HTML("<label>Output</label>", margin=(10, 0, 0, 10),
-                         css_classes=["group-label"]), self._outputs, visible=False)
         self._empty = pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
                                        css_classes=["disc-empty"])
         # The diagnostics' warnings stay beside the bands they concern (the notification
@@ -97,8 +90,8 @@ class DiscrepancyPanel(LivePanel):
         self._warnings_div.visible = False      # the Div's own (the pane copies the Div's)
         self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
         self._methods = pn.Row(sizing_mode="stretch_width")        # 1-D: one column each
-        self._layout.objects = [pn.Row(self._show, self._output_row), self._empty,
-                                self._warnings, self._head, self._methods]
+        self._layout.objects = [self._show, self._empty, self._warnings, self._head,
+                                self._methods]
         self._case = None
         self._truth = None
         #: (method, cell key) -> [pane, figure, payload last drawn]
@@ -107,7 +100,8 @@ class DiscrepancyPanel(LivePanel):
         self._pending: dict[Method, list] = {}   # a group's new panes, for _place
         self._head_fixed: list = []              # beam-2d: the slider and the truth map
         self.state.param.watch(self._slice_moved, "slice_x2")
-        self.param.watch(self._quantity_changed, ["quantity", "output"])
+        self.param.watch(self._quantity_changed, "quantity")
+        self.state.param.watch(self._quantity_changed, "output")
 
     # --- structure -----------------------------------------------------------------------
     def _rebuild(self, *_):
@@ -120,11 +114,9 @@ class DiscrepancyPanel(LivePanel):
         self._fitted: set = set()                # cell keys whose axes have been set
         self._methods.objects = []
         self._show.visible = c.d_x == 1
-        # One output at a time: shear-5's five modes side by side were 20-40 plots of a
-        # third of the page each, and every change redrew them all (a scenario run 4.3 s
-        # in Chromium, 75 canvases). Set with their events, so the buttons say so too.
-        self._outputs.param.update(options=list(c.output_names), value=c.output_names[0])
-        self._output_row.visible = c.d_x == 1 and c.n_out > 1
+        # One output at a time (state.output): shear-5's five modes side by side were 20-40
+        # plots of a third of the page each, and every change redrew them all (a scenario
+        # run 4.3 s in Chromium, 75 canvases). Set with its event, so the buttons say so.
         if c.d_x == 1:
             self._head.objects = []
             self.quantity = "z and δ"
@@ -146,7 +138,7 @@ class DiscrepancyPanel(LivePanel):
         """Whether the plot of cell ``key`` is shown: its quantity and its output are."""
         c = self._case
         return c.d_x == 2 or (key[1] in QUANTITIES[self.quantity]
-                              and c.output_names[key[0]] == self.output)
+                              and c.output_names[key[0]] == self.state.output)
 
     def _ensure(self, method: Method) -> None:
         """Build the method's missing plots (those of the quantities shown) and its group."""
@@ -363,19 +355,13 @@ class DiscrepancyPanel(LivePanel):
                     self._send(method, 2)
 
     def _quantity_changed(self, *_):
-        if self._case.d_x == 2:
-            return
+        if self._case is not self.state.case or self._case.d_x == 2:
+            return                               # a new case: its rebuild draws it all
         for method in list(self._groups):
             if method in self.state.results:
                 self._ensure(method)             # a quantity shown for the first time
         self._fit_ranges()
         self._place()
         for (_method, key), cell in self._cells.items():
-            # Hiding the pane hides its figure too; the pane copies its figure's visible
-            # when shown again, so the figure is shown first (else the pane read the
-            # figure's False and stayed hidden).
-            wanted = self._wanted(key)
-            if wanted:
-                cell[1].figure.visible = True
-            cell[0].visible = wanted
+            show_pane(cell[0], self._wanted(key))
         self._update()

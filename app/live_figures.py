@@ -43,6 +43,21 @@ def figure_pane(fig, height: int = 300) -> pn.pane.Bokeh:
     return pn.pane.Bokeh(fig, height=height, sizing_mode="stretch_width")
 
 
+def show_pane(pane, shown: bool) -> None:
+    """Show or hide a Panel object in place (its ``visible``).
+
+    A Bokeh pane copies the visibility of the model it wraps: shown again (``visible``
+    back to its default), it re-read its figure's ``False`` and stayed hidden. So the
+    figures inside are shown first.
+    """
+    if shown:
+        for child in pane.select(pn.pane.Bokeh):
+            if child.object is not None:
+                child.object.visible = True
+    if pane.visible != shown:
+        pane.visible = shown
+
+
 class LivePanel(pn.viewable.Viewer):
     """A view of the app's state whose figures are built per case and then updated in
     place.

@@ -161,6 +161,10 @@ class ExplorerState(param.Parameterized):
 
     # --- case and history-matching controls -------------------------------------------
     case_name = param.Selector(objects=list(cases.names()), default="beam-1d", label="Case study")
+    output = param.String(default="", label="Output",
+                          doc="The output whose plots are shown, for cases with several "
+                              "(shear-5's five modes): one at a time, so each plot is "
+                              "readable and a change redraws a few plots, not all.")
     preset = param.Selector(
         objects=["teaching", "paper"], default="teaching", label="Preset",
         doc="teaching: a wave-1 design of a few runs and a strict convergence rule, so you "
@@ -282,6 +286,7 @@ class ExplorerState(param.Parameterized):
         self._problem, self._problem_key, self._cache = None, None, {}
         with param.parameterized.batch_call_watchers(self):
             self.case = case
+            self.output = case.output_names[0]
             self.grid = plotting_grid(case)
             self.v_m = float(case.V_m[0])
             self._apply_preset()

@@ -147,8 +147,9 @@ class ExplorerView(pn.viewable.Viewer):
     # --- controls ----------------------------------------------------------------------
     def _controls(self):
         s = self.state
-        w = pn.Param(s.param, parameters=["case_name"], show_name=False,
-                     widgets={"case_name": pn.widgets.Select})
+        w = pn.Column(pn.Param(s.param, parameters=["case_name"], show_name=False,
+                               widgets={"case_name": pn.widgets.Select}),
+                      self._output_choice(), sizing_mode="stretch_width", margin=0)
         hm = pn.Column(
             self._choice("preset"),
             self._number_input("v_m", pn.widgets.FloatInput, step=0.005, format="0.[0000]"),
@@ -192,6 +193,34 @@ class ExplorerView(pn.viewable.Viewer):
         bare group of buttons does not say what it chooses)."""
         p = self.state.param[name]
         widget = cls.from_param(p, name="", description=None, sizing_mode="stretch_width")
+        return self._labelled(name, widget)
+
+    def _output_choice(self) -> pn.Column:
+        """Buttons for the output the tabs show (``state.output``), under the case: only for
+        a case with several outputs. The options follow the case."""
+        s = self.state
+        buttons = pn.widgets.RadioButtonGroup(options=list(s.case.output_names),
+                                              value=s.output, sizing_mode="stretch_width",
+                                              css_classes=["output-choice"])
+        box = self._labelled("output", buttons)
+        box.visible = s.case.n_out > 1
+
+        def from_state(*_):
+            names = list(s.case.output_names)
+            buttons.param.update(options=names, value=s.output)
+            box.visible = len(names) > 1
+
+        def to_state(event):
+            if event.new in s.case.output_names:    # not the None of an options change
+                s.output = event.new
+
+        buttons.param.watch(to_state, "value")
+        s.param.watch(from_state, ["case", "output"])
+        return box
+
+    def _labelled(self, name: str, widget) -> pn.Column:
+        """``widget`` with the label (and the doc as a tooltip) of the state's ``name``."""
+        p = self.state.param[name]
         label = pn.pane.HTML(f"<label>{html.escape(p.label)}</label>", margin=(5, 0, 0, 10),
                              css_classes=["group-label"])
         head = pn.Row(label, pn.widgets.TooltipIcon(value=p.doc, margin=(5, 0, 0, 0))) \

@@ -75,3 +75,35 @@ def test_no_true_delta_map_when_delta_is_unknown():
 
     assert true_delta_figure(Unknown(), "x") is None
     assert true_delta_figure(c, "x") is not None
+
+
+def test_several_outputs_are_shown_one_at_a_time_with_their_bars():
+    """shear-5: the data and true δ of the output shown (two plots, not ten); another output
+    is built when first shown, its bars at ±2√(V_o + V_m) of that output, then a V_m change
+    moves the bars of every built output in place."""
+    s = ExplorerState(case_name="shear-5")
+    panel = DataPanel(state=s)
+    c = s.case
+
+    def shown():
+        return [p.object for row in panel._layout.objects if row.visible
+                for p in row.select(pn.pane.Bokeh) if p.object.visible]
+
+    def bars(o):
+        (fig,) = [f for f in shown() if f.title.text == f"{c.output_names[o]}: data and simulator"]
+        (data,) = [r.data_source.data for r in fig.select({"type": GlyphRenderer})
+                   if "y0" in r.data_source.data]
+        return data
+
+    assert [f.title.text for f in shown()] == ["ω1: data and simulator", "true discrepancy δ, ω1"]
+    s.output = "ω3"
+    assert [f.title.text for f in shown()] == ["ω3: data and simulator", "true discrepancy δ, ω3"]
+    half = 2 * np.sqrt(c.noise_var + s.v_m_vector())
+    np.testing.assert_allclose(bars(2)["y1"] - c.z_train[:, 2], half[2], rtol=1e-12)
+    built = {p.object.id for p in panel._layout.select(pn.pane.Bokeh)}
+    assert len(built) == 4
+    s.v_m = 2 * s.v_m
+    s.output = "ω1"
+    assert {p.object.id for p in panel._layout.select(pn.pane.Bokeh)} == built   # kept
+    half = 2 * np.sqrt(c.noise_var + s.v_m_vector())
+    np.testing.assert_allclose(bars(0)["y1"] - c.z_train[:, 0], half[0], rtol=1e-12)

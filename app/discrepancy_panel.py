@@ -3,7 +3,8 @@
 Each plot is a Bokeh figure built once (:mod:`.live_figures`): new results, a new band or a
 new beam-2d slice replace the arrays of the figures they change, and the browser redraws
 those glyphs; no layout is rebuilt. Hiding a method or a quantity only changes a
-visibility (a 1-D case's hidden method keeps its column's place, empty: see :data:`SLOT`).
+visibility (a hidden method keeps its column's, or beam-2d's row's, place, empty: see
+:data:`SLOT`).
 The plots of a method are built when its first result arrives (and a quantity's when it
 is first shown); everything is rebuilt only when the case changes.
 
@@ -47,8 +48,8 @@ STALE_OPACITY = "0.45"
 CURRENT = {"opacity": "1", "visibility": "visible"}
 #: ... of the earlier plots while their recompute runs.
 STALE = {"opacity": STALE_OPACITY, "visibility": "visible"}
-#: ... of a 1-D case's method column hidden by the scenario buttons while its result is
-#: kept: the column keeps its place, so nothing else moves or resizes. Collapsing it made
+#: ... of a method's column (beam-2d: row) hidden by the scenario buttons while its result
+#: is kept: it keeps its place, so nothing else moves or resizes. Collapsing it made
 #: the browser re-lay-out and repaint every other plot (0.6-0.9 s on shear-5's 20 plots);
 #: this is a style change (0.05 s).
 SLOT = {"opacity": "1", "visibility": "hidden"}
@@ -325,13 +326,13 @@ class DiscrepancyPanel(LivePanel):
         # A recompute is running (the new settings cleared the results): keep the earlier
         # plots, dimmed, until the new ones arrive.
         stale = s.busy and not s.results
-        kept = s.held_results() if self._case.d_x == 1 else {}
+        kept = s.held_results()
         for method, group in self._groups.items():
             if method in s.results:
                 visible, styles = True, CURRENT
             elif stale and method in s.scenarios:
                 visible, styles = True, STALE
-            else:                  # hidden by the buttons: its column stays, empty (1-D)
+            else:                  # hidden by the buttons: its place stays, empty
                 visible, styles = method in kept and method not in s.scenarios, SLOT
             if group.visible != visible:
                 group.visible = visible

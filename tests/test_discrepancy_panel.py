@@ -171,6 +171,11 @@ def test_beam_2d_maps_and_slice_follow_the_band_and_the_slider():
     truth = s.case.true_delta(np.column_stack([u1, np.full_like(u1, u2[row])]))[:, 0]
     np.testing.assert_allclose(source(figures(root)[title], "y")["y"], truth, rtol=1e-12)
     assert {f.id for f in figures(root).values()} == set(before.values())
+    s.scenarios = [Method.S1, Method.S3]           # S2's row keeps its place, empty
+    assert panel._groups[Method.S2].visible and panel._groups[Method.S2].styles == SLOT
+    s.scenarios = S123
+    assert panel._groups[Method.S2].styles == CURRENT
+    assert {f.id for f in figures(root).values()} == set(before.values())
 
 
 def test_a_case_switch_rebuilds_for_the_new_case(beam1d):

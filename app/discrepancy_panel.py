@@ -122,7 +122,11 @@ class DiscrepancyPanel(LivePanel):
             self._head.objects = []
             self.quantity = "z and δ"
         else:
-            slider = pn.widgets.FloatSlider.from_param(self.state.param.slice_x2, step=0.001)
+            # Steps of the grid's rows, shown to 4 decimals: the value is the row drawn
+            u2 = np.unique(self.state.grid[:, 1])
+            slider = pn.widgets.FloatSlider.from_param(
+                self.state.param.slice_x2, step=float(u2[1] - u2[0]) if u2.size > 1 else 0.001,
+                format="0.0000")
             truth = true_delta_figure(c, "disc-truth")          # None: δ is unknown
             self._head_fixed = [slider] + ([] if truth is None else [figure_pane(truth)])
             self._head.objects = list(self._head_fixed)
@@ -299,8 +303,7 @@ class DiscrepancyPanel(LivePanel):
             row = int(np.argmin(np.abs(u2 - data[2])))      # nearest grid row to the slice
             truth = None if self._truth is None else self._truth.reshape(shape)[row]
             fig.show(u1, mean[row], var[row], k, reference=truth,
-                     title=f"{label}: slice at {c.x_names[1]} = {u2[row]:.4f} "
-                           f"{c.x_units[1]}")
+                     title=f"{label}: δ, {c.x_names[1]} {u2[row]:.4f} {c.x_units[1]}")
 
     def _send(self, method: Method, key) -> None:
         cell = self._cells[method, key]

@@ -26,7 +26,15 @@ from mdcore_app.views import ExplorerView
 # through getComputedStyle while it paints, and Bootstrap's style sheets in every
 # component's shadow root made each of those style recalculations 3-6x dearer (shear-5:
 # 1.5 s of a scenario toggle's 2.2 s of browser time).
-pn.extension("filedropper", notifications=True)
+# The notifications live outside Bokeh's shadow roots, where Panel's font variable
+# (--bokeh-base-font) is not defined: they came out in the browser's serif. A narrower
+# toast also covers less of the plots while it fades.
+NOTIFICATION_CSS = """
+.notyf__message { font-family: -apple-system, BlinkMacSystemFont, "Segoe UI", Roboto,
+                  "Helvetica Neue", Arial, sans-serif; font-size: 13px; line-height: 1.35; }
+.notyf__toast { max-width: 380px !important; }
+"""
+pn.extension("filedropper", notifications=True, raw_css=[NOTIFICATION_CSS])
 hv.extension("bokeh")
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()

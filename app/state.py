@@ -294,7 +294,8 @@ class ExplorerState(param.Parameterized):
             if case.d_x == 2:
                 self.param.slice_x2.bounds = (float(case.X_train[:, 1].min()),
                                               float(case.X_train[:, 1].max()))
-                self.slice_x2 = float(np.median(case.X_train[:, 1]))
+                u2 = np.unique(self.grid[:, 1])     # a row of the grid: the one drawn
+                self.slice_x2 = float(u2[np.argmin(np.abs(u2 - np.median(case.X_train[:, 1])))])
             self.waves = ()
             self.implausibility_maps = {}
             self.results = {}

@@ -163,7 +163,7 @@ def test_beam_2d_maps_and_slice_follow_the_band_and_the_slider():
     assert source(figures(root)["Scenario 3: δ sd (σ)"], "image")["image"][0] is sd
     row = 3
     s.slice_x2 = float(u2[row])
-    (title,) = [t for t in figures(root) if t.startswith("Scenario 3: slice")]
+    (title,) = [t for t in figures(root) if t.startswith("Scenario 3: δ, crack length")]
     assert f"{u2[row]:.4f}" in title
     sliced = source(figures(root)[title], "mean")
     np.testing.assert_allclose(sliced["x"], u1)

@@ -313,6 +313,15 @@ class ExplorerState(param.Parameterized):
         own = self._own.get(self.case_name)
         return self.case_name if own is None else (own[1] or self.case_name)
 
+    @param.depends("output", watch=True)
+    def _check_output(self):
+        """An output the case does not have: one notification, and the first output."""
+        names = self.case.output_names
+        if self.output not in names:
+            bad, self.output = self.output, names[0]
+            self.report_error(f"Output: {bad!r} is not an output of {self.case.name}; it "
+                              f"has {', '.join(names)}. Showing {names[0]}.")
+
     @param.depends("preset", watch=True)
     def _apply_preset(self):
         """Runs per wave, convergence ratio and max waves of the preset (the wave-1

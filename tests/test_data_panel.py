@@ -107,3 +107,11 @@ def test_several_outputs_are_shown_one_at_a_time_with_their_bars():
     assert {p.object.id for p in panel._layout.select(pn.pane.Bokeh)} == built   # kept
     half = 2 * np.sqrt(c.noise_var + s.v_m_vector())
     np.testing.assert_allclose(bars(0)["y1"] - c.z_train[:, 0], half[0], rtol=1e-12)
+
+
+def test_an_output_the_case_does_not_have_is_refused_with_a_notification():
+    s = ExplorerState(case_name="shear-5")
+    s.output = "ω3"
+    s.output = "ω9"
+    assert s.output == "ω1" and s.n_errors == 1
+    assert "'ω9' is not an output of shear-5" in s.error and "ω1, ω2, ω3, ω4, ω5" in s.error

@@ -28,7 +28,7 @@ from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
-from .live_figures import alert_box, live_text
+from .live_figures import alert_box, figure_pane, live_text
 from .report import report_html
 from .session import MAX_UPLOAD_BYTES
 from .state import ExplorerState, method_order
@@ -345,9 +345,7 @@ class ExplorerView(pn.viewable.Viewer):
         if not shown:
             return pn.pane.Markdown("No scenario has run yet.")
         df = metrics_frame(s.case, shown)
-        chart = pn.pane.HoloViews(
-            plots.metrics_chart(s.case, shown, PAPER.get(s.base_case_name())),
-            sizing_mode="stretch_width", height=300, css_classes=["metrics-chart"])
+        chart = figure_pane(plots.metrics_chart(s.case, shown, PAPER.get(s.base_case_name())))
         table = pn.pane.DataFrame(df.drop(columns=list(DIAGNOSTICS)), index=False,
                                   float_format="{:.4g}".format, sizing_mode="stretch_width",
                                   css_classes=["metrics-table"])
@@ -362,16 +360,16 @@ class ExplorerView(pn.viewable.Viewer):
                                        index=False, float_format="{:.4g}".format,
                                        css_classes=["diagnostics-table"])]
         if Method.S3 in shown:
-            phi = plots.phi_posterior(s.case, shown[Method.S3], output=0)
+            o = s.case.output_names.index(s.output) if s.output in s.case.output_names else 0
+            phi = plots.phi_posterior(s.case, shown[Method.S3], output=o)
             objs.append(pn.pane.Markdown(
                 "**Scenario 3: the GP hyperparameters φ, posterior (weighted draws) against "
-                f"prior** (the paper's Figs 6, 9, 16; output {s.case.output_names[0]})."))
+                f"prior** (the paper's Figs 6, 9, 16; output {s.case.output_names[o]})."))
             # Two a row, the legend below: four a row at 1280 px clipped the titles and
             # axis labels, and a legend inside covered the histogram.
             for i in range(0, len(phi), 2):
-                objs.append(pn.Row(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
-                                                       height=300, css_classes=["phi-plot"])
-                                     for o in phi[i:i + 2]], sizing_mode="stretch_width"))
+                objs.append(pn.Row(*[figure_pane(f) for f in phi[i:i + 2]],
+                                   sizing_mode="stretch_width"))
         if Method.KOH not in shown:
             return pn.Column(*objs, sizing_mode="stretch_width")
         r = shown[Method.KOH]
@@ -534,7 +532,7 @@ class ExplorerView(pn.viewable.Viewer):
         # Views rebuilt from scratch on a change are built only while their tab is shown,
         # else when it is next shown: Panel keeps updating a dynamic tab once it has been
         # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.
-        metrics = self._shown_only(tabs, 3, self.metrics_view, ["results"])
+        metrics = self._shown_only(tabs, 3, self.metrics_view, ["results", "output"])
         hm_tab = pn.Column(self.status_view, self.waves_view,
                            self.calibration_view, sizing_mode="stretch_width")
         metrics_tab = pn.Column(

@@ -477,8 +477,8 @@ def test_the_papers_missing_views_have_data():
     assert stars and all(np.array_equal(pt, hm.theta_map) for pt in stars)
     metrics = pn.panel(v.metrics_view)
     mroot = metrics.get_root(Document())
-    assert metrics.select(lambda o: "metrics-chart" in getattr(o, "css_classes", []))
-    phi = [o for o in metrics.select(pn.pane.HoloViews) if "phi-plot" in o.css_classes]
+    assert [o for o in metrics.select(pn.pane.Bokeh) if "metrics-chart" in o.object.css_classes]
+    phi = [o for o in metrics.select(pn.pane.Bokeh) if "phi-plot" in o.object.css_classes]
     assert len(phi) == s.case.phi_prior.mean.size               # one per φ component
     assert all(d for d in glyph_data(mroot))
 
@@ -584,3 +584,23 @@ def test_status_line_is_one_pane_whose_text_and_colour_change():
     s.status = "a <b>tag</b> & more"
     assert "a &lt;b&gt;tag&lt;/b&gt; &amp; more" in v.status_html
 
+
+
+def test_the_phi_posterior_follows_the_output_shown():
+    """shear-5: scenario 3's φ posterior (Metrics tab) is the chosen output's, each plot
+    a Bokeh figure titled with it."""
+    s = small_state("shear-5", n_s=10, n_phi=4)
+    v = ExplorerView(state=s)
+    s.scenarios = [Method.S3]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s.run_discrepancy()
+
+    def titles():
+        return [p.object.title.text for p in pn.panel(v.metrics_view()).select(pn.pane.Bokeh)
+                if "phi-plot" in p.object.css_classes]
+
+    P = s.case.phi_prior.mean.size
+    assert len(titles()) == P and all(t.startswith("ω1: ") for t in titles())
+    s.output = "ω3"
+    assert len(titles()) == P and all(t.startswith("ω3: ") for t in titles())

@@ -296,6 +296,9 @@ def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_hm, n_
         assert_drawn(page, ".disc-plot", n_disc)
     tab(page, "Metrics")
     assert page.wait_for_selector(".metrics-table table", timeout=30_000).inner_text()
+    assert_drawn(page, ".metrics-chart", 1)           # the chart, and scenario 3's φ
+    assert_drawn(page, ".phi-plot", 4)                # posteriors (4 to 8 components)
+    page.screenshot(path=str(ARTIFACTS / f"tabs-{case}-metrics.png"), full_page=True)
     assert log.errors == []
     assert log.hosts <= {"127.0.0.1", "localhost"}, log.hosts
     page.close()

@@ -1,6 +1,6 @@
-"""The plotting functions of issue 17's missing views, rendered to Bokeh and checked in numbers.
+"""The plotting functions of issue 17's missing views, as Bokeh figures checked in numbers.
 
-Each plot is rendered with ``hv.render``; its glyphs are found by legend label and their data
+Each plot is a Bokeh figure (HoloViews ones are rendered with ``hv.render``); its glyphs are found by legend label and their data
 sources are compared with independent computations from mdcore: scenario 3's importance
 weights and prior, and the metrics. (θ_MAP, the θ posterior and the simulator at θ_MAP are
 live figures: tests/test_calibration_panel.py and tests/test_waves_panel.py.)
@@ -14,6 +14,7 @@ import pytest
 
 pytest.importorskip("holoviews")
 import holoviews as hv  # noqa: E402
+from bokeh.model import Model  # noqa: E402
 from bokeh.models import GlyphRenderer  # noqa: E402
 from legends import legend  # noqa: E402
 
@@ -30,8 +31,9 @@ hv.extension("bokeh")
 # --- helpers -----------------------------------------------------------------------------
 
 def render(obj):
-    """The Bokeh figure of ``obj``; every glyph renderer must have non-empty data."""
-    fig = hv.render(obj)
+    """The Bokeh figure of ``obj`` (a figure, or a HoloViews element rendered); every glyph
+    renderer must have non-empty data."""
+    fig = obj if isinstance(obj, Model) else hv.render(obj)
     renderers = list(fig.select({"type": GlyphRenderer}))
     assert renderers, "the plot has no glyphs"
     for r in renderers:

@@ -157,6 +157,9 @@ def test_metrics_chart_bars_are_the_metrics_and_markers_the_paper(beam, results)
             assert len(i) == 1 and marks["NMSE [%]"][i[0]] == paper[metric][m.value]
             assert abs(bars["left"][g] - g) < 0.5
     assert fig.y_scale.__class__.__name__ == "LogScale"
+    ticks = fig.yaxis[0].ticker.ticks                  # 1-2-5 in the axis's decades
+    assert ticks and all(fig.y_range.start <= t <= fig.y_range.end for t in ticks)
+    assert {round(t / 10 ** np.floor(np.log10(t)), 9) for t in ticks} <= {1.0, 2.0, 5.0}
 
 
 def test_metrics_chart_groups_by_output_and_shares_the_reports_pairing():

@@ -27,7 +27,7 @@ from .live_figures import (
     live_figure,
     live_text,
     replace_data,
-    show_pane,
+    show_only,
 )
 from .plots import THETA_MAP_COLOR, axis_label, input_span
 from .state import ExplorerState
@@ -204,7 +204,7 @@ class CalibrationPanel(LivePanel):
                               f"{number(theta_map[j], c.theta_units[j])}")
         if c.d_x == 1:
             grid = input_grid(c)
-            shown = c.output_names.index(s.output) if s.output in c.output_names else 0
+            shown = s.output_index
             new = shown not in self._simulator
             if new:
                 truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
@@ -218,9 +218,7 @@ class CalibrationPanel(LivePanel):
                 # In the title: the legend's two columns must fit a third of 1280 px.
                 fig.title.text = (f"{c.output_names[o]} at θ_MAP (RMSE "
                                   f"{number(rmse, c.output_units[o])})")
-            for o, (_, _, pane) in self._simulator.items():
-                show_pane(pane, o == shown)
-            if new:                              # attached once drawn (see LivePanel)
-                self._simulator_row.objects = [cell[2] for cell in self._simulator.values()]
+            show_only({o: cell[2] for o, cell in self._simulator.items()}, shown,
+                      self._simulator_row, attach=new)
         if list(self._layout.objects) != self._objects:
             self._layout.objects = self._objects

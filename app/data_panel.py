@@ -22,7 +22,7 @@ from .live_figures import (
     figure_pane,
     live_figure,
     replace_data,
-    show_pane,
+    show_only,
 )
 from .plots import axis_label, input_span
 from .state import ExplorerState
@@ -94,10 +94,6 @@ class DataPanel(LivePanel):
         self._layout.objects = []
         self._update()
 
-    def _output(self) -> int:
-        names = self._case.output_names
-        return names.index(self.state.output) if self.state.output in names else 0
-
     def _curves(self, o: int) -> list:
         """1-D input, output o: the data with bars and the simulator, then the true δ."""
         c = self._case
@@ -156,7 +152,7 @@ class DataPanel(LivePanel):
         if c is not self.state.case:
             return                               # a new case: its rebuild draws it all
         half = 2.0 * np.sqrt(c.noise_var + self.state.v_m_vector())
-        shown = self._output()
+        shown = self.state.output_index
         new_row = c.d_x == 1 and shown not in self._rows
         if new_row:
             panes = [figure_pane(f) for f in self._curves(shown)]
@@ -165,7 +161,5 @@ class DataPanel(LivePanel):
             replace_data(source, error_bars(x, z, float(half[o])))
         for fig, o in self._titled:
             fig.title.text = f"training data (±2√(V_o+V_m) = ±{half[o]:.3g})"
-        for o, row in self._rows.items():
-            show_pane(row, o == shown)
-        if new_row:                              # attached once drawn (see LivePanel)
-            self._layout.objects = list(self._rows.values())
+        if c.d_x == 1:
+            show_only(self._rows, shown, self._layout, attach=new_row)

@@ -143,7 +143,7 @@ class DiscrepancyPanel(LivePanel):
         """Whether the plot of cell ``key`` is shown: its quantity and its output are."""
         c = self._case
         return c.d_x == 2 or (key[1] in QUANTITIES[self.quantity]
-                              and c.output_names[key[0]] == self.state.output)
+                              and key[0] == self.state.output_index)
 
     def _ensure(self, method: Method) -> None:
         """Build the method's missing plots (those of the quantities shown) and its group."""
@@ -261,16 +261,16 @@ class DiscrepancyPanel(LivePanel):
                              diverging=key == 0, css_class=CSS)
         o, q = key
         name, unit = c.output_names[o], c.output_units[o]
+        of = f", {name}" if c.n_out > 1 else ""            # which output, when several
         if q == "z":
             points = [(c.X_test[:, 0], c.z_test[:, o], "test data",
                        {"color": "grey", "size": 4, "alpha": 0.6}),
                       (c.X_train[:, 0], c.z_train[:, o], "training data",
                        {"color": "black", "size": 7})]
-            of = f", {name}" if c.n_out > 1 else ""
             return BandFigure(title=f"{label}: z{of} (bias-corrected)", xname=x1,
                               yname=axis_label(name, unit), color=color, label=label,
                               points=points, css_class=CSS, **self._linked(key))
-        return BandFigure(title=f"{label}: δ" + (f", {name}" if c.n_out > 1 else ""),
+        return BandFigure(title=f"{label}: δ{of}",
                           xname=x1, yname=axis_label("δ " + name, unit), color=color,
                           label=label, reference=None if self._truth is None else "true δ",
                           css_class=CSS, **self._linked(key))

@@ -49,13 +49,39 @@ def show_pane(pane, shown: bool) -> None:
     A Bokeh pane copies the visibility of the model it wraps: shown again (``visible``
     back to its default), it re-read its figure's ``False`` and stayed hidden. So the
     figures inside are shown first.
+
+    Raises
+    ------
+    ValueError
+        If ``pane`` is not a Panel object or ``shown`` not a bool.
     """
+    if not isinstance(pane, pn.viewable.Viewable):
+        raise ValueError(f"pane must be a Panel object (a pane or a layout); received "
+                         f"{type(pane).__name__}.")
+    if not isinstance(shown, (bool, np.bool_)):
+        raise ValueError(f"shown must be True or False; received {shown!r}.")
     if shown:
         for child in pane.select(pn.pane.Bokeh):
             if child.object is not None:
                 child.object.visible = True
     if pane.visible != shown:
         pane.visible = shown
+
+
+def show_only(panes: dict, shown, parent, *, attach: bool) -> None:
+    """Show ``panes[shown]`` and hide the other panes (in place, :func:`show_pane`); with
+    ``attach``, first make them the children of ``parent`` (a pane was added).
+
+    For views built one key at a time (an output's plots when it is first shown): the
+    new pane is drawn before it joins the layout (see :class:`LivePanel`).
+    """
+    if shown not in panes:
+        raise ValueError(f"shown must be a key of panes, one of {list(panes)}; received "
+                         f"{shown!r}. Build its pane first.")
+    for key, pane in panes.items():
+        show_pane(pane, key == shown)
+    if attach:
+        parent.objects = list(panes.values())
 
 
 class LivePanel(pn.viewable.Viewer):
@@ -81,6 +107,12 @@ class LivePanel(pn.viewable.Viewer):
         """``shown_in = (tabs, index)``: the panel is tab ``index`` of ``tabs`` and is
         built only when that tab is shown (:meth:`defer_while_hidden`); a new session's
         first page then builds the figures of the tab in view only."""
+        if shown_in is not None and not (
+                isinstance(shown_in, tuple) and len(shown_in) == 2
+                and hasattr(shown_in[0], "before_show") and isinstance(shown_in[1], int)
+                and 0 <= shown_in[1]):
+            raise ValueError("shown_in must be (tabs, index): ShowingTabs and the panel's "
+                             f"tab index ≥ 0; received {shown_in!r}.")
         super().__init__(**params)
         self._layout = pn.Column(sizing_mode="stretch_width")
         self._case = None                        # the case drawn (set by _rebuild)

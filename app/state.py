@@ -313,6 +313,11 @@ class ExplorerState(param.Parameterized):
         own = self._own.get(self.case_name)
         return self.case_name if own is None else (own[1] or self.case_name)
 
+    @property
+    def output_index(self) -> int:
+        """Index of ``output`` in the case's outputs (``_check_output`` keeps it one)."""
+        return self.case.output_names.index(self.output)
+
     @param.depends("output", watch=True)
     def _check_output(self):
         """An output the case does not have: one notification, and the first output."""

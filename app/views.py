@@ -360,7 +360,7 @@ class ExplorerView(pn.viewable.Viewer):
                                        index=False, float_format="{:.4g}".format,
                                        css_classes=["diagnostics-table"])]
         if Method.S3 in shown:
-            o = s.case.output_names.index(s.output) if s.output in s.case.output_names else 0
+            o = s.output_index
             phi = plots.phi_posterior(s.case, shown[Method.S3], output=o)
             objs.append(pn.pane.Markdown(
                 "**Scenario 3: the GP hyperparameters φ, posterior (weighted draws) against "

@@ -59,3 +59,29 @@ def test_bad_maps_are_refused(values, name):
     np.testing.assert_array_equal(fig._image.data["image"][0], np.arange(12.0).reshape(3, 4))
     assert (fig._mapper.low, fig._mapper.high) == (-11.0, 11.0)     # symmetric about 0
     assert fig.figure.xaxis[0].ticker.desired_num_ticks == 4      # legible at 1280 px
+
+
+def test_show_pane_and_show_only_show_a_pane_again_and_refuse_bad_arguments():
+    import panel as pn
+    from bokeh.plotting import figure
+
+    from mdcore_app.live_figures import LivePanel, figure_pane, show_only, show_pane
+
+    panes = {o: figure_pane(figure()) for o in range(3)}
+    parent = pn.Row()
+    show_only(panes, 1, parent, attach=True)
+    assert parent.objects == list(panes.values())
+    assert [p.visible for p in panes.values()] == [False, True, False]
+    show_only(panes, 0, parent, attach=False)          # hidden, then shown again
+    assert panes[0].visible and panes[0].object.visible and not panes[1].visible
+    for bad, match in [((object(), True), "pane must be a Panel object"),
+                       ((panes[0], "yes"), "shown must be True or False"),
+                       ((panes[0], None), "shown must be True or False")]:
+        with pytest.raises(ValueError, match=match):
+            show_pane(*bad)
+    with pytest.raises(ValueError, match=r"shown must be a key of panes, one of \[0, 1, 2\]"):
+        show_only(panes, 7, parent, attach=False)
+    assert panes[0].visible                            # nothing changed
+    for bad in [(), (pn.Tabs(), 0), (object(), 1), ("tabs", -1)]:
+        with pytest.raises(ValueError, match=r"shown_in must be \(tabs, index\)"):
+            LivePanel(shown_in=bad)

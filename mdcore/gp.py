@@ -130,6 +130,7 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     (2,)
     """
     prob = check_problem(log_params, Y, X, z)
+    _check_jitter_log(jitter_log)
     if compiled.resolve_backend(backend) == "numba":
         return compiled.nlml(prob.log_params, prob.Y, prob.X, prob.z, jitter_log=jitter_log)
     N = prob.X.shape[0]
@@ -231,6 +232,12 @@ def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy
                         noise.reshape(batch))
 
 
+def _check_jitter_log(jitter_log) -> None:
+    if jitter_log is not None and not isinstance(jitter_log, JitterLog):
+        raise ValueError(f"jitter_log must be a mdcore.linalg.JitterLog or None; received "
+                         f"{type(jitter_log).__name__}.")
+
+
 def nlml_and_gradient(log_params, Y, X, z, *, jitter_log: JitterLog | None = None
                       ) -> tuple[float, np.ndarray]:
     """NLML (Eq. 9) and its analytic gradient for one hyperparameter vector.
@@ -254,6 +261,7 @@ def nlml_and_gradient(log_params, Y, X, z, *, jitter_log: JitterLog | None = Non
     grad : ndarray of shape (P,)
     """
     prob = check_problem(log_params, Y, X, z)
+    _check_jitter_log(jitter_log)
     if prob.batch_shape != ():
         raise ValueError(f"nlml_and_gradient takes one vector: log_params (P,) and Y (N, d_y); "
                          f"received batch shape {prob.batch_shape}. Use "

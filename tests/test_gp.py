@@ -159,6 +159,11 @@ def test_a_jitter_log_takes_the_counts_instead_of_a_warning(rng, backend):
         assert log.jittered == 2 and np.isfinite(f) and np.all(np.isfinite(g))
     np.testing.assert_array_equal(quiet, warned)
     assert list(warnings.filters) == filters
+    for fn, args in [(gp.neg_log_marginal_likelihood, (lp, Y, X, z)),
+                     (gp.nlml_and_gradient, (lp[0], Y, X, z))]:
+        with pytest.raises(ValueError, match="jitter_log must be a mdcore.linalg.JitterLog or "
+                                             "None; received list"):
+            fn(*args, jitter_log=[])
 
 
 def test_matrix_that_never_factorises_gives_inf_not_nan(rng, monkeypatch):

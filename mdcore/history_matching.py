@@ -686,7 +686,7 @@ class HistoryMatchResult:
         n = as_int(n, "n", 1, MAX_CANDIDATES // 20)
         key = (n, int(seed)) if isinstance(seed, (int, np.integer)) \
             and not isinstance(seed, bool) else None
-        memo = self.__dict__.setdefault("_posterior_memo", {})   # frozen: not an attribute
+        memo = self._posterior_memo
         if key is not None and key in memo:
             return memo[key].copy()
         rng = np.random.default_rng(seed)
@@ -699,6 +699,11 @@ class HistoryMatchResult:
                 memo.pop(next(iter(memo)))                      # the oldest
             memo[key] = draws.copy()
         return draws
+
+    @cached_property
+    def _posterior_memo(self) -> dict:
+        """(n, seed) -> the draws of :meth:`posterior_samples` (the newest few)."""
+        return {}
 
     def log_likelihood(self, theta) -> np.ndarray:
         """Gaussian log-likelihood behind the implausibility measure, shape (M,).

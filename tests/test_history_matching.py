@@ -256,4 +256,4 @@ def test_posterior_samples_are_kept_per_seed_and_equal_a_fresh_draw(beam1d_match
     np.testing.assert_array_equal(first, fresh.posterior_samples(50, seed=np.random.default_rng(5)))
     for s in range(8):                                # the memo stays small
         result.posterior_samples(20, seed=100 + s)
-    assert len(result.__dict__["_posterior_memo"]) <= 4
+    assert len(result._posterior_memo) <= 4

@@ -20,7 +20,10 @@ numba's negative-index handling of ``a[i + t]`` would stop it):
 - input differences ``|Δ|`` (one dimension) or ``Δ²`` (per dimension, several) are
   computed once in the same packed order: for X once per call, for Y once per Y row
   (pairs that share a Y row, like scenario 3's N_φ draws per θ, reuse them);
-- a range of pairs allocates its small work buffers once and runs its pairs in order.
+- a range of pairs allocates its small work buffers once and runs its pairs in order;
+- replicated training inputs (equal rows of ``[Y, X]``, as shear-5's repeats) have equal
+  kernel entries: those of the distinct inputs are computed once and copied
+  (:func:`_distinct_rows`), with the same bits.
 
 The kernel ``σ_f² (1 + √3 r_y) e^{−√3 r_y} (1 + √3 r_x) e^{−√3 r_x}`` (SPEC §3, Eq. 3) is
 evaluated like the NumPy path, as ``(1 + s + a b) exp(log σ_f² − s)`` with ``a = √3 r_y``,
@@ -300,6 +303,73 @@ def _workspace(n_entries):
 
 
 # ---------------------------------------------------------------------------------------
+# Replicated training inputs
+
+
+@_jit
+def _distinct_rows(Y, X, rep, of):
+    """Distinct rows of the joint training input ``[Y, X]`` (N, d_y + d_x), exactly equal.
+
+    Writes ``rep[:U]``, the first row of each distinct input, and ``of`` (N,), the
+    distinct input of every row; returns U. Replicated observations (shear-5's ten repeats
+    per mass) share one input, so their kernel entries are equal and computed once.
+    """
+    N = X.shape[0]
+    U = 0
+    for i in range(N):
+        found = -1
+        for u in range(U):
+            r = rep[u]
+            same = True
+            for k in range(Y.shape[1]):
+                if Y[i, k] != Y[r, k]:
+                    same = False
+                    break
+            if same:
+                for k in range(X.shape[1]):
+                    if X[i, k] != X[r, k]:
+                        same = False
+                        break
+            if same:
+                found = u
+                break
+        if found < 0:
+            rep[U] = i
+            of[i] = U
+            U += 1
+        else:
+            of[i] = found
+    return U
+
+
+@_jit
+def _distinct_diffs(Y, X, rep, of, U, n, DYp, DXp, gather):
+    """Differences of the U distinct rows ``rep[:U]`` of ``Y``, ``X`` in packed U × U order
+    (:func:`_packed_diffs`), and ``gather`` (n(n+1)/2,): for each entry of the packed
+    bordered n × n matrix, the packed U × U entry it equals (0 for the border column, which
+    :func:`_train_matrix` overwrites). ``|a − b|`` and ``(a − b)²`` do not depend on the
+    order of a and b, so an entry read through ``gather`` has the bits it would have had."""
+    N = X.shape[0]
+    Yu = np.empty((U, Y.shape[1]))
+    Xu = np.empty((U, X.shape[1]))
+    for u in range(U):
+        Yu[u] = Y[rep[u]]
+        Xu[u] = X[rep[u]]
+    _packed_diffs(Yu, U, DYp)
+    _packed_diffs(Xu, U, DXp)
+    p = 0
+    for i in range(n):
+        for j in range(i, n):
+            if j < N:
+                a = min(of[i], of[j])
+                b = max(of[i], of[j])
+                gather[p] = a * U - a * (a - 1) // 2 + b - a
+            else:
+                gather[p] = 0
+            p += 1
+
+
+# ---------------------------------------------------------------------------------------
 # Bordered training matrix and its Cholesky factor (packed upper storage)
 
 
@@ -312,16 +382,25 @@ def _unpack_scales(theta, d_y, d_x, sy, sx):
 
 
 @_jit
-def _train_matrix(theta, DYp, DXp, z, sy, sx, W, A):
+def _train_matrix(theta, DYp, DXp, z, sy, sx, W, A, U, Au, gather):
     """The bordered ``[[K_ff + σ_n² I, z], [zᵀ, 2 zᵀz/σ_n² + 1]]``, packed, into ``A``.
 
     The diagonal comes out of :func:`_matern_entries` as ``σ_f²`` (zero distance);
-    the border entries are overwritten.
+    the border entries are overwritten. With ``U < N`` distinct training rows
+    (:func:`_distinct_rows`), ``DYp``/``DXp`` hold the differences of the distinct rows
+    only (packed U × U): their entries go into ``Au`` and are copied to every entry of
+    ``A`` by ``gather`` (replicates share their rows' entries, bit for bit).
     """
     N = z.size
     n = N + 1
     _unpack_scales(theta, sy.size, sx.size, sy, sx)
-    _matern_entries(DYp, DXp, sy, sx, 2.0 * theta[0], W, A)
+    if U < N:
+        Tu = U * (U + 1) // 2
+        _matern_entries(DYp, DXp, sy, sx, 2.0 * theta[0], W, Au[:Tu])
+        for p in range(gather.size):
+            A[p] = Au[gather[p]]
+    else:
+        _matern_entries(DYp, DXp, sy, sx, 2.0 * theta[0], W, A)
     sn2 = math.exp(2.0 * theta[theta.size - 1])
     zz = 0.0
     off = 0
@@ -572,6 +651,12 @@ def pair_range(mode, b0, b1, theta, Y, y_index, X, z, Ystar, s_index, ystar_out,
     A = np.empty(T)
     R = np.empty(T)
     DYp = np.empty((d_y, T))
+    rep = np.empty(N, dtype=np.int64)     # replicated inputs (_distinct_rows)
+    of = np.empty(N, dtype=np.int64)
+    DXu = np.empty((d_x, T))
+    Au = np.empty(T)
+    gather = np.empty(T, dtype=np.int64)
+    U = N
     DYc = np.empty((n_tiles, d_y, N * nt))
     sy = np.empty(d_y)
     sx = np.empty(d_x)
@@ -591,9 +676,13 @@ def pair_range(mode, b0, b1, theta, Y, y_index, X, z, Ystar, s_index, ystar_out,
         dropped[b] = False
         j = y_index[b]
         if j != last:
-            _packed_diffs(Y[j], n, DYp)
+            U = _distinct_rows(Y[j], X, rep, of)
+            if U < N:
+                _distinct_diffs(Y[j], X, rep, of, U, n, DYp, DXu, gather)
+            else:
+                _packed_diffs(Y[j], n, DYp)
             last = j
-        _train_matrix(th, DYp, DXp, z, sy, sx, W, A)
+        _train_matrix(th, DYp, DXu if U < N else DXp, z, sy, sx, W, A, U, Au, gather)
         ok, step = _factor(A, R, N, ladder)
         jitter[b] = step
         if not ok:

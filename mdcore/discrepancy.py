@@ -163,6 +163,20 @@ def _simulate(simulate: Callable, X: np.ndarray, theta: np.ndarray, n_out: int) 
     return y
 
 
+def _distinct_inputs(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``X`` (N, d) in order of first appearance, and the index of
+    every row's distinct input, (N,): ``distinct[inverse]`` is ``X``.
+
+    The simulator is a function of (x, θ), so replicated inputs (shear-5 repeats each mass
+    ten times) have equal predictions; :meth:`DiscrepancyModel.predict` computes them once.
+    """
+    _, first, inverse = np.unique(X, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)                    # distinct rows in order of first sight
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return X[first[order]], rank[inverse.reshape(-1)]
+
+
 def _blocks(n: int, size: int):
     for start in range(0, n, size):
         yield slice(start, min(n, start + size))
@@ -518,6 +532,10 @@ class DiscrepancyModel:
                              f"like the training X; received {X_star.shape}.")
         prune = self.prune if prune is None else _prune(prune)
         executor = check_executor(executor)
+        distinct, inverse = _distinct_inputs(X_star)
+        if distinct.shape[0] < X_star.shape[0]:     # replicates: predict each input once
+            pred = self.predict(distinct, prune=prune, progress=progress, executor=executor)
+            return DiscrepancyPrediction(*(field[inverse] for field in pred))
         Ys = _simulate(self.simulate, X_star, self.theta, self.n_out)     # (S, N*, n_out)
         M, K = X_star.shape[0], self.log_weights.shape[2]
         N, d_y, P = self.X.shape[0], self.n_out, 2 + self.n_out + self.X.shape[1]

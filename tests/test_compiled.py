@@ -123,6 +123,31 @@ def test_predict_with_separate_test_batch_and_no_test_points(rng):
     assert mean.shape == var.shape == (2, 3, 0) and noise.shape == (2, 3)
 
 
+@pytest.mark.parametrize("d_y,d_x", [(1, 1), (5, 1), (1, 2)])
+def test_replicated_training_inputs_match_numpy_path(rng, d_y, d_x):
+    """Shear-5's layout: a few distinct inputs, each observed several times (y is a function
+    of x, so replicated x come with replicated y). The compiled path computes the kernel
+    entries of the distinct inputs once and copies them to the replicates; the NLML and
+    the predictions are those of the NumPy path, and of the naive loop."""
+    distinct = rng.uniform(size=(3, d_x))
+    rows = rng.permutation(np.repeat(np.arange(3), [4, 3, 5]))      # 12 observations
+    X = distinct[rows]
+    Y = rng.normal(size=(4, 3, d_y))[:, rows]                        # 4 θ, replicated rows
+    z = rng.normal(size=12)
+    lp = rng.normal(scale=0.4, size=(4, 6, 2 + d_y + d_x))
+    lp[..., -1] = rng.uniform(-3, -1, size=(4, 6))
+    Yb = Y[:, None]                                                 # (S, 1, N, d_y)
+    (ref, ref_w), (new, new_w) = both(gp.neg_log_marginal_likelihood, compiled.nlml, lp, Yb,
+                                      X, z)
+    assert new.shape == (4, 6) and new_w == ref_w == []
+    np.testing.assert_allclose(new, ref, rtol=RTOL)
+    assert new[2, 3] == pytest.approx(naive_gp.nlml(lp[2, 3], Y[2], X, z), rel=1e-9)
+    Xs = distinct[[0, 2, 1, 0]] + 0.01
+    Ys = rng.normal(size=(4, 1, 4, d_y))
+    (p_ref, _), (p_new, _) = both(gp.predict, compiled.predict, lp, Yb, X, z, Ys, Xs)
+    assert_moments_close(p_new, p_ref, lp)
+
+
 def duplicated_points(rng, N=20):
     """Two problems on data whose first two points coincide. With σ_f = 1 and σ_n = e^-40
     the second Cholesky pivot is exactly 1 − 1 = 0, a deterministic failure that jitter

@@ -72,6 +72,29 @@ def test_scenario3_matches_naive_loop(toy):
 
 
 @pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_replicated_inputs_are_predicted_once_with_the_same_numbers(toy, backend):
+    """Replicated training and test inputs (shear-5 repeats each mass ten times): predict
+    computes each distinct test input once; every replicate gets the prediction the input
+    gets on its own, in the caller's order."""
+    if backend == "numba":
+        pytest.importorskip("numba")
+    X, z, theta, _, prior = toy
+    rows = np.array([0, 1, 1, 2, 3, 3, 3, 4, 5, 6, 6])
+    model = infer_discrepancy(toy_simulate, theta, X[rows], z[rows], scenario=3, n_phi=5,
+                              phi_prior=prior, seed=1, backend=backend)
+    Xs = np.array([[0.5], [0.1], [0.5], [0.9], [0.1], [0.5]])
+    pred = model.predict(Xs, prune=0)
+    for i, x in enumerate(Xs):
+        alone = model.predict(x[None], prune=0)
+        for got, want in zip(pred, alone):
+            np.testing.assert_allclose(got[i], want[0], rtol=1e-12, atol=1e-15)
+    ref = naive_mixture(model, Xs, toy_simulate(Xs, theta))
+    for got, want in zip(pred, ref):
+        np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_mixture_moments_match_brute_force_sampling(toy):
     X, z, theta, _, prior = toy
     model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=3, phi_prior=prior, seed=2)

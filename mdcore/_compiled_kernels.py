@@ -369,6 +369,108 @@ def _distinct_diffs(Y, X, rep, of, U, n, DYp, DXp, gather):
             p += 1
 
 
+@_jit
+def _distinct_x_diffs(DXp, xmap, DXd):
+    """Distinct columns of the packed x differences ``DXp`` (d_x, T), exactly equal.
+
+    Inputs on a grid (beam-2d's 8 × 8) repeat their differences: 289 distinct of 2,145.
+    Writes ``DXd[:, :U]`` and ``xmap`` (T,), the distinct column of every entry, and
+    returns U; returns 0 (not worth it) when more than half the columns are distinct.
+    """
+    d, T = DXp.shape
+    codes = np.zeros(T, dtype=np.int64)
+    stride = 1
+    for k in range(d):                   # per-dimension ranks, combined into one code
+        vals = np.unique(DXp[k])
+        codes += np.searchsorted(vals, DXp[k]) * stride
+        stride *= vals.size
+        if stride > 4 * T:
+            return 0
+    slot = np.full(stride, -1, dtype=np.int64)
+    U = 0
+    for p in range(T):
+        c = codes[p]
+        if slot[c] < 0:
+            slot[c] = U
+            DXd[:, U] = DXp[:, p]
+            U += 1
+        xmap[p] = slot[c]
+    return U if 2 * U <= T else 0
+
+
+@_jit
+def _grid_entries(theta, DYp, sy, sx, G, W, A):
+    """Training entries of Eq. 3 with one-dimensional y and repeated x differences.
+
+    ``σ_f² (1 + a)(1 + b) e^{−a} e^{−b}``, ``a = √3 r_y``, ``b = √3 r_x``, as
+    :func:`_cross_1d` builds K_f*: ``e^{−b}`` once per distinct x difference
+    (:func:`_distinct_x_diffs`) and ``e^{−a} = e^{−s u_i} e^{s u_j}`` (u_i ≥ u_j, centred
+    y) from N exponentials, instead of one exponential per entry. ``G = (U, xmap, DXd, yc,
+    hy, E)``: yc the centred y of the pair's θ row and ``hy[0]`` its half range. Returns
+    False, having written nothing, when ``s h_y`` exceeds :data:`SEPARABLE_LIMIT`.
+    """
+    U, xmap, DXd, yc, hy, E = G
+    N = yc.size
+    s_y = sy[0]
+    if not s_y * hy[0] <= SEPARABLE_LIMIT:
+        return False
+    wa, wb, wq, we, tb, ib = W
+    sf2 = math.exp(2.0 * theta[0])
+    bu, eu, P, Q = E[0], E[1], E[2], E[3]
+    _scaled_dist(DXd, sx, bu[:U])                  # √3 r_x of the distinct differences
+    q = wq[:U + N]
+    e = we[:U + N]
+    out = wa[:U + N]
+    for u in range(U):
+        e[u] = -bu[u]
+    for i in range(N):
+        e[U + i] = s_y * yc[i]
+    q[:] = 1.0
+    _qexp(q, e, out, tb, ib)
+    for u in range(U):
+        eu[u] = out[u]
+    for i in range(N):
+        P[i] = out[U + i]
+        Q[i] = 1.0 / out[U + i]
+    T = xmap.size
+    bx = wb[:T]                                     # b and e^{−b} of every entry: a pass
+    ex = tb[:T]                                     # of look-ups, so that the next one
+    for p in range(T):                              # is plain arithmetic (vectorised)
+        c = xmap[p]
+        bx[p] = bu[c]
+        ex[p] = eu[c]
+    p = 0
+    for i in range(N):
+        m = N - i
+        dy = DYp[0, p:p + m]
+        bi = bx[p:p + m]
+        ei = ex[p:p + m]
+        o = A[p:p + m]
+        yi, Pi, Qi = yc[i], P[i], Q[i]
+        yj, Pj, Qj = yc[i:N], P[i:N], Q[i:N]
+        for t in range(m):          # both factors computed, then selected: vectorises
+            a = dy[t] * s_y
+            b = bi[t]
+            ey_pos = Qi * Pj[t]
+            ey_neg = Pi * Qj[t]
+            ey = ey_pos if yi >= yj[t] else ey_neg
+            o[t] = (a * b + (a + b) + 1.0) * (sf2 * (ey * ei[t]))
+        o[0] = sf2                                  # zero distance: σ_f² exactly
+        p += m + 1                                  # and the border entry
+    return True
+
+
+@_jit
+def _grid_space(DXp, N, on):
+    """Buffers of :func:`_grid_entries`, ``(U, xmap, DXd, yc, hy, E)``; U = 0 (the grid
+    path off) unless ``on`` and the x differences repeat enough."""
+    d_x, T = DXp.shape
+    xmap = np.empty(T, dtype=np.int64)
+    DXd = np.empty((d_x, T))
+    U = _distinct_x_diffs(DXp, xmap, DXd) if on and N > 1 else 0
+    return (U, xmap, DXd, np.zeros(N), np.full(1, np.inf), np.empty((4, max(U, N))))
+
+
 # ---------------------------------------------------------------------------------------
 # Bordered training matrix and its Cholesky factor (packed upper storage)
 
@@ -382,19 +484,23 @@ def _unpack_scales(theta, d_y, d_x, sy, sx):
 
 
 @_jit
-def _train_matrix(theta, DYp, DXp, z, sy, sx, W, A, U, Au, gather):
+def _train_matrix(theta, DYp, DXp, z, sy, sx, W, A, U, Au, gather, G):
     """The bordered ``[[K_ff + σ_n² I, z], [zᵀ, 2 zᵀz/σ_n² + 1]]``, packed, into ``A``.
 
     The diagonal comes out of :func:`_matern_entries` as ``σ_f²`` (zero distance);
     the border entries are overwritten. With ``U < N`` distinct training rows
     (:func:`_distinct_rows`), ``DYp``/``DXp`` hold the differences of the distinct rows
     only (packed U × U): their entries go into ``Au`` and are copied to every entry of
-    ``A`` by ``gather`` (replicates share their rows' entries, bit for bit).
+    ``A`` by ``gather`` (replicates share their rows' entries, bit for bit). Otherwise,
+    with one-dimensional y and x differences that repeat (``G[0] > 0``), the entries come
+    from :func:`_grid_entries` when it applies.
     """
     N = z.size
     n = N + 1
     _unpack_scales(theta, sy.size, sx.size, sy, sx)
-    if U < N:
+    if U == N and G[0] > 0 and _grid_entries(theta, DYp, sy, sx, G, W, A):
+        pass
+    elif U < N:
         Tu = U * (U + 1) // 2
         _matern_entries(DYp, DXp, sy, sx, 2.0 * theta[0], W, Au[:Tu])
         for p in range(gather.size):
@@ -657,6 +763,7 @@ def pair_range(mode, b0, b1, theta, Y, y_index, X, z, Ystar, s_index, ystar_out,
     Au = np.empty(T)
     gather = np.empty(T, dtype=np.int64)
     U = N
+    G = _grid_space(DXp, N, d_y == 1)
     DYc = np.empty((n_tiles, d_y, N * nt))
     sy = np.empty(d_y)
     sx = np.empty(d_x)
@@ -681,8 +788,10 @@ def pair_range(mode, b0, b1, theta, Y, y_index, X, z, Ystar, s_index, ystar_out,
                 _distinct_diffs(Y[j], X, rep, of, U, n, DYp, DXu, gather)
             else:
                 _packed_diffs(Y[j], n, DYp)
+                if G[0] > 0:
+                    G[4][0] = _centred(Y[j][:, 0], Y[j][:0, 0], G[3], G[3][:0])
             last = j
-        _train_matrix(th, DYp, DXu if U < N else DXp, z, sy, sx, W, A, U, Au, gather)
+        _train_matrix(th, DYp, DXu if U < N else DXp, z, sy, sx, W, A, U, Au, gather, G)
         ok, step = _factor(A, R, N, ladder)
         jitter[b] = step
         if not ok:

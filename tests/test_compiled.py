@@ -148,6 +148,38 @@ def test_replicated_training_inputs_match_numpy_path(rng, d_y, d_x):
     assert_moments_close(p_new, p_ref, lp)
 
 
+@pytest.mark.parametrize("d_x", [1, 2])
+def test_grid_inputs_match_numpy_path(rng, d_x):
+    """x on a grid (beam-2d's layout) repeats its differences, so with one-dimensional y the
+    compiled path builds the training entries from one exponential per distinct x
+    difference and per point (``_grid_entries``). Long and short y length scales: the
+    short ones (√3 h_y/ℓ_y > SEPARABLE_LIMIT) take the per-entry path."""
+    from mdcore import _compiled_kernels as k
+
+    axes = [np.linspace(0.1, 0.5, 6), np.linspace(0.0, 0.05, 5)][:d_x]
+    X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, d_x)
+    N = X.shape[0]
+    n = N + 1
+    diffs = np.empty((d_x, n * (n + 1) // 2))
+    k._packed_diffs(X, n, diffs)
+    assert k._grid_space(diffs, N, True)[0] > 0                    # the grid path is on
+    Y = 1.5 + 0.4 * rng.normal(size=(3, 1, N, 1))
+    z = rng.normal(size=N)
+    lp = rng.normal(scale=0.4, size=(3, 8, 3 + d_x))
+    lp[..., 1] = np.linspace(-4.0, 1.5, 8)                         # log ℓ_y
+    lp[..., 2:2 + d_x] = np.log(0.2) + 0.3 * rng.normal(size=(3, 8, d_x))
+    lp[..., -1] = rng.uniform(-3, -1, size=(3, 8))
+    (ref, ref_w), (new, new_w) = both(gp.neg_log_marginal_likelihood, compiled.nlml, lp, Y,
+                                      X, z)
+    assert new_w == ref_w == []
+    np.testing.assert_allclose(new, ref, rtol=RTOL)
+    assert new[1, 5] == pytest.approx(naive_gp.nlml(lp[1, 5], Y[1, 0], X, z), rel=1e-9)
+    Xs = rng.uniform(0.1, 0.5, size=(40, d_x))
+    Ys = 1.5 + 0.4 * rng.normal(size=(3, 1, 40, 1))
+    (p_ref, _), (p_new, _) = both(gp.predict, compiled.predict, lp, Y, X, z, Ys, Xs)
+    assert_moments_close(p_new, p_ref, lp)
+
+
 def duplicated_points(rng, N=20):
     """Two problems on data whose first two points coincide. With σ_f = 1 and σ_n = e^-40
     the second Cholesky pivot is exactly 1 − 1 = 0, a deterministic failure that jitter

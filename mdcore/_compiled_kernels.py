@@ -217,10 +217,12 @@ def _matern_entries(Dy, Dx, sy, sx, log_sf2, W, out):
 
 
 #: Largest ``√3 h / ℓ`` (h: half the range of a one-dimensional input, about its centre)
-#: for which :func:`_cross_1d` factorises the exponentials: the arguments ``±√3 u/ℓ`` then
-#: carry an absolute rounding error below 2 · 8 · 2⁻⁵³ ≈ 1.8e-15, so every factor, and the
-#: product, stays within about 16 ulp of ``exp(−√3 |u − v| / ℓ)``.
-SEPARABLE_LIMIT = 8.0
+#: for which :func:`_cross_1d` and :func:`_grid_entries` factorise the exponentials: the
+#: arguments ``±√3 u/ℓ`` then carry an absolute rounding error below 16 · 2⁻⁵³ ≈ 1.8e-15,
+#: so the product stays within about 4e-15 (relative) of ``exp(−√3 |u − v| / ℓ)``, an
+#: error of the size of a Cholesky's own rounding at N = 30 (N ulp). At 8, one pair in ten
+#: of beam-2d's scenario 3 (h_y ≈ 1.25 mm, ℓ_y ~ logN(0, 1)) took the per-entry path.
+SEPARABLE_LIMIT = 16.0
 
 
 @_jit

@@ -404,12 +404,12 @@ def _distinct_x_diffs(DXp, xmap, DXd):
 def _grid_entries(theta, DYp, sy, sx, G, W, A):
     """Training entries of Eq. 3 with one-dimensional y and repeated x differences.
 
-    ``σ_f² (1 + a)(1 + b) e^{−a} e^{−b}``, ``a = √3 r_y``, ``b = √3 r_x``, as
-    :func:`_cross_1d` builds K_f*: ``e^{−b}`` once per distinct x difference
-    (:func:`_distinct_x_diffs`) and ``e^{−a} = e^{−s u_i} e^{s u_j}`` (u_i ≥ u_j, centred
-    y) from N exponentials, instead of one exponential per entry. ``G = (U, xmap, DXd, yc,
-    hy, E)``: yc the centred y of the pair's θ row and ``hy[0]`` its half range. Returns
-    False, having written nothing, when ``s h_y`` exceeds :data:`SEPARABLE_LIMIT`.
+    ``σ_f² [(1 + a) e^{−a}] [(1 + b) e^{−b}]``, ``a = √3 r_y``, ``b = √3 r_x``: the x
+    factor once per distinct x difference (:func:`_distinct_x_diffs`), and ``e^{−a} =
+    e^{−s u_i} e^{s u_j}`` (u_i ≥ u_j, centred y) from N exponentials as :func:`_cross_1d`
+    builds K_f*, instead of one exponential per entry. ``G = (U, xmap, DXd, yc, hy, E)``:
+    yc the centred y of the pair's θ row and ``hy[0]`` its half range. Returns False,
+    having written nothing, when ``s h_y`` exceeds :data:`SEPARABLE_LIMIT`.
     """
     U, xmap, DXd, yc, hy, E = G
     N = yc.size
@@ -418,45 +418,41 @@ def _grid_entries(theta, DYp, sy, sx, G, W, A):
         return False
     wa, wb, wq, we, tb, ib = W
     sf2 = math.exp(2.0 * theta[0])
-    bu, eu, P, Q = E[0], E[1], E[2], E[3]
+    bu, mu, P, Q = E[0], E[1], E[2], E[3]
     _scaled_dist(DXd, sx, bu[:U])                  # √3 r_x of the distinct differences
     q = wq[:U + N]
     e = we[:U + N]
     out = wa[:U + N]
     for u in range(U):
+        q[u] = 1.0 + bu[u]
         e[u] = -bu[u]
     for i in range(N):
+        q[U + i] = 1.0
         e[U + i] = s_y * yc[i]
-    q[:] = 1.0
     _qexp(q, e, out, tb, ib)
     for u in range(U):
-        eu[u] = out[u]
+        mu[u] = out[u]                              # m32(r_x) = (1 + b) e^{−b}
     for i in range(N):
         P[i] = out[U + i]
         Q[i] = 1.0 / out[U + i]
     T = xmap.size
-    bx = wb[:T]                                     # b and e^{−b} of every entry: a pass
-    ex = tb[:T]                                     # of look-ups, so that the next one
-    for p in range(T):                              # is plain arithmetic (vectorised)
-        c = xmap[p]
-        bx[p] = bu[c]
-        ex[p] = eu[c]
+    mx = wb[:T]                                     # m32(r_x) of every entry: a pass of
+    for p in range(T):                              # look-ups, so that the next one is
+        mx[p] = mu[xmap[p]]                         # plain arithmetic (vectorised)
     p = 0
     for i in range(N):
         m = N - i
         dy = DYp[0, p:p + m]
-        bi = bx[p:p + m]
-        ei = ex[p:p + m]
+        mi = mx[p:p + m]
         o = A[p:p + m]
         yi, Pi, Qi = yc[i], P[i], Q[i]
         yj, Pj, Qj = yc[i:N], P[i:N], Q[i:N]
         for t in range(m):          # both factors computed, then selected: vectorises
             a = dy[t] * s_y
-            b = bi[t]
             ey_pos = Qi * Pj[t]
             ey_neg = Pi * Qj[t]
             ey = ey_pos if yi >= yj[t] else ey_neg
-            o[t] = (a * b + (a + b) + 1.0) * (sf2 * (ey * ei[t]))
+            o[t] = sf2 * (((1.0 + a) * ey) * mi[t])
         o[0] = sf2                                  # zero distance: σ_f² exactly
         p += m + 1                                  # and the border entry
     return True

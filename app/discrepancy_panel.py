@@ -5,8 +5,12 @@ new beam-2d slice replace the arrays of the figures they change, and the browser
 those glyphs; no layout is rebuilt. Hiding a method or a quantity only changes a
 visibility (a hidden method keeps its column's, or beam-2d's row's, place, empty: see
 :data:`SLOT`).
-The plots of a method are built when its first result arrives (and a quantity's when it
-is first shown); everything is rebuilt only when the case changes.
+The plots of the chosen methods are built, empty and hidden, when the tab is shown
+(:meth:`DiscrepancyPanel.prebuild_when_shown`), so a run only fills and shows them: building
+them when the first results arrived was most of a first run's time (beam-2d: 0.8 s of
+server time, and the browser's canvases). A method's plots are otherwise built when its
+first result arrives (and a quantity's when it is first shown); everything is rebuilt only
+when the case changes.
 
 While a recompute runs (the results were cleared by a new setting), the earlier plots stay,
 dimmed, until the new results replace them.
@@ -99,6 +103,8 @@ class DiscrepancyPanel(LivePanel):
         self._cells: dict[tuple[Method, Any], list] = {}
         self._groups: dict[Method, pn.layout.ListPanel] = {}
         self._pending: dict[Method, list] = {}   # a group's new panes, for _place
+        self._drawn: set[Method] = set()         # methods whose plots hold data
+        self._ready = lambda: False              # whether to prebuild (the tab is shown)
         self._head_fixed: list = []              # beam-2d: the slider and the truth map
         self.state.param.watch(self._slice_moved, "slice_x2")
         self.param.watch(self._quantity_changed, "quantity")
@@ -110,7 +116,7 @@ class DiscrepancyPanel(LivePanel):
         c = self.state.case
         self._case = c
         self._truth = c.true_delta(self.state.grid)       # None when δ is unknown
-        self._cells, self._groups, self._pending = {}, {}, {}
+        self._cells, self._groups, self._pending, self._drawn = {}, {}, {}, set()
         self._ranges: dict = {}                  # cell key -> axes shared by the methods
         self._fitted: set = set()                # cell keys whose axes have been set
         self._methods.objects = []
@@ -131,6 +137,34 @@ class DiscrepancyPanel(LivePanel):
             self._head_fixed = [slider] + ([] if truth is None else [figure_pane(truth)])
             self._head.objects = list(self._head_fixed)
         self._update()
+
+    def prebuild_when_shown(self, tabs, index: int) -> None:
+        """Build the chosen methods' plots, empty and hidden, whenever tab ``index`` of
+        ``tabs`` (a :class:`mdcore_app.views.ShowingTabs`) is about to show this panel, and
+        while it shows it (a new case, a method chosen): a run then only fills them."""
+        self._ready = lambda: tabs.active == index
+        tabs.before_show.append(lambda active: active == index and self._prebuild())
+
+    def _prebuild(self) -> None:
+        """Empty, hidden plots of the chosen methods that have none yet (see the module)."""
+        if self._case is not self.state.case:
+            return
+        added = False
+        for method in sorted(self.state.scenarios, key=method_order):
+            if method in self._groups:
+                continue
+            panes = []
+            for key in self._keys(method):
+                if self._wanted(key):
+                    fig = self._figure(method, key)
+                    pane = figure_pane(fig.figure)
+                    self._cells[method, key] = [pane, fig, None]
+                    panes.append(pane)
+            self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
+                *panes, sizing_mode="stretch_width", styles=SLOT)
+            added = True
+        if added:
+            self._place()
 
     def _keys(self, method: Method) -> list:
         """The cell keys of a method's plots, in display order."""
@@ -154,6 +188,7 @@ class DiscrepancyPanel(LivePanel):
             payload = self._payload(method, key)
             fig = self._figure(method, key)
             self._draw(fig, key, payload)
+            self._drawn.add(method)
             pane = figure_pane(fig.figure)
             self._cells[method, key] = [pane, fig, payload]
             added = True
@@ -308,16 +343,19 @@ class DiscrepancyPanel(LivePanel):
     def _send(self, method: Method, key) -> None:
         cell = self._cells[method, key]
         payload = self._payload(method, key)
-        if payload[0] is cell[2][0] and payload[1:] == cell[2][1:]:
+        if cell[2] is not None and payload[0] is cell[2][0] and payload[1:] == cell[2][1:]:
             return                               # this plot already shows it
         cell[2] = payload
         self._draw(cell[1], key, payload)
+        self._drawn.add(method)
 
     def _update(self, *_):
         """New results, band, scenarios or busy state: update the plots in place."""
         s = self.state
         if s.case is not self._case:
             return                               # the case watcher rebuilds first
+        if self._ready():
+            self._prebuild()                     # a method chosen: its empty plots
         for method in sorted(s.results, key=method_order):
             self._ensure(method)
         self._fit_ranges()                 # the new plots' axes, before they are attached
@@ -331,8 +369,11 @@ class DiscrepancyPanel(LivePanel):
         stale = s.busy and not s.results
         kept = s.held_results()
         for method, group in self._groups.items():
+            drawn = method in self._drawn
             if method in s.results:
                 visible, styles = True, CURRENT
+            elif not drawn:        # built ahead, empty: its place is kept, nothing shown
+                visible, styles = True, SLOT
             elif stale and method in s.scenarios:
                 visible, styles = True, STALE
             else:                  # hidden by the buttons: its place stays, empty

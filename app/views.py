@@ -128,6 +128,7 @@ class ExplorerView(pn.viewable.Viewer):
         self._tabs = ShowingTabs(dynamic=True, sizing_mode="stretch_width")
         self._data = DataPanel(state=self.state, shown_in=(self._tabs, 0))
         self._discrepancy = DiscrepancyPanel(state=self.state)
+        self._discrepancy.prebuild_when_shown(self._tabs, 2)
         self._waves = WavesPanel(state=self.state, shown_in=(self._tabs, 1))
         self._calibration = CalibrationPanel(state=self.state, shown_in=(self._tabs, 1))
         self._status, self._status_div = live_text("hm-status")

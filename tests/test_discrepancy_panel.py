@@ -315,3 +315,42 @@ def test_beam_2d_without_a_known_delta_keeps_one_group_per_method(monkeypatch):
         head = list(panel._head.objects)
         assert isinstance(head[0], pn.widgets.FloatSlider)
         assert head[1:] == [panel._groups[m] for m in S123]
+
+
+def test_showing_the_tab_builds_the_plots_ahead_and_a_run_only_fills_them():
+    """The chosen methods' plots are built, empty and hidden, when the tab is shown (a first
+    run was mostly building them); the run fills the same figures and shows them. Empty
+    plots are never shown, not even dimmed while the first run computes."""
+    from mdcore_app.views import ShowingTabs
+
+    s = ExplorerState()
+    s.case_name = "beam-1d"
+    s.param.update(**SMALL)
+    s.run_to_convergence()
+    panel = DiscrepancyPanel(state=s)
+    tabs = ShowingTabs(("Data", pn.Column()), ("HM", pn.Column()), ("Discrepancy", panel))
+    panel.prebuild_when_shown(tabs, 2)
+    root = pn.panel(tabs).get_root(Document())
+    assert panel._groups == {}                          # not shown yet: nothing built
+    tabs.active = 2
+    assert set(panel._groups) == set(S123)
+    assert all(g.styles == SLOT for g in panel._groups.values()) and panel._empty.visible
+    ahead = {t: f.id for t, f in figures(root).items()}
+    assert len(ahead) == 6                              # z and δ of three methods
+    assert all(len(source(f, "mean")["mean"]) == 0 for f in figures(root).values())
+    s.busy = True                                       # the first run computes: still hidden
+    assert all(g.styles == SLOT for g in panel._groups.values()) and panel._empty.visible
+    s.busy = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s.run_discrepancy()
+    after = figures(root)
+    assert {t: f.id for t, f in after.items()} == ahead   # the same figures, filled
+    assert all(g.visible and g.styles == CURRENT for g in panel._groups.values())
+    np.testing.assert_allclose(source(after["Scenario 2: δ"], "mean")["mean"],
+                               s.results[Method.S2].on_extra.delta_mean[:, 0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        s.scenarios = [Method.S1, Method.S2, Method.S3, Method.KOH]   # chosen while shown
+    assert Method.KOH in panel._groups
+    assert panel._groups[Method.KOH].visible == (Method.KOH in s.results)

@@ -22,6 +22,8 @@ Examples
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .linalg import workspace
@@ -196,6 +198,43 @@ def _pair_diffs(Y: np.ndarray, I: np.ndarray, J: np.ndarray) -> np.ndarray:
     return out
 
 
+#: Whether :func:`train_cov` computes replicated inputs' entries once (tests turn it off
+#: to compare the bits).
+DISTINCT_INPUTS = True
+
+
+@functools.lru_cache(maxsize=32)
+def _distinct_pairs_of(rows: bytes, shape: tuple[int, int]):
+    """:func:`_distinct_pairs` for the (N, d) float64 rows given by their bytes (cached: a
+    hyperparameter fit asks for the same rows hundreds of times)."""
+    A = np.frombuffer(rows, dtype=np.float64).reshape(shape)
+    _, first, of = np.unique(A, axis=0, return_index=True, return_inverse=True)
+    if first.size == shape[0]:
+        return None
+    of = of.reshape(-1)
+    I, J = np.tril_indices(shape[0])
+    a, b = of[I], of[J]
+    key = np.maximum(a, b) * first.size + np.minimum(a, b)     # an unordered pair of inputs
+    keys, pick, inverse = np.unique(key, return_index=True, return_inverse=True)
+    return I[pick], J[pick], inverse.reshape(-1)
+
+
+def _distinct_pairs(Y: np.ndarray, X: np.ndarray):
+    """``(I, J, inverse)`` for replicated inputs, else None: ``(I[k], J[k])`` is one
+    lower-triangle pair of each distinct pair of distinct rows of the joint input
+    ``[Y[0], X]``, and ``inverse`` maps every pair of :func:`numpy.tril_indices` to its.
+
+    Replicated observations (shear-5 repeats each mass ten times, with the same simulator
+    output) have equal kernel entries: ``|a − b|`` and ``(a − b)²`` do not depend on the
+    order of a and b, so an entry computed for another pair of the same inputs has the
+    same bits. Only for a Y shared by the batch (a hyperparameter fit's particles).
+    """
+    if not DISTINCT_INPUTS or (Y.shape[0] > 1 and Y.strides[0] != 0) or X.shape[0] < 2:
+        return None
+    A = np.ascontiguousarray(np.concatenate([Y[0], X], axis=1), dtype=np.float64)
+    return _distinct_pairs_of(A.tobytes(), A.shape)
+
+
 def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> np.ndarray:
     """``K = K_ff + σ_n² I`` for a flat chunk: theta (b, P), Y (b, N, d_y) -> (b, N, N).
 
@@ -209,10 +248,13 @@ def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> n
     n = N if border is None else N + 1
     d_x = X.shape[1]
     I, J = np.tril_indices(N)
-    ry = _scaled_dist(_pair_diffs(Y, I, J), SQRT3 * np.exp(-theta[:, 1:1 + d_y]))
-    rx = _scaled_dist((X[I] - X[J])[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]))
+    distinct = _distinct_pairs(Y, X)            # replicated inputs: their entries once
+    Ic, Jc = (I, J) if distinct is None else distinct[:2]
+    ry = _scaled_dist(_pair_diffs(Y, Ic, Jc), SQRT3 * np.exp(-theta[:, 1:1 + d_y]))
+    rx = _scaled_dist((X[Ic] - X[Jc])[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]))
     K = np.zeros((b, n, n))
-    K[:, I, J] = separable_matern(2.0 * theta[:, :1], ry, rx)
+    entries = separable_matern(2.0 * theta[:, :1], ry, rx)
+    K[:, I, J] = entries if distinct is None else entries[:, distinct[2]]
     sn2 = np.exp(2.0 * theta[:, -1:])
     K[:, np.arange(N), np.arange(N)] += sn2
     if border is not None:

@@ -126,3 +126,27 @@ def test_a_shared_y_gives_the_bits_of_the_gathered_one(b, N, d_y, seed):
     naive = naive_gp.cov(theta[j], Y[j], X, Y[j], X)
     np.testing.assert_allclose(np.tril(K[j, :N, :N], -1), np.tril(naive, -1), rtol=1e-10,
                                atol=1e-13)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1, 50), st.integers(2, 40), st.integers(1, 6), st.integers(0, 5),
+       st.integers(1, 2), st.integers(0, 2**32 - 1))
+def test_replicated_inputs_give_the_bits_of_every_entry_computed(b, N, n_distinct, d_y, d_x,
+                                                                  seed):
+    """Replicated inputs (shear-5's repeats) with a Y shared by the batch: train_cov
+    computes each distinct pair of inputs once and copies it; the covariances are the very
+    bits of computing every entry, and the naive covariance's values."""
+    rng = np.random.default_rng(seed)
+    rows = rng.integers(0, min(n_distinct, N), size=N)
+    X = rng.normal(size=(n_distinct, d_x))[rows]
+    Y = np.broadcast_to(rng.normal(size=(n_distinct, d_y))[rows], (b, N, d_y))
+    theta = rng.normal(scale=0.5, size=(b, 2 + d_y + d_x))
+    z = rng.normal(size=N)
+    K = train_cov(theta, Y, X, border=z)
+    with mock.patch.object(kernels, "DISTINCT_INPUTS", False):
+        every = train_cov(theta, Y, X, border=z)
+    np.testing.assert_array_equal(K, every)
+    j = int(rng.integers(b))
+    naive = naive_gp.cov(theta[j], Y[j], X, Y[j], X)
+    np.testing.assert_allclose(np.tril(K[j, :N, :N], -1), np.tril(naive, -1), rtol=1e-10,
+                               atol=1e-13)

@@ -116,21 +116,45 @@ def machine_rates():
             "flop_s": 1.0 / flops, "cores": cores()}
 
 
-def work(N, d_y, d_x, M, pairs, kept):
+def work(N, d_y, d_x, M, pairs, kept, U=None, Ux=0, M_u=None):
     """Exponentials and flops of scenario 3: NLML on ``pairs`` pairs, prediction on
     ``kept`` pairs (each also refactorises), at M test points.
 
-    Per pair, NLML: N(N−1)/2 kernel exps (the diagonal is σ_f²) and N logs; flops: the
-    kernel entries, N(N−1)/2 × (3(d_y + d_x) + 6), and the bordered Cholesky, (N+1)³/3.
-    Prediction adds N·M exps and N·M × (3(d_y + d_x) + 6) flops for K_f*, N²·M for the
-    triangular solve (N²M/2 multiply-adds) and 4·N·M + 8·M for the moments and sums.
+    Per pair, NLML: one exponential per distinct kernel entry (N(N+1)/2; U(U+1)/2 with U
+    distinct training inputs, as shear-5's replicates; ``Ux + N`` on a grid, ``Ux``
+    distinct x differences with one-dimensional y, as the compiled kernels build them)
+    and N logs; flops: the kernel entries, N(N−1)/2 × (3(d_y + d_x) + 6), and the
+    bordered Cholesky, (N+1)³/3. Prediction, at the ``M_u`` distinct test inputs, adds
+    N·M_u exps and N·M_u × (3(d_y + d_x) + 6) flops for K_f*, N²·M_u for the triangular
+    solve (N²M_u/2 multiply-adds) and 4·N·M_u + 8·M for the moments and sums.
     """
     d = d_y + d_x
-    ex_n = N * (N - 1) / 2 + N
+    U = N if U is None else U
+    M_u = M if M_u is None else M_u
+    ex_n = U * (U + 1) / 2 if U < N else (Ux + N if Ux else N * (N + 1) / 2)
     fl_n = N * (N - 1) / 2 * (3 * d + 6) + (N + 1) ** 3 / 3 + 3 * N
-    ex_p = N * M
-    fl_p = N * M * (3 * d + 6) + N * N * M + 4 * N * M + 8 * M
+    ex_p = N * M_u
+    fl_p = N * M_u * (3 * d + 6) + N * N * M_u + 4 * N * M_u + 8 * M
     return (pairs + kept) * ex_n + kept * ex_p, (pairs + kept) * fl_n + kept * fl_p
+
+
+def distinct_work(case, theta):
+    """``(U, Ux, M_u)`` of :func:`work` for a case: distinct training inputs (of the joint
+    [y, x] at one θ), distinct x differences when y is one-dimensional (else 0), and
+    distinct test inputs."""
+    from mdcore import _compiled_kernels as k
+
+    X = np.ascontiguousarray(case.X_train, dtype=np.float64)
+    Y = case.simulate(X, theta[:1])[0]
+    N = X.shape[0]
+    U = np.unique(np.hstack([Y, X]), axis=0).shape[0]
+    Ux = 0
+    if Y.shape[1] == 1 and U == N:
+        n = N + 1
+        D = np.empty((X.shape[1], n * (n + 1) // 2))
+        k._packed_diffs(X, n, D)
+        Ux = k._grid_space(D, N, True)[0]
+    return U, Ux, np.unique(case.X_test, axis=0).shape[0]
 
 
 # ---------------------------------------------------------------------------------------
@@ -253,7 +277,7 @@ def row(name, sizes, rates, args, rng):
 
     sk = (sklearn_seconds(case, theta, model_n, args.sklearn_pairs, rng)
           if args.sklearn_pairs else np.nan)
-    exps, flops = work(N, n_out, d_x, M, pairs, kept)
+    exps, flops = work(N, n_out, d_x, M, pairs, kept, *distinct_work(case, theta))
     bound = (exps * rates["exp_s"] + flops * rates["flop_s"]) / rates["cores"]
     numba_s = inf_n + pre_n
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

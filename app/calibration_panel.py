@@ -21,6 +21,8 @@ from bokeh.models import ColumnDataSource, LegendItem, Range1d
 from mdcore.validation import as_int
 
 from .live_figures import (
+    CURRENT,
+    SLOT,
     LivePanel,
     below_legend,
     figure_pane,
@@ -134,8 +136,23 @@ class CalibrationPanel(LivePanel):
                 "**The simulator at θ_MAP against the data**: what is left between them is "
                 "the discrepancy δ (the RMSE is to the training data)."),
                 self._simulator_row]
-        self._objects = objects
+        if c.d_x == 1:                          # the output shown, ahead of θ_MAP
+            self._add_simulator(self.state.output_index)
+            show_only({o: cell[2] for o, cell in self._simulator.items()},
+                      self.state.output_index, self._simulator_row, attach=True)
+        # In the layout from the start, keeping their place but not shown until there is
+        # a θ_MAP (a style change then), as the waves' plots (waves_panel).
+        self._body = pn.Column(*objects, sizing_mode="stretch_width", styles=SLOT)
+        self._layout.objects = [self._body]
         self._update()
+
+    def _add_simulator(self, o: int) -> None:
+        """Build the (empty) simulator plot of output ``o``."""
+        c = self._case
+        grid = input_grid(c)
+        truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
+        fig, curve = self._simulator_figure(o, grid, truth)
+        self._simulator[o] = (fig, curve, figure_pane(fig))
 
     def _posterior_figure(self, j: int):
         """Parameter j: NROY and posterior histograms, θ_MAP (solid) and the truth (dashed)."""
@@ -189,8 +206,8 @@ class CalibrationPanel(LivePanel):
         hm = s.history_match
         post = None if hm is None else theta_posterior(c, hm)
         if post is None:                         # no wave, or everything ruled out
-            if self._layout.objects:
-                self._layout.objects = []
+            if self._body.styles != SLOT:
+                self._body.styles = SLOT
             return
         theta_map = hm.theta_map
         self._text_div.text = map_text(c, theta_map)
@@ -207,9 +224,7 @@ class CalibrationPanel(LivePanel):
             shown = s.output_index
             new = shown not in self._simulator
             if new:
-                truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
-                fig, curve = self._simulator_figure(shown, grid, truth)
-                self._simulator[shown] = (fig, curve, figure_pane(fig))
+                self._add_simulator(shown)
             at_map = c.simulate(grid, theta_map)[0]                           # (G, n_out)
             at_data = c.simulate(c.X_train, theta_map)[0]                     # (N, n_out)
             for o, (fig, curve, _) in self._simulator.items():
@@ -220,5 +235,5 @@ class CalibrationPanel(LivePanel):
                                   f"{number(rmse, c.output_units[o])})")
             show_only({o: cell[2] for o, cell in self._simulator.items()}, shown,
                       self._simulator_row, attach=new)
-        if list(self._layout.objects) != self._objects:
-            self._layout.objects = self._objects
+        if self._body.styles != CURRENT:
+            self._body.styles = CURRENT

@@ -30,6 +30,8 @@ from mdcore.pipeline import Method
 
 from .data_panel import true_delta_figure
 from .live_figures import (
+    CURRENT,
+    SLOT,
     BandFigure,
     LivePanel,
     MapFigure,
@@ -47,16 +49,9 @@ QUANTITIES = {"z and δ": ("z", "delta"), "δ": ("delta",), "z": ("z",)}
 CSS = "disc-plot"
 #: Opacity of the earlier plots while their recompute runs.
 STALE_OPACITY = "0.45"
-#: Styles of a group whose results are current. Explicit: styles of ``{}`` would leave
-#: the browser's dimmed opacity on.
-CURRENT = {"opacity": "1", "visibility": "visible"}
-#: ... of the earlier plots while their recompute runs.
+#: Styles of the earlier plots while their recompute runs (CURRENT and SLOT: see
+#: :mod:`.live_figures`).
 STALE = {"opacity": STALE_OPACITY, "visibility": "visible"}
-#: ... of a method's column (beam-2d: row) hidden by the scenario buttons while its result
-#: is kept: it keeps its place, so nothing else moves or resizes. Collapsing it made
-#: the browser re-lay-out and repaint every other plot (0.6-0.9 s on shear-5's 20 plots);
-#: this is a style change (0.05 s).
-SLOT = {"opacity": "1", "visibility": "hidden"}
 #: The axes of a band plot hold mean ± this many sd (the widest band offered), so a new
 #: band redraws only the band: the axes, and the plot's layout, stay put.
 WIDEST_BAND = 3

@@ -38,6 +38,8 @@ from bokeh.palettes import Category10_10, Viridis256
 from mdcore.validation import as_float_array, as_int, as_positive_float
 
 from .live_figures import (
+    CURRENT,
+    SLOT,
     LivePanel,
     below_legend,
     figure_pane,
@@ -175,7 +177,12 @@ class WavesPanel(LivePanel):
         summary = pn.Row(figure_pane(self._fraction_figure()),
                          figure_pane(self._variance_figure(c.output_names)),
                          sizing_mode="stretch_width")
-        self._figures = [self._player, self._legend, *rows, summary]
+        # In the layout from the start, keeping their place but not shown until the first
+        # wave (a style change then): building them in the browser at that click was
+        # most of the first wave's time.
+        self._body = pn.Column(self._player, self._legend, *rows, summary,
+                               sizing_mode="stretch_width", styles=SLOT)
+        self._layout.objects = [self._empty, self._body]
         self._update()
 
     def _pairs(self, labels, bounds) -> list:
@@ -270,8 +277,7 @@ class WavesPanel(LivePanel):
     def _update(self, *_):
         s, c = self.state, self._case
         if not s.waves:
-            if list(self._layout.objects) != [self._empty]:
-                self._layout.objects = [self._empty]
+            self._show_body(False)
             return
         upto = s.selected_wave or len(s.waves)
         shown = [w for w in s.waves if w.index <= upto]
@@ -303,8 +309,15 @@ class WavesPanel(LivePanel):
         for ticker in (self._fraction_ticks, self._variance_ticks):
             if list(ticker.ticks) != k:
                 ticker.ticks = k
-        if list(self._layout.objects) != self._figures:
-            self._layout.objects = self._figures
+        self._show_body(True)
+
+    def _show_body(self, shown: bool) -> None:
+        """The plots, or the "press Next wave" line (only what changes is sent)."""
+        if self._empty.visible == shown:
+            self._empty.visible = not shown
+        styles = CURRENT if shown else SLOT
+        if self._body.styles != styles:
+            self._body.styles = styles
 
     def _sync_player(self, n: int, upto: int) -> None:
         """The player shows wave ``upto`` of ``n`` (one message; hidden below 2 waves)."""

@@ -10,6 +10,7 @@ from bokeh.models import GlyphRenderer  # noqa: E402
 from legends import legend  # noqa: E402
 
 from mdcore_app.calibration_panel import CalibrationPanel, map_text  # noqa: E402
+from mdcore_app.live_figures import CURRENT, SLOT  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 
 
@@ -22,7 +23,7 @@ def one(fig, label: str) -> tuple[dict, GlyphRenderer]:
 
 
 def figures(panel):
-    return [pane.object for row in panel._layout.objects if hasattr(row, "objects")
+    return [pane.object for row in panel._body.objects if hasattr(row, "objects")
             for pane in row.objects]
 
 
@@ -88,8 +89,10 @@ def test_simulator_at_map_equals_the_simulator(beam):
 def test_a_new_wave_redraws_in_place_and_a_new_case_rebuilds():
     s = ExplorerState(case_name="shear-5")
     panel = CalibrationPanel(state=s)
-    assert panel._layout.objects == []                   # nothing before the first wave
+    assert panel._body.styles == SLOT                    # nothing shown before the first wave
+    built = figures(panel)                               # but built: E, ν, ρ and ω1
     s.next_wave()
+    assert panel._body.styles == CURRENT and figures(panel) == built
     figs = figures(panel)
     assert len(figs) == 3 + 1                            # E, ν, ρ; the output shown, ω1
     hm = s.history_match
@@ -109,9 +112,9 @@ def test_a_new_wave_redraws_in_place_and_a_new_case_rebuilds():
     s.next_wave()
     assert list(panel._layout.objects) == layout and figures(panel) == figs
     s.case_name = "beam-2d"                              # one parameter, a 2-D input
-    figs = figures(panel) if panel._layout.objects else []
-    assert figs == []
+    assert panel._body.styles == SLOT                    # nothing shown before its wave
     s.next_wave()
+    assert panel._body.styles == CURRENT
     (post,) = figures(panel)
     hm = s.history_match
     assert post.title.text == f"E: θ_MAP = {hm.theta_map[0]:.4g} GPa"

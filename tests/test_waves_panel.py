@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 pytest.importorskip("panel")
+from mdcore_app.live_figures import CURRENT  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.waves_panel import (  # noqa: E402
     MAX_POINTS,
@@ -39,8 +40,9 @@ def test_contour_is_the_level_set_of_a_closed_form():
 def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
     s = beam
     panel = WavesPanel(state=s)
-    layout = list(panel._layout.objects)
-    figures = [o.object for row in layout[2:] for o in row]
+    layout, body = list(panel._layout.objects), list(panel._body.objects)
+    assert panel._body.styles == CURRENT and not panel._empty.visible
+    figures = [o.object for row in body[2:] for o in row]
     n = len(s.waves)
     data = panel._nroy.data
     # Every shown wave's samples (at most MAX_POINTS each, all of them NROY points of that
@@ -79,7 +81,8 @@ def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
     s.selected_wave = n
     assert player.value == n
     assert list(panel._layout.objects) == layout           # nothing re-laid-out
-    assert [o.object for row in layout[2:] for o in row] == figures
+    assert list(panel._body.objects) == body
+    assert [o.object for row in body[2:] for o in row] == figures
 
 
 def test_one_parameter_histograms_count_each_waves_samples():
@@ -108,7 +111,7 @@ def test_many_outputs_each_have_a_variance_line():
     assert len(panel._ratios) == 5
     # Three pairs of (E, ν, ρ) share one source.
     assert set(nroy_columns(s.waves, 3)) == {"t0", "t1", "t2", "wave", "color"}
-    assert len(panel._figures) == 4 and panel._image is None   # player, legend, 2 rows
+    assert len(panel._body.objects) == 4 and panel._image is None   # player, legend, 2 rows
     assert not panel._player.visible                            # one wave: nothing to step
 
 

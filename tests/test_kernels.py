@@ -106,6 +106,16 @@ def test_training_covariance_and_predictions_at_new_inputs(problem, random):
     np.testing.assert_allclose(q.var, p.var, rtol=1e-6, atol=1e-9 * sf2)
 
 
+def assert_one_matches_naive(K, theta, Y, X, rng):
+    """The strict lower triangle of one random batch element of the bordered ``K`` equals
+    the naive covariance (tests/naive_gp.py)."""
+    N = X.shape[0]
+    j = int(rng.integers(K.shape[0]))
+    naive = naive_gp.cov(theta[j], Y[j], X, Y[j], X)
+    np.testing.assert_allclose(np.tril(K[j, :N, :N], -1), np.tril(naive, -1), rtol=1e-10,
+                               atol=1e-13)
+
+
 @settings(max_examples=60, deadline=None)
 @given(st.integers(2, 50), st.integers(2, 40), st.integers(0, 5), st.integers(0, 2**32 - 1))
 def test_a_shared_y_gives_the_bits_of_the_gathered_one(b, N, d_y, seed):
@@ -122,10 +132,7 @@ def test_a_shared_y_gives_the_bits_of_the_gathered_one(b, N, d_y, seed):
                            lambda Y, I, J: Y[:, I, :] - Y[:, J, :]):     # the gathering
         gathered = train_cov(theta, Y, X, border=z)
     np.testing.assert_array_equal(K, gathered)
-    j = int(rng.integers(b))
-    naive = naive_gp.cov(theta[j], Y[j], X, Y[j], X)
-    np.testing.assert_allclose(np.tril(K[j, :N, :N], -1), np.tril(naive, -1), rtol=1e-10,
-                               atol=1e-13)
+    assert_one_matches_naive(K, theta, Y, X, rng)
 
 
 @settings(max_examples=60, deadline=None)
@@ -146,7 +153,4 @@ def test_replicated_inputs_give_the_bits_of_every_entry_computed(b, N, n_distinc
     with mock.patch.object(kernels, "DISTINCT_INPUTS", False):
         every = train_cov(theta, Y, X, border=z)
     np.testing.assert_array_equal(K, every)
-    j = int(rng.integers(b))
-    naive = naive_gp.cov(theta[j], Y[j], X, Y[j], X)
-    np.testing.assert_allclose(np.tril(K[j, :N, :N], -1), np.tril(naive, -1), rtol=1e-10,
-                               atol=1e-13)
+    assert_one_matches_naive(K, theta, Y, X, rng)

@@ -215,14 +215,15 @@ def _distinct_pairs_of(rows: bytes, shape: tuple[int, int]):
     I, J = np.tril_indices(shape[0])
     a, b = of[I], of[J]
     key = np.maximum(a, b) * first.size + np.minimum(a, b)     # an unordered pair of inputs
-    keys, pick, inverse = np.unique(key, return_index=True, return_inverse=True)
+    _, pick, inverse = np.unique(key, return_index=True, return_inverse=True)
     return I[pick], J[pick], inverse.reshape(-1)
 
 
 def _distinct_pairs(Y: np.ndarray, X: np.ndarray):
     """``(I, J, inverse)`` for replicated inputs, else None: ``(I[k], J[k])`` is one
     lower-triangle pair of each distinct pair of distinct rows of the joint input
-    ``[Y[0], X]``, and ``inverse`` maps every pair of :func:`numpy.tril_indices` to its.
+    ``[Y[0], X]``, and ``inverse`` gives, for every pair of :func:`numpy.tril_indices`,
+    the k of its distinct pair.
 
     Replicated observations (shear-5 repeats each mass ten times, with the same simulator
     output) have equal kernel entries: ``|a − b|`` and ``(a − b)²`` do not depend on the

@@ -75,6 +75,7 @@ from . import compiled, gp
 from .exceptions import LowESSWarning, NumericalWarning
 from .hyperfit import default_bounds, fit_hyperparameters
 from .importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis
+from .kernels import distinct_rows
 from .linalg import JitterLog
 from .priors import GaussianPrior
 from .threads import single_threaded_blas
@@ -161,20 +162,6 @@ def _simulate(simulate: Callable, X: np.ndarray, theta: np.ndarray, n_out: int) 
         raise ValueError("simulate(X, theta) returned NaN or inf; check the θ samples lie "
                          "inside the simulator's valid range.")
     return y
-
-
-def _distinct_inputs(X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct rows of ``X`` (N, d) in order of first appearance, and the index of
-    every row's distinct input, (N,): ``distinct[inverse]`` is ``X``.
-
-    The simulator is a function of (x, θ), so replicated inputs (shear-5 repeats each mass
-    ten times) have equal predictions; :meth:`DiscrepancyModel.predict` computes them once.
-    """
-    _, first, inverse = np.unique(X, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)                    # distinct rows in order of first sight
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    return X[first[order]], rank[inverse.reshape(-1)]
 
 
 def _blocks(n: int, size: int):
@@ -532,7 +519,7 @@ class DiscrepancyModel:
                              f"like the training X; received {X_star.shape}.")
         prune = self.prune if prune is None else _prune(prune)
         executor = check_executor(executor)
-        distinct, inverse = _distinct_inputs(X_star)
+        distinct, inverse = distinct_rows(X_star)
         if distinct.shape[0] < X_star.shape[0]:     # replicates: predict each input once
             pred = self.predict(distinct, prune=prune, progress=progress, executor=executor)
             return DiscrepancyPrediction(*(field[inverse] for field in pred))

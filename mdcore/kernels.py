@@ -30,7 +30,7 @@ from .linalg import workspace
 from .validation import as_float_array, as_log_params
 
 __all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "split_log_params",
-           "separable_matern", "kernel", "train_cov", "cross_cov"]
+           "separable_matern", "kernel", "train_cov", "cross_cov", "distinct_rows"]
 
 SQRT3 = np.sqrt(3.0)
 
@@ -198,6 +198,33 @@ def _pair_diffs(Y: np.ndarray, I: np.ndarray, J: np.ndarray) -> np.ndarray:
     return out
 
 
+def distinct_rows(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The distinct rows of ``A`` (N, d), exactly equal, in order of first appearance, and
+    the index of every row's distinct row, (N,): ``distinct[inverse]`` is ``A``.
+
+    Replicated inputs (shear-5 repeats each mass ten times) have equal kernel entries and
+    equal predictions: :func:`train_cov` and
+    :meth:`mdcore.discrepancy.DiscrepancyModel.predict` compute them once.
+
+    Raises
+    ------
+    ValueError
+        If ``A`` is not 2-D, is empty, or holds NaN or inf.
+
+    Examples
+    --------
+    >>> d, inv = distinct_rows(np.array([[3.0], [1.0], [3.0]]))
+    >>> d.ravel().tolist(), inv.tolist()
+    ([3.0, 1.0], [0, 1, 0])
+    """
+    A = as_float_array(A, "A", ndim=2)
+    _, first, inverse = np.unique(A, axis=0, return_index=True, return_inverse=True)
+    order = np.argsort(first)                    # distinct rows in order of first sight
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return A[first[order]], rank[inverse.reshape(-1)]
+
+
 #: Whether :func:`train_cov` computes replicated inputs' entries once (tests turn it off
 #: to compare the bits).
 DISTINCT_INPUTS = True
@@ -207,14 +234,13 @@ DISTINCT_INPUTS = True
 def _distinct_pairs_of(rows: bytes, shape: tuple[int, int]):
     """:func:`_distinct_pairs` for the (N, d) float64 rows given by their bytes (cached: a
     hyperparameter fit asks for the same rows hundreds of times)."""
-    A = np.frombuffer(rows, dtype=np.float64).reshape(shape)
-    _, first, of = np.unique(A, axis=0, return_index=True, return_inverse=True)
-    if first.size == shape[0]:
+    distinct, of = distinct_rows(np.frombuffer(rows, dtype=np.float64).reshape(shape))
+    U = distinct.shape[0]
+    if U == shape[0]:
         return None
-    of = of.reshape(-1)
     I, J = np.tril_indices(shape[0])
     a, b = of[I], of[J]
-    key = np.maximum(a, b) * first.size + np.minimum(a, b)     # an unordered pair of inputs
+    key = np.maximum(a, b) * U + np.minimum(a, b)               # an unordered pair of inputs
     _, pick, inverse = np.unique(key, return_index=True, return_inverse=True)
     return I[pick], J[pick], inverse.reshape(-1)
 

@@ -154,3 +154,15 @@ def test_replicated_inputs_give_the_bits_of_every_entry_computed(b, N, n_distinc
         every = train_cov(theta, Y, X, border=z)
     np.testing.assert_array_equal(K, every)
     assert_one_matches_naive(K, theta, Y, X, rng)
+
+
+def test_distinct_rows_in_order_of_first_sight_and_bad_input():
+    A = np.array([[3.0, 1.0], [1.0, 2.0], [3.0, 1.0], [0.0, 0.0], [1.0, 2.0], [-0.0, 0.0]])
+    distinct, inverse = kernels.distinct_rows(A)
+    np.testing.assert_array_equal(distinct, [[3.0, 1.0], [1.0, 2.0], [0.0, 0.0]])
+    np.testing.assert_array_equal(inverse, [0, 1, 0, 2, 1, 2])      # −0 equals 0
+    np.testing.assert_array_equal(distinct[inverse], A)
+    for bad, match in [(np.array([[1.0, np.nan]]), "NaN"), (np.ones(3), "dimension"),
+                       (np.empty((0, 2)), "empty")]:
+        with pytest.raises(ValueError, match=match):
+            kernels.distinct_rows(bad)

@@ -36,6 +36,7 @@ from .live_figures import (
     LivePanel,
     MapFigure,
     alert_box,
+    check_shown_in,
     figure_pane,
     live_text,
     show_pane,
@@ -136,7 +137,14 @@ class DiscrepancyPanel(LivePanel):
     def prebuild_when_shown(self, tabs, index: int) -> None:
         """Build the chosen methods' plots, empty and hidden, whenever tab ``index`` of
         ``tabs`` (a :class:`mdcore_app.views.ShowingTabs`) is about to show this panel, and
-        while it shows it (a new case, a method chosen): a run then only fills them."""
+        while it shows it (a new case, a method chosen): a run then only fills them.
+
+        Raises
+        ------
+        ValueError
+            If ``(tabs, index)`` is not a ShowingTabs and a tab index ≥ 0.
+        """
+        check_shown_in((tabs, index), "(tabs, index)")
         self._ready = lambda: tabs.active == index
         tabs.before_show.append(lambda active: active == index and self._prebuild())
 

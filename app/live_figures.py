@@ -94,6 +94,17 @@ CURRENT = {"opacity": "1", "visibility": "visible"}
 SLOT = {"opacity": "1", "visibility": "hidden"}
 
 
+def check_shown_in(shown_in, name: str) -> None:
+    """Raise a ValueError naming ``name`` unless ``shown_in`` is ``(tabs, index)``: a
+    :class:`mdcore_app.views.ShowingTabs` (anything with ``before_show``) and a tab index
+    ≥ 0."""
+    if not (isinstance(shown_in, tuple) and len(shown_in) == 2
+            and hasattr(shown_in[0], "before_show") and isinstance(shown_in[1], int)
+            and 0 <= shown_in[1]):
+        raise ValueError(f"{name} must be (tabs, index): ShowingTabs and the panel's tab "
+                         f"index ≥ 0; received {shown_in!r}.")
+
+
 class LivePanel(pn.viewable.Viewer):
     """A view of the app's state whose figures are built per case and then updated in
     place.
@@ -117,12 +128,8 @@ class LivePanel(pn.viewable.Viewer):
         """``shown_in = (tabs, index)``: the panel is tab ``index`` of ``tabs`` and is
         built only when that tab is shown (:meth:`defer_while_hidden`); a new session's
         first page then builds the figures of the tab in view only."""
-        if shown_in is not None and not (
-                isinstance(shown_in, tuple) and len(shown_in) == 2
-                and hasattr(shown_in[0], "before_show") and isinstance(shown_in[1], int)
-                and 0 <= shown_in[1]):
-            raise ValueError("shown_in must be (tabs, index): ShowingTabs and the panel's "
-                             f"tab index ≥ 0; received {shown_in!r}.")
+        if shown_in is not None:
+            check_shown_in(shown_in, "shown_in")
         super().__init__(**params)
         self._layout = pn.Column(sizing_mode="stretch_width")
         self._case = None                        # the case drawn (set by _rebuild)

@@ -330,6 +330,9 @@ def test_showing_the_tab_builds_the_plots_ahead_and_a_run_only_fills_them():
     panel = DiscrepancyPanel(state=s)
     tabs = ShowingTabs(("Data", pn.Column()), ("HM", pn.Column()), ("Discrepancy", panel))
     panel.prebuild_when_shown(tabs, 2)
+    for bad in [(None, 2), (tabs, -1), (tabs, "2")]:
+        with pytest.raises(ValueError, match=r"\(tabs, index\) must be \(tabs, index\)"):
+            panel.prebuild_when_shown(*bad)
     root = pn.panel(tabs).get_root(Document())
     assert panel._groups == {}                          # not shown yet: nothing built
     tabs.active = 2

@@ -496,14 +496,12 @@ def _train_matrix(theta, DYp, DXp, z, sy, sx, W, A, U, Au, gather, G):
     N = z.size
     n = N + 1
     _unpack_scales(theta, sy.size, sx.size, sy, sx)
-    if U == N and G[0] > 0 and _grid_entries(theta, DYp, sy, sx, G, W, A):
-        pass
-    elif U < N:
+    if U < N:
         Tu = U * (U + 1) // 2
         _matern_entries(DYp, DXp, sy, sx, 2.0 * theta[0], W, Au[:Tu])
         for p in range(gather.size):
             A[p] = Au[gather[p]]
-    else:
+    elif not (G[0] > 0 and _grid_entries(theta, DYp, sy, sx, G, W, A)):
         _matern_entries(DYp, DXp, sy, sx, 2.0 * theta[0], W, A)
     sn2 = math.exp(2.0 * theta[theta.size - 1])
     zz = 0.0

@@ -249,12 +249,8 @@ def _reference():
 
 
 def _record(jitter_log, jitter: np.ndarray, failed: np.ndarray) -> None:
-    """Add a launch's jitter outcome to ``jitter_log`` exactly as the NumPy ``_cholesky`` does."""
-    jittered = (jitter > 0.0) & ~failed
-    n_failed = int(np.count_nonzero(failed))
-    n_jittered = int(np.count_nonzero(jittered))
-    if n_failed or n_jittered:
-        jitter_log.record(n_jittered, n_failed, float(np.max(jitter[jittered], initial=0.0)))
+    """Add a launch's jitter outcome to ``jitter_log`` exactly as the NumPy ``cholesky`` does."""
+    jitter_log.record_steps(jitter, failed)
 
 
 def _contiguous(a, dtype=np.float64) -> np.ndarray:
@@ -285,7 +281,7 @@ def _flat_rows(A, batch):
 
 
 def _run(mode, theta, Y, y_index, X, z, Y_star, s_index, y_star_out, weight, X_star, cz,
-         cd, ladder):
+         cd, ladder, stop=np.inf):
     """:func:`mdcore._compiled_kernels.pair_range` over all pairs, piece by piece.
 
     Returns ``[nlml, mean, var, noise_var, jitter, failed, dropped, acc]``; the mixture sums
@@ -306,8 +302,8 @@ def _run(mode, theta, Y, y_index, X, z, Y_star, s_index, y_star_out, weight, X_s
     def work(b0, b1):
         acc = np.zeros((4, M))
         k.pair_range(mode, b0, b1, theta, Y, y_index, X, z, Y_star, s_index, y_star_out,
-                     weight, X_star, cz, cd, ladder, nlml, mean, var, noise, jitter, failed,
-                     dropped, acc)
+                     weight, X_star, cz, cd, ladder, float(stop), nlml, mean, var, noise,
+                     jitter, failed, dropped, acc)
         return acc
 
     accs = _in_pieces(work, _pieces(B, N, Y.shape[2] + X.shape[1], M))
@@ -317,7 +313,7 @@ def _run(mode, theta, Y, y_index, X, z, Y_star, s_index, y_star_out, weight, X_s
     return [nlml, mean, var, noise, jitter, failed, dropped, acc]
 
 
-def nlml_batch(theta, Y, y_index, X, z, ladder):
+def nlml_batch(theta, Y, y_index, X, z, ladder, stop=np.inf):
     """NLML (Eq. 9) of pairs ``(theta[b], Y[y_index[b]])``, flat and unchecked.
 
     Parameters
@@ -331,6 +327,9 @@ def nlml_batch(theta, Y, y_index, X, z, ladder):
     z : ndarray of shape (N,)
     ladder : ndarray of shape (L,)
         Relative jitter steps (``JITTER_LADDER``).
+    stop : float, default=inf
+        Pairs whose NLML exceeds it get ``+inf``, jitter 0 and not ``failed``
+        (:func:`mdcore.gp.neg_log_marginal_likelihood`).
 
     Returns
     -------
@@ -342,7 +341,7 @@ def nlml_batch(theta, Y, y_index, X, z, ladder):
     none = np.zeros(0)                               # no test points
     out = _run(_kernels().NLML, theta, Y, y_index, X, z, np.zeros((1, 0, Y.shape[2])),
                y_index, np.zeros((1, 0)), np.zeros(len(y_index)), np.zeros((0, X.shape[1])),
-               none, none, ladder)
+               none, none, ladder, stop)
     return out[0], out[4], out[5]
 
 
@@ -371,7 +370,7 @@ def predict_batch(theta, Y, y_index, X, z, Y_star, s_index, X_star, ladder):
 # Batched functions with the broadcasting of mdcore.gp
 
 
-def nlml(log_params, Y, X, z, *, jitter_log=None) -> np.ndarray:
+def nlml(log_params, Y, X, z, *, jitter_log=None, stop=np.inf) -> np.ndarray:
     """Compiled :func:`mdcore.gp.neg_log_marginal_likelihood` on validated input.
 
     Parameters
@@ -384,12 +383,14 @@ def nlml(log_params, Y, X, z, *, jitter_log=None) -> np.ndarray:
     jitter_log : JitterLog, optional
         Receives the jitter counts (``record(jittered, failed, max_jitter)``); the caller
         then warns. Without it this function warns itself, with the NumPy path's text.
+    stop : float, default=inf
+        As in :func:`mdcore.gp.neg_log_marginal_likelihood`.
 
     Returns
     -------
     ndarray of shape (...)
         NLML of every broadcast batch element; ``+inf`` where the covariance stayed
-        non-positive-definite after the jitter ladder.
+        non-positive-definite after the jitter ladder, or the NLML exceeds ``stop``.
     """
     log_cls, ladder = _reference()
     own = jitter_log is None
@@ -397,7 +398,7 @@ def nlml(log_params, Y, X, z, *, jitter_log=None) -> np.ndarray:
     log_params, Y = np.asarray(log_params, np.float64), np.asarray(Y, np.float64)
     batch = np.broadcast_shapes(log_params.shape[:-1], Y.shape[:-2])
     theta, y_flat, y_index = _flatten(log_params, Y, batch)
-    out, jitter, failed = nlml_batch(theta, y_flat, y_index, X, z, ladder)
+    out, jitter, failed = nlml_batch(theta, y_flat, y_index, X, z, ladder, stop)
     _record(jitter_log, jitter, failed)
     if own:
         jitter_log.warn("neg_log_marginal_likelihood")
@@ -660,7 +661,7 @@ def warm_up() -> float:
            np.empty(2, dtype=bool), np.empty(2, dtype=bool)]
     k.pair_range(k.MIXTURE, 0, 2, theta, Y, index, X, z, Ys, index,
                  np.ascontiguousarray(Ys[..., 0]), np.array([0.5, 0.5]), Xs, np.zeros(2),
-                 np.zeros(2), ladder, *out, acc)
+                 np.zeros(2), ladder, np.inf, *out, acc)
     # The KOH step: p = 1, R = 2 training θ, N = N_t = 2 inputs, one output.
     eye = np.eye(2).reshape(1, 2, 2)
     _koh_kernels().log_likelihood(np.zeros(1), np.zeros((2, 1)), np.ones((1, 1)), eye.copy(),

@@ -23,7 +23,9 @@ Chunks and executors
 The (θ, φ) pairs are processed in chunks whose layout depends on the problem size only:
 
 - scenario 3's weights: :data:`WEIGHT_PAIRS` pairs per chunk (rows of θ × all N_φ draws),
-  every output at once;
+  every output at once; with the prior proposal the first :data:`PILOT_PAIRS` pairs go
+  first, alone, and set the cut below which pairs are left out as negligible (their total
+  weight provably below :data:`ABANDON_MASS`; see :func:`_nlml_rows`);
 - the prediction: about 20 blocks per output on the compiled backend (at least
   :data:`MIN_FUSED_BLOCK` pairs), or blocks of :data:`BLOCK_BYTES` of temporaries on NumPy.
 
@@ -61,6 +63,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import itertools
 import time
 import warnings
 from collections.abc import Callable, Generator, Iterable
@@ -98,6 +101,13 @@ BLOCK_BYTES = 32 * 2**20
 MIN_FUSED_BLOCK = 2048
 #: (θ, φ) pairs per chunk of scenario 3's weights (one task, one progress step).
 WEIGHT_PAIRS = 100_000
+#: Scenario 3 (prior proposal) leaves out pairs whose weights provably add up to less than
+#: this fraction of the total (float64 resolves ~1.1e-16 of a sum of 1), see
+#: :func:`_nlml_rows`; :attr:`DiscrepancyModel.abandoned_mass` reports the bound.
+ABANDON_MASS = 1e-16
+#: Pairs weighed first, in full, to set scenario 3's cut (:data:`ABANDON_MASS`): the best
+#: NLML of beam-2d's first 10 θ rows (10,000 pairs) is 4.4 nats from the best of all.
+PILOT_PAIRS = 10_000
 #: Chunks submitted to an executor and not yet collected, at most.
 IN_FLIGHT = 32
 #: Scenario 3's prior draws φ (N_s, N_φ, P) are kept up to this size, in bytes; larger
@@ -204,7 +214,7 @@ def _in_order(executor: Executor | None, fn: Callable, payloads: Iterable[tuple]
 
 
 def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
-                   backend: str) -> tuple[np.ndarray, tuple | None]:
+                   backend: str, stop: np.ndarray) -> tuple[np.ndarray, tuple | None]:
     """Scenario 3's log weights ``−NLML`` (Eq. 15) of one chunk of pairs, every output.
 
     Module level and on plain arrays, so that process and Dask executors can run it.
@@ -218,11 +228,15 @@ def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
     X : ndarray of shape (N, d_x)
     z : ndarray of shape (N, n_out)
     backend : {"numpy", "numba"}
+    stop : ndarray of shape (n_out,)
+        Per output, the NLML beyond which a pair's weight is not wanted (``inf``: none);
+        see ``stop`` in :func:`mdcore.gp.neg_log_marginal_likelihood`.
 
     Returns
     -------
     log_w : ndarray of shape (n_out, R, K)
-        Unnormalised log weights; ``-inf`` where the covariance could not be factorised.
+        Unnormalised log weights; ``-inf`` where the covariance could not be factorised
+        or the NLML exceeds ``stop``.
     jitter : tuple or None
         Compiled backend: ``(jittered, failed, max_jitter)`` for the caller to report; the
         NumPy backend warns where it runs.
@@ -231,10 +245,12 @@ def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
     if backend == "numba":
         log = JitterLog()
         for o in range(z.shape[1]):
-            out[o] = -compiled.nlml(phi, Y[:, None], X, z[:, o], jitter_log=log)
+            out[o] = -compiled.nlml(phi, Y[:, None], X, z[:, o], jitter_log=log,
+                                    stop=stop[o])
         return out, (log.jittered, log.failed, log.max_jitter)
     for o in range(z.shape[1]):
-        out[o] = -gp.neg_log_marginal_likelihood(phi, Y[:, None], X, z[:, o], backend="numpy")
+        out[o] = -gp.neg_log_marginal_likelihood(phi, Y[:, None], X, z[:, o], backend="numpy",
+                                                 stop=stop[o])
     return out, None
 
 
@@ -411,6 +427,10 @@ class DiscrepancyModel:
     phi_draws : PriorDraws or None
         Scenario 3 with the prior proposal: the φ draws as their random stream (used when
         the array itself is not kept).
+    abandoned_mass : ndarray of shape (n_out,) or None
+        Scenario 3 with the prior proposal: a bound on the normalised weight of the pairs
+        whose NLML was not computed because it provably exceeds the cut of
+        :data:`ABANDON_MASS` (their log weight is ``−inf``); below ``ABANDON_MASS``.
     """
 
     scenario: int
@@ -430,6 +450,7 @@ class DiscrepancyModel:
     k_hat: np.ndarray | None = None
     backend: str = "numpy"
     phi_draws: PriorDraws | None = field(default=None, repr=False)
+    abandoned_mass: np.ndarray | None = None
 
     @property
     def n_out(self) -> int:
@@ -597,9 +618,18 @@ def _prune(value) -> float:
 
 def _nlml_rows(blocks: Iterable[tuple[slice, np.ndarray]], S: int, K: int, Y, X, z,
                backend, executor, jitter: JitterLog,
-               progress: Callable[[float], None] | None = None) -> np.ndarray:
+               progress: Callable[[float], None] | None = None, abandon: bool = False
+               ) -> tuple[np.ndarray, np.ndarray]:
     """``−NLML`` (Eq. 15) of every pair ``(φ^(j,k), Y[j])`` and output, one chunk of θ rows
     at a time, on ``executor`` or here.
+
+    With ``abandon``, the pairs whose weight is provably negligible are not computed:
+    the first :data:`PILOT_PAIRS` pairs are (their best NLML per output, ``best``), then
+    every pair whose NLML exceeds ``stop = best + log(S K / ABANDON_MASS)`` gets
+    ``−inf`` (:func:`mdcore.gp.neg_log_marginal_likelihood`'s ``stop``). Each such pair's
+    normalised weight is below ``ABANDON_MASS / (S K)``, as the normaliser is at least
+    the best pair's weight; so their total is below :data:`ABANDON_MASS`. The pilot is
+    fixed, so the numbers do not depend on the executor or the threads.
 
     Parameters
     ----------
@@ -618,28 +648,50 @@ def _nlml_rows(blocks: Iterable[tuple[slice, np.ndarray]], S: int, K: int, Y, X,
         Receives the compiled backend's jitter counts.
     progress : callable, optional
         Called with the fraction of rows done after each chunk.
+    abandon : bool, default=False
+        Leave out the negligible pairs (above).
 
     Returns
     -------
-    ndarray of shape (n_out, S, K)
+    log_weights : ndarray of shape (n_out, S, K)
+    stop : ndarray of shape (n_out,)
+        The NLML cut per output (``inf`` without ``abandon``).
     """
     log_weights = np.empty((z.shape[1], S, K))
+    stop = np.full(z.shape[1], np.inf)
     steps: collections.deque = collections.deque()
+    blocks = iter(blocks)
 
-    def payloads():
-        for sl, phi in blocks:
+    def payloads(chunks):
+        for sl, phi in chunks:
             steps.append(sl)
-            yield phi, Y[sl], X, z, backend
+            yield phi, Y[sl], X, z, backend, stop.copy()
 
-    with contextlib.closing(_in_order(executor, _weights_chunk, payloads())) as results:
-        for part, counts in results:
-            sl = steps.popleft()
-            log_weights[:, sl] = part
-            if counts is not None:
-                jitter.record(*counts)
-            if progress is not None:
-                progress(sl.stop / S)
-    return log_weights
+    def collect(chunks):
+        with contextlib.closing(_in_order(executor, _weights_chunk, payloads(chunks))) as results:
+            for part, counts in results:
+                sl = steps.popleft()
+                log_weights[:, sl] = part
+                if counts is not None:
+                    jitter.record(*counts)
+                if progress is not None:
+                    progress(sl.stop / S)
+
+    if abandon:
+        first = next(blocks, None)
+        if first is not None:
+            sl, phi = first
+            r0 = min(phi.shape[0], -(-PILOT_PAIRS // K))
+            pilot = slice(sl.start, sl.start + r0)
+            collect([(pilot, phi[:r0])])
+            best = -np.max(log_weights[:, pilot].reshape(z.shape[1], -1), axis=1)
+            stop[:] = np.where(np.isfinite(best), best + np.log(S * K / ABANDON_MASS), np.inf)
+            lw = log_weights[:, pilot]
+            lw[lw < -stop[:, None, None]] = -np.inf      # the rule, on the pilot too
+            if r0 < phi.shape[0]:
+                blocks = itertools.chain([(slice(pilot.stop, sl.stop), phi[r0:])], blocks)
+    collect(blocks)
+    return log_weights, stop
 
 
 def _row_blocks(phi: np.ndarray):
@@ -656,8 +708,11 @@ def _prior_proposal(Y, X, z, prior, n_phi, rng, progress, backend, executor, jit
     and weighed as they come; they are kept when they fit in :data:`KEEP_DRAWS_BYTES`,
     else only the generator state before each chunk is (:class:`PriorDraws`).
 
+    The pairs whose weights are negligible are left out (``−inf``), :func:`_nlml_rows`.
+
     Returns ``(log_params (n_out, S, N_φ, P) or None, log_weights (n_out, S, N_φ),
-    PriorDraws)``.
+    PriorDraws, abandoned (n_out,))``, ``abandoned`` a bound on the normalised weight of
+    the pairs left out (below :data:`ABANDON_MASS`).
     """
     n_out, S, P = z.shape[1], Y.shape[0], prior.size
     rows = max(1, WEIGHT_PAIRS // n_phi)
@@ -673,13 +728,18 @@ def _prior_proposal(Y, X, z, prior, n_phi, rng, progress, backend, executor, jit
                 phi[sl] = draws
             yield sl, draws
 
-    log_weights = _nlml_rows(blocks(), S, n_phi, Y, X, z, backend, executor, jitter,
-                             progress)
+    log_weights, stop = _nlml_rows(blocks(), S, n_phi, Y, X, z, backend, executor, jitter,
+                                   progress, abandon=True)
+    abandoned = np.zeros(n_out)
     for o in range(n_out):
-        _normalise(log_weights[o], o)
+        log_norm = _normalise(log_weights[o], o)
+        # each pair at −inf (left out, or failed) has NLML > stop[o]: weight < e^(−stop)
+        n_out_pairs = np.count_nonzero(log_weights[o] == -np.inf)
+        if n_out_pairs and np.isfinite(stop[o]):
+            abandoned[o] = n_out_pairs * np.exp(-stop[o] - log_norm)
     draws = PriorDraws(prior, S, n_phi, rows, tuple(states))
     log_params = None if phi is None else np.broadcast_to(phi, (n_out, S, n_phi, P))
-    return log_params, log_weights, draws
+    return log_params, log_weights, draws, abandoned
 
 
 def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress, backend, executor, jitter):
@@ -693,7 +753,7 @@ def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress, backend, executor, 
     for o in range(n_out):
         def loglik(phi, o=o):                                                   # Eq. 15
             return _nlml_rows(_row_blocks(phi), S, phi.shape[1], Y, X, z[:, o:o + 1],
-                              backend, executor, jitter)[0]
+                              backend, executor, jitter)[0][0]
 
         def report(f, o=o):
             if progress is not None:
@@ -705,7 +765,7 @@ def _adaptive_proposal(Y, X, z, prior, n_phi, rng, progress, backend, executor, 
         except ValueError:
             raise ValueError(_all_zero_message(o)) from None
         log_params[o], log_weights[o] = out.samples, out.log_weights
-    return log_params, log_weights, None
+    return log_params, log_weights, None, np.zeros(n_out)
 
 
 def _all_zero_message(o: int) -> str:
@@ -714,12 +774,14 @@ def _all_zero_message(o: int) -> str:
             "non-positive-definite covariances.")
 
 
-def _normalise(log_weights: np.ndarray, o: int) -> None:
-    """Normalise one output's log weights in place (logsumexp over all pairs = 0)."""
+def _normalise(log_weights: np.ndarray, o: int) -> float:
+    """Normalise one output's log weights in place (logsumexp over all pairs = 0); returns
+    the log normaliser."""
     norm = logsumexp(log_weights)
     if not np.isfinite(norm):
         raise ValueError(_all_zero_message(o))
     log_weights -= norm
+    return float(norm)
 
 
 def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, theta_map=None,
@@ -863,8 +925,8 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         prior = default_phi_prior(Y[0], X, z[:, 0]) if phi_prior is None else phi_prior
         jitter = JitterLog()
         propose = _prior_proposal if proposal == "prior" else _adaptive_proposal
-        log_params, log_weights, phi_draws = propose(Y, X, z, prior, n_phi, rng, progress,
-                                                     backend, executor, jitter)
+        log_params, log_weights, phi_draws, abandoned = propose(
+            Y, X, z, prior, n_phi, rng, progress, backend, executor, jitter)
         jitter.warn("neg_log_marginal_likelihood")
         k_hat = np.array([psis(log_weights[o].ravel()).k_hat for o in range(n_out)])
         if proposal == "adaptive":      # Pareto-smoothed weights (Vehtari et al. 2024)
@@ -873,7 +935,8 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     model = DiscrepancyModel(scenario, simulate, theta, Y, X, z, log_params, log_weights,
                              log_params_hat_arr, nlml_hat, prune, prior,
                              time.perf_counter() - start, proposal if scenario == 3 else None,
-                             k_hat if scenario == 3 else None, backend, phi_draws)
+                             k_hat if scenario == 3 else None, backend, phi_draws,
+                             abandoned if scenario == 3 else None)
     if scenario == 3:
         switch = " or use proposal='adaptive'" if proposal == "prior" else ""
         for o, (e, k) in enumerate(zip(model.ess, k_hat)):

@@ -21,7 +21,15 @@ import scipy.linalg
 
 from . import compiled
 from .kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
-from .linalg import JitterLog, cholesky, chunks, for_each_chunk, gather, solve_lower_inplace
+from .linalg import (
+    JitterLog,
+    cholesky,
+    cholesky_steps,
+    chunks,
+    for_each_chunk,
+    gather,
+    solve_lower_inplace,
+)
 from .threads import single_threaded_blas
 from .validation import as_float_array, as_log_params
 
@@ -88,7 +96,8 @@ def check_problem(log_params, Y, X, z) -> Problem:
 
 @single_threaded_blas
 def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "numpy",
-                                jitter_log: JitterLog | None = None) -> np.ndarray:
+                                jitter_log: JitterLog | None = None,
+                                stop: float | None = None) -> np.ndarray:
     """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``.
 
     ``NLML = ½ zᵀ K⁻¹ z + Σ log L_ii + (N/2) log 2π`` with ``K = K_ff + σ_n² I``,
@@ -115,6 +124,13 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
         callers that report them once, or not at all: an optimiser's trial points).
         Warnings filters are process-wide, so silencing them with ``catch_warnings``
         from several threads at once is not safe; this is.
+    stop : float, optional
+        An NLML beyond which the value is not wanted (a weight too small to matter):
+        elements whose NLML exceeds ``stop`` get ``+inf`` and count neither as jittered nor
+        as failed. The compiled backend stops factorising such a matrix at the first
+        row where a lower bound of its NLML passes ``stop`` (every later row adds at
+        least ``log σ_n``), from N = 24 training points (below, the checks cost more
+        than they save). Scenario 3's weights use it (:data:`mdcore.discrepancy.ABANDON_MASS`).
 
     Returns
     -------
@@ -131,8 +147,10 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     """
     prob = check_problem(log_params, Y, X, z)
     _check_jitter_log(jitter_log)
+    stop = _check_stop(stop)
     if compiled.resolve_backend(backend) == "numba":
-        return compiled.nlml(prob.log_params, prob.Y, prob.X, prob.z, jitter_log=jitter_log)
+        return compiled.nlml(prob.log_params, prob.Y, prob.X, prob.z, jitter_log=jitter_log,
+                             stop=stop)
     N = prob.X.shape[0]
     out = np.empty(int(np.prod(prob.batch_shape, dtype=np.int64)))
     log = JitterLog() if jitter_log is None else jitter_log
@@ -141,11 +159,14 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     def work(sl, multi, n):
         theta = gather(prob.log_params, 1, prob.batch_shape, multi)
         Yc = gather(prob.Y, 2, prob.batch_shape, multi)
-        L, ok = cholesky(train_cov(theta, Yc, prob.X, border=prob.z), log, n_cov=N)
+        L, ok, step = cholesky_steps(train_cov(theta, Yc, prob.X, border=prob.z), n_cov=N)
         w = L[:, N, :N]                                   # L⁻¹ z from the bordered factor
         logdet = np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)[:, :N]), axis=-1)
         val = 0.5 * np.sum(w * w, axis=-1) + logdet + 0.5 * N * LOG_2PI  # Eq. 9
-        out[sl] = np.where(ok, val, np.inf)
+        gone = ok & (val > stop)                          # not wanted: not jittered either
+        step[gone] = 0.0
+        log.record_steps(step, ~ok)
+        out[sl] = np.where(ok & ~gone, val, np.inf)
 
     for_each_chunk(work, chunks(prob.batch_shape, per_item))
     if jitter_log is None:
@@ -230,6 +251,16 @@ def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy
     log.warn("predict")
     return GPPrediction(mean.reshape(batch + (M,)), var.reshape(batch + (M,)),
                         noise.reshape(batch))
+
+
+def _check_stop(stop) -> float:
+    """``stop`` as a float (None: +inf, never); NaN is refused."""
+    if stop is None:
+        return np.inf
+    value = float(as_float_array(stop, "stop", ndim=0, finite=False))
+    if np.isnan(value):
+        raise ValueError("stop must be an NLML level (a number, or inf for none); received NaN.")
+    return value
 
 
 def _check_jitter_log(jitter_log) -> None:

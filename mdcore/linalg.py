@@ -73,6 +73,15 @@ class JitterLog:
             self.failed += failed
             self.max_jitter = max(self.max_jitter, max_jitter)
 
+    def record_steps(self, step: np.ndarray, failed: np.ndarray):
+        """Record a batch by outcome: ``step`` (B,) the ladder step each matrix used (0 for
+        none), ``failed`` (B,) bool those that failed every step."""
+        jittered = (step > 0.0) & ~failed
+        n_failed = int(np.count_nonzero(failed))
+        n_jittered = int(np.count_nonzero(jittered))
+        if n_failed or n_jittered:
+            self.record(n_jittered, n_failed, float(np.max(step[jittered], initial=0.0)))
+
     def warn(self, what: str):
         if self.jittered:
             warnings.warn(
@@ -93,15 +102,25 @@ def cholesky(K: np.ndarray, log: JitterLog, n_cov: int | None = None):
 
     The jitter (SPEC §3: growing steps × mean diagonal) is scaled by, and added to, the
     first ``n_cov`` diagonal entries only (default all), so a bordered matrix
-    ``[[K, z], [zᵀ, c]]`` jitters just its covariance block.
+    ``[[K, z], [zᵀ, c]]`` jitters just its covariance block. ``log`` records the matrices
+    that needed jitter or failed.
 
     Returns ``(L, ok)``; rows with ``ok == False`` failed every jitter step and hold NaN.
     """
+    L, ok, step = cholesky_steps(K, n_cov)
+    log.record_steps(step, ~ok)
+    return L, ok
+
+
+def cholesky_steps(K: np.ndarray, n_cov: int | None = None):
+    """:func:`cholesky` without the record: ``(L, ok, step)``, ``step`` (B,) the ladder
+    step each matrix used (0 without jitter; for a failed one the last step tried)."""
     n_cov = K.shape[-1] if n_cov is None else n_cov
     L = _raw_cholesky(K)
     bad = np.isnan(L[:, -1, -1])
+    step = np.zeros(K.shape[0])
     if not np.any(bad):
-        return L, ~bad
+        return L, ~bad, step
     idx = np.nonzero(bad)[0]
     diag = np.arange(n_cov)
     scale = np.mean(K[idx][:, diag, diag], axis=-1)
@@ -115,10 +134,8 @@ def cholesky(K: np.ndarray, log: JitterLog, n_cov: int | None = None):
         Kj[:, diag, diag] += (jit * scale[todo])[:, None]
         L[sel] = _raw_cholesky(Kj)
         used[todo] = jit
-    ok = ~np.isnan(L[:, -1, -1])
-    log.record(int(np.count_nonzero(ok[idx])), int(np.count_nonzero(~ok)),
-               float(np.max(used[ok[idx]], initial=0.0)))
-    return L, ok
+    step[idx] = used
+    return L, ~np.isnan(L[:, -1, -1]), step
 
 
 def solve_lower_inplace(L: np.ndarray, B: np.ndarray) -> np.ndarray:

@@ -250,6 +250,9 @@ class ImportanceDiagnostics:
         ``Σ_j w_j / Σ_k (w_jk / w_j)²``, ``w_j = Σ_k w_jk``; out of ``n_phi``.
     skipped_mass : tuple of float
         Weight the prediction skipped (below ``prune × max``).
+    abandoned_mass : tuple of float
+        A bound on the weight of the pairs the weighing left out as provably negligible
+        (:data:`mdcore.discrepancy.ABANDON_MASS`); 0 with the adaptive proposal.
     k_hat : tuple of float
         Pareto shape of the raw weights' tail (Vehtari et al.); above 0.7 unreliable.
     n_pairs, n_phi : int
@@ -260,6 +263,7 @@ class ImportanceDiagnostics:
     ess: tuple
     ess_phi: tuple
     skipped_mass: tuple
+    abandoned_mass: tuple
     k_hat: tuple
     n_pairs: int
     n_phi: int
@@ -406,6 +410,9 @@ def importance_diagnostics(model: DiscrepancyModel) -> ImportanceDiagnostics:
     return ImportanceDiagnostics(tuple(float(e) for e in model.ess),
                                  tuple(float(e) for e in ess_phi),
                                  tuple(float(m) for m in model.skipped_mass),
+                                 tuple(float(m) for m in np.broadcast_to(
+                                     0.0 if model.abandoned_mass is None
+                                     else model.abandoned_mass, n_out)),
                                  tuple(float(k) for k in np.broadcast_to(
                                      np.nan if model.k_hat is None else model.k_hat, n_out)),
                                  S * K, K,

@@ -236,6 +236,69 @@ def test_nan_is_never_silent(rng, monkeypatch):
     assert any("predictions are NaN" in m for m in jitter_messages(rec))
 
 
+@pytest.mark.parametrize("N", [13, 40])
+def test_stop_gives_inf_to_exactly_the_pairs_above_it(rng, N):
+    """Below EARLY_STOP_ROWS the compiled path compares the NLML at the end, from it during
+    the factorisation; both give +inf where, and only where, the full NLML exceeds stop."""
+    from mdcore._compiled_kernels import EARLY_STOP_ROWS
+
+    assert N < EARLY_STOP_ROWS or N > EARLY_STOP_ROWS
+    lp, Y, X, z = random_problem(rng, N, 1, 2, batch=(300,), n_y=(300,))
+    lp[:, 0] = rng.uniform(-4.0, 1.0, size=300)           # many hopeless σ_f
+    full = gp.neg_log_marginal_likelihood(lp, Y, X, z)
+    stop = float(np.quantile(full, 0.3))
+    (ref, ref_w), (new, new_w) = both(
+        lambda *a: gp.neg_log_marginal_likelihood(*a, stop=stop),
+        lambda *a: compiled.nlml(*a, stop=stop), lp, Y, X, z)
+    gone = full > stop
+    np.testing.assert_array_equal(ref, np.where(gone, np.inf, full))
+    np.testing.assert_array_equal(np.isinf(new), gone)
+    np.testing.assert_allclose(new[~gone], full[~gone], rtol=RTOL)
+    assert new_w == ref_w == []
+    with pytest.raises(ValueError, match="stop must be an NLML level"):
+        gp.neg_log_marginal_likelihood(lp, Y, X, z, stop=np.nan)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_pairs_above_stop_count_neither_as_jittered_nor_failed(rng, backend):
+    """The duplicated-point pair needs jitter; above stop it is left out without a warning
+    (the compiled path abandons it before the failing pivot), below it warns as before."""
+    lp, Y, X, z = duplicated_points(rng, N=30)
+    full = gp.neg_log_marginal_likelihood(lp, Y, X, z)            # warns: jitter
+    for stop, warned in ((full[0] - 1.0, False), (full[0] + 1.0, True)):
+        with warnings.catch_warnings(record=True) as rec:
+            warnings.simplefilter("always")
+            got = gp.neg_log_marginal_likelihood(lp, Y, X, z, stop=stop, backend=backend)
+        assert bool(jitter_messages(rec)) is warned
+        assert np.isinf(got[0]) is not warned
+        assert got[1] == pytest.approx(full[1], rel=RTOL)
+
+
+def test_factorisation_stops_at_the_first_check_past_the_bound(rng):
+    """The packed kernel leaves the rows after the abandoning check untouched, and the
+    bound it checks is ½ Σ w_i² + Σ log L_ii + (rows left) log σ_n (NumPy's factor here)."""
+    from mdcore import _compiled_kernels as K
+    from mdcore.kernels import train_cov
+
+    N = 40
+    lp, Y, X, z = random_problem(rng, N, 1, 1)
+    A = train_cov(lp[None], Y[None], X, border=z)[0]          # bordered, lower triangle
+    A = A + np.tril(A, -1).T
+    L = np.linalg.cholesky(A[None])[0]
+    w, d = L[N, :N], np.diag(L)[:N]
+    bound = np.cumsum(0.5 * w * w + np.log(d)) + (N - 1 - np.arange(N)) * lp[-1]
+    n = N + 1
+    packed = np.concatenate([A[i, i:] for i in range(n)])
+    R = np.empty_like(packed)
+    assert K._cholesky_packed(packed, R, n, N, 0.0, bound[-1] + 1e-9, lp[-1]) == K.FACTORED
+    row = 17                                                    # crossing here: next check 19
+    stop = 0.5 * (bound[row - 1] + bound[row])
+    assert K._cholesky_packed(packed, R, n, N, 0.0, stop, lp[-1]) == K.ABANDONED
+    first_untouched = sum(n - i for i in range(20))
+    np.testing.assert_array_equal(R[first_untouched:], packed[first_untouched:])
+    np.testing.assert_allclose(R[n:2 * n - 1], L[1:, 1], rtol=1e-12)   # row 1 was done
+
+
 def numpy_mixture_sums(lp, Y, j, X, z, Ys, out, w, Xs, cz, cd):
     p = gp.predict(lp, Y[j], X, z, Ys[j], Xs)
     dz = p.mean - cz
@@ -434,7 +497,8 @@ def test_scenario_3_is_the_same_on_both_backends(beam1d, proposal):
     (m0, p0), (m1, p1) = out["numpy"], out["numba"]
     kept = m0.log_weights > m0.log_weights.max() + np.log(1e-8)
     scale = np.ptp(m0.log_weights[np.isfinite(m0.log_weights)])
-    assert np.max(np.abs(m1.log_weights - m0.log_weights)[kept]) <= 1e-10 * scale
+    assert np.max(np.abs(m1.log_weights[kept] - m0.log_weights[kept])) <= 1e-10 * scale
+    np.testing.assert_array_equal(np.isinf(m1.log_weights), np.isinf(m0.log_weights))
     # The adaptive proposal's later stages are fitted to the weights, so its draws carry the
     # weights' rounding differences (~1e-12); the prior's draws are identical.
     np.testing.assert_allclose(m1.log_params, m0.log_params, rtol=0,

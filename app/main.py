@@ -15,6 +15,7 @@ from pathlib import Path
 
 import holoviews as hv
 import panel as pn
+from panel.io.resources import LOCAL_DIST
 from panel.io.state import set_curdoc
 
 from mdcore import compiled, threads
@@ -79,12 +80,28 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
                           schedule=_scheduler(doc), own_cases=tuple(cases))
     view = ExplorerView(state=state)
     if state.background:
+        _local_style_sheets(doc)
         # A closed tab stops its running job: nobody will see the result, and the CPU is
         # shared by every session of the server.
         doc.on_session_destroyed(lambda _context: state.jobs.close())
     for message in errors:                        # shown once the page is there
         pn.state.onload(lambda m=message: state.report_error(m))
     return view
+
+
+def _local_style_sheets(doc) -> None:
+    """Make Panel give this session's components the server's style sheets, never its CDN's.
+
+    Panel patches its components' style-sheet addresses (cdn.holoviz.org by default) to
+    the server's when it renders the session's HTML page (``dist_url``). A session that
+    Bokeh creates on the websocket's connection (the one from the page expired unused
+    first: seen with five pages loading at once) never has its page rendered, so every
+    component of it asked cdn.holoviz.org for its CSS, which an offline app must not.
+    The address is the one Panel's page would set.
+    """
+    with set_curdoc(doc):
+        local = f"{pn.state.rel_path}/{LOCAL_DIST}" if pn.state.rel_path else LOCAL_DIST
+    doc._template_variables.setdefault("dist_url", local)
 
 
 def _scheduler(doc):

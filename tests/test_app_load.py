@@ -17,8 +17,10 @@ import math
 import os
 import re
 import socket
+import sys
 import threading
 import time
+import traceback
 import urllib.request
 import warnings
 from pathlib import Path
@@ -40,6 +42,8 @@ PRESET = "paper"
 IDLE_CPU = 0.3
 #: Labels of the controls the test types into (param labels in app/state.py).
 THRESHOLD, SEED = "Threshold T", "Seed"
+#: Where every request of a page must go (the offline rule).
+LOCAL = ("http://127.0.0.1:", "ws://127.0.0.1:", "data:", "blob:")
 #: Threads that run a session's jobs: app/jobs.py names them ``mdcore-<label>``; the
 #: compute pools (``mdcore-compiled…``, NumPy's ``mdcore-chunks…``) and the kernel
 #: warm-up are not jobs.
@@ -113,16 +117,23 @@ def shown_text(page, css_class: str) -> str:
         }""", css_class).strip()
 
 
-def wait_shown(page, selector: str, what: str, timeout: float = 90_000) -> None:
-    """Wait for ``selector``; on time-out say what the page shows instead."""
+def wait_shown(page, selector: str, what: str, timeout: float = 90_000,
+               errors: list[str] | None = None) -> None:
+    """Wait for ``selector``; on time-out say what the page shows instead, the page's
+    errors (``errors``, collected by the caller) and where the server's job threads are
+    (a job stuck in its computation, or one whose update never reached the page)."""
     from playwright.sync_api import TimeoutError as PlaywrightTimeout
     try:
         page.wait_for_selector(selector, state="attached", timeout=timeout)
     except PlaywrightTimeout:
+        frames = sys._current_frames()
+        stacks = {t.name: "".join(traceback.format_stack(frames[t.ident])[-4:])
+                  for t in job_threads() if t.ident in frames}
         raise AssertionError(
             f"{what}: no {selector} after {timeout / 1000:.0f} s. Status line: "
             f"{shown_text(page, 'hm-status')!r}; busy line: "
-            f"{shown_text(page, 'mdcore-busy') or shown_text(page, 'mdcore-idle')!r}") from None
+            f"{shown_text(page, 'mdcore-busy') or shown_text(page, 'mdcore-idle')!r}; "
+            f"page errors: {errors!r}; job threads: {stacks or 'none'}") from None
 
 
 def choose(page, label: str, among: list[str]) -> None:
@@ -264,7 +275,12 @@ def same_metrics(shown: dict[str, str], expected: dict) -> list[str]:
 def test_five_sessions_at_once_each_see_their_own_results(browser, server):
     """Five sessions, each with its own T and seed, run history matching and the
     discrepancy scenarios at the same time: all finish, each page shows the results of
-    its own settings, and the process's BLAS/OpenMP thread settings are as before."""
+    its own settings, and the process's BLAS/OpenMP thread settings are as before.
+
+    No page logs an error or asks anything of another host. Loading five at once here
+    outlasts this server's unused-session lifetime (1 s), so Bokeh makes each session
+    again when its websocket connects, without rendering its page; Panel then gave all
+    its components cdn.holoviz.org style sheets (mdcore_app.main._local_style_sheets)."""
     start, cpu0 = time.monotonic(), time.process_time()
 
     def phase(name):            # printed; pytest shows it when the test fails
@@ -284,6 +300,9 @@ def test_five_sessions_at_once_each_see_their_own_results(browser, server):
     errors: list[list[str]] = [[] for _ in pages]
     for page, errs in zip(pages, errors):
         page.on("pageerror", lambda e, errs=errs: errs.append(str(e)))
+        page.on("console", lambda m, errs=errs: m.type == "error" and errs.append(m.text))
+        page.on("request", lambda r, errs=errs: not r.url.startswith(LOCAL) and errs.append(
+            f"a request that leaves localhost: {r.url}"))
     try:
         for page in pages:                                  # five first loads at once
             page.goto(server, wait_until="commit")
@@ -297,7 +316,8 @@ def test_five_sessions_at_once_each_see_their_own_results(browser, server):
         for page in pages:                                  # five history matches at once
             page.get_by_role("button", name="Run to convergence").click()
         for k, (page, marker) in enumerate(zip(pages, markers)):
-            wait_shown(page, f".hm-status:has-text('{marker}')", f"session {k}'s history match")
+            wait_shown(page, f".hm-status:has-text('{marker}')", f"session {k}'s history match",
+                       errors=errors[k])
         phase("five history matches done")
         for k, page in enumerate(pages):       # its own NROY fraction, nobody else's
             shows = [page.locator(f".hm-status:has-text('{m}')").count() for m in markers]
@@ -307,7 +327,7 @@ def test_five_sessions_at_once_each_see_their_own_results(browser, server):
         for k, page in enumerate(pages):
             tab(page, "Metrics")
             wait_shown(page, ".metrics-table table:has-text('Scenario 3')",
-                       f"session {k}'s discrepancy run")
+                       f"session {k}'s discrepancy run", errors=errors[k])
         phase("five discrepancy runs done")
 
         for k, (page, (t, seed), (_, rows)) in enumerate(zip(pages, SESSIONS, expected)):

@@ -429,8 +429,9 @@ class DiscrepancyModel:
         the array itself is not kept).
     abandoned_mass : ndarray of shape (n_out,) or None
         Scenario 3 with the prior proposal: a bound on the normalised weight of the pairs
-        whose NLML was not computed because it provably exceeds the cut of
-        :data:`ABANDON_MASS` (their log weight is ``−inf``); below ``ABANDON_MASS``.
+        left out because their NLML provably exceeds the cut of :data:`ABANDON_MASS`
+        (their log weight is ``−inf``); below ``ABANDON_MASS``. Zeros with the adaptive
+        proposal (nothing is left out), None for scenarios 1–2.
     """
 
     scenario: int

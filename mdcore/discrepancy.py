@@ -103,7 +103,8 @@ MIN_FUSED_BLOCK = 2048
 WEIGHT_PAIRS = 100_000
 #: Scenario 3 (prior proposal) leaves out pairs whose weights provably add up to less than
 #: this fraction of the total (float64 resolves ~1.1e-16 of a sum of 1), see
-#: :func:`_nlml_rows`; :attr:`DiscrepancyModel.abandoned_mass` reports the bound.
+#: :func:`_nlml_rows`; :attr:`DiscrepancyModel.abandoned_mass` reports the bound. Set it
+#: to 0 to weigh every pair (every log weight then finite unless its matrix fails).
 ABANDON_MASS = 1e-16
 #: Pairs weighed first, in full, to set scenario 3's cut (:data:`ABANDON_MASS`): the best
 #: NLML of beam-2d's first 10 θ rows (10,000 pairs) is 4.4 nats from the best of all.
@@ -730,7 +731,7 @@ def _prior_proposal(Y, X, z, prior, n_phi, rng, progress, backend, executor, jit
             yield sl, draws
 
     log_weights, stop = _nlml_rows(blocks(), S, n_phi, Y, X, z, backend, executor, jitter,
-                                   progress, abandon=True)
+                                   progress, abandon=ABANDON_MASS > 0)
     abandoned = np.zeros(n_out)
     for o in range(n_out):
         log_norm = _normalise(log_weights[o], o)

@@ -206,6 +206,14 @@ def test_negligible_pairs_are_left_out_and_their_mass_bounded(rng, monkeypatch, 
         other = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=200,
                                   phi_prior=wide, seed=5, backend=backend, executor=pool)
     np.testing.assert_array_equal(other.log_weights, model.log_weights)
+    monkeypatch.setattr(discrepancy, "ABANDON_MASS", 0.0)      # the switch: every pair
+    every = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=200,
+                              phi_prior=wide, seed=5, backend=backend)
+    assert np.all(np.isfinite(every.log_weights)) and np.all(every.abandoned_mass == 0)
+    for o in range(2):
+        kept = np.isfinite(model.log_weights[o])
+        np.testing.assert_allclose(every.log_weights[o][kept], model.log_weights[o][kept],
+                                   rtol=1e-12)
 
 
 @pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")

@@ -517,7 +517,7 @@ def _train_matrix(theta, DYp, DXp, z, sy, sx, W, A, U, Au, gather, G):
 #: Outcomes of :func:`_cholesky_packed` and :func:`_factor`.
 FAILED, FACTORED, ABANDONED = 0, 1, 2
 #: Fewest training points for which :func:`pair_range` checks its ``stop`` row by row (on
-#: beam-1d's 13 the checks cost more than the rows they save: 1.47 → 1.58 µs per pair).
+#: beam-1d's 13 the checks cost more than the rows they save: 1.45 → 1.56 µs per pair).
 EARLY_STOP_ROWS = 24
 
 

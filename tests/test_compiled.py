@@ -257,6 +257,9 @@ def test_stop_gives_inf_to_exactly_the_pairs_above_it(rng, N):
     assert new_w == ref_w == []
     with pytest.raises(ValueError, match="stop must be an NLML level"):
         gp.neg_log_marginal_likelihood(lp, Y, X, z, stop=np.nan)
+    for bad in ([1.0, 2.0], np.array([]), "high"):        # one level, a number
+        with pytest.raises(ValueError, match="stop"):
+            gp.neg_log_marginal_likelihood(lp, Y, X, z, stop=bad)
 
 
 @pytest.mark.parametrize("backend", ["numpy", "numba"])

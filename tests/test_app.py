@@ -275,6 +275,20 @@ def test_reused_phi_hat_follows_the_seed():
     assert a.history_match is a.history_match                  # θ_MAP is not recomputed
 
 
+def test_a_job_and_the_views_share_one_history_match():
+    """θ_MAP and the θ draws a discrepancy job computed are the ones the views read: the
+    state's history match is the job's object, not a fresh one that computes them again."""
+    s = small_state()
+    s.scenarios = [Method.S1, Method.S2]
+    s.run_discrepancy()                          # runs the waves, then the methods
+    hm = s.history_match
+    assert "theta_map" in vars(hm)               # computed by scenario 1, in the job
+    assert (s.n_s, s.seed) in hm._posterior_memo  # scenario 2's draws
+    s.seed = 1                                   # a new job on the same waves
+    assert s.history_match is hm
+    assert (s.n_s, 1) in hm._posterior_memo
+
+
 def test_koh_is_a_fourth_column(monkeypatch):
     """KOH runs beside scenarios 1–3: its bands, its metrics row and its chain summary."""
     from mdcore import koh

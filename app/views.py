@@ -113,6 +113,10 @@ class ShowingTabs(pn.Tabs):
         super()._update_active(*events)
 
 
+#: Index of the Discrepancy tab (see :meth:`ExplorerView._fill_tabs`).
+DISCREPANCY_TAB = 2
+
+
 class ExplorerView(pn.viewable.Viewer):
     """The whole page: controls on the left, tabs of plots on the right."""
 
@@ -128,7 +132,7 @@ class ExplorerView(pn.viewable.Viewer):
         self._tabs = ShowingTabs(dynamic=True, sizing_mode="stretch_width")
         self._data = DataPanel(state=self.state, shown_in=(self._tabs, 0))
         self._discrepancy = DiscrepancyPanel(state=self.state)
-        self._discrepancy.prebuild_when_shown(self._tabs, 2)
+        self._discrepancy.prebuild_when_shown(self._tabs, DISCREPANCY_TAB)
         self._waves = WavesPanel(state=self.state, shown_in=(self._tabs, 1))
         self._calibration = CalibrationPanel(state=self.state, shown_in=(self._tabs, 1))
         self._status, self._status_div = live_text("hm-status")
@@ -142,6 +146,12 @@ class ExplorerView(pn.viewable.Viewer):
             pn.state.notifications.error(self.state.error, duration=10_000)
 
     def _notify_warning(self, *_):
+        # A notice is a result's advice (a low ESS, a chain that did not mix), which the
+        # Discrepancy tab shows beside the bands: there, a toast would say it twice, and
+        # each toast makes Bokeh walk the whole document (0.17 s of the server's main
+        # thread per beam-2d run). Elsewhere, the toast says that there is advice to read.
+        if self._tabs.active == DISCREPANCY_TAB:
+            return
         if pn.state.notifications is not None:
             pn.state.notifications.warning(self.state.notice, duration=10_000)
 

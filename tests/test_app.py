@@ -16,6 +16,7 @@ from bokeh.models import GlyphRenderer  # noqa: E402
 from event_loop import drain  # noqa: E402
 
 import mdcore_app.state as state_module  # noqa: E402
+import mdcore_app.views as views_module  # noqa: E402
 from mdcore.pipeline import Method  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.views import (  # noqa: E402
@@ -257,6 +258,30 @@ def test_low_ess_becomes_a_notice_not_a_failure():
     text = panel._warnings_div.text
     assert "importance weights are unreliable" in text and "raise N_φ" in text
     assert "mdcore-alert-warning" in text and text.count("<b>") == 1   # subject in bold
+
+
+def test_advice_is_a_toast_only_away_from_the_discrepancy_tab(monkeypatch):
+    """The Discrepancy tab shows a result's advice beside the bands; a toast there would say
+    it twice (one notification per event), elsewhere it says that there is advice."""
+    toasts = []
+
+    class Toasts:
+        def warning(self, message, duration):
+            toasts.append(message)
+
+    monkeypatch.setattr(type(pn.state), "notifications", property(lambda self: Toasts()))
+    s = small_state(n_s=5, n_phi=2)
+    s.scenarios = [Method.S3]
+    view = ExplorerView(state=s)
+    s.run_to_convergence()
+    view._tabs.active = views_module.DISCREPANCY_TAB
+    s.run_discrepancy()
+    assert s.n_notices == 1 and toasts == []
+    assert "importance weights are unreliable" in view.discrepancy_view._warnings_div.text
+    view._tabs.active = 0                                   # the Data tab
+    s.seed = 1
+    assert s.n_notices == 2 and len(toasts) == 1
+    assert "importance weights are unreliable" in toasts[0]
 
 
 def test_reused_phi_hat_follows_the_seed():

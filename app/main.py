@@ -9,6 +9,7 @@ its results back to the session's event loop.
 """
 
 import argparse
+import gc
 import sys
 from functools import partial
 from pathlib import Path
@@ -123,5 +124,22 @@ def _scheduler(doc):
     return lambda fn: doc.add_next_tick_callback(partial(run, fn))
 
 
+def freeze_startup_objects() -> None:
+    """Hide the objects of the server's imports from the garbage collector, once per server.
+
+    Panel, Bokeh, HoloViews, SciPy and the numba kernels leave about 390,000 objects that
+    live as long as the server. Every full collection walked all of them: 0.22-0.28 s, in
+    one session's page load in three (measured with ``gc.callbacks``, eight pages one
+    after another), or in the middle of any click. Frozen, a full collection walks the
+    sessions' objects only (0.01 s). Sessions' documents are not frozen: a closed
+    session's cycles are still collected.
+    """
+    if not pn.state.cache.get("mdcore-gc-frozen"):
+        gc.collect()
+        gc.freeze()
+        pn.state.cache["mdcore-gc-frozen"] = True
+
+
 if pn.state.served:
+    freeze_startup_objects()
     create_app().servable(title="Model Discrepancy Explorer")

@@ -242,9 +242,11 @@ def report_layout(run):
                           zip(case.theta_names, hm.theta_map, case.theta_units))
     intro = (f"{style}<h1>{_esc(case.title)}</h1><p>{_esc(case.description)}</p>"
              f"<h2>Settings</h2>" + _table(
-                 ["seed", "N_s", "N_φ", "φ proposal", "KOH chain", "threshold T", "rule"],
-                 [[run.seed, s.n_s, s.n_phi, s.proposal, f"{s.n_iter:,} ({s.burn_in:,} burn-in)",
-                   f"{hm.problem.threshold:g}", hm.problem.rule]])
+                 ["seed", "N_s", "N_φ", "φ proposal", "φ̂ swarm steps", "KOH chain",
+                  "threshold T", "rule"],
+                 [[run.seed, s.n_s, s.n_phi, s.proposal, s.fit_iterations,
+                   f"{s.n_iter:,} ({s.burn_in:,} burn-in)", f"{hm.problem.threshold:g}",
+                   hm.problem.rule]])
              + "<h2>History matching</h2>" + _table(
                  ["wave", "NROY % of box", "runs", "failed runs", "status"],
                  [[w.index, f"{100 * w.nroy_fraction:.3g}", len(w.runs_theta), len(w.failures),

@@ -508,6 +508,7 @@ class ExplorerState(param.Parameterized):
     def method_settings(self) -> Settings:
         """The pipeline settings of the current controls (validated)."""
         return Settings(n_s=self.n_s, n_phi=self.n_phi, proposal=self.proposal,
+                        fit_iterations=_INTERACTIVE.fit_iterations,
                         **KOH_CHAINS[self.koh_chain])
 
     def _key(self, method: Method, settings: Settings | None = None, *,
@@ -548,10 +549,11 @@ class ExplorerState(param.Parameterized):
     def _cached_phi_hat(self, key: ResultKey):
         """φ̂ of a cached scenario-1 result on the same match and seed, or None.
 
-        φ̂ depends on the match and the seed, not on N_s, so scenario 2 can reuse it.
+        φ̂ depends on the match, the fit's settings and the seed, not on N_s, so scenario 2
+        can reuse it. ``key`` is the scenario-1 key of the current settings.
         """
         for k, r in self._cache.items():
-            if (k.method.method is Method.S1 and k.problem == key.problem
+            if (k.method == key.method and k.problem == key.problem
                     and k.n_waves == key.n_waves and k.seed == key.seed):
                 return r.model.log_params_hat
         return None

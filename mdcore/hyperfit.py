@@ -23,13 +23,15 @@ from .priors import GaussianPrior
 from .threads import single_threaded_blas
 from .validation import as_float_array, choose
 
-__all__ = ["HyperFit", "PROJECTED_GRADIENT_TOL", "default_bounds", "fit_hyperparameters",
-           "lbfgs_converged"]
+__all__ = ["HyperFit", "PROJECTED_GRADIENT_TOL", "QPSO_ITERATIONS", "default_bounds",
+           "fit_hyperparameters", "lbfgs_converged"]
 
 #: An L-BFGS-B run that stopped in its line search counts as converged when its projected
 #: gradient is below this, per log hyperparameter: from there a 1 % change of any
 #: hyperparameter moves the objective by less than 1e-4 (see :func:`lbfgs_converged`).
 PROJECTED_GRADIENT_TOL = 1e-2
+#: Swarm steps of the QPSO (the default of :func:`fit_hyperparameters`).
+QPSO_ITERATIONS = 120
 
 
 class HyperFit(NamedTuple):
@@ -147,7 +149,7 @@ def _qpso(objective: Callable, lo: np.ndarray, hi: np.ndarray, rng, n_particles:
 @single_threaded_blas
 def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, bounds=None,
                         method: str = "qpso", seed=None, n_particles: int = 40,
-                        n_iterations: int = 120, n_starts: int = 8,
+                        n_iterations: int = QPSO_ITERATIONS, n_starts: int = 8,
                         polish: bool = True, maxiter: int = 15_000) -> HyperFit:
     """Empirical Bayes (Eq. 8): minimise the NLML over the log hyperparameters.
 

@@ -73,6 +73,7 @@ class CaseRun:
         return {"schema_version": SCHEMA_VERSION, "case": self.case.name, "seed": self.seed,
                 "settings": {"n_s": s.n_s, "n_phi": s.n_phi, "n_iter": s.n_iter,
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
+                             "fit_iterations": s.fit_iterations,
                              "backend": compiled.resolve_backend(s.backend)},
                 "history_matching": {"waves": len(self.hm.waves),
                                      "nroy_fraction": self.hm.nroy_fraction,

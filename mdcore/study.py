@@ -165,7 +165,8 @@ class Study:
         s = self.settings
         return {"case": self.case, "seeds": list(self.seeds),
                 "settings": {"n_s": s.n_s, "n_phi": s.n_phi, "n_iter": s.n_iter,
-                             "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal},
+                             "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
+                             "fit_iterations": s.fit_iterations},
                 "summary": self.summary(), "paper": PAPER.get(self.case),
                 "patterns": self.patterns(), "runs": list(self.runs)}
 

@@ -11,6 +11,7 @@ from mdcore import Cancelled, cases
 from mdcore.history_matching import history_match_case
 from mdcore.metrics import coverage, lpl, mmd, nmse
 from mdcore.pipeline import (
+    INTERACTIVE_FIT_ITERATIONS,
     ChainDiagnostics,
     Method,
     MethodKey,
@@ -51,10 +52,10 @@ def test_method_parse_and_labels():
 
 def test_settings_validate_and_key_only_what_matters():
     s = Settings(n_s=10, n_phi=5, n_iter=100, burn_in=10)
-    assert s.key(1) == MethodKey(Method.S1, None, None, None, None, None, None)
-    assert s.key("2") == MethodKey(Method.S2, 10, None, None, None, None, None)
-    assert s.key(3) == MethodKey(Method.S3, 10, 5, None, None, 1e-12, "prior")
-    assert s.key("koh") == MethodKey(Method.KOH, None, None, 100, 10, None, None)
+    assert s.key(1) == MethodKey(Method.S1, None, None, None, None, None, None, 120)
+    assert s.key("2") == MethodKey(Method.S2, 10, None, None, None, None, None, 120)
+    assert s.key(3) == MethodKey(Method.S3, 10, 5, None, None, 1e-12, "prior", None)
+    assert s.key("koh") == MethodKey(Method.KOH, None, None, 100, 10, None, None, None)
     other = Settings(n_s=99, n_phi=5, n_iter=100, burn_in=10)
     assert s.key(1) == other.key(1) and s.key("koh") == other.key("koh")
     assert s.key(3) != other.key(3)
@@ -151,6 +152,23 @@ def test_scenarios_1_and_2_have_no_importance_diagnostics_and_reuse_phi_hat(beam
     for a, b in zip(r2.on_test, r2_hat.on_test):
         np.testing.assert_array_equal(a, b)
     assert r2.model.theta.shape == (30, 2)
+
+
+def test_fit_iterations_reach_the_fit_and_the_apps_short_swarm_finds_the_same_phi_hat(beam):
+    """``Settings.fit_iterations`` is the φ̂ fit's swarm length; the app's 30 steps, then the
+    L-BFGS-B polish, end at the 120-step optimum (to the polish's tolerance)."""
+    case, hm = beam
+    full = quiet(run_method, case, hm, 1, SMALL, seed=0)
+    short_settings = dataclasses.replace(SMALL, fit_iterations=INTERACTIVE_FIT_ITERATIONS)
+    short = quiet(run_method, case, hm, 1, short_settings, seed=0)
+    assert short.key != full.key and short.key.fit_iterations == 30
+    a, b = full.model.log_params_hat, short.model.log_params_hat
+    assert not np.array_equal(a, b)                       # another swarm ...
+    np.testing.assert_allclose(b, a, rtol=0, atol=1e-3)   # ... the same optimum
+    np.testing.assert_allclose(short.model.nlml_hat, full.model.nlml_hat, rtol=0, atol=1e-5)
+    assert Settings.interactive().fit_iterations == INTERACTIVE_FIT_ITERATIONS
+    with pytest.raises(ValueError, match="fit_iterations must be an integer ≥ 1; received 0"):
+        Settings(fit_iterations=0)
 
 
 def test_koh_chain_diagnostics_and_advice(beam):

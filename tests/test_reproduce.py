@@ -96,7 +96,7 @@ def test_json_layout_is_typed_and_versioned(run, tmp_path):
     assert d["schema_version"] == SCHEMA_VERSION and d["case"] == "beam-1d" and d["seed"] == 0
     assert d["settings"] == {"n_s": 100, "n_phi": 50, "n_iter": 6000, "burn_in": 2000,
                              "prune": 1e-12, "proposal": "prior",
-                             "backend": "numpy"}
+                             "fit_iterations": 120, "backend": "numpy"}
     for label in ("1", "2"):
         assert d["methods"][label]["importance"] is None and d["methods"][label]["chain"] is None
     assert d["methods"]["3"]["chain"] is None and d["methods"]["koh"]["importance"] is None

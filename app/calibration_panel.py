@@ -25,6 +25,7 @@ from .live_figures import (
     SLOT,
     LivePanel,
     below_legend,
+    blank,
     figure_pane,
     live_figure,
     live_text,
@@ -160,12 +161,14 @@ class CalibrationPanel(LivePanel):
         name, unit = c.theta_names[j], c.theta_units[j]
         fig = live_figure(name, axis_label(name, unit), "density", CSS,
                           x_range=Range1d(*(float(b) for b in c.theta_bounds[j])))
-        sources = [ColumnDataSource({"left": [], "right": [], "top": []}) for _ in range(2)]
+        e = np.linspace(*(float(b) for b in c.theta_bounds[j]), BINS + 1)   # as theta_posterior
+        sources = [ColumnDataSource(blank(BINS, "top", left=e[:-1], right=e[1:]))
+                   for _ in range(2)]
         nroy = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[0],
                         fill_color="grey", fill_alpha=0.25, line_alpha=0)
         post = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[1],
                         fill_color=POSTERIOR_COLOR, fill_alpha=0.6, line_alpha=0)
-        at_map = ColumnDataSource({"x": []})
+        at_map = ColumnDataSource(blank(1, "x"))
         line = fig.vspan(x="x", source=at_map, line_color=THETA_MAP_COLOR, line_width=3)
         post_item = LegendItem(label="posterior", renderers=[post])
         items = [LegendItem(label="NROY (uniform)", renderers=[nroy]), post_item,
@@ -189,7 +192,7 @@ class CalibrationPanel(LivePanel):
                 c.X_test[:, 0], c.z_test[:, o], color="grey", size=4, alpha=0.6)]),
             LegendItem(label="training data", renderers=[fig.scatter(
                 c.X_train[:, 0], c.z_train[:, o], color="black", size=6)])]
-        curve = ColumnDataSource({"x": [], "y": []})
+        curve = ColumnDataSource(blank(grid.shape[0], "y", x=grid[:, 0]))
         items.append(LegendItem(label="simulator at θ_MAP", renderers=[fig.line(
             "x", "y", source=curve, line_color=THETA_MAP_COLOR, line_width=2)]))
         if truth is not None:
@@ -215,7 +218,7 @@ class CalibrationPanel(LivePanel):
             e = post.edges[j]
             replace_data(nroy, {"left": e[:-1], "right": e[1:], "top": post.nroy[j]})
             replace_data(weighted, {"left": e[:-1], "right": e[1:], "top": post.posterior[j]})
-            replace_data(at_map, {"x": [float(theta_map[j])]})
+            replace_data(at_map, {"x": np.array([float(theta_map[j])])})
             item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
             fig.title.text = (f"{c.theta_names[j]}: θ_MAP = "
                               f"{number(theta_map[j], c.theta_units[j])}")

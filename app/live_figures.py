@@ -213,12 +213,56 @@ def live_text(css_class: str, height: int | None = None) -> tuple[pn.pane.Bokeh,
 
 
 def replace_data(source: ColumnDataSource, data: dict) -> None:
-    """``source.data = data`` unless every column is already equal (each assignment is
-    sent to the browser and redraws the plot)."""
+    """Give ``source`` the columns ``data``, sending the browser only what changed.
+
+    Columns already equal are not sent. When the changed ones keep their length and
+    dtype (a band on a fixed grid, a map), their new values go as a *patch* into the
+    source's own arrays; otherwise the source gets a new ``data`` dict (of copies, which
+    later patches may overwrite without touching the caller's arrays, e.g. a cached
+    result's). A patch redraws the glyphs in place. A new ``data`` dict also makes every
+    Bokeh legend whose items reach the source rebuild all its entries, each with a new
+    canvas: 347 canvases and most of the 2.2 s of browser time of shear-5's first wave.
+    """
     old = source.data
-    if old.keys() == data.keys() and all(_same(old[k], v) for k, v in data.items()):
-        return
-    source.data = data
+    if old.keys() == data.keys():
+        changed = {k: v for k, v in data.items() if not _same(old[k], v)}
+        if not changed:
+            return
+        if all(_patchable(old[k], v) for k, v in changed.items()):
+            source.patch({k: [(slice(0, len(v)), np.asarray(v))] for k, v in changed.items()})
+            return
+    source.data = {k: _own(v) for k, v in data.items()}
+
+
+def blank(n: int, *names: str, **fixed) -> dict:
+    """Source columns: ``names`` as ``n`` NaNs (nothing is drawn), beside ``fixed`` ones.
+
+    A source that starts at its final length takes its first data as a patch
+    (:func:`replace_data`). From empty, the new length changed the source and its view
+    in the browser several times per update, and each change rebuilt every entry of the
+    figure's legend (12 rebuilds of each band figure's legend in beam-2d's first
+    discrepancy run, three canvases each).
+    """
+    columns = {k: np.array(v, dtype=float) for k, v in fixed.items()}
+    columns.update({k: np.full(n, np.nan) for k in names})
+    return columns
+
+
+def _patchable(old, new) -> bool:
+    """Whether ``new`` can overwrite the column ``old`` in place: ``old`` a writable 1-D
+    numeric array of this source's own (see :func:`_own`), ``new`` an array of the same
+    length and dtype."""
+    return (isinstance(old, np.ndarray) and old.ndim == 1 and old.flags.owndata
+            and old.flags.writeable and old.dtype.kind in "fiub"
+            and isinstance(new, np.ndarray) and new.shape == old.shape
+            and new.dtype == old.dtype)
+
+
+def _own(column):
+    """A copy of a 1-D numeric column (patchable later), else the column as given."""
+    if isinstance(column, np.ndarray) and column.ndim == 1 and column.dtype.kind in "fiub":
+        return column.copy()
+    return column
 
 
 def _same(a, b) -> bool:
@@ -261,15 +305,19 @@ class BandFigure:
         The figure's CSS class (what the browser tests look for).
     x_range, y_range : bokeh Range, optional
         Ranges shared with other figures (linked axes); default: the figure's own.
+    x : ndarray of shape (G,), optional
+        The inputs :meth:`show` will draw at, when known: the sources start there, blank
+        (:func:`blank`), and each result is sent as a patch.
     """
 
     def __init__(self, *, title: str, xname: str, yname: str, color: str, label: str,
                  points=(), reference: str | None = None, css_class: str = "live-plot",
-                 x_range=None, y_range=None):
+                 x_range=None, y_range=None, x=None):
         ranges = {k: v for k, v in (("x_range", x_range), ("y_range", y_range)) if v}
         self.figure = fig = live_figure(title, xname, yname, css_class, **ranges)
-        self._band = ColumnDataSource({"x": [], "lower": [], "upper": []})
-        self._mean = ColumnDataSource({"x": [], "mean": []})
+        x = np.zeros(0) if x is None else as_float_array(x, "x", ndim=1)
+        self._band = ColumnDataSource(blank(x.size, "lower", "upper", x=x))
+        self._mean = ColumnDataSource(blank(x.size, "mean", x=x))
         band = fig.varea("x", "lower", "upper", source=self._band, fill_color=color,
                          fill_alpha=0.25)
         mean = fig.line("x", "mean", source=self._mean, line_color=color, line_width=2)
@@ -282,7 +330,7 @@ class BandFigure:
                 np.asarray(x, float), np.asarray(y, float), **style)]))
         self._reference = None
         if reference is not None:
-            self._reference = ColumnDataSource({"x": [], "y": []})
+            self._reference = ColumnDataSource(blank(x.size, "y", x=x))
             line = fig.line("x", "y", source=self._reference, line_color="black",
                             line_dash="dashed", line_width=1.5)
             items.append(LegendItem(label=reference, renderers=[line]))

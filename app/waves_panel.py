@@ -42,6 +42,7 @@ from .live_figures import (
     SLOT,
     LivePanel,
     below_legend,
+    blank,
     figure_pane,
     live_figure,
     live_text,
@@ -60,6 +61,8 @@ BINS = 40
 CLIP = 3.0
 #: Height of the legend line above the plots (fixed: a new wave changes no layout).
 LEGEND_HEIGHT = 28
+#: Most waves a history match can have (the upper bound of the Max waves control).
+MAX_WAVES = ExplorerState.param.max_waves.bounds[1]
 
 
 def wave_samples(wave, max_points: int = MAX_POINTS) -> np.ndarray:
@@ -126,6 +129,13 @@ def variance_ratios(waves, n_out: int) -> np.ndarray:
     """(n_out, n_waves): the largest emulator variance at retained points ÷ (V_o + V_m)."""
     return np.array([[w.max_var[o] / w.var_threshold[o] for w in waves]
                      for o in range(n_out)], dtype=float).reshape(n_out, len(waves))
+
+
+def padded(values, n: int) -> np.ndarray:
+    """``values`` followed by NaNs (not drawn) up to length ``n``, as floats."""
+    out = np.full(n, np.nan)
+    out[:len(values)] = values
+    return out
 
 
 def legend_html(waves, truth: bool, theta_map: bool, lines: bool = False) -> str:
@@ -262,7 +272,9 @@ class WavesPanel(LivePanel):
                             line_dash="dashed"))
         self._ratios, items = [], []
         for o, name in enumerate(output_names):
-            source = ColumnDataSource({"wave": [], "ratio": []})
+            # One row per possible wave, blank until run: each wave is then a patch, which
+            # leaves the legend alone (a longer source rebuilt its five entries five times).
+            source = ColumnDataSource(blank(MAX_WAVES, "wave", "ratio"))
             color = Category10_10[o % 10]
             line = fig.line("wave", "ratio", source=source, line_color=color, line_width=2)
             dots = fig.scatter("wave", "ratio", source=source, color=color, size=7)
@@ -300,7 +312,8 @@ class WavesPanel(LivePanel):
                                       "percent": [100 * w.nroy_fraction for w in shown]})
         ratios = variance_ratios(shown, c.n_out)
         for o, source in enumerate(self._ratios):
-            replace_data(source, {"wave": k, "ratio": ratios[o]})
+            replace_data(source, {"wave": padded(k, MAX_WAVES),
+                                  "ratio": padded(ratios[o], MAX_WAVES)})
         finite = ratios[np.isfinite(ratios) & (ratios > 0)]
         lo = min(float(finite.min()) if finite.size else 1.0, 1.0) / 3
         hi = max(float(finite.max()) if finite.size else 1.0, 1.0) * 3

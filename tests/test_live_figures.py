@@ -5,7 +5,10 @@ import numpy as np
 import pytest
 
 pytest.importorskip("bokeh")
-from mdcore_app.live_figures import BandFigure, MapFigure  # noqa: E402
+from bokeh.document import Document  # noqa: E402
+from bokeh.models import ColumnDataSource  # noqa: E402
+
+from mdcore_app.live_figures import BandFigure, MapFigure, blank, replace_data  # noqa: E402
 
 X = np.linspace(0.0, 1.0, 5)
 GOOD = {"x": X, "mean": X ** 2, "var": np.full(5, 0.01), "k": 2}
@@ -85,3 +88,46 @@ def test_show_pane_and_show_only_show_a_pane_again_and_refuse_bad_arguments():
     for bad in [(), (pn.Tabs(), 0), (object(), 1), ("tabs", -1)]:
         with pytest.raises(ValueError, match=r"shown_in must be \(tabs, index\)"):
             LivePanel(shown_in=bad)
+
+
+def _events(source):
+    """Attach ``source`` to a document; return the list its change events are appended to."""
+    doc, sent = Document(), []
+    doc.add_root(source)
+    doc.on_change(lambda event: sent.append(type(event).__name__))
+    return sent
+
+
+def test_same_shape_data_go_as_a_patch_of_the_changed_columns_only():
+    """A patch leaves the browser's legends alone (a new ``data`` dict rebuilt each legend
+    entry, with a new canvas, several times per update), and unchanged columns are not
+    sent."""
+    source = ColumnDataSource(blank(5, "y", x=X))
+    assert np.isnan(source.data["y"]).all()
+    sent = _events(source)
+    mine = X ** 2                                         # e.g. a cached result's array
+    replace_data(source, {"x": X, "y": mine})
+    assert sent == ["ColumnsPatchedEvent"]
+    np.testing.assert_array_equal(source.data["y"], mine)
+    replace_data(source, {"x": X, "y": mine})            # nothing changed: nothing sent
+    assert sent == ["ColumnsPatchedEvent"]
+    replace_data(source, {"x": X, "y": 2 * mine})
+    assert sent == ["ColumnsPatchedEvent"] * 2
+    np.testing.assert_array_equal(mine, X ** 2)          # the caller's array is untouched
+
+
+def test_new_lengths_or_columns_replace_the_data_with_copies():
+    source = ColumnDataSource({"x": [], "y": []})
+    sent = _events(source)
+    mine = X ** 2
+    replace_data(source, {"x": X, "y": mine})             # a new length: new data
+    assert sent == ["ColumnDataChangedEvent"]
+    assert source.data["y"] is not mine
+    replace_data(source, {"x": X, "y": 3 * X})           # now patched, into the copy
+    assert sent[-1] == "ColumnsPatchedEvent"
+    np.testing.assert_array_equal(mine, X ** 2)
+    replace_data(source, {"x": X, "y": X.astype(int)})   # another dtype: new data
+    replace_data(source, {"x": X[:3], "y": X[:3]})       # shorter: new data
+    replace_data(source, {"x": [0.0, 1.0], "y": [1.0, 2.0]})   # lists: new data
+    assert sent[-3:] == ["ColumnDataChangedEvent"] * 3
+    assert list(source.data["y"]) == [1.0, 2.0]

@@ -10,6 +10,7 @@ from mdcore_app.live_figures import CURRENT  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.waves_panel import (  # noqa: E402
     MAX_POINTS,
+    MAX_WAVES,
     WavesPanel,
     contour_lines,
     histogram_columns,
@@ -54,8 +55,12 @@ def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
     assert list(data["wave"]) == sorted(data["wave"])
     np.testing.assert_array_equal(panel._fraction.data["percent"],
                                   [100 * w.nroy_fraction for w in s.waves])
-    np.testing.assert_array_equal(panel._ratios[0].data["ratio"],
-                                  [w.max_var[0] / w.var_threshold[0] for w in s.waves])
+    # One row per possible wave, NaN (not drawn) after the last one run.
+    ratio, wave = panel._ratios[0].data["ratio"], panel._ratios[0].data["wave"]
+    assert ratio.shape == wave.shape == (MAX_WAVES,)
+    np.testing.assert_array_equal(ratio[:n], [w.max_var[0] / w.var_threshold[0] for w in s.waves])
+    np.testing.assert_array_equal(wave[:n], [w.index for w in s.waves])
+    assert np.isnan(ratio[n:]).all() and np.isnan(wave[n:]).all()
     np.testing.assert_array_equal(panel._map_point.data["t0"], [s.history_match.theta_map[0]])
     stars = [r for f in figures for r in f.renderers if getattr(r, "data_source", None)
              is panel._map_point]

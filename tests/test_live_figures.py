@@ -131,3 +131,11 @@ def test_new_lengths_or_columns_replace_the_data_with_copies():
     replace_data(source, {"x": [0.0, 1.0], "y": [1.0, 2.0]})   # lists: new data
     assert sent[-3:] == ["ColumnDataChangedEvent"] * 3
     assert list(source.data["y"]) == [1.0, 2.0]
+
+
+def test_blank_rows_compare_equal_so_an_unchanged_padded_column_is_not_resent():
+    source = ColumnDataSource(blank(4, "y", x=np.arange(4.0)))
+    sent = _events(source)
+    replace_data(source, {"x": np.arange(4.0), "y": np.array([1.0, np.nan, np.nan, np.nan])})
+    replace_data(source, {"x": np.arange(4.0), "y": np.array([1.0, np.nan, np.nan, np.nan])})
+    assert sent == ["ColumnsPatchedEvent"]

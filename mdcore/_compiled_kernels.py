@@ -765,8 +765,11 @@ def pair_range(mode, b0, b1, theta, Y, y_index, X, z, Ystar, s_index, ystar_out,
     Xstar : (M, d_x); cz, cd : (M,); ladder : (L,) relative jitter steps
         Inputs a mode does not use may be empty (M = 0 for the NLML).
     stop : float
-        :data:`NLML` mode: abandon a pair as soon as its NLML is bound to exceed ``stop``
-        (:func:`_cholesky_packed`); ``inf`` never does (the other modes pass ``inf``).
+        :data:`NLML` mode: abandon a pair as soon as its NLML is bound to exceed ``stop``:
+        before its entries when ``½ zᵀz / λ_max + N log σ_n`` (+ ``(N/2) log 2π``) does,
+        with ``λ_max ≤ N σ_f² + σ_n²`` plus the largest jitter, then during the
+        factorisation (:func:`_cholesky_packed`); ``inf`` never does (the other modes pass
+        ``inf``).
     nlml, noise, jitter, failed, dropped : (B,); mean, var : (B, M) for PREDICT, else any
         Outputs, written at the pairs of the range. ``jitter[b]`` is the ladder step that
         worked (0 if none was needed; for a failed pair the last step tried); a failed pair
@@ -808,12 +811,28 @@ def pair_range(mode, b0, b1, theta, Y, y_index, X, z, Ystar, s_index, ystar_out,
     # the stop as a bound on ½ zᵀK⁻¹z + ½ log det K, checked during the factorisation
     # where that pays (N ≥ EARLY_STOP_ROWS), else on the NLML at the end
     early = stop - 0.5 * N * LOG_2PI if N >= EARLY_STOP_ROWS else np.inf
+    zz = 0.0
+    for i in range(N):
+        zz += z[i] * z[i]
+    top = 0.0                                         # the ladder's largest step
+    for t in range(ladder.size):
+        top = max(top, ladder[t])
     for b in range(b0, b1):
         th = theta[b]
         noise[b] = math.exp(2.0 * th[th.size - 1])
         jitter[b] = 0.0
         failed[b] = False
         dropped[b] = False
+        if stop < np.inf:
+            # Before any entry: ½ zᵀK⁻¹z ≥ ½ zᵀz / λ_max and ½ log det K ≥ N log σ_n, with
+            # λ_max ≤ N σ_f² + σ_n² (no entry exceeds σ_f²) plus the ladder's largest
+            # jitter, top × mean diag. On shear-5 this leaves out half the pairs or more.
+            sf2 = math.exp(2.0 * th[0])
+            lam = N * sf2 + noise[b] + top * (sf2 + noise[b])
+            if 0.5 * zz / lam + N * th[th.size - 1] + 0.5 * N * LOG_2PI > stop:
+                dropped[b] = True
+                nlml[b] = np.inf
+                continue
         j = y_index[b]
         if j != last:
             U = _distinct_rows(Y[j], X, rep, of)

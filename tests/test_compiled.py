@@ -277,6 +277,31 @@ def test_pairs_above_stop_count_neither_as_jittered_nor_failed(rng, backend):
         assert got[1] == pytest.approx(full[1], rel=RTOL)
 
 
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_a_pair_a_bound_from_the_sigmas_puts_above_stop_is_left_out_unfactorised(
+        rng, backend, monkeypatch):
+    """½ zᵀz / (N σ_f² + σ_n²) + N log σ_n (+ (N/2) log 2π) is a lower bound of the NLML; a
+    pair it puts above ``stop`` is left out before its matrix is built, on both backends:
+    here one that cannot be factorised (duplicated points, σ_n² 1e-18 of σ_f², no jitter)
+    counts as neither failed nor jittered. N = 13 is below EARLY_STOP_ROWS, so without
+    this bound the compiled path would factorise it, fail and warn."""
+    monkeypatch.setattr(ladder_home, "JITTER_LADDER", ())
+    lp, Y, X, z = duplicated_points(rng, N=13)
+    lp[0, 0], lp[0, -1] = np.log(1e-4), np.log(1e-13)
+    N = 13
+    floor = 0.5 * z @ z / (N * 1e-8 + 1e-26) + N * np.log(1e-13) + 0.5 * N * np.log(2 * np.pi)
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        full = gp.neg_log_marginal_likelihood(lp, Y, X, z, backend=backend)
+    assert np.isinf(full[0]) and jitter_messages(rec)           # fails without a stop
+    assert floor > 1e6 > full[1]
+    with warnings.catch_warnings(record=True) as rec:
+        warnings.simplefilter("always")
+        got = gp.neg_log_marginal_likelihood(lp, Y, X, z, stop=full[1] + 1.0, backend=backend)
+    assert jitter_messages(rec) == []
+    assert np.isinf(got[0]) and got[1] == full[1]
+
+
 def test_factorisation_stops_at_the_first_check_past_the_bound(rng):
     """The packed kernel leaves the rows after the abandoning check untouched, and the
     bound it checks is ½ Σ w_i² + Σ log L_ii + (rows left) log σ_n (NumPy's factor here)."""

@@ -66,6 +66,11 @@ class ThetaPosterior(NamedTuple):
     n: int
 
 
+def theta_edges(case, j: int, bins: int = BINS) -> np.ndarray:
+    """Edges (bins + 1,) of the histograms of parameter ``j`` over its prior box."""
+    return np.linspace(*(float(b) for b in case.theta_bounds[j]), bins + 1)
+
+
 def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
                     bins: int = BINS) -> ThetaPosterior | None:
     """The weighted θ posterior of history matching; None when NROY is empty.
@@ -86,7 +91,7 @@ def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
     w /= w.sum()
     edges, nroy, post = [], [], []
     for j in range(case.p):
-        e = np.linspace(*(float(b) for b in case.theta_bounds[j]), bins + 1)
+        e = theta_edges(case, j, bins)
         edges.append(e)
         nroy.append(np.histogram(theta[:, j], bins=e, density=True)[0])
         post.append(np.histogram(theta[:, j], bins=e, weights=w, density=True)[0])
@@ -161,7 +166,7 @@ class CalibrationPanel(LivePanel):
         name, unit = c.theta_names[j], c.theta_units[j]
         fig = live_figure(name, axis_label(name, unit), "density", CSS,
                           x_range=Range1d(*(float(b) for b in c.theta_bounds[j])))
-        e = np.linspace(*(float(b) for b in c.theta_bounds[j]), BINS + 1)   # as theta_posterior
+        e = theta_edges(c, j)
         sources = [ColumnDataSource(blank(BINS, "top", left=e[:-1], right=e[1:]))
                    for _ in range(2)]
         nroy = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[0],

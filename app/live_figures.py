@@ -229,7 +229,7 @@ def replace_data(source: ColumnDataSource, data: dict) -> None:
         if not changed:
             return
         if all(_patchable(old[k], v) for k, v in changed.items()):
-            source.patch({k: [(slice(0, len(v)), np.asarray(v))] for k, v in changed.items()})
+            source.patch({k: [(slice(0, v.size), v)] for k, v in changed.items()})
             return
     source.data = {k: _own(v) for k, v in data.items()}
 
@@ -252,17 +252,19 @@ def _patchable(old, new) -> bool:
     """Whether ``new`` can overwrite the column ``old`` in place: ``old`` a writable 1-D
     numeric array of this source's own (see :func:`_own`), ``new`` an array of the same
     length and dtype."""
-    return (isinstance(old, np.ndarray) and old.ndim == 1 and old.flags.owndata
-            and old.flags.writeable and old.dtype.kind in "fiub"
+    return (_numeric_column(old) and old.flags.owndata and old.flags.writeable
             and isinstance(new, np.ndarray) and new.shape == old.shape
             and new.dtype == old.dtype)
 
 
+def _numeric_column(column) -> bool:
+    """Whether ``column`` is a 1-D NumPy array of numbers (what a patch can overwrite)."""
+    return isinstance(column, np.ndarray) and column.ndim == 1 and column.dtype.kind in "fiub"
+
+
 def _own(column):
     """A copy of a 1-D numeric column (patchable later), else the column as given."""
-    if isinstance(column, np.ndarray) and column.ndim == 1 and column.dtype.kind in "fiub":
-        return column.copy()
-    return column
+    return column.copy() if _numeric_column(column) else column
 
 
 def _same(a, b) -> bool:

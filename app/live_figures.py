@@ -243,7 +243,13 @@ def blank(n: int, *names: str, **fixed) -> dict:
     figure's legend (12 rebuilds of each band figure's legend in beam-2d's first
     discrepancy run, three canvases each).
     """
-    columns = {k: np.array(v, dtype=float) for k, v in fixed.items()}
+    n = as_int(n, "n", 0)
+    columns = {k: as_float_array(v, k, ndim=1, allow_empty=True).copy()
+               for k, v in fixed.items()}
+    for k, v in columns.items():
+        if v.size != n:
+            raise ValueError(f"{k} must have n = {n} values like the blank columns; received "
+                             f"{v.size}.")
     columns.update({k: np.full(n, np.nan) for k in names})
     return columns
 

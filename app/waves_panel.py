@@ -132,9 +132,14 @@ def variance_ratios(waves, n_out: int) -> np.ndarray:
 
 
 def padded(values, n: int) -> np.ndarray:
-    """``values`` followed by NaNs (not drawn) up to length ``n``, as floats."""
+    """``values`` (1-D) followed by NaNs (not drawn) up to length ``n``, as floats. A
+    non-finite value is kept (a ratio without a threshold is a gap in its line)."""
+    n = as_int(n, "n", 0)
+    values = as_float_array(values, "values", ndim=1, allow_empty=True, finite=False)
+    if values.size > n:
+        raise ValueError(f"values must have at most n = {n} entries; received {values.size}.")
     out = np.full(n, np.nan)
-    out[:len(values)] = values
+    out[:values.size] = values
     return out
 
 

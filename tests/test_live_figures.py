@@ -139,3 +139,21 @@ def test_blank_rows_compare_equal_so_an_unchanged_padded_column_is_not_resent():
     replace_data(source, {"x": np.arange(4.0), "y": np.array([1.0, np.nan, np.nan, np.nan])})
     replace_data(source, {"x": np.arange(4.0), "y": np.array([1.0, np.nan, np.nan, np.nan])})
     assert sent == ["ColumnsPatchedEvent"]
+
+
+@pytest.mark.parametrize("args, kwargs, name", [
+    ((-1, "y"), {}, "n"),
+    ((2.5, "y"), {}, "n"),
+    ((3, "y"), {"x": [0.0, np.nan, 1.0]}, "x"),
+    ((3, "y"), {"x": np.zeros((3, 1))}, "x"),
+    ((3, "y"), {"x": [0.0, 1.0]}, "x"),
+])
+def test_blank_refuses_bad_sizes_and_columns(args, kwargs, name):
+    with pytest.raises(ValueError, match=name):
+        blank(*args, **kwargs)
+
+
+@pytest.mark.parametrize("x", [[0.0, np.nan, 1.0], np.zeros((3, 2)), np.array([])])
+def test_band_figure_refuses_bad_inputs_to_start_at(x):
+    with pytest.raises(ValueError, match="x"):
+        BandFigure(title="t", xname="x", yname="y", color="red", label="S1", x=x)

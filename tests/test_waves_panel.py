@@ -15,6 +15,7 @@ from mdcore_app.waves_panel import (  # noqa: E402
     contour_lines,
     histogram_columns,
     nroy_columns,
+    padded,
     variance_ratios,
 )
 
@@ -144,3 +145,13 @@ def test_bad_inputs_name_the_argument(beam):
         alert_box("x", "fatal")
     with pytest.raises(ValueError, match="height"):
         live_text("x", height=-1)
+
+
+def test_padded_fills_with_nan_and_refuses_what_does_not_fit():
+    np.testing.assert_array_equal(padded([1, 2], 4), [1.0, 2.0, np.nan, np.nan])
+    assert padded([], 2).shape == (2,)
+    np.testing.assert_array_equal(padded([np.inf], 2), [np.inf, np.nan])
+    for values, n, name in (([1.0, 2.0, 3.0], 2, "at most n = 2"), (["a"], 2, "values"),
+                            (np.zeros((2, 2)), 4, "values"), ([1.0], -1, "n")):
+        with pytest.raises(ValueError, match=name):
+            padded(values, n)

@@ -63,6 +63,10 @@ PAD = 0.05
 KEEP_SPAN = 0.6
 
 
+#: The line above the plots while none is shown (HTML).
+EMPTY_HTML = "Run history matching, then press <b>Run discrepancy</b>."
+
+
 def warnings_html(advice: list[str]) -> str:
     """The diagnostics' warnings in a warning box (HTML, escaped), each "subject: text"
     with its subject in bold; '' for none."""
@@ -83,16 +87,16 @@ class DiscrepancyPanel(LivePanel):
 
     def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
-        self._empty = pn.pane.Markdown("Run history matching, then press **Run discrepancy**.",
-                                       css_classes=["disc-empty"])
-        # The diagnostics' warnings stay beside the bands they concern (the notification
-        # that also reports them fades). A Bokeh Div: see live_figures.live_text.
+        # One line above the plots, never hidden: what to do while no plot is shown, else
+        # the diagnostics' warnings beside the bands they concern (the notification that
+        # also reports them fades), else nothing. Its text changes, never its ``visible``:
+        # BokehJS lays out the whole page again for that (0.2-0.3 s in Chromium).
+        # A Bokeh Div: see live_figures.live_text.
         self._warnings, self._warnings_div = live_text("disc-warnings")
-        self._warnings_div.visible = False      # the Div's own (the pane copies the Div's)
+        self._warnings_div.text = EMPTY_HTML
         self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
         self._methods = pn.Row(sizing_mode="stretch_width")        # 1-D: one column each
-        self._layout.objects = [self._show, self._empty, self._warnings, self._head,
-                                self._methods]
+        self._layout.objects = [self._show, self._warnings, self._head, self._methods]
         self._case = None
         self._truth = None
         #: (method, cell key) -> [pane, figure, payload last drawn]
@@ -390,13 +394,17 @@ class DiscrepancyPanel(LivePanel):
         if stale:
             return                     # the warnings stay with the dimmed plots they concern
         advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
-        text = warnings_html(advice)
+        shown = any(g.visible and g.styles.get("visibility") != "hidden"
+                    for g in self._groups.values())
+        text = warnings_html(advice) if shown else EMPTY_HTML
         if self._warnings_div.text != text:
             self._warnings_div.text = text
-        if self._warnings_div.visible != bool(advice):
-            self._warnings_div.visible = bool(advice)
-        self._empty.visible = not any(g.visible and g.styles.get("visibility") != "hidden"
-                                      for g in self._groups.values())
+
+    @property
+    def message(self) -> str:
+        """The line above the plots (HTML): what to do while no plot is shown, else the
+        diagnostics' warnings, else ''."""
+        return self._warnings_div.text
 
     def _slice_moved(self, *_):
         if self._case is not None and self._case.d_x == 2:

@@ -61,6 +61,10 @@ BINS = 40
 CLIP = 3.0
 #: Height of the legend line above the plots (fixed: a new wave changes no layout).
 LEGEND_HEIGHT = 28
+#: What the History matching tab says before the first wave (Markdown, and as HTML in the
+#: legend line).
+EMPTY_TEXT = "Press **Next wave** to run the first wave."
+EMPTY_HTML = "Press <b>Next wave</b> to run the first wave."
 #: Most waves a history match can have (the upper bound of the Max waves control).
 MAX_WAVES = ExplorerState.param.max_waves.bounds[1]
 
@@ -164,13 +168,13 @@ class WavesPanel(LivePanel):
     UPDATE_ON = ("waves", "selected_wave", "implausibility_maps")
 
     def _setup(self):
-        self._empty = pn.pane.Markdown("Press **Next wave** to run the first wave.")
-        self._layout.objects = [self._empty]
+        self._layout.objects = [pn.pane.Markdown(EMPTY_TEXT)]
         # One player for the session, kept in the layout: rebuilding it for each wave
-        # re-laid-out the page. Hidden until there are two waves to step through.
+        # re-laid-out the page. Kept in its place but not shown until there are two waves
+        # to step through (a style: see _show_body).
         self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
                                          loop_policy="once", interval=800,
-                                         show_loop_controls=False, visible=False)
+                                         show_loop_controls=False, styles=SLOT)
         self._player.param.watch(self._player_moved, "value")
         self._syncing = False
 
@@ -182,6 +186,8 @@ class WavesPanel(LivePanel):
         labels = [axis_label(n, u) for n, u in zip(c.theta_names, c.theta_units)]
         bounds = np.asarray(c.theta_bounds, float)
         self._legend, self._legend_div = live_text("hm-legend", height=LEGEND_HEIGHT)
+        # Shown while the rest of the body is not: before the first wave it says what to do.
+        self._legend_div.styles = CURRENT
         self._map_point = ColumnDataSource({f"t{i}": [] for i in range(c.p)})
         figs = self._histogram(labels, bounds) if c.p == 1 else self._pairs(labels, bounds)
         self._image = self._implausibility(labels, bounds) if c.p == 2 else None
@@ -197,7 +203,7 @@ class WavesPanel(LivePanel):
         # most of the first wave's time.
         self._body = pn.Column(self._player, self._legend, *rows, summary,
                                sizing_mode="stretch_width", styles=SLOT)
-        self._layout.objects = [self._empty, self._body]
+        self._layout.objects = [self._body]
         self._update()
 
     def _pairs(self, labels, bounds) -> list:
@@ -295,6 +301,8 @@ class WavesPanel(LivePanel):
         s, c = self.state, self._case
         if not s.waves:
             self._show_body(False)
+            self._legend_div.text = EMPTY_HTML
+            self._sync_player(0, 0)
             return
         upto = s.selected_wave or len(s.waves)
         shown = [w for w in s.waves if w.index <= upto]
@@ -330,17 +338,22 @@ class WavesPanel(LivePanel):
         self._show_body(True)
 
     def _show_body(self, shown: bool) -> None:
-        """The plots, or the "press Next wave" line (only what changes is sent)."""
-        if self._empty.visible == shown:
-            self._empty.visible = not shown
+        """The plots, or only the legend line (which then says to press Next wave).
+
+        A style, never ``visible``: BokehJS answers a change of ``visible`` by laying out
+        the whole page again (0.2-0.3 s in Chromium with beam-1d's plots), and a style
+        that keeps the element's size by nothing but a repaint. Only what changes is sent.
+        """
         styles = CURRENT if shown else SLOT
         if self._body.styles != styles:
             self._body.styles = styles
 
     def _sync_player(self, n: int, upto: int) -> None:
-        """The player shows wave ``upto`` of ``n`` (one message; hidden below 2 waves)."""
+        """The player shows wave ``upto`` of ``n`` (one message; below 2 waves it keeps its
+        place, not shown: see :meth:`_show_body`)."""
         p = self._player
-        want = {"end": max(n, 2), "value": upto, "visible": n >= 2}
+        want = {"end": max(n, 2), "value": max(upto, 1),
+                "styles": CURRENT if n >= 2 else SLOT}
         changed = {k: v for k, v in want.items() if getattr(p, k) != v}
         if changed:
             self._syncing = True

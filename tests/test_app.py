@@ -254,8 +254,7 @@ def test_low_ess_becomes_a_notice_not_a_failure():
     assert list(s.results) == [Method.S3]
     # ... and it stays beside the band in the Discrepancy tab (issue 16).
     panel = ExplorerView(state=s).discrepancy_view
-    assert panel._warnings_div.visible
-    text = panel._warnings_div.text
+    text = panel.message
     assert "importance weights are unreliable" in text and "raise N_φ" in text
     assert "mdcore-alert-warning" in text and text.count("<b>") == 1   # subject in bold
 
@@ -277,7 +276,7 @@ def test_advice_is_a_toast_only_away_from_the_discrepancy_tab(monkeypatch):
     view._tabs.active = views_module.DISCREPANCY_TAB
     s.run_discrepancy()
     assert s.n_notices == 1 and toasts == []
-    assert "importance weights are unreliable" in view.discrepancy_view._warnings_div.text
+    assert "importance weights are unreliable" in view.discrepancy_view.message
     view._tabs.active = 0                                   # the Data tab
     s.seed = 1
     assert s.n_notices == 2 and len(toasts) == 1
@@ -662,3 +661,41 @@ def test_the_server_freezes_its_startup_objects_once(monkeypatch):
         assert gc.get_freeze_count() == frozen and later
     finally:
         gc.unfreeze()
+
+
+#: Properties whose change makes BokehJS lay out the whole page again
+#: (``LayoutDOMView.connect_signals``: ``invalidate_layout``), 0.2-0.3 s in Chromium.
+RELAYOUT = {"visible", "css_classes", "stylesheets", "width", "height", "min_width",
+            "min_height", "max_width", "max_height", "margin", "width_policy",
+            "height_policy", "flow_mode", "sizing_mode", "aspect_ratio", "resizable"}
+
+
+def test_waves_runs_and_reruns_never_change_what_relays_out_the_page():
+    """A wave, the player appearing, a discrepancy run with advice beside the bands, a
+    seed change and a band change show and hide things by style or text, never by a
+    layout's ``visible`` or size (issue 17: each such change cost 0.2-0.3 s of browser)."""
+    from bokeh.document.events import ModelChangedEvent
+    from bokeh.models import LayoutDOM
+
+    s = ExplorerState(n_candidates=4000, n_s=5, n_phi=2)        # the teaching preset
+    s.scenarios = [Method.S1, Method.S3]
+    view = ExplorerView(state=s)
+    doc = Document()
+    doc.add_root(pn.panel(view).get_root(doc))
+    for tab in (1, 2, 0):                                # each tab shown once, as a user
+        view._tabs.active = tab
+    seen = []
+    doc.on_change(lambda e: seen.append(e))
+    s.next_wave()
+    s.next_wave()
+    view._tabs.active = 2
+    s.run_discrepancy()
+    assert "importance weights are unreliable" in view.discrepancy_view.message
+    s.seed = 1
+    s.band = 2
+    assert len(s.waves) >= 2 and s.results and not s.error
+    relayout = [(type(e.model).__name__, e.attr) for e in seen
+                if isinstance(e, ModelChangedEvent) and isinstance(e.model, LayoutDOM)
+                and e.attr in RELAYOUT]
+    assert relayout == []
+    assert len(seen) > 20                                # the updates themselves did come

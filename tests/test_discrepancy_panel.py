@@ -18,6 +18,7 @@ from bokeh.models import ColumnDataSource, Plot  # noqa: E402
 from mdcore.pipeline import Method  # noqa: E402
 from mdcore_app.discrepancy_panel import (  # noqa: E402
     CURRENT,
+    EMPTY_HTML,
     SLOT,
     STALE_OPACITY,
     DiscrepancyPanel,
@@ -92,14 +93,14 @@ def test_hiding_a_method_or_a_quantity_changes_only_visibility(beam1d):
     s.scenarios = [Method.S1, Method.S3]
     # S2's column keeps its place, empty (CSS visibility): the others do not move
     assert groups[Method.S2].visible and groups[Method.S2].styles == SLOT
-    assert groups[Method.S1].styles == CURRENT and not panel._empty.visible
+    assert groups[Method.S1].styles == CURRENT and panel.message != EMPTY_HTML
     assert {t: f.id for t, f in figures(root).items()} == before
     s.scenarios = [Method.S3]
     s.scenarios = []
-    assert panel._empty.visible                    # every column hidden: say what to do
+    assert panel.message == EMPTY_HTML             # every column hidden: say what to do
     s.scenarios = S123
     assert all(g.visible and g.styles == CURRENT for g in groups.values())
-    assert not panel._empty.visible
+    assert panel.message != EMPTY_HTML
     panel.quantity = "δ"
     shown = [cell[0] for (m, (o, q)), cell in panel._cells.items() if cell[0].visible]
     assert len(shown) == 3 and all(p.object.title.text.endswith("δ") for p in shown)
@@ -118,9 +119,10 @@ def test_a_recompute_keeps_the_earlier_plots_dimmed_until_its_results_arrive(bea
     try:
         assert all(g.visible and g.styles.get("opacity") == STALE_OPACITY
                    for g in panel._groups.values())
-        assert not panel._empty.visible
+        assert panel.message != EMPTY_HTML
         s.busy = False                                 # cancelled: nothing to show
-        assert not any(g.visible for g in panel._groups.values()) and panel._empty.visible
+        assert not any(g.visible for g in panel._groups.values())
+        assert panel.message == EMPTY_HTML
     finally:
         s.results = results
     # Back to full opacity, said explicitly (styles of {} leave the browser's dimming on).
@@ -182,7 +184,7 @@ def test_a_case_switch_rebuilds_for_the_new_case(beam1d):
     s = run()
     panel = DiscrepancyPanel(state=s)
     s.case_name = "shear-5"
-    assert panel._groups == {} and panel._empty.visible and panel.quantity == "z and δ"
+    assert panel._groups == {} and panel.message == EMPTY_HTML and panel.quantity == "z and δ"
     assert s.output == "ω1"                           # the first output is shown
     s.case_name = "beam-1d"                            # results kept per case come back
     assert set(panel._groups) == set(S123) and panel.quantity == "z and δ"
@@ -337,14 +339,16 @@ def test_showing_the_tab_builds_the_plots_ahead_and_a_run_only_fills_them():
     assert panel._groups == {}                          # not shown yet: nothing built
     tabs.active = 2
     assert set(panel._groups) == set(S123)
-    assert all(g.styles == SLOT for g in panel._groups.values()) and panel._empty.visible
+    assert all(g.styles == SLOT for g in panel._groups.values())
+    assert panel.message == EMPTY_HTML
     ahead = {t: f.id for t, f in figures(root).items()}
     assert len(ahead) == 6                              # z and δ of three methods
     # Blank (NaN, nothing drawn) at the plotting grid: the run's data come as patches.
     assert all(np.isnan(source(f, "mean")["mean"]).all() and
                len(source(f, "mean")["mean"]) == s.grid.shape[0] for f in figures(root).values())
     s.busy = True                                       # the first run computes: still hidden
-    assert all(g.styles == SLOT for g in panel._groups.values()) and panel._empty.visible
+    assert all(g.styles == SLOT for g in panel._groups.values())
+    assert panel.message == EMPTY_HTML
     s.busy = False
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

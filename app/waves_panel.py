@@ -20,12 +20,16 @@ What is drawn, for the waves 1..k shown (k: the player's wave, default the last)
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import numpy as np
 import panel as pn
 import param
 from bokeh.models import (
+    CDSView,
     ColorBar,
     ColumnDataSource,
+    CustomJSFilter,
     FixedTicker,
     HoverTool,
     LegendItem,
@@ -65,8 +69,24 @@ LEGEND_HEIGHT = 28
 #: legend line).
 EMPTY_TEXT = "Press **Next wave** to run the first wave."
 EMPTY_HTML = "Press <b>Next wave</b> to run the first wave."
+#: The player's styles: not shown (below two waves), keeping its place, or shown. Opacity,
+#: not only visibility: Panel's player sets its title's ``visibility`` to visible itself;
+#: and no clicks on it while it is not shown.
+PLAYER_HIDDEN = {**SLOT, "opacity": "0", "pointer-events": "none"}
+PLAYER_SHOWN = {**CURRENT, "pointer-events": "auto"}
 #: Most waves a history match can have (the upper bound of the Max waves control).
 MAX_WAVES = ExplorerState.param.max_waves.bounds[1]
+
+
+class WavePlayer(pn.widgets.Player):
+    """The wave player, whose steps the server takes at once.
+
+    Panel defers a browser's change of a widget by 50 ms (``Syncable._debounce``, for
+    typing) unless the property is one of the class's ``_priority_changes``; a step of the
+    player is one click, and its target is 0.3 s from click to pixels.
+    """
+
+    _priority_changes: ClassVar[list[str]] = ["value"]
 
 
 def wave_samples(wave, max_points: int = MAX_POINTS) -> np.ndarray:
@@ -82,35 +102,51 @@ def wave_samples(wave, max_points: int = MAX_POINTS) -> np.ndarray:
 
 def nroy_columns(waves, p: int, max_points: int = MAX_POINTS) -> dict:
     """The scatter data of waves (in order, later waves drawn on top): columns ``t0`` …
-    ``t{p-1}`` (θ), ``wave`` (index) and ``color``."""
+    ``t{p-1}`` (θ) and ``wave`` (index, coloured by :func:`wave_colors`)."""
     p = as_int(p, "p", 1)
     parts = [(w.index, wave_samples(w, max_points)) for w in waves]
     theta = np.concatenate([s for _, s in parts]) if parts else np.empty((0, p))
-    index = np.concatenate([np.full(s.shape[0], k) for k, s in parts]) if parts \
-        else np.empty(0, int)
-    return {**{f"t{i}": theta[:, i] for i in range(p)}, "wave": index,
-            "color": [WAVE_COLORS[(k - 1) % len(WAVE_COLORS)] for k in index]}
+    index = np.concatenate([np.full(s.shape[0], k, np.int32) for k, s in parts]) if parts \
+        else np.empty(0, np.int32)
+    return {**{f"t{i}": theta[:, i] for i in range(p)}, "wave": index}
 
 
 def histogram_columns(waves, bounds, bins: int = BINS) -> dict:
     """Per wave, the histogram (counts) of its NROY samples of a single parameter over the
-    prior box: columns ``left``, ``right``, ``top``, ``wave``, ``color`` (``bins`` rows a
-    wave)."""
+    prior box: columns ``left``, ``right``, ``top``, ``wave`` (``bins`` rows a wave)."""
     bins = as_int(bins, "bins", 1)
     bounds = as_float_array(bounds, "bounds", ndim=2)
     if bounds.shape[1] != 2 or not bounds[0, 0] < bounds[0, 1]:
         raise ValueError(f"bounds must have rows (low, high) with low < high; received "
                          f"{bounds.tolist()}.")
     edges = np.linspace(bounds[0, 0], bounds[0, 1], bins + 1)
-    cols: dict[str, list] = {"left": [], "right": [], "top": [], "wave": [], "color": []}
+    cols: dict[str, list] = {"left": [], "right": [], "top": [], "wave": []}
     for w in waves:
         counts, _ = np.histogram(wave_samples(w)[:, 0], bins=edges)
         cols["left"] += list(edges[:-1])
         cols["right"] += list(edges[1:])
         cols["top"] += list(counts.astype(float))
         cols["wave"] += [w.index] * bins
-        cols["color"] += [WAVE_COLORS[(w.index - 1) % len(WAVE_COLORS)]] * bins
-    return cols
+    return {k: np.asarray(v, np.int32 if k == "wave" else float) for k, v in cols.items()}
+
+
+def wave_colors() -> dict:
+    """The colour of a row from its ``wave`` column, computed in the browser: wave k gets
+    ``WAVE_COLORS[(k − 1) mod 10]`` (a palette of :data:`MAX_WAVES` colours over
+    [0.5, MAX_WAVES + 0.5], one per integer). Sending colour names instead was a string
+    per sample, half of a wave's message."""
+    palette = [WAVE_COLORS[k % len(WAVE_COLORS)] for k in range(MAX_WAVES)]
+    return {"field": "wave", "transform": LinearColorMapper(
+        palette=palette, low=0.5, high=MAX_WAVES + 0.5)}
+
+
+#: The rows of waves 1..``upto`` (CustomJSFilter code): the player moves ``upto`` only.
+SHOWN_WAVES_JS = """
+const w = source.data.wave;
+const shown = new Array(w.length);
+for (let i = 0; i < w.length; i++) shown[i] = w[i] <= upto;
+return shown;
+"""
 
 
 def contour_lines(t1, t2, I, level: float) -> dict:
@@ -147,6 +183,12 @@ def padded(values, n: int) -> np.ndarray:
     return out
 
 
+def set_range(r: Range1d, start: float, end: float) -> None:
+    """Give ``r`` these bounds, sending nothing when it has them already."""
+    if (r.start, r.end) != (start, end):
+        r.update(start=start, end=end)
+
+
 def legend_html(waves, truth: bool, theta_map: bool, lines: bool = False) -> str:
     """A legend line: a swatch per wave shown, then the true θ and θ_MAP markers (a cross
     and a star, or for ``lines`` (p = 1) a dashed and a solid vertical line)."""
@@ -172,9 +214,9 @@ class WavesPanel(LivePanel):
         # One player for the session, kept in the layout: rebuilding it for each wave
         # re-laid-out the page. Kept in its place but not shown until there are two waves
         # to step through (a style: see _show_body).
-        self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
+        self._player = WavePlayer(label="Wave shown", start=1, end=2, value=1,
                                          loop_policy="once", interval=800,
-                                         show_loop_controls=False, styles=SLOT)
+                                         show_loop_controls=False, styles=PLAYER_HIDDEN)
         self._player.param.watch(self._player_moved, "value")
         self._syncing = False
 
@@ -210,14 +252,15 @@ class WavesPanel(LivePanel):
         """One scatter per pair of parameters, all drawing from one source of samples."""
         c = self._case
         self._nroy = ColumnDataSource(nroy_columns([], c.p))
+        self._new_nroy_source()
         figs = []
         for i in range(c.p):
             for j in range(i + 1, c.p):
                 fig = live_figure(f"NROY samples: {c.theta_names[i]} vs {c.theta_names[j]}",
                                   labels[i], labels[j], CSS,
                                   x_range=Range1d(*bounds[i]), y_range=Range1d(*bounds[j]))
-                dots = fig.scatter(f"t{i}", f"t{j}", source=self._nroy, color="color",
-                                   size=3, alpha=0.5)
+                dots = fig.scatter(f"t{i}", f"t{j}", source=self._nroy, color=wave_colors(),
+                                   view=CDSView(filter=self._upto), size=3, alpha=0.5)
                 fig.add_tools(HoverTool(renderers=[dots], tooltips=[
                     (labels[i], f"@t{i}{{0.[000]}}"), (labels[j], f"@t{j}{{0.[000]}}"),
                     ("wave", "@wave")]))
@@ -232,10 +275,13 @@ class WavesPanel(LivePanel):
         """p = 1: each wave's NROY histogram, overlaid, with the truth and θ_MAP lines."""
         c = self._case
         self._nroy = ColumnDataSource(histogram_columns([], bounds))
+        self._new_nroy_source()
+        self._count_range = Range1d(0.0, 1.0)
         fig = live_figure("NROY samples", labels[0], "count", CSS,
-                          x_range=Range1d(*bounds[0]))
+                          x_range=Range1d(*bounds[0]), y_range=self._count_range)
         fig.quad(left="left", right="right", top="top", bottom=0.0, source=self._nroy,
-                 fill_color="color", line_color="color", fill_alpha=0.5, line_alpha=0.8)
+                 fill_color=wave_colors(), line_color=wave_colors(), fill_alpha=0.5,
+                 line_alpha=0.8, view=CDSView(filter=self._upto))
         if c.theta_true is not None:
             fig.add_layout(Span(location=float(c.theta_true[0]), dimension="height",
                                 line_color="black", line_dash="dashed", line_width=2))
@@ -267,7 +313,12 @@ class WavesPanel(LivePanel):
 
     def _fraction_figure(self):
         self._fraction = ColumnDataSource({"wave": [], "percent": []})
-        fig = live_figure("NROY fraction per wave", "wave", "NROY [% of box]", CSS)
+        # The summaries' axes are set here, not fitted in the browser: a fitted range is
+        # sent back to the server after each wave or player step, one round trip each.
+        self._wave_range = Range1d(0.5, 1.5)
+        self._fraction_range = Range1d(0.0, 100.0)
+        fig = live_figure("NROY fraction per wave", "wave", "NROY [% of box]", CSS,
+                          x_range=self._wave_range, y_range=self._fraction_range)
         fig.line("wave", "percent", source=self._fraction, line_width=2)
         dots = fig.scatter("wave", "percent", source=self._fraction, size=8)
         fig.add_tools(HoverTool(renderers=[dots], tooltips=[
@@ -278,7 +329,7 @@ class WavesPanel(LivePanel):
     def _variance_figure(self, output_names):
         fig = live_figure("emulator variance vs V_o + V_m (converged below 1)", "wave",
                           "max var / (V_o + V_m)", CSS, y_axis_type="log",
-                          y_range=Range1d(0.1, 10.0))
+                          x_range=self._wave_range, y_range=Range1d(0.1, 10.0))
         fig.add_layout(Span(location=1.0, dimension="width", line_color="black",
                             line_dash="dashed"))
         self._ratios, items = [], []
@@ -309,9 +360,7 @@ class WavesPanel(LivePanel):
         self._sync_player(len(s.waves), upto)
         hm = s.history_match
         theta_map = hm.theta_map if upto == len(s.waves) else None     # of the final wave
-        bounds = np.asarray(c.theta_bounds, float)
-        replace_data(self._nroy, histogram_columns(shown, bounds) if c.p == 1
-                     else nroy_columns(shown, c.p))
+        self._draw_samples(s.waves, upto)
         replace_data(self._map_point, {f"t{i}": [] if theta_map is None
                                        else [float(theta_map[i])] for i in range(c.p)})
         if c.p == 1:
@@ -330,12 +379,47 @@ class WavesPanel(LivePanel):
         finite = ratios[np.isfinite(ratios) & (ratios > 0)]
         lo = min(float(finite.min()) if finite.size else 1.0, 1.0) / 3
         hi = max(float(finite.max()) if finite.size else 1.0, 1.0) * 3
-        if (self._variance_range.start, self._variance_range.end) != (lo, hi):
-            self._variance_range.update(start=lo, end=hi)
+        set_range(self._variance_range, lo, hi)
+        set_range(self._wave_range, 0.5, max(len(k), 1) + 0.5)
+        top = max((100 * w.nroy_fraction for w in shown), default=100.0)
+        set_range(self._fraction_range, 0.0, 1.08 * top if top > 0 else 1.0)
         for ticker in (self._fraction_ticks, self._variance_ticks):
             if list(ticker.ticks) != k:
                 ticker.ticks = k
         self._show_body(True)
+
+    def _new_nroy_source(self) -> None:
+        """The samples' source holds every wave run (``_in_source``); a filter shows waves
+        1..``upto``."""
+        self._in_source: tuple = ()
+        self._upto = CustomJSFilter(args={"upto": 0}, code=SHOWN_WAVES_JS)
+
+    def _columns(self, waves) -> dict:
+        c = self._case
+        return (histogram_columns(waves, np.asarray(c.theta_bounds, float)) if c.p == 1
+                else nroy_columns(waves, c.p))
+
+    def _draw_samples(self, waves: tuple, upto: int) -> None:
+        """Every wave's samples in the source, waves 1..``upto`` shown.
+
+        A new wave of the same match is *streamed* (its rows only) and a step of the player
+        changes the filter's ``upto`` only: re-sending every wave's samples was most of a
+        wave's or a step's message (beam-1d: 78-130 kB). A new match replaces them.
+        """
+        have = self._in_source
+        same = len(waves) >= len(have) and all(a is b for a, b in zip(waves, have))
+        if same and have and len(waves) > len(have):
+            self._nroy.stream(self._columns(waves[len(have):]))
+        elif not (same and len(waves) == len(have)):
+            replace_data(self._nroy, self._columns(waves))
+        self._in_source = tuple(waves)
+        if self._upto.args.get("upto") != upto:
+            self._upto.args = {"upto": upto}
+        if self._case.p == 1:
+            data = self._nroy.data
+            tops = np.asarray(data["top"])[np.asarray(data["wave"]) <= upto]
+            top = float(tops.max()) if tops.size else 0.0
+            set_range(self._count_range, 0.0, 1.05 * top if top > 0 else 1.0)
 
     def _show_body(self, shown: bool) -> None:
         """The plots, or only the legend line (which then says to press Next wave).
@@ -353,7 +437,7 @@ class WavesPanel(LivePanel):
         place, not shown: see :meth:`_show_body`)."""
         p = self._player
         want = {"end": max(n, 2), "value": max(upto, 1),
-                "styles": CURRENT if n >= 2 else SLOT}
+                "styles": PLAYER_SHOWN if n >= 2 else PLAYER_HIDDEN}
         changed = {k: v for k, v in want.items() if getattr(p, k) != v}
         if changed:
             self._syncing = True
@@ -366,7 +450,8 @@ class WavesPanel(LivePanel):
         """The user stepped the player: show waves 1..its value."""
         n = len(self.state.waves)
         if not self._syncing and 1 <= event.new <= n and event.new != self.state.selected_wave:
-            self.state.selected_wave = event.new
+            with pn.io.hold():           # the updates of every plot go as one message
+                self.state.selected_wave = event.new
 
     def _show_map(self, grid, threshold: float, wave: int) -> None:
         """Wave ``wave``'s implausibility ``grid`` = (t1, t2, I), or a blank image."""

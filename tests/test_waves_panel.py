@@ -6,17 +6,24 @@ import numpy as np
 import pytest
 
 pytest.importorskip("panel")
-from mdcore_app.live_figures import CURRENT, SLOT  # noqa: E402
+import panel as pn  # noqa: E402
+from bokeh.document import Document  # noqa: E402
+
+from mdcore_app.live_figures import CURRENT  # noqa: E402
+from mdcore_app.plots import WAVE_COLORS  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.waves_panel import (  # noqa: E402
     MAX_POINTS,
     MAX_WAVES,
+    PLAYER_HIDDEN,
+    PLAYER_SHOWN,
     WavesPanel,
     contour_lines,
     histogram_columns,
     nroy_columns,
     padded,
     variance_ratios,
+    wave_colors,
 )
 
 
@@ -37,6 +44,53 @@ def test_contour_is_the_level_set_of_a_closed_form():
     r = np.hypot(lines["xs"][0], lines["ys"][0])
     np.testing.assert_allclose(r, 1.0, atol=2e-3)         # linear interpolation on h = 0.05
     assert contour_lines(t1, t2, np.hypot(T1, T2), 5.0) == {"xs": [], "ys": []}
+
+
+def shown_waves(panel) -> np.ndarray:
+    """The ``wave`` of the rows the browser shows: what the filter's code
+    (``SHOWN_WAVES_JS``, ``w[i] <= upto``) keeps."""
+    assert "shown[i] = w[i] <= upto" in panel._upto.code
+    wave = np.asarray(panel._nroy.data["wave"])
+    return wave[wave <= panel._upto.args["upto"]]
+
+
+def test_wave_colours_follow_the_wave_index():
+    spec = wave_colors()
+    mapper = spec["transform"]
+    assert spec["field"] == "wave" and len(mapper.palette) == MAX_WAVES
+    for k in range(1, MAX_WAVES + 1):          # BokehJS's LinearColorMapper: the bin of k
+        b = int(np.floor((k - mapper.low) / (mapper.high - mapper.low) * len(mapper.palette)))
+        assert mapper.palette[b] == WAVE_COLORS[(k - 1) % len(WAVE_COLORS)]
+
+
+def test_a_new_wave_streams_its_rows_and_the_player_sends_no_samples():
+    """Issue 17: a wave's message carried every earlier wave's samples again, and a step
+    of the player all of them (beam-1d 78-130 kB)."""
+    from bokeh.document.events import ColumnDataChangedEvent, ColumnsStreamedEvent
+
+    s = ExplorerState(n_candidates=4000)                    # teaching: several waves
+    panel = WavesPanel(state=s)
+    doc = Document()
+    doc.add_root(pn.panel(panel).get_root(doc))
+    s.next_wave()
+    n1 = len(panel._nroy.data["wave"])
+    seen = []
+    doc.on_change(lambda e: seen.append(e))
+    s.next_wave()
+    assert len(s.waves) == 2
+    data_events = [e for e in seen if getattr(e, "model", None) is panel._nroy]
+    assert [type(e) for e in data_events] == [ColumnsStreamedEvent]
+    assert set(np.asarray(data_events[0].data["wave"])) == {2}
+    assert len(panel._nroy.data["wave"]) > n1 and set(shown_waves(panel)) == {1, 2}
+    seen.clear()
+    panel._player.value = 1
+    assert not [e for e in seen if getattr(e, "model", None) is panel._nroy]
+    assert set(shown_waves(panel)) == {1}
+    s.threshold = 2.5                                        # a new match replaces them
+    s.next_wave()
+    assert any(isinstance(e, ColumnDataChangedEvent) for e in seen
+               if getattr(e, "model", None) is panel._nroy)
+    assert set(panel._nroy.data["wave"]) == {1} and set(shown_waves(panel)) == {1}
 
 
 def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
@@ -71,10 +125,11 @@ def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
                                   np.minimum(I, 3 * s.history_match.problem.threshold))
 
     player = panel._player
-    assert (player.styles, player.end, player.value) == (CURRENT, n, n)
+    assert (player.styles, player.end, player.value) == (PLAYER_SHOWN, n, n)
     player.value = 2                                       # the player: waves 1–2 only
     assert s.selected_wave == 2
-    assert set(panel._nroy.data["wave"]) == {1, 2}
+    assert set(shown_waves(panel)) == {1, 2}               # all waves kept, 1–2 shown
+    assert set(panel._nroy.data["wave"]) == {w.index for w in s.waves}
     assert len(panel._fraction.data["wave"]) == 2
     assert panel._map_point.data["t0"] == []               # θ_MAP is the final wave's
     assert panel._image_fig.title.text.startswith("wave 2:")
@@ -103,8 +158,10 @@ def test_one_parameter_histograms_count_each_waves_samples():
     s.selected_wave = 1
     assert panel._player.value == 1
     assert panel._map_line.location is None
-    assert set(panel._nroy.data["wave"]) == {1}
-    assert histogram_columns([], s.case.theta_bounds)["top"] == []
+    assert set(shown_waves(panel)) == {1}
+    first = np.asarray(cols["top"])[np.asarray(cols["wave"]) == 1]
+    assert panel._count_range.end == pytest.approx(1.05 * first.max())
+    assert histogram_columns([], s.case.theta_bounds)["top"].size == 0
 
 
 def test_many_outputs_each_have_a_variance_line():
@@ -116,11 +173,11 @@ def test_many_outputs_each_have_a_variance_line():
     panel = WavesPanel(state=s)
     assert len(panel._ratios) == 5
     # Three pairs of (E, ν, ρ) share one source.
-    assert set(nroy_columns(s.waves, 3)) == {"t0", "t1", "t2", "wave", "color"}
+    assert set(nroy_columns(s.waves, 3)) == {"t0", "t1", "t2", "wave"}
     assert len(panel._body.objects) == 4 and panel._image is None   # player, legend, 2 rows
     # One wave: nothing to step; the player keeps its place, not shown, and nothing
     # in the tab changes its visible (a page-wide re-layout in BokehJS).
-    assert panel._player.styles == SLOT and panel._player.visible
+    assert panel._player.styles == PLAYER_HIDDEN and panel._player.visible
 
 
 def test_bad_inputs_name_the_argument(beam):

@@ -2,8 +2,10 @@
 shrink" in a blink).
 
 The figures are built once per case (:mod:`.live_figures`): a new wave, the wave player or a
-new implausibility map only replace the arrays of a few ``ColumnDataSource`` objects, and
-the browser redraws those glyphs; no layout is rebuilt. HoloViews rebuilt every plot of
+new implausibility map only replace the arrays of a few ``ColumnDataSource`` objects (a new
+wave's samples are appended; the player moves a filter of the waves shown), and the
+browser redraws those glyphs; no layout is rebuilt, and nothing changes a layout's
+``visible`` or size (see :meth:`WavesPanel._show_body`). HoloViews rebuilt every plot of
 the tab for each wave and each step of the player (shear-5: 922 models, about 1.5 s on the
 server and ten in the browser).
 
@@ -215,8 +217,8 @@ class WavesPanel(LivePanel):
         # re-laid-out the page. Kept in its place but not shown until there are two waves
         # to step through (a style: see _show_body).
         self._player = WavePlayer(label="Wave shown", start=1, end=2, value=1,
-                                         loop_policy="once", interval=800,
-                                         show_loop_controls=False, styles=PLAYER_HIDDEN)
+                                  loop_policy="once", interval=800,
+                                  show_loop_controls=False, styles=PLAYER_HIDDEN)
         self._player.param.watch(self._player_moved, "value")
         self._syncing = False
 

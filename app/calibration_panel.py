@@ -30,6 +30,7 @@ from .live_figures import (
     live_figure,
     live_text,
     replace_data,
+    set_range,
     show_only,
 )
 from .plots import THETA_MAP_COLOR, axis_label, input_span
@@ -165,7 +166,8 @@ class CalibrationPanel(LivePanel):
         c = self._case
         name, unit = c.theta_names[j], c.theta_units[j]
         fig = live_figure(name, axis_label(name, unit), "density", CSS,
-                          x_range=Range1d(*(float(b) for b in c.theta_bounds[j])))
+                          x_range=Range1d(*(float(b) for b in c.theta_bounds[j])),
+                          y_range=Range1d(0.0, 1.0))     # set with the data (set_range)
         e = theta_edges(c, j)
         sources = [ColumnDataSource(blank(BINS, "top", left=e[:-1], right=e[1:]))
                    for _ in range(2)]
@@ -223,6 +225,8 @@ class CalibrationPanel(LivePanel):
             e = post.edges[j]
             replace_data(nroy, {"left": e[:-1], "right": e[1:], "top": post.nroy[j]})
             replace_data(weighted, {"left": e[:-1], "right": e[1:], "top": post.posterior[j]})
+            top = max(float(post.nroy[j].max()), float(post.posterior[j].max()))
+            set_range(fig.y_range, 0.0, 1.05 * top if top > 0 else 1.0)
             replace_data(at_map, {"x": np.array([float(theta_map[j])])})
             item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
             fig.title.text = (f"{c.theta_names[j]}: θ_MAP = "

@@ -212,6 +212,17 @@ def live_text(css_class: str, height: int | None = None) -> tuple[pn.pane.Bokeh,
     return pn.pane.Bokeh(div, sizing_mode="stretch_width", margin=(0, 10)), div
 
 
+def set_range(r, start: float, end: float) -> None:
+    """Give the ``Range1d`` ``r`` these bounds, sending nothing when it has them already.
+
+    For axes the server sets: a range fitted in the browser (``DataRange1d``) is sent back
+    to the server after each change of its data, one round trip each, and warns ("could
+    not set initial ranges") while its plot has no data yet.
+    """
+    if (r.start, r.end) != (start, end):
+        r.update(start=start, end=end)
+
+
 def replace_data(source: ColumnDataSource, data: dict) -> None:
     """Give ``source`` the columns ``data``, sending the browser only what changed.
 

@@ -53,6 +53,7 @@ from .live_figures import (
     live_figure,
     live_text,
     replace_data,
+    set_range,
 )
 from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, WAVE_COLORS, axis_label
 from .state import ExplorerState
@@ -183,12 +184,6 @@ def padded(values, n: int) -> np.ndarray:
     out = np.full(n, np.nan)
     out[:values.size] = values
     return out
-
-
-def set_range(r: Range1d, start: float, end: float) -> None:
-    """Give ``r`` these bounds, sending nothing when it has them already."""
-    if (r.start, r.end) != (start, end):
-        r.update(start=start, end=end)
 
 
 def legend_html(waves, truth: bool, theta_map: bool, lines: bool = False) -> str:

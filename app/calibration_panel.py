@@ -30,7 +30,7 @@ from .live_figures import (
     live_figure,
     live_text,
     replace_data,
-    set_range,
+    set_top,
     show_only,
 )
 from .plots import THETA_MAP_COLOR, axis_label, input_span
@@ -225,8 +225,7 @@ class CalibrationPanel(LivePanel):
             e = post.edges[j]
             replace_data(nroy, {"left": e[:-1], "right": e[1:], "top": post.nroy[j]})
             replace_data(weighted, {"left": e[:-1], "right": e[1:], "top": post.posterior[j]})
-            top = max(float(post.nroy[j].max()), float(post.posterior[j].max()))
-            set_range(fig.y_range, 0.0, 1.05 * top if top > 0 else 1.0)
+            set_top(fig.y_range, max(post.nroy[j].max(), post.posterior[j].max()))
             replace_data(at_map, {"x": np.array([float(theta_map[j])])})
             item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
             fig.title.text = (f"{c.theta_names[j]}: θ_MAP = "

@@ -218,9 +218,32 @@ def set_range(r, start: float, end: float) -> None:
     For axes the server sets: a range fitted in the browser (``DataRange1d``) is sent back
     to the server after each change of its data, one round trip each, and warns ("could
     not set initial ranges") while its plot has no data yet.
+
+    Raises
+    ------
+    ValueError
+        If ``r`` is not a ``Range1d``, or ``start`` and ``end`` are not finite numbers
+        with ``start < end``.
     """
+    if not isinstance(r, Range1d):
+        raise ValueError(f"r must be a bokeh Range1d (an axis the server sets); received "
+                         f"{type(r).__name__}.")
+    bounds = as_float_array([start, end], "start and end", ndim=1)
+    if not bounds[0] < bounds[1]:
+        raise ValueError(f"start must be below end; received start = {start!r}, "
+                         f"end = {end!r}.")
     if (r.start, r.end) != (start, end):
         r.update(start=start, end=end)
+
+
+def set_top(r, top: float, pad: float = 0.05) -> None:
+    """:func:`set_range` from 0 to ``top`` and ``pad`` of it above (0 to 1 when ``top`` is
+    not positive: nothing to show yet). A NaN or infinite ``top`` or a negative ``pad`` is
+    a ValueError."""
+    top, pad = as_float_array([top, pad], "top and pad", ndim=1)
+    if pad < 0:
+        raise ValueError(f"pad must be ≥ 0 (a fraction of top); received {pad!r}.")
+    set_range(r, 0.0, (1.0 + pad) * top if top > 0 else 1.0)
 
 
 def replace_data(source: ColumnDataSource, data: dict) -> None:

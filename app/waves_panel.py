@@ -54,6 +54,7 @@ from .live_figures import (
     live_text,
     replace_data,
     set_range,
+    set_top,
 )
 from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, WAVE_COLORS, axis_label
 from .state import ExplorerState
@@ -378,8 +379,7 @@ class WavesPanel(LivePanel):
         hi = max(float(finite.max()) if finite.size else 1.0, 1.0) * 3
         set_range(self._variance_range, lo, hi)
         set_range(self._wave_range, 0.5, max(len(k), 1) + 0.5)
-        top = max((100 * w.nroy_fraction for w in shown), default=100.0)
-        set_range(self._fraction_range, 0.0, 1.08 * top if top > 0 else 1.0)
+        set_top(self._fraction_range, max(100 * w.nroy_fraction for w in shown), pad=0.08)
         for ticker in (self._fraction_ticks, self._variance_ticks):
             if list(ticker.ticks) != k:
                 ticker.ticks = k
@@ -415,8 +415,7 @@ class WavesPanel(LivePanel):
         if self._case.p == 1:
             data = self._nroy.data
             tops = np.asarray(data["top"])[np.asarray(data["wave"]) <= upto]
-            top = float(tops.max()) if tops.size else 0.0
-            set_range(self._count_range, 0.0, 1.05 * top if top > 0 else 1.0)
+            set_top(self._count_range, tops.max() if tops.size else 0.0)
 
     def _show_body(self, shown: bool) -> None:
         """The plots, or only the legend line (which then says to press Next wave).

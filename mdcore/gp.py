@@ -19,9 +19,10 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 
-from . import compiled, linalg
+from . import compiled
 from .kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
 from .linalg import (
+    JITTER_LADDER,
     JitterLog,
     cholesky,
     cholesky_steps,
@@ -186,7 +187,7 @@ def _nlml_floor(theta: np.ndarray, z: np.ndarray, N: int) -> np.ndarray:
     before it computes a pair's entries, so both backends leave out these pairs alike.
     """
     sf2, sn2 = np.exp(2.0 * theta[:, 0]), np.exp(2.0 * theta[:, -1])
-    top = max(linalg.JITTER_LADDER, default=0.0)
+    top = max(JITTER_LADDER, default=0.0)
     lam = N * sf2 + sn2 + top * (sf2 + sn2)
     return 0.5 * float(z @ z) / lam + N * theta[:, -1] + 0.5 * N * LOG_2PI
 

@@ -8,7 +8,14 @@ pytest.importorskip("bokeh")
 from bokeh.document import Document  # noqa: E402
 from bokeh.models import ColumnDataSource  # noqa: E402
 
-from mdcore_app.live_figures import BandFigure, MapFigure, blank, replace_data  # noqa: E402
+from mdcore_app.live_figures import (  # noqa: E402
+    BandFigure,
+    MapFigure,
+    blank,
+    replace_data,
+    set_range,
+    set_top,
+)
 
 X = np.linspace(0.0, 1.0, 5)
 GOOD = {"x": X, "mean": X ** 2, "var": np.full(5, 0.01), "k": 2}
@@ -157,3 +164,38 @@ def test_blank_refuses_bad_sizes_and_columns(args, kwargs, name):
 def test_band_figure_refuses_bad_inputs_to_start_at(x):
     with pytest.raises(ValueError, match="x"):
         BandFigure(title="t", xname="x", yname="y", color="red", label="S1", x=x)
+
+
+def test_set_range_sends_only_a_change_and_set_top_pads_the_top():
+    from bokeh.document import Document
+    from bokeh.models import Range1d
+
+    r = Range1d(0.0, 1.0)
+    doc = Document()
+    doc.add_root(r)
+    seen = []
+    doc.on_change(lambda e: seen.append(e))
+    set_range(r, 0.0, 1.0)
+    assert seen == []                                   # the same bounds: nothing sent
+    set_top(r, 40.0, pad=0.08)
+    assert (r.start, r.end) == (0.0, pytest.approx(43.2)) and len(seen) >= 1
+    set_top(r, 0.0)                                     # nothing to show yet
+    assert (r.start, r.end) == (0.0, 1.0)
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda r: set_range(object(), 0.0, 1.0), "r must be a bokeh Range1d"),
+    (lambda r: set_range(r, np.nan, 1.0), "start and end"),
+    (lambda r: set_range(r, 0.0, np.inf), "start and end"),
+    (lambda r: set_range(r, 2.0, 1.0), "start must be below end"),
+    (lambda r: set_range(r, [0.0, 1.0], 2.0), "start and end"),
+    (lambda r: set_top(r, np.nan), "top and pad"),
+    (lambda r: set_top(r, 1.0, pad=-0.1), "pad must be"),
+])
+def test_set_range_and_set_top_refuse_bad_bounds(call, name):
+    from bokeh.models import Range1d
+
+    r = Range1d(0.0, 1.0)
+    with pytest.raises(ValueError, match=name):
+        call(r)
+    assert (r.start, r.end) == (0.0, 1.0)               # left as it was

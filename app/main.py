@@ -9,6 +9,7 @@ its results back to the session's event loop.
 """
 
 import argparse
+import base64
 import gc
 import sys
 from functools import partial
@@ -38,6 +39,18 @@ NOTIFICATION_CSS = """
 """
 pn.extension("filedropper", notifications=True, raw_css=[NOTIFICATION_CSS])
 hv.extension("bokeh")
+
+
+def inline_script(path: Path) -> str:
+    """A script file as a ``data:`` address: in the page's head with no request (offline)."""
+    return "data:text/javascript;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+# After BokehJS, before the document is drawn: a plot with a legend is laid out and
+# painted once, not twice (see the file).
+pn.config.js_files = {**pn.config.js_files,
+                      "mdcore-legend-resize": inline_script(Path(__file__).with_name(
+                          "legend_resize.js"))}
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.

@@ -52,6 +52,12 @@ def inline_script(path: Path) -> str:
 pn.config.js_files = {**pn.config.js_files,
                       "mdcore-legend-resize": inline_script(Path(__file__).with_name(
                           "legend_resize.js"))}
+#: Panel's page with one script in its head before every other: FilePond (the Files
+#: tab's drop areas) paints only while a drop area is shown (see the file). A string
+#: template extends Panel's.
+PAGE_TEMPLATE = ("{% block preamble %}{{ super() }}<script>{% raw %}"
+                 + Path(__file__).with_name("filepond_painter.js").read_text()
+                 + "{% endraw %}</script>{% endblock %}")
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.
@@ -96,6 +102,7 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
     view = ExplorerView(state=state)
     if state.background:
         _local_style_sheets(doc)
+        doc.template = PAGE_TEMPLATE
         # A closed tab stops its running job: nobody will see the result, and the CPU is
         # shared by every session of the server.
         doc.on_session_destroyed(lambda _context: state.jobs.close())

@@ -3,9 +3,9 @@
 // BokehJS 3.9 draws a legend as HTML and watches its element with a ResizeObserver
 // whose callback asks the whole plot for a new layout. A ResizeObserver always reports
 // an element once when it starts watching it, so every plot with a legend was laid out
-// and painted a second time, at the same size, one frame after it was first drawn: on
-// the first page (the Data tab's two plots: ~0.15 s of the first paint) and whenever a
-// tab or a rebuilt figure is shown. Here the callback asks for a layout only when the
+// and painted a second time, at the same size, one frame after it was first drawn
+// (40-60 ms of the browser's main thread for the Data tab's two plots): on the first
+// page and whenever a tab or a rebuilt figure is shown. Here the callback asks for a layout only when the
 // legend's size differs from the one the plot's last layout measured (LegendView's
 // bbox), which is the case whenever the legend really changed size.
 //

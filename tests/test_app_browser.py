@@ -283,8 +283,8 @@ document.addEventListener('DOMContentLoaded', () => {
 
 def test_a_plot_with_a_legend_is_painted_once_when_it_is_first_shown(browser, server):
     """BokehJS's legend observes its own size and re-lays-out its plot when the observer
-    first reports, at the size the plot was laid out with: a second paint of every plot
-    (~0.15 s of the first paint). ``legend_resize.js`` skips that report; a legend whose
+    first reports, at the size the plot was laid out with: a second layout and paint of
+    every plot when it is first shown. ``legend_resize.js`` skips that report; a legend whose
     size really changes still gets its layout (the legend entries must fit)."""
     page = browser.new_page(viewport={"width": 1280, "height": 720})
     page.add_init_script(COUNT_PAINTS)

@@ -9,7 +9,6 @@ its results back to the session's event loop.
 """
 
 import argparse
-import base64
 import gc
 import sys
 from functools import partial
@@ -40,24 +39,15 @@ NOTIFICATION_CSS = """
 """
 pn.extension("filedropper", notifications=True, raw_css=[NOTIFICATION_CSS])
 hv.extension("bokeh")
-
-
-def inline_script(path: Path) -> str:
-    """A script file as a ``data:`` address: in the page's head with no request (offline)."""
-    return "data:text/javascript;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
-
-
-# After BokehJS, before the document is drawn: a plot with a legend is laid out and
-# painted once, not twice (see the file).
-pn.config.js_files = {**pn.config.js_files,
-                      "mdcore-legend-resize": inline_script(Path(__file__).with_name(
-                          "legend_resize.js"))}
-#: Panel's page with one script in its head before every other: FilePond (the Files
-#: tab's drop areas) paints only while a drop area is shown (see the file). A string
-#: template extends Panel's.
-PAGE_TEMPLATE = ("{% block preamble %}{{ super() }}<script>{% raw %}"
-                 + Path(__file__).with_name("filepond_painter.js").read_text()
-                 + "{% endraw %}</script>{% endblock %}")
+#: Panel's page (a string template extends it) with two scripts of ours in its head: one
+#: before every other script, so that FilePond (the Files tab's drop areas) paints only
+#: while a drop area is shown; one after BokehJS and before the document is drawn, so that
+#: a plot with a legend is laid out and painted once, not twice (see the files). Inline:
+#: no request (offline).
+PAGE_TEMPLATE = "".join(
+    "{% block " + block + " %}{{ super() }}<script>{% raw %}"
+    + Path(__file__).with_name(script).read_text() + "{% endraw %}</script>{% endblock %}"
+    for block, script in (("preamble", "filepond_painter.js"), ("postamble", "legend_resize.js")))
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.

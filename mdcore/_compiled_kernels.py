@@ -148,8 +148,8 @@ def _tile(N, M):
 def _tiled_diffs(A, B, out):
     """Differences between the rows of ``A`` (N, d) and of ``B`` (M, d), by tiles of
     ``tile = out.shape[2] // N`` rows of B: ``out[c, k]`` (n_tiles, d, N·tile) holds tile c
-    as an (N, nt) row-major block. The signed ``Δ = a − b`` when d = 1 (its sign picks the
-    factor in :func:`_cross_1d`), ``Δ²`` per dimension otherwise."""
+    as an (N, nt) row-major block. ``Δ = a − b`` when d = 1 (the kernels take ``|Δ|``),
+    ``Δ²`` per dimension otherwise."""
     N, d = A.shape
     M = B.shape[0]
     tile = out.shape[2] // N
@@ -226,19 +226,18 @@ SEPARABLE_LIMIT = 16.0
 
 
 @_jit
-def _cross_1d(Dy, Dx, sy, sx, sf2, Etr, Ete, W, out, N, nt):
+def _cross_1d(Dy, Dx, sy, sx, sf2, Etr, Ete, out, N, nt):
     """K_f* (Eq. 3) for one-dimensional y and x without an exponential per entry.
 
-    In one dimension ``exp(−s |u − v|)`` is ``exp(−s u′) exp(s v′)`` when ``u ≥ v`` and
-    ``exp(s u′) exp(−s v′)`` otherwise, with ``u′, v′`` centred inputs; so N + nt
-    exponentials per dimension (and as many divisions) replace N · nt. ``Etr`` (4, N) and
-    ``Ete`` (4, ≥ nt) hold ``[e^{s_y u′}, e^{−s_y u′}, e^{s_x u′}, e^{−s_x u′}]`` of the
-    training and of the tile's test points; ``Dy``, ``Dx`` are the signed differences
-    ``u − v`` (:func:`_tiled_diffs`). Writes the (N, nt) tile into ``out``.
+    In one dimension ``exp(−s |u − v|)`` is the smaller of ``exp(−s u′) exp(s v′)`` and
+    ``exp(s u′) exp(−s v′)``, with ``u′, v′`` centred inputs (the first when ``u ≥ v``);
+    so N + nt exponentials per dimension (and as many divisions) replace N · nt. Taking
+    the smaller needs no sign test, and the loop vectorises without a select (~6 % of a
+    beam-1d mixture pair; the same bits on its pairs). ``Etr`` (4, N) and ``Ete`` (4, ≥ nt)
+    hold ``[e^{s_y u′}, e^{−s_y u′}, e^{s_x u′}, e^{−s_x u′}]`` of the training and of the
+    tile's test points; ``Dy``, ``Dx`` are the differences ``u − v``
+    (:func:`_tiled_diffs`). Writes the (N, nt) tile into ``out``.
     """
-    wa, wb, _, _, _, _ = W
-    ra = wa[:nt]
-    rb = wb[:nt]
     s_y = sy[0]
     s_x = sx[0]
     py, qy, px, qx = Ete[0][:nt], Ete[1][:nt], Ete[2][:nt], Ete[3][:nt]
@@ -248,17 +247,11 @@ def _cross_1d(Dy, Dx, sy, sx, sf2, Etr, Ete, W, out, N, nt):
         o = out[i * nt:(i + 1) * nt]
         Py, Qy, Px, Qx = Etr[0, i], Etr[1, i], Etr[2, i], Etr[3, i]
         for t in range(nt):
-            ra[t] = abs(dy[t]) * s_y
-            rb[t] = abs(dx[t]) * s_x
-        for t in range(nt):          # both factors loaded, then selected: vectorises
-            a = ra[t]
-            b = rb[t]
-            ey_pos = Qy * py[t]
-            ey_neg = Py * qy[t]
-            ex_pos = Qx * px[t]
-            ex_neg = Px * qx[t]
-            ey = ey_pos if dy[t] >= 0.0 else ey_neg
-            ex = ex_pos if dx[t] >= 0.0 else ex_neg
+            a = abs(dy[t]) * s_y
+            b = abs(dx[t]) * s_x
+            # e^{−s(u′−v′)} and e^{s(u′−v′)}: the smaller is e^{−s|u − v|}, no sign test
+            ey = min(Qy * py[t], Py * qy[t])
+            ex = min(Qx * px[t], Px * qx[t])
             o[t] = (a * b + (a + b) + 1.0) * (sf2 * (ey * ex))
 
 
@@ -670,7 +663,7 @@ def _moments(R, N, theta, sy, sx, DYc, DXc, W, Vbuf, Lt, mean, var, S1):
         V = Vbuf[:N * nt]
         if separable:
             _signed_exps(yte[m0:m0 + nt], sy[0], xte[m0:m0 + nt], sx[0], Ete, W)
-            _cross_1d(DYc[m0 // tile], DXc[m0 // tile], sy, sx, sf2, Etr, Ete, W, V, N, nt)
+            _cross_1d(DYc[m0 // tile], DXc[m0 // tile], sy, sx, sf2, Etr, Ete, V, N, nt)
         else:
             _matern_entries(DYc[m0 // tile], DXc[m0 // tile], sy, sx, log_sf2, W, V)
         mo = mean[m0:m0 + nt]

@@ -17,6 +17,7 @@ from pathlib import Path
 import holoviews as hv
 import panel as pn
 from bokeh.core.property.validation import validate
+from bokeh.settings import settings
 from panel.io.resources import LOCAL_DIST
 from panel.io.state import set_curdoc
 
@@ -153,6 +154,12 @@ def freeze_startup_objects() -> None:
 
 if pn.state.served:
     freeze_startup_objects()
+    # Bokeh checks the integrity of every new session's document once it is built (layout
+    # and model rules; ~70 ms of a page's 0.5-0.8 s of server time, measured in-process).
+    # The page is the same every time: test_every_tab_passes_bokehs_integrity_checks
+    # runs those checks on every tab of every case instead. Process-wide, like Bokeh's
+    # switch; every session of this server is this app's.
+    settings.perform_document_validation.set_value(False)
     # Bokeh checks every property value of every new model against its type, defaults
     # included: ~12 % of building a session's ~210 models (0.47 against 0.53-0.69 s,
     # measured in-process). The same code builds the page with the checks on in the

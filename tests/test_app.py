@@ -723,4 +723,4 @@ def test_every_tab_passes_bokehs_integrity_checks(case):
         for root in doc.roots:
             issues = check_integrity(root.references())
             warned = [w for w in issues.warning if w.code != EMPTY_LAYOUT.code]
-            assert issues.error == [] and warned == [], (case, tabs._names[index], issues)
+            assert issues.error == [] and warned == [], (case, f"tab {index}", issues)

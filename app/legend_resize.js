@@ -5,9 +5,10 @@
 // an element once when it starts watching it, so every plot with a legend was laid out
 // and painted a second time, at the same size, one frame after it was first drawn
 // (40-60 ms of the browser's main thread for the Data tab's two plots): on the first
-// page and whenever a tab or a rebuilt figure is shown. Here the callback asks for a layout only when the
-// legend's size differs from the one the plot's last layout measured (LegendView's
-// bbox), which is the case whenever the legend really changed size.
+// page and whenever a tab or a rebuilt figure is shown. Here the callback asks for a
+// layout only when the legend's size differs from the one the plot's last layout
+// measured (LegendView's bbox), which is the case whenever the legend really changed
+// size.
 //
 // If BokehJS changes so that the legend view is not where this expects it, nothing is
 // patched and Bokeh behaves as it always did (one redundant paint).

@@ -23,6 +23,7 @@ from panel.io.state import set_curdoc
 
 from mdcore import compiled, threads
 from mdcore.case_file import load_case_file
+from mdcore_app import session_pool
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 
@@ -97,6 +98,10 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
         # A closed tab stops its running job: nobody will see the result, and the CPU is
         # shared by every session of the server.
         doc.on_session_destroyed(lambda _context: state.jobs.close())
+        if session_pool.install():                # the server's first session
+            context = doc.session_context         # build the next visitor's page ahead
+            session_pool.POOL.refill_later(context.server_context.application_context,
+                                           context.request)
     for message in errors:                        # shown once the page is there
         pn.state.onload(lambda m=message: state.report_error(m))
     return view

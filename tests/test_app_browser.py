@@ -227,6 +227,43 @@ def test_two_sessions_do_not_share_results(browser, server):
     b.close()
 
 
+def _wait_for_log(log: ServerLog, text: str, count: int = 1, timeout: float = 90.0) -> None:
+    """Wait until ``text`` has appeared ``count`` times in the server's output."""
+    end = time.monotonic() + timeout
+    while log.text().count(text) < count:
+        if time.monotonic() > end:
+            raise AssertionError(f"the server never said {text!r} {count} time(s):\n"
+                                 + log.text()[-3000:])
+        time.sleep(0.2)
+
+
+def test_a_page_from_a_session_built_ahead_is_a_whole_session_of_its_own(browser):
+    """The server builds the next visitor's session while it is idle (app/session_pool.py)
+    and serves the next page from it: that page draws, talks to its own session (a case
+    switch there leaves the first page alone), and the server builds the next one."""
+    proc, url, log = _serve()
+    try:
+        a, log_a = open_page(browser, url)
+        _wait_for_log(log, "built a session ahead")
+        b, log_b = open_page(browser, url)
+        _wait_for_log(log, "page served from a session built ahead")
+        assert_drawn(b, ".data-plot", 2)
+        b.locator("select").first.select_option("shear-5")        # the server answers:
+        b.wait_for_selector("text=/SYNTHETIC stand-in/", timeout=90_000)   # shear-5's data
+        assert_drawn(b, ".data-plot", 2)
+        _wait_for_log(log, "built a session ahead", count=2)   # refilled after b's page
+        assert a.locator("text=/SYNTHETIC stand-in/").count() == 0
+        assert a.locator("select").first.input_value() == "beam-1d"
+        assert b.locator("select").first.input_value() == "shear-5"
+        assert log_a.errors == [] and log_b.errors == []
+        assert log_b.hosts == {"127.0.0.1"}
+        a.close()
+        b.close()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
 def assert_drawn(page, selector, n):
     """At least ``n`` canvases under ``selector``, each with a size and with pixels beyond
     its background: a collapsed or empty plot fails (issue 17)."""

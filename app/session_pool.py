@@ -20,7 +20,12 @@ server that reuses sessions (``--reuse-sessions``) or reloads the app on changes
 (``--autoreload``) is served as before. An unused prebuilt session older than
 :data:`MAX_AGE_SECONDS` is discarded rather than handed out.
 
-:func:`install` wraps Panel's page handler once per process; ``main.py`` calls it.
+:func:`install` wraps Panel's page handler once per process; ``main.py`` calls it. The
+hand-out sets what Bokeh 3's ``create_session_if_needed`` sets on a new session (its
+token, its session context's token and request view, the time its unused lifetime counts
+from): attributes private to Bokeh. If they change, the page is built on request as before
+(the failure is logged), and the browser test that follows a page served from the pool
+(tests/test_app_browser.py) fails.
 """
 
 from __future__ import annotations
@@ -90,8 +95,13 @@ class SessionPool:
         if ready is None:
             return None
         session = ready.session
-        if time.monotonic() - ready.built > self.max_age_seconds or session.destroyed \
-                or not _give_token(handler, session):
+        try:
+            usable = time.monotonic() - ready.built <= self.max_age_seconds \
+                and not session.destroyed and _give_token(handler, session)
+        except Exception:                       # noqa: BLE001 - e.g. a Bokeh without these
+            log.exception("a session built ahead could not be given out; building one")
+            usable = False
+        if not usable:
             self._discard(session)
             return None
         # From now on an ordinary session, as if created now: Bokeh discards a session

@@ -162,3 +162,12 @@ def test_a_page_is_loading_until_its_browser_reports_it_drawn():
     pool.page_started(other)
     pool._pages[id(other)] -= 61.0             # never reported, a minute ago: forgotten
     assert not pool._loading()
+
+
+def test_a_hand_out_that_fails_builds_the_page_on_request_instead():
+    session = _Session()
+    handler = _Handler(session)
+    del handler.application_context._session_contexts       # as if Bokeh had changed
+    pool = _pool_with(session, handler)
+    assert pool.take(handler) is None
+    assert session.expiring                                   # dropped, not half given out

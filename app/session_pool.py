@@ -78,7 +78,6 @@ class SessionPool:
         self._pages: dict[int, float] = {}      # id(document) -> when given out
         self._timer = None
         self.handed_out = 0                     # sessions served from the pool
-        self.built = 0                          # sessions built ahead
 
     # -- the page handler's side --------------------------------------------------------
 
@@ -87,7 +86,6 @@ class SessionPool:
         None (nothing ready, too old, or the request names its own session)."""
         from bokeh.server.session import current_time
 
-        self._last_request = time.monotonic()
         if any(handler.get_argument(a, default=None) is not None for a in _SESSION_ARGS) \
                 or "Bokeh-Session-Id" in handler.request.headers:
             return None
@@ -177,7 +175,6 @@ class SessionPool:
             session.block_expiration()          # unused, it must not be cleaned up
             _serialize_ahead(session.document)
             self._ready[key] = _Ready(session, time.monotonic())
-            self.built += 1
             log.info("built a session ahead (%s) for the next page", session_id)
         except Exception:                       # noqa: BLE001 - never break the server
             log.exception("building a session ahead failed; pages are built on request")

@@ -24,6 +24,8 @@ def test_the_pool_asks_for_positive_times():
         SessionPool(idle_seconds=0.0)
     with pytest.raises(ValueError, match="received 3.0 and -1"):
         SessionPool(idle_seconds=3.0, max_age_seconds=-1)
+    with pytest.raises(ValueError, match="received nan and 240.0"):
+        SessionPool(idle_seconds=float("nan"))
 
 
 def _doc():
@@ -35,7 +37,7 @@ def _doc():
 
 
 def _text(serialized) -> str:
-    """A serialised document as text, without the ids of its buffers."""
+    """A serialised document's content as JSON text (buffers are referred to by id)."""
     return serialize_json(serialized.content)
 
 

@@ -303,8 +303,9 @@ def test_a_pair_a_bound_from_the_sigmas_puts_above_stop_is_left_out_unfactorised
 
 
 def test_factorisation_stops_at_the_first_check_past_the_bound(rng):
-    """The packed kernel leaves the rows after the abandoning check untouched, and the
-    bound it checks is ½ Σ w_i² + Σ log L_ii + (rows left) log σ_n (NumPy's factor here)."""
+    """The kernel leaves the rows after the abandoning check as they were copied from the
+    packed matrix, and the bound it checks is ½ Σ w_i² + Σ log L_ii + (rows left) log σ_n
+    (NumPy's factor here); a full factorisation is NumPy's factor."""
     from mdcore import _compiled_kernels as K
     from mdcore.kernels import train_cov
 
@@ -317,14 +318,39 @@ def test_factorisation_stops_at_the_first_check_past_the_bound(rng):
     bound = np.cumsum(0.5 * w * w + np.log(d)) + (N - 1 - np.arange(N)) * lp[-1]
     n = N + 1
     packed = np.concatenate([A[i, i:] for i in range(n)])
-    R = np.empty_like(packed)
-    assert K._cholesky_packed(packed, R, n, N, 0.0, bound[-1] + 1e-9, lp[-1]) == K.FACTORED
+    R = K._factor_rows(n)
+    assert K._cholesky_rows(packed, R, n, N, 0.0, bound[-1] + 1e-9, lp[-1]) == K.FACTORED
+    upper = np.triu_indices(n)
+    np.testing.assert_allclose(R[:, :n][upper], L.T[upper], rtol=1e-11, atol=1e-14)
     row = 17                                                    # crossing here: next check 19
     stop = 0.5 * (bound[row - 1] + bound[row])
-    assert K._cholesky_packed(packed, R, n, N, 0.0, stop, lp[-1]) == K.ABANDONED
-    first_untouched = sum(n - i for i in range(20))
-    np.testing.assert_array_equal(R[first_untouched:], packed[first_untouched:])
-    np.testing.assert_allclose(R[n:2 * n - 1], L[1:, 1], rtol=1e-12)   # row 1 was done
+    assert K._cholesky_rows(packed, R, n, N, 0.0, stop, lp[-1]) == K.ABANDONED
+    for i in range(20, n):
+        np.testing.assert_array_equal(R[i, i:n], A[i, i:])
+    np.testing.assert_allclose(R[1, 1:n], L[1:, 1], rtol=1e-12)   # row 1 was done
+
+
+def test_factor_rows_padding_never_reaches_the_factor(rng):
+    """The spare columns past each row (whole vector iterations) only meet each other: a
+    factorisation after one of a matrix with NaN entries (which leaves NaN there) gives
+    the bits of one in a fresh array, and the spare columns of a normal one stay 0."""
+    from mdcore import _compiled_kernels as K
+
+    n = 21
+    B = rng.standard_normal((n, n))
+    A = B @ B.T + n * np.eye(n)
+    packed = np.concatenate([A[i, i:] for i in range(n)])
+    fresh = K._factor_rows(n)
+    assert K._cholesky_rows(packed, fresh, n, n, 0.0, np.inf, 0.0) == K.FACTORED
+    assert not fresh[:, n:].any()
+    used = K._factor_rows(n)
+    bad = packed.copy()
+    bad[[1, 5]] = np.nan                                        # row 0's entries (0, 1), (0, 5)
+    assert K._cholesky_rows(bad, used, n, n, 0.0, np.inf, 0.0) == K.FAILED
+    assert np.isnan(used[:, n:]).any()
+    assert K._cholesky_rows(packed, used, n, n, 0.0, np.inf, 0.0) == K.FACTORED
+    upper = np.triu_indices(n)
+    np.testing.assert_array_equal(used[:, :n][upper], fresh[:, :n][upper])
 
 
 def numpy_mixture_sums(lp, Y, j, X, z, Ys, out, w, Xs, cz, cd):

@@ -149,6 +149,21 @@ def fit_kernel(r, e, diffs, ell2, K, D):
 
 
 @_jit
+def fit_factors(T, ell_t, rt, tt, X, ell_x, rx, tx):
+    """:func:`fit_distances` of the θ and the x factor, in one call (the fit is dominated
+    by per-call overhead on these small matrices)."""
+    fit_distances(T, ell_t, rt, tt)
+    fit_distances(X, ell_x, rx, tx)
+
+
+@_jit
+def fit_kernels(rt, et, dt2, ell2_t, Kt, Dt, rx, ex, dx2, ell2_x, Kx, Dx):
+    """:func:`fit_kernel` of the θ and the x factor, in one call."""
+    fit_kernel(rt, et, dt2, ell2_t, Kt, Dt)
+    fit_kernel(rx, ex, dx2, ell2_x, Kx, Dx)
+
+
+@_jit
 def fit_spectrum(lam, mu, sf2, sn2, SO, S):
     """Eigenvalues clipped at 0 in place (``np.maximum(·, 0.0)``, NaN kept), then
     ``SO = σ_f² λ_a μ_b`` and ``S = SO + σ_n²``."""
@@ -204,6 +219,20 @@ def fit_dot(A, B):
     for i in range(n):
         x[i] = Af[i] * Bf[i]
     return total(x)
+
+
+@_jit
+def fit_gradient(sf2, Qt, Dt, mu, Qx, Dx, lam, S, A0, DAK, KAD, g):
+    """The lengthscale entries of the gradient, ``g[1 : 1 + p + d_x]``: for each θ
+    dimension ``½ σ_f² (fit_trace(Q_θ, D_θ,d, μ, S) − Σ A0 ⊙ DAK_d)`` and for each x
+    dimension ``½ σ_f² (fit_trace(Q_x, D_x,d, λ, S) − Σ A0 ⊙ KAD_d)``, with ``DAK_d =
+    D_θ,d A0 K_x`` and ``KAD_d = K_θ A0 D_x,d`` (BLAS products, made by the caller)."""
+    p = Dt.shape[0]
+    for d in range(p):
+        g[1 + d] = 0.5 * sf2 * (fit_trace(Qt, Dt[d], mu, S, True) - fit_dot(A0, DAK[d]))
+    for d in range(Dx.shape[0]):
+        g[1 + p + d] = 0.5 * sf2 * (fit_trace(Qx, Dx[d], lam, S, False)
+                                    - fit_dot(A0, KAD[d]))
 
 
 @_jit

@@ -134,6 +134,26 @@ def _eig(K):
     return np.maximum(lam, 0.0), Q
 
 
+try:   # the kernel np.linalg.eigh calls for a real matrix (UPLO="L"): the same bits
+    from numpy.linalg._umath_linalg import eigh_lo as _eigh_lo
+except ImportError:                                      # pragma: no cover - NumPy moved it
+    _eigh_lo = None
+
+
+def _eigh(K):
+    """``np.linalg.eigh(K)`` of a float64 matrix, bit for bit, without the ~4 µs of its
+    checks and wrapping (the fit calls it ~1,000 times): NumPy's own LAPACK kernel. When
+    that gives NaN (NaN in ``K``, or no convergence), the answer is np.linalg.eigh's own:
+    its NaN, or its ``LinAlgError``."""
+    if _eigh_lo is None:
+        return np.linalg.eigh(K)
+    with np.errstate(invalid="ignore"):
+        lam, Q = _eigh_lo(K, signature="d->dd")
+    if np.isnan(lam[0]):
+        return np.linalg.eigh(K)
+    return lam, Q
+
+
 def _design(Xu, Tu):
     """Rows [1, x, θ] for every (run, input) pair in run-major order: (R·N, 1 + d_x + p)."""
     R, N = Tu.shape[0], Xu.shape[0]
@@ -222,23 +242,22 @@ def _kron_nlml(lp, Tu, Xu, res, diffs=None):
 
 def _kron_nlml_compiled(lp, Tu, Xu, res, diffs, k):
     """:func:`_kron_nlml` to the last bit, with its elementwise arithmetic and sums in the
-    compiled kernels ``k`` (:func:`mdcore.compiled.fit_kernels`): about 35 calls per
+    compiled kernels ``k`` (:func:`mdcore.compiled.fit_kernels`): about 30 calls per
     evaluation instead of about 100 (the fit is dominated by per-call overhead on these
-    small matrices). ``exp``, ``log``, ``pow``, ``eigh`` and the matrix products stay the
-    NumPy/BLAS calls of :func:`_kron_nlml`, on the same operands."""
+    small matrices). ``exp``, ``log``, ``pow``, ``eigh`` (:func:`_eigh`) and the matrix
+    products stay the NumPy/BLAS calls of :func:`_kron_nlml`, on the same operands."""
     p = Tu.shape[1]
     sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
     (dt2, dx2), R, N = diffs, Tu.shape[0], Xu.shape[0]
     ell_t, ell_x = np.exp(lp[1:1 + p]), np.exp(lp[1 + p:-1])
     rt, tt, rx, tx = np.empty((R, R)), np.empty((R, R)), np.empty((N, N)), np.empty((N, N))
-    k.fit_distances(Tu, ell_t, rt, tt)
-    k.fit_distances(Xu, ell_x, rx, tx)
+    k.fit_factors(Tu, ell_t, rt, tt, Xu, ell_x, rx, tx)
     Kt, Dt = np.empty((R, R)), np.empty((p, R, R))
     Kx, Dx = np.empty((N, N)), np.empty((Xu.shape[1], N, N))
-    k.fit_kernel(rt, np.exp(tt), dt2, np.array([v ** 2 for v in ell_t]), Kt, Dt)
-    k.fit_kernel(rx, np.exp(tx), dx2, np.array([v ** 2 for v in ell_x]), Kx, Dx)
-    lam, Qt = np.linalg.eigh(Kt)
-    mu, Qx = np.linalg.eigh(Kx)
+    k.fit_kernels(rt, np.exp(tt), dt2, np.array([v ** 2 for v in ell_t]), Kt, Dt,
+                  rx, np.exp(tx), dx2, np.array([v ** 2 for v in ell_x]), Kx, Dx)
+    lam, Qt = _eigh(Kt)
+    mu, Qx = _eigh(Kx)
     SO, S, Pa = np.empty((R, N)), np.empty((R, N)), np.empty((R, N))
     k.fit_spectrum(lam, mu, sf2, sn2, SO, S)
     s_f, s_log, s_0, s_n = k.fit_terms(Qt.T @ res @ Qx, S, SO, np.log(S), Pa)
@@ -247,12 +266,8 @@ def _kron_nlml_compiled(lp, Tu, Xu, res, diffs, k):
     g = np.empty_like(lp)
     g[0] = s_0
     g[-1] = sn2 * s_n
-    for d in range(p):
-        g[1 + d] = 0.5 * sf2 * (k.fit_trace(Qt, Dt[d], mu, S, True)
-                                - k.fit_dot(A0, Dt[d] @ A0 @ Kx))
-    for d in range(Xu.shape[1]):
-        g[1 + p + d] = 0.5 * sf2 * (k.fit_trace(Qx, Dx[d], lam, S, False)
-                                    - k.fit_dot(A0, Kt @ A0 @ Dx[d]))
+    # the products of every dimension at once: a stack's matmul is each slice's, bit for bit
+    k.fit_gradient(sf2, Qt, Dt, mu, Qx, Dx, lam, S, A0, Dt @ A0 @ Kx, Kt @ A0 @ Dx, g)
     return f, g
 
 

@@ -151,6 +151,28 @@ def test_compiled_likelihood_is_numpys_to_the_bit(rng):
         np.testing.assert_array_equal(g, g2)
 
 
+def test_eigh_without_numpys_wrapper_gives_its_bits(rng):
+    """The fit's eigendecomposition (NumPy's kernel called directly) is np.linalg.eigh to
+    the bit, on the Kronecker factors' sizes, for a matrix with NaN too."""
+    from mdcore.emulator import _eigh
+
+    raised = 0
+    for n in (1, 2, 3, 13, 27, 64):
+        A = rng.normal(size=(n, n))
+        for K in (A @ A.T, np.round(A @ A.T, 1), np.where(np.eye(n) > 0, np.nan, A + A.T)):
+            try:
+                ref = np.linalg.eigh(K)
+            except np.linalg.LinAlgError:
+                raised += 1
+                with pytest.raises(np.linalg.LinAlgError, match="did not converge"):
+                    _eigh(K)
+                continue
+            got = _eigh(K)
+            np.testing.assert_array_equal(got[0], ref[0])
+            np.testing.assert_array_equal(got[1], ref[1])
+    assert raised                                  # NaN on the diagonal: no convergence
+
+
 @pytest.mark.parametrize("name", ["beam-1d", "beam-2d", "shear-5"])
 def test_fit_is_the_same_on_both_backends(name):
     pytest.importorskip("numba")

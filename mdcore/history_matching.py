@@ -573,7 +573,9 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
     fraction = base_fraction * float(np.mean(keep))       # chain rule, module docstring
     threshold_var = problem.convergence_ratio * np.min(problem.V_o + problem.V_m, axis=0)
     if nroy.shape[0]:
-        max_var = np.max(var[keep], axis=(0, 1))
+        # the kept rows of (M, N·n_out), then the max over N: half the time of
+        # np.max(var[keep], axis=(0, 1)) on shear-5's (10⁵, 3, 5), the same values
+        max_var = var.reshape(len(var), -1)[keep].max(axis=0).reshape(var.shape[1:]).max(axis=0)
         converged = bool(np.all(max_var < threshold_var))
     else:
         max_var = np.full(problem.z.shape[1], np.nan)

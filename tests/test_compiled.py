@@ -795,8 +795,8 @@ def test_emulator_kernels_compile_one_signature(emulators, rng):
 
     fit_emulator(problem.X, em.theta_train, em.y_train, problem.bounds, seed=0,
                  backend="numba")
-    for kernel in (e.fit_distances, e.fit_kernel, e.fit_spectrum, e.fit_terms, e.fit_trace,
-                   e.fit_dot):
+    for kernel in (e.fit_factors, e.fit_kernels, e.fit_spectrum, e.fit_terms,
+                   e.fit_gradient):
         assert len(kernel.signatures) == 1, (kernel, kernel.signatures)
 
 

@@ -536,7 +536,7 @@ def _cholesky_rows(A, R, n, n_cov, jitter, stop, log_floor):
     vector operation). Each update of row j runs over its n − j entries rounded up to a
     multiple of :data:`ROW_PAD`, so the loops have no scalar remainder. The extra entries
     are spare columns ≥ n, updated only from spare columns of earlier rows: they start
-    as zeros (:func:`_factor_rows`) and stay 0 (NaN after a matrix with NaN entries),
+    as zeros (:func:`_factor_rows`) and stay 0 (NaN after a matrix with inf or NaN),
     and no entry of the factor ever reads them, so every entry gets the operations it
     would get without the padding, in the same order. Entries left of the diagonal are
     neither written nor read. Returns :data:`FAILED` at the first pivot that is not

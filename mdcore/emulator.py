@@ -20,6 +20,7 @@ every training input costs two small matrix products.
 
 from __future__ import annotations
 
+import importlib
 import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -134,10 +135,16 @@ def _eig(K):
     return np.maximum(lam, 0.0), Q
 
 
-try:   # the kernel np.linalg.eigh calls for a real matrix (UPLO="L"): the same bits
-    from numpy.linalg._umath_linalg import eigh_lo as _eigh_lo
-except ImportError:                                      # pragma: no cover - NumPy moved it
-    _eigh_lo = None
+def _numpy_eigh_kernel():
+    """The kernel np.linalg.eigh calls for a real matrix (UPLO="L"), or None if NumPy
+    moved it (then :func:`_eigh` calls np.linalg.eigh)."""
+    try:
+        return importlib.import_module("numpy.linalg._umath_linalg").eigh_lo
+    except (ImportError, AttributeError):                # pragma: no cover
+        return None
+
+
+_eigh_lo = _numpy_eigh_kernel()
 
 
 def _eigh(K):

@@ -154,8 +154,10 @@ def test_compiled_likelihood_is_numpys_to_the_bit(rng):
 def test_eigh_without_numpys_wrapper_gives_its_bits(rng):
     """The fit's eigendecomposition (NumPy's kernel called directly) is np.linalg.eigh to
     the bit, on the Kronecker factors' sizes, for a matrix with NaN too."""
-    from mdcore.emulator import _eigh
+    from mdcore.emulator import _eigh, _eigh_lo
 
+    if _eigh_lo is None:
+        pytest.skip("this NumPy moved its eigh kernel: _eigh is np.linalg.eigh itself")
     raised = 0
     for n in (1, 2, 3, 13, 27, 64):
         A = rng.normal(size=(n, n))

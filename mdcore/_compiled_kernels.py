@@ -78,21 +78,35 @@ _C3, _C4, _C5, _C6 = (1.0 / math.factorial(i) for i in range(3, 7))
 _jit = njit(cache=True, fastmath=False, nogil=True, error_model="numpy")
 
 @_jit
+def _exp_shift(x):
+    """The first step of :func:`_qexp` for one argument: ``x`` clamped to [_LO, _HI], times
+    32/ln 2, plus 1.5·2^52 (k in the low bits), and whether ``x`` is outside (or NaN)."""
+    v = min(max(x, _LO), _HI)
+    return v * _INV_LN2_32 + _SHIFT, not (x >= _LO and x <= _HI)
+
+
+@_jit
 def _qexp(q, e, out, tb, ib):
     """``out = q · exp(e)`` elementwise (1-D, same length); ``tb`` (float64) and ``ib``
     (int64) are scratch at least as long. ``out`` must not alias ``q`` or ``e``.
 
-    Four passes, so that the arithmetic ones vectorise: k; the table look-up (a scalar
-    gather, which would stop the vectorisation of the polynomial pass); the polynomial;
-    and, only if some argument is outside [_LO, _HI] or NaN, the C library's exp there.
+    Four passes, so that the arithmetic ones vectorise: k (:func:`_exp_shift`); the table
+    look-up (a scalar gather, which would stop the vectorisation of the polynomial pass);
+    the polynomial; and, only if some argument is outside [_LO, _HI] or NaN, the C
+    library's exp there (:func:`_qexp_shifted` does all but the first).
     """
-    n = e.size
     bad = 0
-    for i in range(n):
-        x = e[i]
-        bad += not (x >= _LO and x <= _HI)
-        v = min(max(x, _LO), _HI)
-        tb[i] = v * _INV_LN2_32 + _SHIFT             # 1.5·2^52 + k in the low bits
+    for i in range(e.size):
+        tb[i], outside = _exp_shift(e[i])
+        bad += outside
+    _qexp_shifted(q, e, out, tb, ib, bad)
+
+
+@_jit
+def _qexp_shifted(q, e, out, tb, ib, bad):
+    """:func:`_qexp` after its first pass: ``tb`` holds :func:`_exp_shift` of ``e``, and
+    ``bad`` counts the arguments outside [_LO, _HI] or NaN."""
+    n = e.size
     tbi = tb.view(np.int64)
     t = ib.view(np.float64)
     for i in range(n):
@@ -168,30 +182,40 @@ def _tiled_diffs(A, B, out):
 
 
 @_jit
+def _squared_dist(D, s, out):
+    """``out = Σ_k D_k s_k²`` (0 in no dimension): the squared scaled distances ``3 r²``
+    from the per-dimension ``Δ²`` of :func:`_packed_diffs`/:func:`_tiled_diffs`. Reads the
+    first ``out.size`` entries of each row of ``D`` (d, ≥ n)."""
+    d = s.size
+    n = out.size
+    if d == 0:
+        out[:] = 0.0
+        return
+    s2 = s[0] * s[0]
+    d0 = D[0]
+    for p in range(n):
+        out[p] = d0[p] * s2
+    for k in range(1, d):
+        s2 = s[k] * s[k]
+        dk = D[k]
+        for p in range(n):
+            out[p] += dk[p] * s2
+
+
+@_jit
 def _scaled_dist(D, s, out):
     """``out = √(Σ_k D_k s_k²)`` (``|D_0| · s_0`` in one dimension, 0 in none): the scaled
     distances ``√3 r`` from the differences of :func:`_packed_diffs`/:func:`_tiled_diffs`
     (the NumPy path's formula: ``|Δ| · √3/ℓ``, or ``√(Σ Δ² (√3/ℓ)²)``). Reads the first
     ``out.size`` entries of each row of ``D`` (d, ≥ n)."""
-    d = s.size
     n = out.size
-    if d == 0:
-        out[:] = 0.0
-    elif d == 1:
+    if s.size == 1:
         s0 = s[0]
         d0 = D[0]
         for p in range(n):
             out[p] = abs(d0[p]) * s0
     else:
-        s2 = s[0] * s[0]
-        d0 = D[0]
-        for p in range(n):
-            out[p] = d0[p] * s2
-        for k in range(1, d):
-            s2 = s[k] * s[k]
-            dk = D[k]
-            for p in range(n):
-                out[p] += dk[p] * s2
+        _squared_dist(D, s, out)
         for p in range(n):
             out[p] = math.sqrt(out[p])
 
@@ -199,22 +223,40 @@ def _scaled_dist(D, s, out):
 @_jit
 def _matern_entries(Dy, Dx, sy, sx, log_sf2, W, out):
     """``out = σ_f² m32(r_y) m32(r_x)`` (Eq. 3) for the entries whose differences are
-    ``Dy``, ``Dx`` (d, n) (any packed or tiled layout); ``W`` is the workspace."""
+    ``Dy``, ``Dx`` (d, n) (any packed or tiled layout); ``W`` is the workspace.
+
+    The scaled distances' last step (:func:`_scaled_dist`'s square root, or the scaling of
+    a one-dimensional ``|Δ|``), the factors and the first step of the exponential
+    (:func:`_exp_shift`) share one pass: the operations of the separate passes, in the same
+    order, without writing and reading back three arrays.
+    """
     wa, wb, wq, we, tb, ib = W
     n = out.size
     ra = wa[:n]
     rb = wb[:n]
     q = wq[:n]
     e = we[:n]
-    _scaled_dist(Dy, sy, ra)
-    _scaled_dist(Dx, sx, rb)
+    one_y = sy.size == 1
+    one_x = sx.size == 1
+    if not one_y:
+        _squared_dist(Dy, sy, ra)
+    if not one_x:
+        _squared_dist(Dx, sx, rb)
+    s_y = sy[0] if one_y else 0.0
+    s_x = sx[0] if one_x else 0.0
+    dy = Dy[0] if one_y else ra
+    dx = Dx[0] if one_x else rb
+    bad = 0
     for p in range(n):
-        a = ra[p]
-        b = rb[p]
+        a = abs(dy[p]) * s_y if one_y else math.sqrt(dy[p])
+        b = abs(dx[p]) * s_x if one_x else math.sqrt(dx[p])
         s = a + b
         q[p] = a * b + s + 1.0                       # (1 + a)(1 + b)
-        e[p] = log_sf2 - s
-    _qexp(q, e, out, tb, ib)
+        x = log_sf2 - s
+        e[p] = x
+        tb[p], outside = _exp_shift(x)
+        bad += outside
+    _qexp_shifted(q, e, out, tb, ib, bad)
 
 
 #: Largest ``√3 h / ℓ`` (h: half the range of a one-dimensional input, about its centre)

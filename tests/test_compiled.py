@@ -457,6 +457,43 @@ def test_exponential_within_one_ulp():
     np.testing.assert_array_equal(out[~normal], ref[~normal])
 
 
+@pytest.mark.parametrize("d_y, d_x", [(1, 1), (1, 2), (2, 1), (5, 3), (0, 2), (1, 0)])
+def test_kernel_entries_are_the_separate_steps_to_the_bit(rng, d_y, d_x):
+    """The fused pass of ``_matern_entries`` (distances, factors and the exponential's first
+    step at once) gives, bit for bit, Eq. 3 computed step by step in NumPy with the same
+    operations in the same order, then ``_qexp``: also for zero, NaN and inf differences
+    and arguments past the exponential's range."""
+    from mdcore import _compiled_kernels as k
+
+    n = 3000
+    Dy = rng.normal(size=(d_y, n)) if d_y == 1 else rng.uniform(size=(d_y, n)) ** 2
+    Dx = rng.normal(size=(d_x, n)) if d_x == 1 else rng.uniform(size=(d_x, n)) ** 2
+    Dy[:, :4] = Dx[:, 2:6] = 0.0
+    if d_y:
+        Dy[0, 7], Dy[-1, 8] = np.nan, 1e6                  # NaN; far past exp's range
+    if d_x:
+        Dx[0, 9] = np.inf
+    sy, sx = rng.uniform(0.1, 3.0, d_y), rng.uniform(0.1, 3.0, d_x)
+    out = np.empty(n)
+    k._matern_entries(Dy, Dx, sy, sx, 0.7, k._workspace(n), out)
+
+    def scaled(D, s):                  # √3 r: |Δ| s in one dimension, else √(Σ Δ² s²)
+        if s.size == 1:
+            return np.abs(D[0]) * s[0]
+        if s.size == 0:
+            return np.zeros(n)
+        r2 = D[0] * (s[0] * s[0])
+        for Dk, sk in zip(D[1:], s[1:]):
+            r2 = r2 + Dk * (sk * sk)
+        return np.sqrt(r2)
+
+    a, b = scaled(Dy, sy), scaled(Dx, sx)
+    want = np.empty(n)
+    k._qexp(a * b + (a + b) + 1.0, 0.7 - (a + b), want, np.empty(n),
+            np.empty(n, dtype=np.int64))
+    np.testing.assert_array_equal(out, want)
+
+
 def test_warm_up_compiles_the_one_kernel_signature():
     from mdcore import _compiled_kernels as k
 

@@ -156,7 +156,7 @@ def _eigh(K):
         return np.linalg.eigh(K)
     with np.errstate(invalid="ignore"):
         lam, Q = _eigh_lo(K, signature="d->dd")
-    if np.isnan(lam[0]):
+    if lam.size and np.isnan(lam[0]):
         return np.linalg.eigh(K)
     return lam, Q
 

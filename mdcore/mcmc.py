@@ -203,7 +203,7 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
         lq = float(log_target(y))
         if lq - lp > log_u[i]:                           # NaN and -inf are rejected
             x, lp = y, lq
-            accepted[t > burn_in] += 1
+            accepted[int(t > burn_in)] += 1
         if t > burn_in:
             samples[t - burn_in - 1] = x
             log_p[t - burn_in - 1] = lp

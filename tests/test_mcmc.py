@@ -28,6 +28,20 @@ def test_a_short_chain_is_flagged_and_a_long_one_is_not():
 
 
 
+def test_acceptance_rates_count_burn_in_and_kept_steps_apart():
+    """A flat target accepts every proposal (log u < 0); a target that is -inf away from
+    x0 accepts none. The burn-in rate counts the burn-in's steps only (it used to add
+    every kept step's acceptance to both counters)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        flat = adaptive_metropolis(lambda x: 0.0, np.zeros(2), n_iter=3000, burn_in=500,
+                                   seed=1)
+        stuck = adaptive_metropolis(lambda x: 0.0 if not np.any(x) else -np.inf,
+                                    np.zeros(2), n_iter=3000, burn_in=500, seed=1)
+    assert flat.acceptance_rate == flat.acceptance_rate_burn_in == 1.0
+    assert stuck.acceptance_rate == stuck.acceptance_rate_burn_in == 0.0
+
+
 def test_iat_of_ar1_matches_closed_form():
     rng = np.random.default_rng(3)
     a, n = 0.8, 400_000

@@ -132,3 +132,96 @@ def log_likelihood(theta_unit, T_train, inv_ell, Q_t, W, lin, beta_t, AK, V, sf4
             logdet += math.log(L[i, i])
         total += -0.5 * quad - logdet - 0.5 * N * LOG_2PI
     return total if math.isfinite(total) else -np.inf
+
+
+@njit(cache=True, nogil=True)
+def _target(u, mu, sd, lo_u, hi_u, lo, span, theta_unit, T_train, inv_ell, Q_t, W, lin,
+            beta_t, AK, V, sf4, base, zT, ladder, stats):
+    """The KOH log target of :func:`mdcore.koh.infer_koh` in standardised coordinates
+    ``u = (θ − μ) / sd``: ``-inf`` outside the box, else :func:`log_likelihood` at
+    ``θ = μ + sd u`` minus ``½ uᵀu`` (the N(0, I) prior), in the NumPy path's operations."""
+    d = u.size
+    for k in range(d):
+        if u[k] < lo_u[k] or u[k] > hi_u[k]:
+            return -np.inf
+    for k in range(d):
+        theta_unit[k] = ((mu[k] + sd[k] * u[k]) - lo[k]) / span[k]
+    value = log_likelihood(theta_unit, T_train, inv_ell, Q_t, W, lin, beta_t, AK, V, sf4,
+                           base, zT, ladder, stats)
+    uu = u[0] * u[0]
+    for k in range(1, d):
+        uu += u[k] * u[k]
+    return value - 0.5 * uu
+
+
+@njit(cache=True, nogil=True)
+def _proposal_factor(m2, t, s_d, reg, L, M):
+    """``L = chol(s_d m2 / t + reg)`` (lower triangle read, as LAPACK's ``potrf``); L is
+    left as it was when a pivot is not positive (:func:`mdcore.mcmc.adaptive_metropolis`
+    keeps the previous proposal). ``M`` is scratch of L's shape."""
+    d = L.shape[0]
+    for j in range(d):
+        s = s_d * m2[j, j] / t + reg[j, j]
+        for k in range(j):
+            s -= M[j, k] * M[j, k]
+        if not s > 0.0:
+            return
+        M[j, j] = math.sqrt(s)
+        inv = 1.0 / M[j, j]
+        for i in range(j + 1, d):
+            v = s_d * m2[i, j] / t + reg[i, j]
+            for k in range(j):
+                v -= M[i, k] * M[j, k]
+            M[i, j] = v * inv
+    for i in range(d):
+        for j in range(d):
+            L[i, j] = M[i, j] if j <= i else 0.0
+
+
+@njit(cache=True, nogil=True)
+def chain_steps(t_start, t_stop, x, lp, mean, m2, L, burn_in, t0, s_d, reg, steps, log_u,
+                samples, log_p, accepted, mu, sd, lo_u, hi_u, lo, span, T_train, inv_ell,
+                Q_t, W, lin, beta_t, AK, V, sf4, base, zT, ladder, stats):
+    """Steps ``t_start ≤ t < t_stop`` of :func:`mdcore.mcmc.adaptive_metropolis` on the KOH
+    target (:func:`_target`), the state updated in place; returns the new log target.
+
+    ``steps[t − t_start]`` and ``log_u[t − t_start]`` are the step's standard normal draw
+    and log uniform; ``x, mean, m2, L`` the chain state, the Welford sums and the proposal
+    factor; ``samples, log_p, accepted`` the outputs. Every operation is the Python loop's
+    in the same order, except ``L @ s`` (BLAS, which may fuse multiply-adds) and, for
+    d ≥ 3, LAPACK's factorisation: those agree to the last bit or two.
+    """
+    d = x.size
+    y = np.empty(d)
+    delta = np.empty(d)
+    M = np.zeros((d, d))
+    theta_unit = np.empty(d)
+    for t in range(t_start, t_stop):
+        i = t - t_start
+        s = steps[i]
+        for a in range(d):                               # y = x + L s
+            acc = L[a, 0] * s[0]
+            for b in range(1, d):
+                acc += L[a, b] * s[b]
+            y[a] = x[a] + acc
+        lq = _target(y, mu, sd, lo_u, hi_u, lo, span, theta_unit, T_train, inv_ell, Q_t, W,
+                     lin, beta_t, AK, V, sf4, base, zT, ladder, stats)
+        if lq - lp > log_u[i]:                           # NaN and -inf are rejected
+            for a in range(d):
+                x[a] = y[a]
+            lp = lq
+            accepted[1 if t > burn_in else 0] += 1
+        if t > burn_in:
+            for a in range(d):
+                samples[t - burn_in - 1, a] = x[a]
+            log_p[t - burn_in - 1] = lp
+        for a in range(d):                               # Welford, with x_t
+            delta[a] = x[a] - mean[a]
+        for a in range(d):
+            mean[a] = mean[a] + delta[a] / (t + 1)
+        for a in range(d):
+            for b in range(d):
+                m2[a, b] += delta[a] * (x[b] - mean[b])
+        if t >= t0:
+            _proposal_factor(m2, t, s_d, reg, L, M)
+    return lp

@@ -562,20 +562,18 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
     log = JitterLog()
     mu, sd = prior.mean, np.sqrt(prior.var)
     lo_u, hi_u = (bounds[:, 0] - mu) / sd, (bounds[:, 1] - mu) / sd
-    compiled_step = None
-    if backend == "numba" and isinstance(at, EmulatorAt):
-        arrays = at.arrays()
-        compiled_step = compiled.koh_log_likelihood(arrays, arrays.prior + B, zT, log)
-
     def log_target(u):
         """log p(z | θ, φ̂) + log p(θ) in standardised coordinates u = (θ − μ) / sd."""
         if np.any(u < lo_u) or np.any(u > hi_u):
             return -np.inf
-        if compiled_step is not None:
-            return compiled_step(mu + sd * u) - 0.5 * float(u @ u)
         theta = (mu + sd * u)[None]
         mean, cov = at.moments_at(at.theta_terms(theta, check=False))
         return float(gaussian_log_likelihood(mean, cov, B, zT, log)[0]) - 0.5 * float(u @ u)
+
+    if backend == "numba" and isinstance(at, EmulatorAt):   # the same target, compiled
+        arrays = at.arrays()
+        log_target = compiled.koh_log_target(arrays, arrays.prior + B, zT, log, mu, sd,
+                                             lo_u, hi_u)
 
     # Start at the most probable of the prior draws (φ̂ is fixed now).
     lp0 = gaussian_log_likelihood(mean, cov, B, zT, log) + prior.logpdf(draws)

@@ -136,7 +136,11 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
     ----------
     log_target : callable
         ``log_target(x)`` for x of shape (d,): the log density up to a constant; ``-inf``
-        outside the support.
+        outside the support. A target with an ``advance`` method (as
+        :func:`mdcore.compiled.koh_log_target` returns) takes runs of steps itself:
+        ``advance(t, stop, x, lp, mean, m2, L, burn_in, t0, s_d, reg, steps, log_u,
+        samples, log_p, accepted)`` does steps ``t ≤ s < stop`` of the loop below on the
+        state in place and returns the log target of the state.
     x0 : ndarray of shape (d,)
         Starting state; ``log_target(x0)`` must be finite.
     n_iter : int
@@ -194,30 +198,42 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
     every = max(1, n_iter // 100)
     block = 4096
     start = time.perf_counter()
-    for t in range(1, n_iter + 1):
+    advance = getattr(log_target, "advance", None)
+    t = 1
+    while t <= n_iter:
         if (t - 1) % block == 0:
             steps = rng.standard_normal((min(block, n_iter - t + 1), d))
             log_u = np.log(rng.uniform(size=steps.shape[0]))
         i = (t - 1) % block
-        y = x + L @ steps[i]
-        lq = float(log_target(y))
-        if lq - lp > log_u[i]:                           # NaN and -inf are rejected
-            x, lp = y, lq
-            accepted[int(t > burn_in)] += 1
-        if t > burn_in:
-            samples[t - burn_in - 1] = x
-            log_p[t - burn_in - 1] = lp
-        # Welford update with x_t; the proposal for step t + 1 uses Cov(x_0, …, x_t).
-        delta = x - mean
-        mean = mean + delta / (t + 1)
-        m2 += np.outer(delta, x - mean)
-        if t >= t0:
-            try:
-                L = np.linalg.cholesky(s_d * m2 / t + reg)   # Eq. 2.1: s_d Cov + s_d ε I
-            except np.linalg.LinAlgError:
-                pass                                     # keep the previous proposal
+        if advance is not None:
+            # A compiled target takes the steps t … last in one call (the same steps: see
+            # its advance), last the end of these draws, the next progress call or the end.
+            last = min(t - i + steps.shape[0] - 1, -(-t // every) * every, n_iter)
+            lp = advance(t, last + 1, x, lp, mean, m2, L, burn_in, t0, s_d, reg,
+                         steps[i:i + last + 1 - t], log_u[i:i + last + 1 - t], samples,
+                         log_p, accepted)
+            t = last
+        else:
+            y = x + L @ steps[i]
+            lq = float(log_target(y))
+            if lq - lp > log_u[i]:                       # NaN and -inf are rejected
+                x, lp = y, lq
+                accepted[int(t > burn_in)] += 1
+            if t > burn_in:
+                samples[t - burn_in - 1] = x
+                log_p[t - burn_in - 1] = lp
+            # Welford update with x_t; the proposal for step t + 1 uses Cov(x_0, …, x_t).
+            delta = x - mean
+            mean = mean + delta / (t + 1)
+            m2 += np.outer(delta, x - mean)
+            if t >= t0:
+                try:
+                    L = np.linalg.cholesky(s_d * m2 / t + reg)   # Eq. 2.1: s_d Cov + s_d ε I
+                except np.linalg.LinAlgError:
+                    pass                                 # keep the previous proposal
         if progress is not None and t % every == 0:
             progress(t / n_iter)
+        t += 1
     chain = Chain(samples, log_p, float(accepted[1] / kept),
                   float(accepted[0] / burn_in) if burn_in else float("nan"), L @ L.T,
                   integrated_autocorr_time(samples), n_iter, burn_in, t0,

@@ -688,20 +688,65 @@ def test_koh_step_jitter_and_failure_match_numpy(koh_setup, monkeypatch):
         assert texts[0] == texts[1] and texts[0], texts
 
 
-def test_koh_chain_is_the_same_on_both_backends(koh_setup):
+def koh_chain(case, emulator, log_phi, backend, n_iter, burn_in, progress=None):
     from mdcore.koh import infer_koh
 
-    case, hm, *_ = koh_setup
-    chains = []
-    for backend in ("numpy", "numba"):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return infer_koh(emulator, case.X_train, case.z_train, theta_prior=case.theta_prior,
+                         bounds=case.theta_bounds, log_phi=log_phi, n_iter=n_iter,
+                         burn_in=burn_in, seed=3, backend=backend, progress=progress).chain
+
+
+@pytest.mark.parametrize("name", ["beam-1d", "shear-5"])
+def test_koh_chain_is_the_same_on_both_backends(name, koh_setup):
+    """The compiled chain (compiled.KOHTarget.advance) against the Python loop around the
+    NumPy likelihood: every acceptance the same, the states to rounding (NumPy's ``L @ s``
+    may fuse multiply-adds, and for shear-5's three parameters LAPACK factorises the
+    proposal covariance), and the same progress calls. 4,099 steps: the compiled runs
+    stop at the ends of the random draws (4,096) and at every progress call (40 steps)."""
+    from mdcore import cases
+    from mdcore.history_matching import history_match_case
+
+    if name == "beam-1d":
+        case, hm, *_ = koh_setup
+        log_phi = [np.log(0.3), np.log(0.2), np.log(0.05)]
+    else:
+        case = cases.load(name)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            m = infer_koh(hm.waves[-1].emulator, case.X_train, case.z_train,
-                          theta_prior=case.theta_prior, bounds=case.theta_bounds,
-                          log_phi=[np.log(0.3), np.log(0.2), np.log(0.05)], n_iter=3000,
-                          burn_in=500, seed=3, backend=backend)
-        chains.append(m.chain.samples)
-    np.testing.assert_allclose(chains[1], chains[0], rtol=1e-10, atol=0)
+            hm = history_match_case(case, seed=0, n_candidates=5000)
+        log_phi = np.tile([np.log(0.3), np.log(0.2), np.log(0.05)], (5, 1))
+    compiled.warm_up()
+    chains, calls = [], []
+    for backend in ("numpy", "numba"):
+        seen = []
+        chains.append(koh_chain(case, hm.waves[-1].emulator, log_phi, backend, 4099, 1003,
+                                seen.append))
+        calls.append(seen)
+    old, new = chains
+    assert old.samples.shape[1] == case.theta_bounds.shape[0]
+    assert new.acceptance_rate == old.acceptance_rate
+    assert new.acceptance_rate_burn_in == old.acceptance_rate_burn_in
+    assert 0.05 < new.acceptance_rate < 0.95                  # the chain moves
+    np.testing.assert_allclose(new.samples, old.samples, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(new.log_target, old.log_target, rtol=RTOL, atol=0)
+    np.testing.assert_allclose(new.proposal_cov, old.proposal_cov, rtol=1e-10, atol=0)
+    assert calls[1] == calls[0] and len(calls[0]) > 100
+    steps = compiled._koh_kernels().chain_steps        # the warm-up's signature, only
+    assert len(steps.signatures) == 1, steps.signatures
+
+
+def test_koh_compiled_chain_stops_when_progress_raises(koh_setup):
+    case, hm, *_ = koh_setup
+
+    def stop(f):
+        if f > 0.5:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        koh_chain(case, hm.waves[-1].emulator, [np.log(0.3), np.log(0.2), np.log(0.05)],
+                  "numba", 3000, 500, stop)
 
 
 # ---------------------------------------------------------------------------------------

@@ -572,8 +572,7 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
 
     if backend == "numba" and isinstance(at, EmulatorAt):   # the same target, compiled
         arrays = at.arrays()
-        log_target = compiled.koh_log_target(arrays, arrays.prior + B, zT, log, mu, sd,
-                                             lo_u, hi_u)
+        log_target = compiled.KOHTarget(arrays, arrays.prior + B, zT, log, mu, sd, lo_u, hi_u)
 
     # Start at the most probable of the prior draws (φ̂ is fixed now).
     lp0 = gaussian_log_likelihood(mean, cov, B, zT, log) + prior.logpdf(draws)

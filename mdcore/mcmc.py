@@ -137,7 +137,7 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
     log_target : callable
         ``log_target(x)`` for x of shape (d,): the log density up to a constant; ``-inf``
         outside the support. A target with an ``advance`` method (as
-        :func:`mdcore.compiled.koh_log_target` returns) takes runs of steps itself:
+        :class:`mdcore.compiled.KOHTarget`) takes runs of steps itself:
         ``advance(t, stop, x, lp, mean, m2, L, burn_in, t0, s_d, reg, steps, log_u,
         samples, log_p, accepted)`` does steps ``t ≤ s < stop`` of the loop below on the
         state in place and returns the log target of the state.

@@ -13,7 +13,6 @@ import io
 import re
 import time
 
-import holoviews as hv
 import pandas as pd
 import panel as pn
 import param
@@ -397,9 +396,12 @@ class ExplorerView(pn.viewable.Viewer):
             f"{', '.join(f'{t:.1f}' for t in chain.iat)}, ESS "
             f"{', '.join(f'{e:,.0f}' for e in chain.ess)}.{caveat} Posterior θ: {theta}.",
             css_classes=["koh-summary"])
-        post = pn.pane.HoloViews(hv.Layout(plots.koh_posterior(c, m)).cols(3)
-                                 .opts(shared_axes=False),     # densities differ in scale
-                                 sizing_mode="stretch_width", css_classes=["koh-plot"])
+        # One pane per parameter (densities differ in scale): an hv.Layout of responsive
+        # plots in one pane drew each plot's frame with no height (axis labels only).
+        post = pn.GridBox(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
+                                              height=plots.PLOT["height"])
+                            for o in plots.koh_posterior(c, m)],
+                          ncols=3, sizing_mode="stretch_width", css_classes=["koh-plot"])
         return pn.Column(*objs, summary, post, sizing_mode="stretch_width")
 
     # --- files: your data in, results out -------------------------------------------------

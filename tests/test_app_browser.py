@@ -170,7 +170,7 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
 
     page.get_by_role("button", name="koh", exact=True).click()     # the fourth column
     page.wait_for_selector(".koh-summary:has-text('KOH chain')", timeout=90_000)
-    page.wait_for_selector(".koh-plot canvas", timeout=30_000)
+    assert_drawn(page, ".koh-plot", 2)      # θ's two posteriors (one hv.Layout drew none)
     assert page.locator(".metrics-table table").inner_text().count("tip deflection") == 4
     page.screenshot(path=str(ARTIFACTS / "04b-koh-metrics.png"), full_page=True)
     tab(page, "Discrepancy")

@@ -396,10 +396,10 @@ class ExplorerView(pn.viewable.Viewer):
             f"{', '.join(f'{t:.1f}' for t in chain.iat)}, ESS "
             f"{', '.join(f'{e:,.0f}' for e in chain.ess)}.{caveat} Posterior θ: {theta}.",
             css_classes=["koh-summary"])
-        # One pane per parameter (densities differ in scale): an hv.Layout of responsive
-        # plots in one pane drew each plot's frame with no height (axis labels only).
+        # One pane per parameter, axes not linked (densities differ in scale): an
+        # hv.Layout of responsive plots in one pane drew each frame with no height.
         post = pn.GridBox(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
-                                              height=plots.PLOT["height"])
+                                              height=plots.PLOT["height"], linked_axes=False)
                             for o in plots.koh_posterior(c, m)],
                           ncols=3, sizing_mode="stretch_width", css_classes=["koh-plot"])
         return pn.Column(*objs, summary, post, sizing_mode="stretch_width")

@@ -494,14 +494,24 @@ def _grid_entries(theta, DYp, sy, sx, G, W, A):
     return True
 
 
+#: Fewest training points for which :func:`_grid_entries` builds the training matrix. Its
+#: extra passes and short per-row loops cost more than the exponentials they save on small
+#: problems: one matrix on 1-D grids of 13 / 24 / 32 / 48 / 64 points took 1.32 / 1.24 /
+#: 1.12 / 1.03 / 0.92 times the per-entry path's time (2-D grids of 16 / 36 / 49 / 64:
+#: 1.34 / 1.07 / 0.94 / 0.86). Beam-1d (N = 13) is the per-entry path's: 15 % less time per
+#: NLML pair and 12–18 % per mixture pair; beam-2d (N = 64) keeps the grid path.
+GRID_MIN_POINTS = 40
+
+
 @_jit
 def _grid_space(DXp, N, on):
     """Buffers of :func:`_grid_entries`, ``(U, xmap, DXd, yc, hy, E)``; U = 0 (the grid
-    path off) unless ``on`` and the x differences repeat enough."""
+    path off) unless ``on``, N ≥ :data:`GRID_MIN_POINTS` and the x differences repeat
+    enough."""
     d_x, T = DXp.shape
     xmap = np.empty(T, dtype=np.int64)
     DXd = np.empty((d_x, T))
-    U = _distinct_x_diffs(DXp, xmap, DXd) if on and N > 1 else 0
+    U = _distinct_x_diffs(DXp, xmap, DXd) if on and N >= GRID_MIN_POINTS else 0
     return (U, xmap, DXd, np.zeros(N), np.full(1, np.inf), np.empty((4, max(U, N))))
 
 

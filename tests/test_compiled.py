@@ -152,17 +152,22 @@ def test_replicated_training_inputs_match_numpy_path(rng, d_y, d_x):
 def test_grid_inputs_match_numpy_path(rng, d_x):
     """x on a grid (beam-2d's layout) repeats its differences, so with one-dimensional y the
     compiled path builds the training entries from one exponential per distinct x
-    difference and per point (``_grid_entries``). Long and short y length scales: the
+    difference and per point (``_grid_entries``) from ``GRID_MIN_POINTS`` points on. Long and short y length scales: the
     short ones (√3 h_y/ℓ_y > SEPARABLE_LIMIT) take the per-entry path."""
     from mdcore import _compiled_kernels as k
 
-    axes = [np.linspace(0.1, 0.5, 6), np.linspace(0.0, 0.05, 5)][:d_x]
+    axes = ([np.linspace(0.1, 0.5, 48)] if d_x == 1
+            else [np.linspace(0.1, 0.5, 8), np.linspace(0.0, 0.05, 6)])
     X = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, d_x)
     N = X.shape[0]
     n = N + 1
     diffs = np.empty((d_x, n * (n + 1) // 2))
     k._packed_diffs(X, n, diffs)
     assert k._grid_space(diffs, N, True)[0] > 0                    # the grid path is on
+    small = np.linspace(0.1, 0.9, 13)[:, None]                     # beam-1d's 13: off
+    small_diffs = np.empty((1, 14 * 15 // 2))
+    k._packed_diffs(small, 14, small_diffs)
+    assert k._grid_space(small_diffs, 13, True)[0] == 0
     Y = 1.5 + 0.4 * rng.normal(size=(3, 1, N, 1))
     z = rng.normal(size=N)
     lp = rng.normal(scale=0.4, size=(3, 8, 3 + d_x))

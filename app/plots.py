@@ -59,11 +59,12 @@ def koh_posterior(case, model) -> list:
                       color=METHOD_COLORS[Method.KOH], alpha=0.5, line_alpha=0),
                   hv.Curve((x, prior), label, "density", label="prior").opts(
                       color="black", line_dash="dotted")]
-        if case.theta_true is not None:
-            layers.append(hv.VLine(float(case.theta_true[j]), label="truth").opts(
-                color="black", line_width=2))
+        if case.theta_true is not None:          # a segment, not an hv.VLine: it has a legend
+            t, top = float(case.theta_true[j]), 1.05 * max(density.max(), prior.max())
+            layers.append(hv.Curve(([t, t], [0.0, top]), label, "density",
+                                   label="true θ").opts(color="black", line_width=2))
         out.append(hv.Overlay(layers).opts(title=f"KOH posterior of {name}",
-                                           legend_position="top_right", **PLOT))
+                                           legend_position="bottom", legend_cols=3, **PLOT))
     return out
 
 

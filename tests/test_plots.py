@@ -185,3 +185,31 @@ def test_metrics_chart_groups_by_output_and_shares_the_reports_pairing():
     assert list(marks["NMSE [%]"]) == list(z[Method.S1])
     with pytest.raises(ValueError, match="run a method first"):
         plots.metrics_chart(case, {})
+
+
+# --- KOH's θ posterior ----------------------------------------------------------------------
+
+def test_koh_posterior_is_the_chain_against_the_prior_and_the_true_theta(beam):
+    case, hm = beam
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")          # a short chain: few autocorrelation times
+        result = run_method(case, hm, Method.KOH, Settings(n_iter=3000, burn_in=1000), seed=0)
+    model = result.model
+    figs = [render(o) for o in plots.koh_posterior(case, model)]
+    assert len(figs) == len(case.theta_names) == 2
+    for j, fig in enumerate(figs):
+        name = case.theta_names[j]
+        assert fig.title.text == f"KOH posterior of {name}"
+        x, width, dens = histogram(one(fig, "KOH posterior"))
+        lo, hi = case.theta_bounds[j]
+        inside = np.mean((model.theta[:, j] >= lo) & (model.theta[:, j] <= hi))
+        assert abs(np.sum(dens * width) - 1.0) < 1e-9 and inside == 1.0
+        assert abs(np.sum(x * dens * width) - model.theta[:, j].mean()) < width[0]
+        prior = one(fig, "prior")
+        xs, ys = column(prior, name), column(prior, "density")
+        mu, var = model.theta_prior.mean[j], model.theta_prior.var[j]
+        assert np.allclose(ys, np.exp(-0.5 * (xs - mu) ** 2 / var) / np.sqrt(2 * np.pi * var))
+        truth = one(fig, "true θ")                 # in the legend (an hv.VLine was not)
+        assert np.array_equal(column(truth, name), [case.theta_true[j]] * 2)
+        ty = column(truth, "density")
+        assert ty[0] == 0.0 and ty[1] >= max(dens.max(), ys.max())

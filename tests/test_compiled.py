@@ -152,8 +152,9 @@ def test_replicated_training_inputs_match_numpy_path(rng, d_y, d_x):
 def test_grid_inputs_match_numpy_path(rng, d_x):
     """x on a grid (beam-2d's layout) repeats its differences, so with one-dimensional y the
     compiled path builds the training entries from one exponential per distinct x
-    difference and per point (``_grid_entries``) from ``GRID_MIN_POINTS`` points on. Long and short y length scales: the
-    short ones (√3 h_y/ℓ_y > SEPARABLE_LIMIT) take the per-entry path."""
+    difference and per point (``_grid_entries``) from ``GRID_MIN_POINTS`` points on. Long
+    and short y length scales: the short ones (√3 h_y/ℓ_y > SEPARABLE_LIMIT) take the
+    per-entry path."""
     from mdcore import _compiled_kernels as k
 
     axes = ([np.linspace(0.1, 0.5, 48)] if d_x == 1

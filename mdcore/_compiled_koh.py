@@ -138,7 +138,7 @@ def log_likelihood(theta_unit, T_train, inv_ell, Q_t, W, lin, beta_t, AK, V, sf4
 
 
 @njit(cache=True, nogil=True)
-def _target(u, mu, sd, lo_u, hi_u, lo, span, theta_unit, T_train, inv_ell, Q_t, W, lin,
+def target(u, mu, sd, lo_u, hi_u, lo, span, theta_unit, T_train, inv_ell, Q_t, W, lin,
             beta_t, AK, V, sf4, base, zT, ladder, stats):
     """The KOH log target of :func:`mdcore.koh.infer_koh` in standardised coordinates
     ``u = (θ − μ) / sd``: ``-inf`` outside the box, else :func:`log_likelihood` at
@@ -186,7 +186,7 @@ def chain_steps(t_start, t_stop, x, lp, mean, m2, L, burn_in, t0, s_d, reg, step
                 samples, log_p, accepted, mu, sd, lo_u, hi_u, lo, span, T_train, inv_ell,
                 Q_t, W, lin, beta_t, AK, V, sf4, base, zT, ladder, stats):
     """Steps ``t_start ≤ t < t_stop`` of :func:`mdcore.mcmc.adaptive_metropolis` on the KOH
-    target (:func:`_target`), the state updated in place; returns the new log target.
+    target (:func:`target`), the state updated in place; returns the new log target.
 
     ``steps[t − t_start]`` and ``log_u[t − t_start]`` are the step's standard normal draw
     and log uniform; ``x, mean, m2, L`` the chain state, the Welford sums and the proposal
@@ -207,8 +207,8 @@ def chain_steps(t_start, t_stop, x, lp, mean, m2, L, burn_in, t0, s_d, reg, step
             for b in range(1, d):
                 acc += L[a, b] * s[b]
             y[a] = x[a] + acc
-        lq = _target(y, mu, sd, lo_u, hi_u, lo, span, theta_unit, T_train, inv_ell, Q_t, W,
-                     lin, beta_t, AK, V, sf4, base, zT, ladder, stats)
+        lq = target(y, mu, sd, lo_u, hi_u, lo, span, theta_unit, T_train, inv_ell, Q_t, W,
+                    lin, beta_t, AK, V, sf4, base, zT, ladder, stats)
         if lq - lp > log_u[i]:                           # NaN and -inf are rejected
             for a in range(d):
                 x[a] = y[a]

@@ -569,14 +569,14 @@ class KOHTarget:
         self._k = _koh_kernels()
         self._fixed = _koh_fixed(arrays, base, zT)
         self._box = tuple(map(_contiguous, (mu, sd, lo_u, hi_u, arrays.t_lo, arrays.t_span)))
-        self._step = koh_log_likelihood(arrays, base, zT, jitter_log)
         self._log = jitter_log
 
     def __call__(self, u) -> float:
-        mu, sd, lo_u, hi_u = self._box[:4]
-        if np.any(u < lo_u) or np.any(u > hi_u):
-            return -np.inf
-        return self._step(mu + sd * u) - 0.5 * float(u @ u)
+        u = _contiguous(u)
+        stats = np.zeros(3)
+        value = self._k.target(u, *self._box, np.empty(u.size), *self._fixed, stats)
+        _record_stats(self._log, stats)
+        return value
 
     def advance(self, t, stop, x, lp, mean, m2, L, burn_in, t0, s_d, reg, steps, log_u,
                 samples, log_p, accepted) -> float:
@@ -724,8 +724,10 @@ def warm_up() -> float:
           ladder)
     kk = _koh_kernels()
     kk.log_likelihood(np.zeros(1), *kf, np.zeros(3))
-    # ... and a KOH chain's steps (d = 1, two steps after one of burn-in)
+    # ... the target at one state (KOHTarget's call) and a KOH chain's steps (d = 1, two
+    # steps after one of burn-in)
     box = (np.zeros(1), np.ones(1), -np.ones(1), np.ones(1), -np.ones(1), 2.0 * np.ones(1))
+    kk.target(np.zeros(1), *box, np.empty(1), *kf, np.zeros(3))
     kk.chain_steps(1, 4, np.zeros(1), 0.0, np.zeros(1), np.zeros((1, 1)), np.eye(1), 1, 2,
                    5.76, 1e-8 * np.eye(1), np.zeros((3, 1)), np.full(3, -1.0),
                    np.empty((2, 1)), np.empty(2), np.zeros(2, dtype=np.int64), *box, *kf,

@@ -739,8 +739,9 @@ def test_koh_chain_is_the_same_on_both_backends(name, koh_setup):
     np.testing.assert_allclose(new.log_target, old.log_target, rtol=RTOL, atol=0)
     np.testing.assert_allclose(new.proposal_cov, old.proposal_cov, rtol=1e-10, atol=0)
     assert calls[1] == calls[0] and len(calls[0]) > 100
-    steps = compiled._koh_kernels().chain_steps        # the warm-up's signature, only
-    assert len(steps.signatures) == 1, steps.signatures
+    kernels = compiled._koh_kernels()                  # the warm-up's signatures, only
+    for kernel in (kernels.chain_steps, kernels.target):    # target: KOHTarget's call at x0
+        assert len(kernel.signatures) == 1, (kernel, kernel.signatures)
 
 
 def test_koh_compiled_chain_stops_when_progress_raises(koh_setup):

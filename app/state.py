@@ -198,8 +198,8 @@ class ExplorerState(param.Parameterized):
                                        "baseline (koh), which calibrates θ and δ jointly.")
     koh_chain = param.Selector(objects=list(KOH_CHAINS), default="fast", label="KOH chain",
                                doc="fast: 20,000 iterations (5,000 burn-in); paper: 150,000 "
-                                   "(50,000 burn-in), about 1 s on beam-1d (compiled; "
-                                   "40 s on the NumPy backend).")
+                                   "(50,000 burn-in), 0.4–1.2 s on beam-1d (compiled; "
+                                   "10–50 s on the NumPy backend), by machine.")
     proposal = param.Selector(objects=["adaptive", "prior"], default=_INTERACTIVE.proposal,
                               label="φ proposal (scenario 3)",
                               doc="adaptive: importance sampling that adapts a Student-t to the "

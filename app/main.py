@@ -41,15 +41,45 @@ NOTIFICATION_CSS = """
 """
 pn.extension("filedropper", notifications=True, raw_css=[NOTIFICATION_CSS])
 hv.extension("bokeh")
-#: Panel's page (a string template extends it) with two scripts of ours in its head: one
-#: before every other script, so that FilePond (the Files tab's drop areas) paints only
-#: while a drop area is shown; one after BokehJS and before the document is drawn, so that
-#: a plot with a legend is laid out and painted once, not twice (see the files). Inline:
-#: no request (offline).
-PAGE_TEMPLATE = "".join(
-    "{% block " + block + " %}{{ super() }}<script>{% raw %}"
-    + Path(__file__).with_name(script).read_text() + "{% endraw %}</script>{% endblock %}"
-    for block, script in (("preamble", "filepond_painter.js"), ("postamble", "legend_resize.js")))
+#: The page's Content-Security-Policy: everything from the page's own origin (its scripts,
+#: style sheets, fonts and the websocket: 'self' covers ws:// of the same host), nothing
+#: from elsewhere. What Panel and Bokeh need beyond that: inline <script> elements (the
+#: page's own; Bokeh's carries the session's token, so no hash can name it), code compiled
+#: in the browser (BokehJS compiles CustomJS callbacks and Panel's ReactiveHTML scripts,
+#: such as the notifications', with ``new Function``), blob: scripts (es-module-shims
+#: probes ``import()`` with one; only a script already running can make a blob), inline
+#: styles, and data:/blob: images (Bokeh's image glyphs, the "save" tool, FilePond's
+#: previews). ``script-src-attr 'none'`` refuses every inline event handler
+#: (``<img onerror=…>``), so markup that slipped into an HTML pane runs nothing; user text
+#: is escaped everywhere (:mod:`mdcore_app.markup`), which is what keeps it from becoming a
+#: <script> or an iframe's ``srcdoc``. A <meta> element, the first in the page's head:
+#: Panel 1.9 / Bokeh 3.9 offer no public way to add a response header to ``panel serve``'s
+#: page (and a <meta> policy cannot carry frame-ancestors).
+CONTENT_SECURITY_POLICY = "; ".join((
+    "default-src 'self'",
+    "script-src 'self' 'unsafe-inline' 'unsafe-eval' blob:",
+    "script-src-attr 'none'",
+    "style-src 'self' 'unsafe-inline'",
+    "img-src 'self' data: blob:",
+    "font-src 'self' data:",
+    "connect-src 'self'",
+    "object-src 'none'",
+    "frame-src 'none'",
+    "base-uri 'self'",
+    "form-action 'self'"))
+#: Panel's page (a string template extends it) with the policy first in its head, then two
+#: scripts of ours: one before every other script, so that FilePond (the Files tab's drop
+#: areas) paints only while a drop area is shown; one after BokehJS and before the document
+#: is drawn, so that a plot with a legend is laid out and painted once, not twice (see the
+#: files). Inline: no request (offline).
+PAGE_TEMPLATE = (
+    "{% block inner_head %}<meta http-equiv=\"Content-Security-Policy\" content=\""
+    + CONTENT_SECURITY_POLICY + "\">{{ super() }}{% endblock %}"
+    + "".join(
+        "{% block " + block + " %}{{ super() }}<script>{% raw %}"
+        + Path(__file__).with_name(script).read_text() + "{% endraw %}</script>{% endblock %}"
+        for block, script in (("preamble", "filepond_painter.js"),
+                              ("postamble", "legend_resize.js"))))
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.

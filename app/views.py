@@ -28,6 +28,7 @@ from .data_panel import DataPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .live_figures import alert_box, figure_pane, live_text
+from .markup import html_text, markdown_text
 from .report import report_html
 from .session import MAX_UPLOAD_BYTES
 from .state import ExplorerState, method_order
@@ -140,9 +141,11 @@ class ExplorerView(pn.viewable.Viewer):
         self._fill_tabs()
 
     # --- events ------------------------------------------------------------------------
+    # A toast renders its message as HTML, and messages quote user text (file names,
+    # names from session files, CSV headers): escaped, they show it literally.
     def _notify_error(self, *_):
         if pn.state.notifications is not None:
-            pn.state.notifications.error(self.state.error, duration=10_000)
+            pn.state.notifications.error(html_text(self.state.error), duration=10_000)
 
     def _notify_warning(self, *_):
         # A notice is a result's advice (a low ESS, a chain that did not mix), which the
@@ -152,7 +155,7 @@ class ExplorerView(pn.viewable.Viewer):
         if self._tabs.active == DISCREPANCY_TAB:
             return
         if pn.state.notifications is not None:
-            pn.state.notifications.warning(self.state.notice, duration=10_000)
+            pn.state.notifications.warning(html_text(self.state.notice), duration=10_000)
 
     # --- controls ----------------------------------------------------------------------
     def _controls(self):
@@ -262,10 +265,12 @@ class ExplorerView(pn.viewable.Viewer):
     @param.depends("state.case")
     def _case_info(self):
         c = self.state.case
+        text = markdown_text(c.description)      # an upload's file name, a case file's text
         if c.stand_in:                 # synthetic data standing in for unpublished ones
-            return pn.pane.Alert(c.description, alert_type="warning",
+            return pn.pane.Alert(text, alert_type="warning",
                                  styles={"font-size": "0.85em"}, css_classes=["stand-in"])
-        return pn.pane.Markdown(c.description, styles={"font-size": "0.85em"})
+        return pn.pane.Markdown(text, styles={"font-size": "0.85em"},
+                                css_classes=["case-description"])
 
     def _progress_panel(self):
         """Busy line, progress bar and a Cancel button, updated in place.
@@ -374,7 +379,8 @@ class ExplorerView(pn.viewable.Viewer):
             phi = plots.phi_posterior(s.case, shown[Method.S3], output=o)
             objs.append(pn.pane.Markdown(
                 "**Scenario 3: the GP hyperparameters φ, posterior (weighted draws) against "
-                f"prior** (the paper's Figs 6, 9, 16; output {s.case.output_names[o]})."))
+                f"prior** (the paper's Figs 6, 9, 16; output "
+                f"{markdown_text(s.case.output_names[o])})."))
             # Two a row, the legend below: four a row at 1280 px clipped the titles and
             # axis labels, and a legend inside covered the histogram.
             for i in range(0, len(phi), 2):
@@ -385,9 +391,10 @@ class ExplorerView(pn.viewable.Viewer):
         r = shown[Method.KOH]
         m, chain = r.model, r.chain
         c = s.case
-        theta = ", ".join(f"{n} = {mu:.4g} ± {sd:.2g}" + ("" if u in ("", "-") else f" {u}")
-                          for n, mu, sd, u in zip(c.theta_names, m.theta.mean(axis=0),
-                                                  m.theta.std(axis=0), c.theta_units))
+        theta = markdown_text(", ".join(
+            f"{n} = {mu:.4g} ± {sd:.2g}" + ("" if u in ("", "-") else f" {u}")
+            for n, mu, sd, u in zip(c.theta_names, m.theta.mean(axis=0), m.theta.std(axis=0),
+                                    c.theta_units)))
         caveat = "" if chain.reliable else (" The chain is shorter than 50 autocorrelation "
                                             "times, so these are themselves uncertain.")
         summary = pn.pane.Markdown(
@@ -439,11 +446,12 @@ class ExplorerView(pn.viewable.Viewer):
     def _upload_help(self):
         s = self.state
         c = s.case
-        columns = ", ".join(f"`{n}`" for n in (*c.x_names, *c.output_names, TEST_COLUMN))
+        columns = ", ".join(f"<code>{markdown_text(n)}</code>"
+                            for n in (*c.x_names, *c.output_names, TEST_COLUMN))
         return pn.pane.Markdown(
             "#### Your measurements\nA CSV for the simulator of the case selected on the left "
-            f"(now {s.base_case_name()}): a header row with the columns {columns} "
-            f"(`{TEST_COLUMN}`: 1 = held-out test row, 0 = training row), one row per "
+            f"(now {markdown_text(s.base_case_name())}): a header row with the columns "
+            f"{columns} (`{TEST_COLUMN}`: 1 = held-out test row, 0 = training row), one row per "
             "observation, replicates as repeated rows, `#` lines as comments. Start from "
             f"the template. At most {MAX_UPLOAD_BYTES // 2**20} MB; the file is only read, "
             "never run. It becomes a new case of this session, named after the file.",

@@ -6,9 +6,17 @@ failure.
 """
 
 import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from urllib.parse import urlparse
 
 import pytest
 
+ROOT = Path(__file__).resolve().parent.parent
 CHROMIUM = "/usr/bin/chromium"
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
          "--disable-component-update", "--disable-sync", "--no-first-run"]
@@ -61,3 +69,69 @@ def tab(page, name: str, timeout: float = 30.0) -> None:
         except Exception:                   # noqa: BLE001 - playwright's TimeoutError
             if time.monotonic() > end:
                 raise AssertionError(f"the tab {name!r} did not become active") from None
+
+
+class ServerLog:
+    """Reads ``panel serve``'s output on a thread (so the pipe never fills) and signals
+    when the app is being served."""
+
+    READY = "Bokeh app running at"
+
+    def __init__(self, proc):
+        self.lines: list[str] = []
+        self.ready = threading.Event()
+        self.closed = threading.Event()
+        threading.Thread(target=self._read, args=(proc.stdout,), daemon=True).start()
+
+    def _read(self, stream):
+        for line in stream:
+            self.lines.append(line)
+            if self.READY in line:
+                self.ready.set()
+        self.closed.set()
+
+    def text(self) -> str:
+        return "".join(self.lines)
+
+
+def serve_app(script: str = "main.py", args: tuple[str, ...] = ()):
+    """Start ``panel serve app/<script> [--args ARGS]`` on a free port; return (process,
+    url, log)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "panel", "serve", str(ROOT / "app" / script), "--address",
+         "127.0.0.1", "--port", str(port), "--allow-websocket-origin", f"127.0.0.1:{port}",
+         *(["--args", *args] if args else [])],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
+    log = ServerLog(proc)
+    end = time.monotonic() + 60
+    while not log.ready.wait(timeout=1.0):            # a condition, polled once a second
+        if log.closed.is_set() or time.monotonic() > end:
+            proc.kill()
+            pytest.fail("panel serve did not start:\n" + log.text())
+    return proc, f"http://127.0.0.1:{port}/{Path(script).stem}", log
+
+
+class PageLog:
+    """Console errors and every network host of one page (data: and blob: URLs are local)."""
+
+    def __init__(self, page):
+        self.errors, self.hosts = [], set()
+        page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
+        page.on("pageerror", lambda e: self.errors.append(str(e)))
+        page.on("request", self._request)
+        page.on("requestfailed", self._failed)
+        page.on("websocket", lambda ws: self.hosts.add(urlparse(ws.url).hostname))
+
+    def _failed(self, request):
+        """A failed request, with its address (the console line has none). Aborted ones
+        are not errors: a style sheet of a widget replaced while it loads is aborted."""
+        if request.failure != "net::ERR_ABORTED":
+            self.errors.append(f"request failed ({request.failure}): {request.url[:300]}")
+
+    def _request(self, request):
+        url = urlparse(request.url)
+        if url.scheme not in ("data", "blob", "about"):
+            self.hosts.add(url.hostname)

@@ -4,68 +4,20 @@ Skipped when Chromium or Playwright is missing, unless ``MDCORE_REQUIRE_BROWSER=
 (set by ``.ci/run``), which turns the skip into a failure.
 """
 
-import socket
-import subprocess
-import sys
-import threading
 import time
 from pathlib import Path
-from urllib.parse import urlparse
 
 import pytest
-from browser import chromium, require_browser, tab
+from browser import PageLog, ServerLog, chromium, require_browser, serve_app, tab
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 ROOT = Path(__file__).resolve().parent.parent
 
 
-class ServerLog:
-    """Reads ``panel serve``'s output on a thread (so the pipe never fills) and signals
-    when the app is being served."""
-
-    READY = "Bokeh app running at"
-
-    def __init__(self, proc):
-        self.lines: list[str] = []
-        self.ready = threading.Event()
-        self.closed = threading.Event()
-        threading.Thread(target=self._read, args=(proc.stdout,), daemon=True).start()
-
-    def _read(self, stream):
-        for line in stream:
-            self.lines.append(line)
-            if self.READY in line:
-                self.ready.set()
-        self.closed.set()
-
-    def text(self) -> str:
-        return "".join(self.lines)
-
-
-def _serve(script: str = "main.py", args: tuple[str, ...] = ()):
-    """Start ``panel serve app/<script> [--args ARGS]`` on a free port; return (process,
-    url, log)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "panel", "serve", str(ROOT / "app" / script), "--address",
-         "127.0.0.1", "--port", str(port), "--allow-websocket-origin", f"127.0.0.1:{port}",
-         *(["--args", *args] if args else [])],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
-    log = ServerLog(proc)
-    end = time.monotonic() + 60
-    while not log.ready.wait(timeout=1.0):            # a condition, polled once a second
-        if log.closed.is_set() or time.monotonic() > end:
-            proc.kill()
-            pytest.fail("panel serve did not start:\n" + log.text())
-    return proc, f"http://127.0.0.1:{port}/{Path(script).stem}", log
-
-
 @pytest.fixture(scope="module")
 def server():
     require_browser()
-    proc, url, _log = _serve()
+    proc, url, _log = serve_app()
     yield url
     proc.terminate()
     proc.wait(timeout=10)
@@ -74,29 +26,6 @@ def server():
 @pytest.fixture(scope="module")
 def browser(server):
     yield from chromium()
-
-
-class PageLog:
-    """Console errors and every network host of one page (data: and blob: URLs are local)."""
-
-    def __init__(self, page):
-        self.errors, self.hosts = [], set()
-        page.on("console", lambda m: m.type == "error" and self.errors.append(m.text))
-        page.on("pageerror", lambda e: self.errors.append(str(e)))
-        page.on("request", self._request)
-        page.on("requestfailed", self._failed)
-        page.on("websocket", lambda ws: self.hosts.add(urlparse(ws.url).hostname))
-
-    def _failed(self, request):
-        """A failed request, with its address (the console line has none). Aborted ones
-        are not errors: a style sheet of a widget replaced while it loads is aborted."""
-        if request.failure != "net::ERR_ABORTED":
-            self.errors.append(f"request failed ({request.failure}): {request.url[:300]}")
-
-    def _request(self, request):
-        url = urlparse(request.url)
-        if url.scheme not in ("data", "blob", "about"):
-            self.hosts.add(url.hostname)
 
 
 def open_page(browser, url):
@@ -241,7 +170,7 @@ def test_a_page_from_a_session_built_ahead_is_a_whole_session_of_its_own(browser
     """The server builds the next visitor's session while it is idle (app/session_pool.py)
     and serves the next page from it: that page draws, talks to its own session (a case
     switch there leaves the first page alone), and the server builds the next one."""
-    proc, url, log = _serve()
+    proc, url, log = serve_app()
     try:
         a, log_a = open_page(browser, url)
         _wait_for_log(log, "built a session ahead")
@@ -429,7 +358,7 @@ def test_own_data_in_and_a_session_out_and_back(browser, tmp_path):
     list; the Files tab takes uploaded measurements (a new case, run from scratch by "Run
     discrepancy"), gives the session JSON, and "Open session…" in a new session recomputes
     the same metrics. Nothing leaves localhost."""
-    proc, url, _log = _serve(args=("--case", "examples/beam_lab/beam_lab.toml"))
+    proc, url, _log = serve_app(args=("--case", "examples/beam_lab/beam_lab.toml"))
     try:
         page = browser.new_page(viewport={"width": 1280, "height": 720})
         log = PageLog(page)

@@ -1,0 +1,34 @@
+"""User text in the page's HTML and Markdown: shown literally, never read as markup.
+
+Names from session files, uploaded file names, CSV headers, case files and exception
+messages can hold anything (``<img src=x onerror=…>``). Every place that puts such text
+into something the browser renders as HTML (a notification, a Div, an HTML pane) or as
+Markdown (a Markdown pane) goes through one of these functions. Bokeh's titles, axis
+labels, legends, widget labels and options are drawn as text and need neither.
+"""
+
+from __future__ import annotations
+
+import html
+import re
+
+__all__ = ["html_text", "markdown_text"]
+
+#: ASCII punctuation: every character CommonMark lets a backslash make literal (emphasis,
+#: links, code spans, raw HTML, entities, headings, lists, tables, $ maths).
+_PUNCTUATION = re.compile(r"([!-/:-@\[-`{-~])")
+
+
+def html_text(text) -> str:
+    """``text`` as HTML that shows it literally; line breaks kept as ``<br>``."""
+    return html.escape(str(text)).replace("\r\n", "\n").replace("\n", "<br>")
+
+
+def markdown_text(text) -> str:
+    """``text`` as Markdown that shows it literally, on one line.
+
+    Every ASCII punctuation character is backslash-escaped, so nothing in ``text`` starts
+    emphasis, a link, a code span, raw HTML, an entity or maths; line breaks become spaces
+    (a new line could start a heading or a list).
+    """
+    return _PUNCTUATION.sub(r"\\\1", " ".join(str(text).split()))

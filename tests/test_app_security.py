@@ -1,0 +1,276 @@
+"""What a shared file, an upload or a stranger's browser can do to the served app: nothing.
+
+Browser tests in Debian's headless Chromium against ``panel serve`` on a free port. Files
+go in through the Files tab's drop areas as a user's do: FilePond's file input
+(``set_input_files``) or a real drop of a ``DataTransfer`` on the drop area, chunked by
+FilePond and sent over the websocket.
+
+Skipped when Chromium or Playwright is missing, unless ``MDCORE_REQUIRE_BROWSER=1``
+(set by ``.ci/run``), which turns the skip into a failure.
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import time
+from pathlib import Path
+
+import pytest
+from browser import PageLog, chromium, require_browser, serve_app, tab
+
+ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
+#: Markup that runs script wherever it is rendered as HTML: a handler on a broken image.
+HOSTILE = '<img src=x onerror="window.__pwned=(window.__pwned||0)+1;alert(1)">'
+#: Everything in the page, through its shadow roots: the text, and whether an element of
+#: ``HOSTILE`` exists anywhere.
+PAGE_TEXT = """() => {
+  const parts = []; let images = 0;
+  const walk = root => { for (const e of root.querySelectorAll('*')) {
+    if (e.tagName === 'IMG' && e.getAttribute('src') === 'x') images++;
+    if (e.shadowRoot) walk(e.shadowRoot); } };
+  walk(document);
+  const text = root => { for (const n of root.childNodes) {
+    if (n.nodeType === 3) parts.push(n.textContent);
+    else if (!['STYLE', 'SCRIPT'].includes(n.nodeName)) {
+      if (n.shadowRoot) text(n.shadowRoot);
+      text(n);
+      if (n.tagName === 'OPTION' || n.tagName === 'INPUT') parts.push(n.value || ''); } } };
+  text(document.body);
+  return {text: parts.join(' '), images};
+}"""
+
+
+@pytest.fixture(scope="module")
+def server():
+    require_browser()
+    proc, url, log = serve_app()
+    yield url, log
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def browser(server):
+    yield from chromium()
+
+
+def open_app(browser, url):
+    """A page at 1280×720 that records dialogs and whether ``HOSTILE`` ever ran."""
+    page = browser.new_page(viewport={"width": 1280, "height": 720})
+    log = PageLog(page)
+    dialogs: list[str] = []
+    page.on("dialog", lambda d: (dialogs.append(d.message), d.dismiss()))
+    page.goto(url)
+    page.wait_for_selector(".data-plot canvas", timeout=60_000)
+    return page, log, dialogs
+
+
+def choose_file(page, area: str, path: Path) -> None:
+    """Give ``path`` to the file input of the drop area of CSS class ``area``."""
+    page.locator(f".{area} input[type=file]").wait_for(state="attached", timeout=30_000)
+    page.locator(f".{area} .filepond--root").wait_for(timeout=30_000)
+    page.locator(f".{area} input[type=file]").set_input_files(str(path))
+
+
+def drop_file(page, area: str, name: str, data: bytes) -> None:
+    """Drop a file called ``name`` holding ``data`` on the drop area of CSS class
+    ``area``, as a drag from the desktop does (dragenter, dragover, drop)."""
+    page.locator(f".{area} .filepond--root").wait_for(timeout=30_000)
+    transfer = page.evaluate_handle(
+        """([name, b64]) => {
+            const bytes = Uint8Array.from(atob(b64), c => c.charCodeAt(0));
+            const type = name.endsWith('.json') ? 'application/json' : 'text/csv';
+            const dt = new DataTransfer();
+            dt.items.add(new File([bytes], name, {type}));
+            return dt;
+        }""", [name, base64.b64encode(data).decode()])
+    target = page.locator(f".{area} .filepond--drop-label")
+    box = target.bounding_box()
+    point = {"clientX": box["x"] + box["width"] / 2, "clientY": box["y"] + box["height"] / 2}
+    for event in ("dragenter", "dragover", "drop"):
+        target.dispatch_event(event, {"dataTransfer": transfer, **point})
+
+
+def toasts(page) -> list[str]:
+    """The text of every notification shown now."""
+    return [t.strip() for t in page.locator(".notyf__message").all_inner_texts()]
+
+
+def wait_toast(page, needle: str, timeout: float = 30.0) -> str:
+    """The first notification whose text holds ``needle`` (waits for it)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        for text in toasts(page):
+            if needle in text:
+                return text
+        time.sleep(0.2)
+    raise AssertionError(f"no notification with {needle!r}; shown: {toasts(page)}")
+
+
+def session_file(tmp_path: Path, name: str, **edits) -> Path:
+    """A valid session file of beam-1d (no waves) with ``edits`` ("case.name": value)."""
+    from mdcore_app.state import ExplorerState
+    doc = json.loads(ExplorerState().session_json())
+    for key, value in edits.items():
+        section, field = key.split(".")
+        doc[section][field] = value
+    path = tmp_path / name
+    path.write_text(json.dumps(doc), encoding="utf-8")
+    return path
+
+
+def beam_csv() -> str:
+    from mdcore import cases
+    from mdcore.case_file import measurements_template
+    return measurements_template(cases.load("beam-1d"))
+
+
+def test_hostile_names_are_shown_as_text_and_run_nothing(browser, server, tmp_path):
+    """Session files with markup in ``case.name``, ``controls.rule`` and
+    ``case.measurements_file``, a CSV whose *file name* is that markup, and one whose
+    header is: each is refused or taken with the markup shown literally (notification,
+    case list, case description), no script runs and no dialog opens."""
+    url, _log = server
+    page, log, dialogs = open_app(browser, url)
+    tab(page, "Files")
+
+    choose_file(page, "open-session", session_file(tmp_path, "a.json", **{"case.name": HOSTILE}))
+    text = wait_toast(page, "is not in this app")
+    assert HOSTILE in text, text
+    choose_file(page, "open-session",
+                session_file(tmp_path, "b.json", **{"controls.rule": HOSTILE}))
+    text = wait_toast(page, "controls.rule")
+    assert HOSTILE in text, text
+
+    header = beam_csv().replace("tip deflection", HOSTILE)
+    drop_file(page, "upload-csv", "header.csv", header.encode())
+    text = wait_toast(page, "not found in the header")
+    assert HOSTILE in text, text
+
+    # A file named with the markup: taken (a new case named after it).
+    drop_file(page, "upload-csv", HOSTILE + ".csv", beam_csv().encode())
+    from playwright.sync_api import expect
+    expect(page.locator("select").first).to_have_value(f"beam-1d · {HOSTILE}.csv",
+                                                       timeout=60_000)
+    page.locator(".case-description", has_text="Your measurements from").wait_for(
+        timeout=30_000)
+    description = page.locator(".case-description p").inner_text()
+    assert f"{HOSTILE}.csv" in description, description
+
+    # The same markup as the uploaded file's name inside a session file.
+    choose_file(page, "open-session", session_file(
+        tmp_path, "c.json", **{"case.based_on": "beam-1d", "case.measurements_csv": beam_csv(),
+                               "case.measurements_file": "x" + HOSTILE + ".csv"}))
+    expect(page.locator("select").first).to_have_value(f"beam-1d · x{HOSTILE}.csv",
+                                                       timeout=60_000)
+    page.locator(".case-description", has_text=f"x{HOSTILE}").wait_for(timeout=30_000)
+
+    for name in ("Data", "History matching", "Discrepancy", "Metrics", "Things to try"):
+        tab(page, name)
+    page.wait_for_timeout(500)
+    ARTIFACTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "security-hostile-names.png"))
+    seen = page.evaluate(PAGE_TEXT)
+    assert page.evaluate("window.__pwned") is None and dialogs == []
+    assert seen["images"] == 0, "the markup became an element"
+    assert HOSTILE in seen["text"]
+    assert log.errors == [], log.errors
+    page.close()
+
+
+def test_the_page_refuses_inline_event_handlers(browser, server):
+    """The Content-Security-Policy, the second line of defence: markup put into the page
+    by its own script (as escaping gone wrong would) cannot run a handler, and nothing
+    of the app is blocked by the policy (no console error on any tab)."""
+    url, _log = server
+    page, log, dialogs = open_app(browser, url)
+    policy = page.locator("meta[http-equiv='Content-Security-Policy']")
+    assert policy.count() == 1
+    content = policy.get_attribute("content")
+    assert "default-src 'self'" in content and "script-src-attr 'none'" in content
+    for name in ("History matching", "Discrepancy", "Metrics", "Files", "Things to try",
+                 "Data"):
+        tab(page, name)
+    assert log.errors == [], log.errors
+    page.evaluate("html => document.body.insertAdjacentHTML('beforeend', html)", HOSTILE)
+    page.wait_for_timeout(1_000)
+    assert page.evaluate("window.__pwned") is None and dialogs == []
+    assert any("Content Security Policy" in e for e in log.errors), log.errors
+    assert log.hosts <= {"127.0.0.1", "localhost"}, log.hosts
+    page.close()
+
+
+@pytest.mark.parametrize("text", [
+    HOSTILE, "[a](javascript:alert(1)) `x` **b** $x^2$ :smile: <b>&amp;",
+    "line\n# heading\n    indented", "<script>alert(1)</script>"])
+def test_user_text_in_markdown_and_html_is_shown_literally(text):
+    """markup.markdown_text through Panel's Markdown pane, and markup.html_text, render
+    no element: the page shows the characters typed (line breaks as spaces, or <br>)."""
+    import html
+    import re
+
+    import panel as pn
+
+    from mdcore_app.markup import html_text, markdown_text
+    rendered = html.unescape(pn.pane.Markdown(markdown_text(text)).get_root().text)
+    inner = re.fullmatch(r"<p>(.*)</p>\n", rendered, re.S)
+    assert inner is not None, rendered
+    assert html.unescape(inner.group(1)) == " ".join(text.split())
+    shown = html_text(text)
+    assert "<" not in shown.replace("<br>", "")
+    assert html.unescape(shown.replace("<br>", "\n")) == text
+
+
+def hostile_case_file(folder: Path) -> Path:
+    """examples/beam_lab with ``HOSTILE`` in its title, description, input, output,
+    unit and parameter names (the CSV's header to match)."""
+    import shutil
+    example = Path(__file__).resolve().parent.parent / "examples" / "beam_lab"
+    shutil.copy(example / "beam_lab_simulator.py", folder)
+    toml = (example / "beam_lab.toml").read_text(encoding="utf-8")
+    quoted = HOSTILE.replace('"', '\\"')
+    for old, new in (('title = "', f'title = "{quoted} '),
+                     ('description = "', f'description = "{quoted} '),
+                     ('"position_m"', f'"x{quoted}"'), ('"deflection_mm"', f'"y{quoted}"'),
+                     ('input_units = ["m"]', f'input_units = ["m{quoted}"]'),
+                     ('name = "E"\nunit = "GPa"', f'name = "E{quoted}"\nunit = "GPa{quoted}"')):
+        assert old in toml
+        toml = toml.replace(old, new, 1)
+    csv_text = (example / "measurements.csv").read_text(encoding="utf-8")
+    cell = '"{}"'.format(HOSTILE.replace('"', '""'))
+    csv_text = csv_text.replace("position_m,reading,deflection_mm,test",
+                                f"x{cell},reading,y{cell},test".replace('x"', '"x', 1)
+                                .replace('y"', '"y', 1))
+    (folder / "measurements.csv").write_text(csv_text, encoding="utf-8")
+    path = folder / "hostile.toml"
+    path.write_text(toml, encoding="utf-8")
+    return path
+
+
+def test_a_case_file_with_markup_in_its_names_runs_nothing(browser, tmp_path):
+    """A case file given to the server (``--args --case``) with markup in every name it
+    can carry: after the waves and scenario 1 + KOH, every tab shows the names literally
+    (description, metrics table, KOH summary, plot labels) and no element is made."""
+    path = hostile_case_file(tmp_path)
+    proc, url, server_log = serve_app(args=("--case", str(path)))
+    try:
+        page, log, dialogs = open_app(browser, url)
+        page.locator("select").first.select_option("beam-lab")
+        page.locator(".case-description", has_text="Three readings").wait_for(timeout=30_000)
+        page.locator(".bk-btn-group button", has_text="koh").first.click()
+        page.get_by_role("button", name="Run discrepancy").click()
+        tab(page, "Metrics")
+        page.locator(".koh-summary").wait_for(timeout=120_000)
+        for name in ("Data", "History matching", "Discrepancy", "Files", "Metrics"):
+            tab(page, name)
+            page.wait_for_timeout(300)
+            seen = page.evaluate(PAGE_TEXT)
+            assert seen["images"] == 0, f"the markup became an element on {name}"
+            assert HOSTILE in seen["text"], name
+        assert page.evaluate("window.__pwned") is None and dialogs == []
+        assert log.errors == [], log.errors
+        page.close()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)

@@ -375,12 +375,12 @@ def measurements_template(case: Case) -> str:
     1 = test row); one row per observation, replicates as repeated rows. Plain CSV (no
     comment lines), written like :mod:`mdcore.export`'s tables.
     """
-    from .export import _table
+    from .export import csv_table
     head = list(case.x_names) + list(case.output_names) + [TEST_COLUMN]
     rows = [[*x_row, *z_row, flag] for X, z, flag in ((case.X_train, case.z_train, 0),
                                                       (case.X_test, case.z_test, 1))
             for x_row, z_row in zip(X, z)]
-    return _table(head, rows)
+    return csv_table(head, rows)
 
 
 def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:

@@ -84,7 +84,8 @@ def _print_waves(case, result) -> None:
     print(_table(["wave", "NROY %", "runs", "failed", "max var / (V_o+V_m)", "seconds"], rows))
     failed = [f for w in result.waves for f in w.failures]
     if failed:
-        print(f"{len(failed)} simulator run(s) failed and were dropped; the first: {failed[0]}")
+        print(f"{len(failed)} simulator run(s) failed and were dropped; the first at θ = "
+              f"{np.array2string(failed[0].theta, precision=4)}: {failed[0].message}")
     print(result.message)
 
 

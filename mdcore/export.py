@@ -32,7 +32,8 @@ import numpy as np
 from .history_matching import HistoryMatchResult
 from .reproduce import CaseRun
 
-__all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "nroy_csv", "predictions_csv", "write_tables"]
+__all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "csv_table", "nroy_csv", "predictions_csv",
+           "write_tables"]
 
 #: Most NROY samples written per wave. A wave keeps up to 50,000 p candidates, and the
 #: teaching preset runs 5 waves: all of them were 22 MB for beam-1d. The candidates are
@@ -59,7 +60,8 @@ def csv_cell(value, number: Callable[[float], str] = repr):
     return number(float(value))
 
 
-def _table(header: list, rows: Iterable, number: Callable[[float], str] = repr) -> str:
+def csv_table(header: list, rows: Iterable, number: Callable[[float], str] = repr) -> str:
+    """CSV text of a header and rows, every cell through :func:`csv_cell`."""
     out = io.StringIO()
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow([csv_cell(h) for h in header])
@@ -122,7 +124,7 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
         keep = _kept(w, hm.problem.threshold)
         rows += ([w.index, *theta, imp] for theta, imp in
                  zip(w.candidates[keep], w.candidate_implausibility[keep]))
-    return _table(head, rows, number=lambda v: f"{v:.7g}")
+    return csv_table(head, rows, number=lambda v: f"{v:.7g}")
 
 
 def predictions_csv(run) -> str:
@@ -153,7 +155,7 @@ def predictions_csv(run) -> str:
                              p.z_mean[i, o], np.sqrt(p.z_var[i, o]), p.delta_mean[i, o],
                              np.sqrt(p.delta_var[i, o]),
                              "" if truth is None else truth[i, o]])
-    return _table(head, rows)
+    return csv_table(head, rows)
 
 
 def _nroy_sidecar(run: CaseRun) -> dict:

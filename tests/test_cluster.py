@@ -18,7 +18,7 @@ import textwrap
 import time
 
 import pytest
-from test_own_simulators import CSV, TOML
+from test_own_simulators import CSV, case_toml
 
 from mdcore.cli import main
 
@@ -84,9 +84,8 @@ def test_own_simulator_on_a_real_cluster_gives_the_serial_numbers(tmp_path, clus
     (case / "shape_helper.py").write_text(HELPER, encoding="utf-8")
     (case / "data.csv").write_text(CSV, encoding="utf-8")
     path = case / "case.toml"
-    toml = TOML.format(function="toy_sim:linear", simulator="")
-    path.write_text(textwrap.dedent(toml.replace("initial_design = 10", "initial_design = 4")),
-                    encoding="utf-8")
+    toml = case_toml("toy_sim:linear").replace("initial_design = 10", "initial_design = 4")
+    path.write_text(textwrap.dedent(toml), encoding="utf-8")
     base = ["run", str(path), "--methods", "1", "2", "3", "--n-s", "30", "--n-phi", "10",
             "--n-candidates", "3000", "--n-runs", "4", "--convergence-ratio", "1e-4",
             "--max-waves", "3"]

@@ -13,7 +13,7 @@ import textwrap
 import numpy as np
 import pandas as pd
 import scipy.stats
-from test_own_simulators import CSV, SIMULATOR, TOML
+from test_own_simulators import CSV, SIMULATOR, case_toml
 
 from mdcore import cases
 from mdcore.case_file import load_case_file, measurements_template, with_measurements
@@ -34,7 +34,7 @@ def hostile_case(folder):
     data = CSV.replace("x,y,test", ",".join(csv_quote(HOSTILE[k]) for k in ("x", "y"))
                        + ",test")
     (folder / "data.csv").write_text(data, encoding="utf-8")
-    toml = TOML.format(function="toy_sim:linear", simulator="")
+    toml = case_toml("toy_sim:linear")
     for key, name in HOSTILE.items():
         old = {"x": 'inputs = ["x"]', "y": 'outputs = ["y"]', "slope": 'name = "slope"',
                "intercept": 'name = "intercept"'}[key]

@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_case_file import CSV, TOML
 
 from mdcore.cli import main
 
@@ -71,40 +72,12 @@ def linear(X, theta):
     return X
 '''
 
-CSV = """x,y,test
-0.0,0.10,0
-0.0,0.12,0
-0.5,0.61,0
-0.5,0.59,0
-1.0,1.11,0
-1.0,1.09,0
-0.25,0.35,1
-0.75,0.86,1
-"""
-
-TOML = """
-name = "line"
-[data]
-file = "data.csv"
-inputs = ["x"]
-outputs = ["y"]
-test_column = "test"
-[simulator]
-function = "{function}"
-path = "."
-{simulator}
-[[parameters]]
-name = "slope"
-lower = 0.0
-upper = 2.0
-[[parameters]]
-name = "intercept"
-lower = -1.0
-upper = 1.0
-[history_matching]
-V_m = [0.01]
-initial_design = 10
-"""
+def case_toml(function: str, simulator: str = "") -> str:
+    """test_case_file's case file with another simulator function, more [simulator] keys
+    and a 10-run initial design."""
+    return (TOML.replace("toy_sim:linear", function)
+            .replace('path = "."', 'path = "."\n' + simulator)
+            .replace("V_m = [0.01]", "V_m = [0.01]\ninitial_design = 10"))
 
 
 def case_folder(folder: Path, function: str, simulator: str = "") -> Path:
@@ -113,8 +86,7 @@ def case_folder(folder: Path, function: str, simulator: str = "") -> Path:
     (folder / "hangs_at_import.py").write_text(HANGS_AT_IMPORT, encoding="utf-8")
     (folder / "data.csv").write_text(CSV, encoding="utf-8")
     path = folder / "case.toml"
-    path.write_text(textwrap.dedent(TOML.format(function=function, simulator=simulator)),
-                    encoding="utf-8")
+    path.write_text(textwrap.dedent(case_toml(function, simulator)), encoding="utf-8")
     return path
 
 

@@ -231,7 +231,8 @@ class SimulatorProcess:
             except Exception:                                 # EOF: the process ended
                 answers.put(None)
 
-        threading.Thread(target=read, daemon=True, name="mdcore-simulator-reader").start()
+        # Not "mdcore-…": that names the app's job threads (app/jobs.py), which end.
+        threading.Thread(target=read, daemon=True, name="simulator-reader").start()
 
     def _answer(self, deadline: float | None, timeout: float | None):
         """The process's next answer: ``ready`` or ``ok`` give their value; an error, an

@@ -1,5 +1,6 @@
 """Own simulators that hang, exit or fail: stopped at their timeout, recorded, never the end
-of the command line or of the app's server (issue 40, items 7 and 11).
+of the command line or of the app's server (issue 40, items 7 and 11); and no file written
+beside them (issue 41, item 10).
 
 Every test goes through the path a user takes: a case folder on disk (TOML, CSV and a
 simulator module in ``tmp_path``, outside any package), then ``python -m mdcore`` (its

@@ -1,13 +1,15 @@
 """Command line: ``python -m mdcore {cases,history-match,reproduce,run,study} ...``.
 
-Exit codes: 0 done, 2 bad input (the message says what to fix), 1 a failure (a file that
-cannot be written, a simulator or cluster that fails).
+Exit codes: 0 done, 2 bad input (the message says what to fix; a history match that rules
+out every θ too), 1 a failure (a file that cannot be written, a simulator or cluster that
+fails).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import sys
 import warnings
@@ -23,7 +25,7 @@ from .koh import BURN_IN, N_ITER
 from .pipeline import Method, Settings
 from .reproduce import CaseRun, default_methods, parse_methods, run_methods
 from .study import PAPER, study
-from .validation import as_int, as_seed_int
+from .validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
 
 
 def _cmd_cases(args) -> int:
@@ -82,12 +84,18 @@ def _print_waves(case, result) -> None:
     print(_table(["wave", "NROY %", "runs", "failed", "max var / (V_o+V_m)", "seconds"], rows))
     failed = [f for w in result.waves for f in w.failures]
     if failed:
-        print(f"{len(failed)} simulator run(s) failed and were dropped; the first: {failed[0]}")
+        print(f"{len(failed)} simulator run(s) failed and were dropped; the first at θ = "
+              f"{np.array2string(failed[0].theta, precision=4)}: {failed[0].message}")
     print(result.message)
 
 
+def _with_timeout(case, args):
+    """The case with ``--timeout`` as its simulator timeout, when given."""
+    return case if args.timeout is None else dataclasses.replace(case, timeout=args.timeout)
+
+
 def _cmd_history_match(args) -> int:
-    case = cases.load(args.case, seed=args.seed)
+    case = _with_timeout(cases.load(args.case, seed=args.seed), args)
     with _executor(args) as executor:
         result = _history_match(case, args, executor)
     _print_waves(case, result)
@@ -95,7 +103,7 @@ def _cmd_history_match(args) -> int:
         names = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
                           zip(case.theta_names, result.theta_map, case.theta_units))
         print(f"θ_MAP: {names}")
-    return 0 if result.status != "ruled_out" else 1
+    return 0 if result.status != "ruled_out" else 2      # bad input: raise V_m or T
 
 
 def _table(header: list[str], rows: list[list[str]]) -> str:
@@ -199,13 +207,14 @@ def _run(case, args, methods, settings_name: str) -> int:
 
 
 def _cmd_reproduce(args) -> int:
-    case = cases.load(args.case, seed=args.seed)
+    case = _with_timeout(cases.load(args.case, seed=args.seed), args)
     return _run(case, args, args.scenarios or default_methods(args.case), args.case)
 
 
 def _cmd_run(args) -> int:
     from .case_file import load_case_file
-    case = load_case_file(args.case_file, seed=args.seed)
+    case = _with_timeout(load_case_file(args.case_file, seed=args.seed,
+                                        default_timeout=args.timeout), args)
     return _run(case, args, args.scenarios or ("1", "2", "3"), case.name)
 
 
@@ -272,13 +281,14 @@ def _cmd_study(args) -> int:
     if args.dask is not None:
         with _executor(args) as executor:
             result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                           executor=executor)
+                           executor=executor, timeout=args.timeout)
     elif workers == 1:
-        result = study(args.case, args.seeds, methods=args.scenarios, settings=settings)
+        result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
+                       timeout=args.timeout)
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
             result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                           executor=pool)
+                           executor=pool, timeout=args.timeout)
     summary, paper = result.summary(), PAPER.get(args.case, {})
     print(f"{args.case}: seeds {', '.join(map(str, result.seeds))}; N_s = {settings.n_s}, "
           f"N_φ = {settings.n_phi}; mean ± sd over seeds (paper in brackets)\n")
@@ -340,9 +350,33 @@ def _add_method_options(p) -> None:
     p.add_argument("--json", default=None, metavar="PATH", help="also write the numbers here")
 
 
+def _seed(text: str) -> int:
+    """``--seed``: an integer from 0 to 2**63 − 1 (argparse type)."""
+    try:
+        if len(text) > 25:                    # int() of 5,000 digits is slow, then refused
+            raise ValueError(text)
+        return as_seed_int(int(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be a whole number from 0 to {MAX_SEED} (2**63 − 1); received "
+            f"{short(text)}. Each seed gives its own reproducible run, e.g. --seed 0."
+        ) from None
+
+
+def _timeout(text: str) -> float:
+    """``--timeout``: seconds > 0 (argparse type)."""
+    try:
+        return as_positive_float(text, "")
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be a positive number of seconds per simulator run; received "
+            f"{short(text)}. For example --timeout 60.") from None
+
+
 def _add_output_options(p) -> None:
     """The seed and the files a single run writes (reproduce and run)."""
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0,
+                   help="seeds every random step (default 0): the same seed, the same numbers")
     p.add_argument("--csv", default=None, metavar="DIR",
                    help="also write nroy.csv and predictions.csv into this folder")
     p.add_argument("--out", default=None, metavar="REPORT.html",
@@ -366,6 +400,9 @@ def _add_history_options(p) -> None:
                    help="candidate θ scored per wave (default 50,000 p)")
     g.add_argument("--convergence-ratio", type=float, default=None, metavar="R",
                    help="stop when the emulator variance < R (V_o + V_m) (default 1)")
+    g.add_argument("--timeout", type=_timeout, default=None, metavar="SECONDS",
+                   help="seconds one simulator run may take; a longer run is stopped and "
+                   "counts as failed (default: the case file's [simulator] timeout, or none)")
     d = p.add_argument_group("simulator runs on a cluster (default: in this process)")
     d.add_argument("--dask", default=None, metavar="ADDRESS",
                    help="run simulator batches on the Dask scheduler at ADDRESS, e.g. "
@@ -378,8 +415,9 @@ def _add_history_options(p) -> None:
 _SHOWN: set[str] = set()
 
 EXIT_CODES = ("exit codes: 0 done; 2 bad input (the message names the option or file and "
-              "what to fix); 1 a failure (a file that cannot be written, a simulator or "
-              "cluster that fails). Progress bars appear on a terminal only.")
+              "what to fix, as for a history match that rules out every θ: raise V_m or T); "
+              "1 a failure (a file that cannot be written, a simulator or cluster that "
+              "fails). Progress bars appear on a terminal only.")
 EXAMPLES = {
     "cases": "example:\n  python -m mdcore cases",
     "history-match": "examples:\n  python -m mdcore history-match beam-1d\n"
@@ -445,7 +483,8 @@ def main(argv=None) -> int:
     hm = command("history-match", "run Bayesian history matching on a case (waves until "
                  "converged) and print each wave's NROY share and θ_MAP")
     hm.add_argument("case", choices=cases.names())
-    hm.add_argument("--seed", type=int, default=0)
+    hm.add_argument("--seed", type=_seed, default=0,
+                    help="seeds every random step (default 0): the same seed, the same numbers")
     _add_history_options(hm)
     rp = command("reproduce", "history matching + discrepancy scenarios + metrics (the "
                  "paper's Tables 1–3)")
@@ -468,6 +507,8 @@ def main(argv=None) -> int:
                     help="processes running seeds in parallel (default 2; 1 runs in this one)")
     st.add_argument("--dask", default=None, metavar="ADDRESS",
                     help="run the seeds on the Dask scheduler at ADDRESS instead")
+    st.add_argument("--timeout", type=_timeout, default=None, metavar="SECONDS",
+                    help="seconds one simulator run may take (default: no limit)")
     args = parser.parse_args(argv)
     if args.command in ("reproduce", "run", "study"):
         # Load (or compile) the numba kernels while history matching runs.

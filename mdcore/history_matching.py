@@ -63,11 +63,12 @@ RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
 #: Default largest share of a wave's simulator runs that may fail (and be dropped).
 MAX_FAILED_FRACTION = 0.5
 #: Largest sizes accepted up front: candidates scored per wave (and NROY samples drawn at
-#: once), simulator runs per wave (the emulator's θ covariance is runs × runs), and the
-#: Metropolis steps that spread the candidates. Beyond these the work would not fit in
-#: memory, so it is refused before it starts.
+#: once), simulator runs in all waves together (the last emulator's θ covariance is runs ×
+#: runs), waves, and the Metropolis steps that spread the candidates. Beyond these the work
+#: would not fit in memory, so it is refused before it starts.
 MAX_CANDIDATES = 10_000_000
 MAX_RUNS = 10_000
+MAX_WAVES = 100
 MAX_MCMC_STEPS = 1_000
 #: Posterior draws kept per history match, by (n, seed): see ``posterior_samples``.
 POSTERIOR_MEMO = 4
@@ -433,7 +434,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     n_runs = as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1, MAX_RUNS)
     n_candidates = as_int(50_000 * p if n_candidates is None else n_candidates,
                            "n_candidates", 10, MAX_CANDIDATES)
-    max_waves = as_int(max_waves, "max_waves", 1)
+    max_waves = as_int(max_waves, "max_waves", 1, MAX_WAVES)
     seed = as_seed_int(seed)
     if initial_design is None:
         lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng([seed, 0]))
@@ -443,9 +444,13 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     if initial_design.shape[1] != p:
         raise ValueError(f"initial_design must have shape (R0, {p}); received "
                          f"{initial_design.shape}.")
-    if initial_design.shape[0] > MAX_RUNS:
-        raise ValueError(f"initial_design must have at most {MAX_RUNS:,} rows (simulator runs "
-                         f"of wave 1); received {initial_design.shape[0]:,}.")
+    total = initial_design.shape[0] + n_runs * (max_waves - 1)
+    if total > MAX_RUNS:
+        raise ValueError(f"the simulator runs of all waves, initial_design's rows + n_runs × "
+                         f"(max_waves − 1), must be at most {MAX_RUNS:,} (the emulator's "
+                         f"covariance is runs × runs); received {initial_design.shape[0]:,} + "
+                         f"{n_runs:,} × {max_waves - 1} = {total:,}. Lower n_runs or "
+                         "max_waves.")
     convergence_ratio = as_positive_float(convergence_ratio, "convergence_ratio",
                                           "1 is SPEC §5's rule.")
     try:
@@ -765,10 +770,12 @@ def case_problem(case, **overrides) -> HistoryMatchProblem:
     """A :class:`HistoryMatchProblem` for a :class:`~mdcore.cases.Case` with its defaults.
 
     ``V_o`` defaults to the case's noise variance (replicates use their sample variance),
-    ``V_m`` to ``case.V_m`` and the initial design to ``case.initial_design``.
+    ``V_m`` to ``case.V_m`` and the initial design to ``case.initial_design``. With a
+    ``case.timeout``, each θ is a call of its own (``batch_size=1``), so a run that times
+    out fails alone.
     """
     options = dict(V_o=case.noise_var, V_m=case.V_m, initial_design=case.initial_design,
-                   seed=case.seed)
+                   seed=case.seed, batch_size=None if case.timeout is None else 1)
     options.update(overrides)
     return setup(case.simulate, case.X_train, case.z_train, case.theta_bounds, **options)
 

@@ -13,7 +13,7 @@ def test_reproduce_writes_the_documented_json(tmp_path, capsys):
     assert main(["reproduce", "beam-1d", "--n-s", "40", "--n-phi", "10", "--n-iter", "3000",
                  "--burn-in", "1000", "--json", str(path)]) == 0
     out = json.loads(path.read_text())
-    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 2
+    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 3
     assert out["settings"]["n_s"] == 40 and out["settings"]["n_phi"] == 10
     hm = out["history_matching"]
     assert hm["truth_nroy"] is True and hm["status"] == "converged"
@@ -59,7 +59,7 @@ def test_history_match_and_cases(capsys):
     out = capsys.readouterr().out
     assert "θ_MAP: l_cr = " in out and "NROY %" in out
     assert main(["history-match", "beam-1d", "--v-m", "1e-6", "--n-candidates", "2000",
-                 "--threshold", "0.5"]) == 1               # everything ruled out: exit 1
+                 "--threshold", "0.5"]) == 2               # everything ruled out: bad input
     assert "Raise V_m" in capsys.readouterr().out
     assert main(["history-match", "beam-1d", "--threshold", "0"]) == 2
     assert "threshold T must be a positive number" in capsys.readouterr().err

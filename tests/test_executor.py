@@ -7,6 +7,7 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
 import numpy as np
 import pytest
+from conftest import missing
 
 from mdcore import cases, discrepancy
 from mdcore.discrepancy import infer_discrepancy
@@ -70,7 +71,7 @@ def test_process_pool_pickles_the_chunks(beam, small_chunks, start):
     threads have started in this process (they are not inherited; see
     ``compiled._forget_pools_after_fork``)."""
     if start not in multiprocessing.get_all_start_methods():
-        pytest.skip(f"no {start} start method here")
+        missing(f"no {start} start method here")
     serial = fit(beam, 3)                     # starts the compute threads here first
     workers = 2 if start == "fork" else 1     # a spawned worker imports numba: keep it one
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(start)) as pool:

@@ -232,7 +232,7 @@ def test_seed_accepts_a_generator():
     np.testing.assert_array_equal(a.waves[0].nroy, b.waves[0].nroy)
     assert a.problem.seed == b.problem.seed
     for bad in (-1, 1.5, "0", True):
-        with pytest.raises(ValueError, match="seed must be an integer ≥ 0 or a numpy.random"):
+        with pytest.raises(ValueError, match="seed must be an integer from 0 to 2..63 − 1 or a numpy.random"):
             history_match(toy_simulator, X, z, TOY_BOUNDS, seed=bad, **kw)
 
 

@@ -243,7 +243,7 @@ def test_bad_input(beam):
            ((case, hm, 1, SMALL), {"X_extra": np.zeros((3, 2))},
             r"X_extra must have shape \(M, d_x\) with d_x = 1"),
            ((case, hm, 1, SMALL), {"X_extra": [[np.nan]]}, "X_extra contains 1 NaN"),
-           ((case, hm, 1, SMALL), {"seed": -2}, "seed must be an integer ≥ 0")]
+           ((case, hm, 1, SMALL), {"seed": -2}, "seed must be an integer from 0 to 2..63 − 1")]
     for args, kwargs, match in bad:
         kwargs = {"seed": 0, **kwargs}
         with pytest.raises(ValueError, match=match):

@@ -453,7 +453,7 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     if missing:
         # The header is quoted only when it names a wanted column: this is then the
         # measurements file with a column misnamed, not some other file's first line.
-        found = (f"the header {[short(h, 30) for h in header[:20]]}"
+        found = ("the header " + ", ".join(short(h, 30) for h in header[:20])
                  if set(header) & set(inputs + outputs) else
                  "a header with none of them (is this the measurements file?)")
         raise MeasurementsError([f"{source} line {header_line}: column(s) {missing} not found "

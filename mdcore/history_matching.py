@@ -5,7 +5,9 @@ Implausibility of θ at observed input/output ``i``::
     I_i(θ) = |z_i − E[y_i(θ)]| / sqrt(V_o,i + V_m,i + V[y_i(θ)])
 
 combined over all targets by the max (or 2nd / 3rd max). θ is not ruled out yet (NROY)
-when the combined ``I(θ) ≤ T``.
+when the combined ``I(θ) ≤ T``. The multivariate rule (Vernon, Goldstein & Bower 2010;
+:mod:`mdcore.multivariate`) scores all targets at once, I_M²(θ) with the full covariance
+``V_o + V_m + V_em(θ)`` (V_m possibly correlated), against a χ² quantile instead of T.
 
 Each wave fits an emulator to all simulator runs so far, scores candidates that are
 uniform in the previous NROY set, and keeps those with ``I ≤ T``. Candidates of wave
@@ -39,7 +41,7 @@ import scipy.optimize
 import scipy.special
 import scipy.stats
 
-from . import compiled
+from . import compiled, multivariate
 from .emulator import Emulator, fit_emulator
 from .runs import run_simulator
 from .threads import single_threaded_blas
@@ -52,14 +54,20 @@ from .validation import (
     check_bounds,
     check_positive,
     choose,
+    short,
 )
 
-__all__ = ["RULES", "implausibility", "combine", "Score", "Wave", "HistoryMatchProblem",
-           "HistoryMatchResult", "setup", "next_wave", "iter_waves", "history_match",
-           "history_match_case", "case_problem", "replicate_summary"]
+__all__ = ["RULES", "MULTIVARIATE", "RULE_NAMES", "implausibility", "combine", "Score", "Wave",
+           "HistoryMatchProblem", "HistoryMatchResult", "setup", "next_wave", "iter_waves",
+           "history_match", "history_match_case", "case_problem", "replicate_summary",
+           "check_correlation"]
 
 #: Combiner rules: the k-th largest implausibility over all targets.
 RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
+#: The multivariate rule: I_M² over all targets against a χ² quantile (issue 43).
+MULTIVARIATE = "multivariate"
+#: Every rule :func:`setup` accepts.
+RULE_NAMES = (*RULES, MULTIVARIATE)
 #: Default largest share of a wave's simulator runs that may fail (and be dropped).
 MAX_FAILED_FRACTION = 0.5
 #: Largest sizes accepted up front: candidates scored per wave (and NROY samples drawn at
@@ -189,6 +197,12 @@ class HistoryMatchProblem:
         How waves fit the emulator and score candidates (:meth:`score`): the NumPy
         reference or the compiled kernels (:func:`mdcore.emulator.fit_emulator`,
         :meth:`mdcore.emulator.Emulator.implausibility`).
+    V_m_length : ndarray of shape (n_out,)
+        Correlation length ℓ_m of V_m per output, in X's units (0: independent).
+    V_m_corr : ndarray of shape (n_out, n_out) or None
+        Correlation of the outputs' discrepancies (None: independent).
+    chi2_probability : float
+        The multivariate rule's cut-off is the χ² quantile at this probability.
     """
 
     simulate: Callable = field(repr=False)
@@ -211,11 +225,30 @@ class HistoryMatchProblem:
     timeout: float | None = None
     max_failed_fraction: float = MAX_FAILED_FRACTION
     backend: str = "numpy"
+    V_m_length: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    V_m_corr: np.ndarray | None = None
+    chi2_probability: float = 0.995
 
     @property
     def p(self) -> int:
         """Number of calibration parameters."""
         return self.bounds.shape[0]
+
+    @cached_property
+    def V(self) -> np.ndarray:
+        """``V_o + V_m`` over all targets, (n_out · N_u, n_out · N_u), output-major
+        (:func:`mdcore.multivariate.discrepancy_cov`); its diagonal is ``V_o + V_m``."""
+        return np.diag(self.V_o.T.ravel()) + multivariate.discrepancy_cov(
+            self.X, self.V_m, self.V_m_length, self.V_m_corr)
+
+    @property
+    def cutoff(self) -> float:
+        """The value a combined implausibility is compared with: T for the max rules, the
+        χ² quantile of ``N_u · n_out`` degrees of freedom at :attr:`chi2_probability` for
+        the multivariate rule (whose implausibility is I_M²)."""
+        if self.rule == MULTIVARIATE:
+            return multivariate.chi2_cutoff(self.z.size, self.chi2_probability)
+        return self.threshold
 
     def score(self, theta, emulator: Emulator) -> Score:
         """Combined implausibility and emulator variance of ``theta`` under ``emulator``.
@@ -237,6 +270,9 @@ class HistoryMatchProblem:
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (M, p) with p = {self.p}; received "
                              f"{theta.shape}.")
+        if self.rule == MULTIVARIATE:     # issue 43: I_M² over all targets at once
+            return Score(*multivariate.multivariate_implausibility(emulator, theta, self.z,
+                                                                   self.V))
         if self.backend == "numba":       # the fused compiled kernel
             return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
                                                   rank=RULES[self.rule], backend="numba"))
@@ -326,7 +362,8 @@ class Wave:
         Returns
         -------
         ndarray of shape (M,)
-            θ with a value ≤ the problem's threshold is non-implausible in this wave.
+            θ with a value ≤ the problem's :attr:`~HistoryMatchProblem.cutoff` is
+            non-implausible in this wave.
         """
         return self.problem.implausibility(theta, self.emulator)
 
@@ -338,7 +375,8 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
           executor: Executor | None = None, batch_size: int | None = None,
           timeout: float | None = None,
           max_failed_fraction: float = MAX_FAILED_FRACTION,
-          backend: str | None = None) -> HistoryMatchProblem:
+          backend: str | None = None, V_m_length=0.0, V_m_corr=None,
+          chi2_probability: float = 0.995) -> HistoryMatchProblem:
     """Validate and assemble a history-matching problem.
 
     Parameters
@@ -358,7 +396,11 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         (SPEC §5); ``V_o`` is required for inputs without replicates.
     threshold : float, default=3
         Implausibility cut-off T > 0 (Pukelsheim's 3σ rule).
-    rule : {"max", "2nd max", "3rd max"}, default="max"
+    rule : {"max", "2nd max", "3rd max", "multivariate"}, default="max"
+        The k-th largest I_i(θ) against T, or the multivariate I_M²(θ) against a χ²
+        quantile (:mod:`mdcore.multivariate`); θ_MAP and the posterior samples then use
+        its multivariate Gaussian likelihood, and a wave converges when
+        ``V_em(θ) ≼ convergence_ratio · (V_o + V_m)`` at the retained θ.
     n_runs : int, optional
         Simulator runs added per wave (default ``max(10, 5 p)``).
     n_candidates : int, optional
@@ -391,6 +433,16 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         with the implausibility; the same NROY sets). Default ``MDCORE_BACKEND``, else numba
         when installed (:func:`mdcore.compiled.resolve_backend`).
         :meth:`HistoryMatchResult.log_likelihood` (and so θ_MAP) always uses NumPy.
+    V_m_length : float or ndarray of shape (n_out,), default=0
+        Correlation length ℓ_m of the model discrepancy over x, per output, in X's units:
+        ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps today's independent V_m. Only
+        the multivariate rule sees the correlation (the max rules use the diagonal).
+    V_m_corr : ndarray of shape (n_out, n_out), optional
+        Correlation matrix of the outputs' discrepancies (symmetric, unit diagonal,
+        positive definite); default independent. Multivariate rule only.
+    chi2_probability : float, default=0.995
+        The multivariate rule rules out θ with I_M² above the χ² quantile of
+        ``N_u · n_out`` degrees of freedom at this probability (Vernon et al. 2010).
     """
     if not callable(simulate):
         raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
@@ -407,7 +459,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         raise ValueError(f"threshold T must be a positive number; received {threshold!r}. "
                          "T = 3 is the usual choice.")
     threshold = T
-    choose(rule, "rule", RULES)
+    choose(rule, "rule", RULE_NAMES)
     Xu, zm, zv, counts = replicate_summary(X, z)
     n_out = z.shape[1]
     V_m = check_positive(as_float_array(V_m, "V_m"), "V_m")
@@ -461,6 +513,11 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         raise ValueError(f"max_failed_fraction must be in [0, 1); received "
                          f"{max_failed_fraction!r}.")
     max_failed_fraction = failed
+    V_m_length, V_m_corr, chi2_probability = check_correlation(
+        V_m_length, V_m_corr, chi2_probability, n_out)
+    if V_m_corr is not None or np.any(V_m_length > 0):
+        _check_total_cov(np.diag(V_o.T.ravel()) + multivariate.discrepancy_cov(
+            Xu, V_m, V_m_length, V_m_corr))
     if executor is not None and not callable(getattr(executor, "submit", None)):
         raise ValueError(f"executor must be a concurrent.futures.Executor (with submit); "
                          f"received {type(executor).__name__}.")
@@ -473,7 +530,52 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                                as_int(mcmc_steps, "mcmc_steps", 0, MAX_MCMC_STEPS),
                                convergence_ratio,
                                executor, batch_size, None if timeout is None else float(timeout),
-                               max_failed_fraction, compiled.resolve_backend(backend))
+                               max_failed_fraction, compiled.resolve_backend(backend),
+                               V_m_length, V_m_corr, chi2_probability)
+
+
+def check_correlation(length, corr, probability, n_out: int):
+    """Validated ``V_m_length`` (n_out,), ``V_m_corr`` (n_out, n_out) or None, and the χ²
+    probability of :func:`setup` (also used by :mod:`mdcore.case_file`)."""
+    length = as_float_array(length, "V_m_length")
+    if length.size not in (1, n_out) or length.ndim > 1 or np.any(length < 0):
+        raise ValueError(f"V_m_length must be one length ≥ 0 or one per output ({n_out}), in "
+                         f"the inputs' units (0: independent); received {short(length)}.")
+    length = np.broadcast_to(length.ravel(), (n_out,)).copy()
+    try:
+        prob = float(probability)
+    except (TypeError, ValueError):
+        prob = float("nan")
+    if not 0.0 < prob < 1.0:
+        raise ValueError(f"chi2_probability must be in (0, 1); received {probability!r}. "
+                         "0.995 is Vernon et al.'s choice.")
+    if corr is None:
+        return length, None, prob
+    R = as_float_array(corr, "V_m_corr")
+    if R.shape != (n_out, n_out) or not np.allclose(R, R.T, rtol=0, atol=1e-12) \
+            or not np.allclose(np.diag(R), 1.0, rtol=0, atol=1e-12):
+        raise ValueError(f"V_m_corr must be a symmetric ({n_out}, {n_out}) correlation matrix "
+                         f"with ones on its diagonal, one row per output; received "
+                         f"{short(R.tolist())}.")
+    lam = np.linalg.eigvalsh(R)[0]
+    if lam <= 1e-10:
+        raise ValueError(f"V_m_corr is not positive definite: its smallest eigenvalue is "
+                         f"{lam:.3g}, so some combination of the outputs' discrepancies would "
+                         "have zero or negative variance. Lower the off-diagonal "
+                         "correlations (with one value ρ for every pair of outputs, ρ must "
+                         f"be above −1/(n_out − 1) and below 1).")
+    return length, (R + R.T) / 2, prob
+
+
+def _check_total_cov(V: np.ndarray) -> None:
+    """Refuse a ``V_o + V_m`` that no Cholesky factor can be trusted with."""
+    lam = np.linalg.eigvalsh(V)
+    if lam[0] <= 1e-12 * lam[-1]:
+        raise ValueError(f"V_o + V_m over the observed inputs is not positive definite "
+                         f"(eigenvalues from {lam[0]:.3g} to {lam[-1]:.3g}): a correlation "
+                         "length V_m_length much longer than the spacing of the inputs "
+                         "makes V_m nearly singular, and the observation variance V_o is too "
+                         "small to make up for it. Shorten V_m_length or give a positive V_o.")
 
 
 def _in_nroy(problem, waves, theta) -> np.ndarray:
@@ -483,7 +585,7 @@ def _in_nroy(problem, waves, theta) -> np.ndarray:
     for w in waves:
         idx = np.nonzero(ok)[0]
         if idx.size:
-            ok[idx] = problem.implausibility(theta[idx], w.emulator) <= problem.threshold
+            ok[idx] = problem.implausibility(theta[idx], w.emulator) <= problem.cutoff
     return ok
 
 
@@ -573,7 +675,7 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
                                       problem.n_candidates, rng)
         base_fraction = previous[-1].nroy_fraction
     I, var = problem.score(candidates, emulator)
-    keep = I <= problem.threshold
+    keep = I <= problem.cutoff
     nroy = candidates[keep]
     fraction = base_fraction * float(np.mean(keep))       # chain rule, module docstring
     threshold_var = problem.convergence_ratio * np.min(problem.V_o + problem.V_m, axis=0)
@@ -582,6 +684,9 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
         # np.max(var[keep], axis=(0, 1)) on shear-5's (10⁵, 3, 5), the same values
         max_var = var.reshape(len(var), -1)[keep].max(axis=0).reshape(var.shape[1:]).max(axis=0)
         converged = bool(np.all(max_var < threshold_var))
+        if problem.rule == MULTIVARIATE:  # issue 43: V_em(θ) ≼ ratio · (V_o + V_m) at NROY
+            converged = multivariate.cov_ratio(emulator, nroy, problem.V) \
+                < problem.convergence_ratio
     else:
         max_var = np.full(problem.z.shape[1], np.nan)
         converged = False
@@ -720,6 +825,9 @@ class HistoryMatchResult:
         Eq. 16 standardises by. θ (M, p) -> (M,).
         """
         theta = np.atleast_2d(as_float_array(theta, "theta"))
+        if self.problem.rule == MULTIVARIATE:   # issue 43: the full Gaussian of I_M²
+            return multivariate.log_likelihood(self.waves[-1].emulator, theta, self.problem.z,
+                                               self.problem.V)
         # NumPy on every backend: theta_map's Nelder–Mead turns 1e-16 changes of this into
         # ~1e-7 changes of θ_MAP, and θ_MAP must not depend on the backend.
         pred = self.waves[-1].emulator.predict(self.problem.X, theta, backend="numpy")
@@ -770,12 +878,14 @@ def case_problem(case, **overrides) -> HistoryMatchProblem:
     """A :class:`HistoryMatchProblem` for a :class:`~mdcore.cases.Case` with its defaults.
 
     ``V_o`` defaults to the case's noise variance (replicates use their sample variance),
-    ``V_m`` to ``case.V_m`` and the initial design to ``case.initial_design``. With a
+    ``V_m`` to ``case.V_m`` (its correlation to ``case.V_m_length`` and ``case.V_m_corr``)
+    and the initial design to ``case.initial_design``. With a
     ``case.timeout``, each θ is a call of its own (``batch_size=1``), so a run that times
     out fails alone.
     """
     options = dict(V_o=case.noise_var, V_m=case.V_m, initial_design=case.initial_design,
-                   seed=case.seed, batch_size=None if case.timeout is None else 1)
+                   seed=case.seed, batch_size=None if case.timeout is None else 1,
+                   V_m_length=case.V_m_length, V_m_corr=case.V_m_corr)
     options.update(overrides)
     return setup(case.simulate, case.X_train, case.z_train, case.theta_bounds, **options)
 

@@ -43,6 +43,11 @@ what was found)::
     [history_matching]
     V_m = [0.05]                         # model-discrepancy variance per output (units²)
     initial_design = 20                  # optional: Latin-hypercube runs of wave 1
+    V_m_length = [0.1]                   # optional: correlation length of V_m over the
+                                         # inputs per output, inputs' units (default 0:
+                                         # independent; used by the multivariate rule)
+    V_m_corr = [[1.0]]                   # optional: the outputs' discrepancy correlation
+                                         # matrix, one row per output (default identity)
 
 Examples
 --------
@@ -319,8 +324,25 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
     box = np.array(bounds)
 
     hm = top.sub("history_matching")
-    hm.only("V_m", "initial_design")
+    hm.only("V_m", "initial_design", "V_m_length", "V_m_corr")
     V_m = hm.numbers("V_m", n_out, positive=True)
+    length = hm.numbers("V_m_length", n_out) if hm.has("V_m_length") else np.zeros(n_out)
+    if np.any(length < 0):
+        raise hm._fail("V_m_length", f"a list of {n_out} numbers ≥ 0 (one per output, in the "
+                       "inputs' units; 0: independent)", hm.table["V_m_length"])
+    corr = hm.table.get("V_m_corr")
+    if corr is not None:
+        if not (isinstance(corr, list) and len(corr) == n_out and all(
+                isinstance(row, list) and len(row) == n_out and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+                for row in corr)):
+            raise hm._fail("V_m_corr", f"a list of {n_out} rows of {n_out} numbers (the "
+                           "outputs' correlation matrix)", corr)
+        from .history_matching import check_correlation
+        try:
+            corr = check_correlation(length, corr, 0.995, n_out)[1]
+        except ValueError as exc:
+            raise CaseFileError(f"{path}: [history_matching] {exc}") from None
     from .history_matching import MAX_RUNS
     n_design = hm.integer("initial_design", 2, MAX_RUNS) if hm.has("initial_design") \
         else max(10 * p, 10)
@@ -362,7 +384,7 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
         x_names=inputs, x_units=x_units, output_names=outputs, output_units=out_units,
         X_train=X[~test], z_train=z[~test], X_test=X[test], z_test=z[test],
         noise_var=noise if noise is not None else _pooled_replicate_var(X[~test], z[~test]),
-        V_m=V_m,
+        V_m=V_m, V_m_length=length, V_m_corr=corr,
         phi_prior=phi_prior, theta_prior=ThetaPrior(np.array(mean), np.array(var)),
         initial_design=design, seed=0, _simulator=simulate, _true_delta=None,
         timeout=timeout)

@@ -20,7 +20,7 @@ import numpy as np
 from . import cases, compiled, threads
 from .exceptions import LowESSWarning
 from .export import write_tables
-from .history_matching import HistoryMatchResult, case_problem, iter_waves
+from .history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
 from .koh import BURN_IN, N_ITER
 from .pipeline import Method, Settings
 from .reproduce import CaseRun, default_methods, parse_methods, run_methods
@@ -53,14 +53,32 @@ def _v_m(case, values):
     return v
 
 
+def _v_m_corr(case, values):
+    """The outputs' correlation matrix from ``--v-m-corr``: one ρ for every pair of outputs,
+    or the n_out² entries row by row; None keeps the case's."""
+    if values is None:
+        return None
+    v, n = np.asarray(values, dtype=np.float64), case.n_out
+    if v.size == 1:
+        return np.full((n, n), v[0]) + (1.0 - v[0]) * np.eye(n)
+    if v.size != n * n:
+        raise ValueError(f"--v-m-corr takes 1 value (ρ for every pair of outputs) or the "
+                         f"{n} × {n} = {n * n} entries of the outputs' correlation matrix row "
+                         f"by row ({case.name} has {n} output(s)); received {v.size}.")
+    return v.reshape(n, n)
+
+
 def _history_options(args, case) -> dict:
     """The history-matching options given on the command line (others: the case's)."""
     opts = {k: getattr(args, k) for k in ("threshold", "rule", "max_waves", "n_runs",
-                                          "n_candidates", "convergence_ratio")
-            if getattr(args, k) is not None}
-    v_m = _v_m(case, args.v_m)
-    if v_m is not None:
-        opts["V_m"] = v_m
+                                          "n_candidates", "convergence_ratio",
+                                          "chi2_probability")
+            if getattr(args, k, None) is not None}
+    for key, value in (("V_m", _v_m(case, args.v_m)),
+                       ("V_m_length", args.v_m_length),
+                       ("V_m_corr", _v_m_corr(case, args.v_m_corr))):
+        if value is not None:
+            opts[key] = value
     return opts
 
 
@@ -278,20 +296,26 @@ def _cmd_study(args) -> int:
 
     settings = _settings(args, args.case)
     workers = as_int(args.workers, "--workers", 1, 1024)
+    history = _history_options(args, cases.load(args.case))
     if args.dask is not None:
         with _executor(args) as executor:
             result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                           executor=executor, timeout=args.timeout)
+                           executor=executor, timeout=args.timeout, history=history)
     elif workers == 1:
         result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                       timeout=args.timeout)
+                       timeout=args.timeout, history=history)
     else:
         with ProcessPoolExecutor(max_workers=workers) as pool:
             result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                           executor=pool, timeout=args.timeout)
-    summary, paper = result.summary(), PAPER.get(args.case, {})
+                           executor=pool, timeout=args.timeout, history=history)
+    summary, paper, hm = result.summary(), PAPER.get(args.case, {}), result.history()
     print(f"{args.case}: seeds {', '.join(map(str, result.seeds))}; N_s = {settings.n_s}, "
           f"N_φ = {settings.n_phi}; mean ± sd over seeds (paper in brackets)\n")
+    error = "" if hm["theta_map_error"] is None else ", θ_MAP mean |error| " + ", ".join(
+        f"{e:.4g}" for e in hm["theta_map_error"])
+    print(f"history matching ({hm['rule']} rule): final NROY {100 * hm['nroy_mean']:.2f} ± "
+          f"{100 * hm['nroy_sd']:.2f} % of the box, truth in NROY {hm['truth_in']}/{hm['n']}"
+          f"{error}\n")
     shown = ("nmse_z", "nmse_delta", "rmse_delta", "coverage_delta_2sd", "sd_delta", "lpl")
     print(f"{'method':>6} {'output':>6} " + " ".join(f"{m:>24}" for m in shown))
     for method, entry in summary.items():
@@ -383,16 +407,33 @@ def _add_output_options(p) -> None:
                    help="also write a self-contained HTML report")
 
 
-def _add_history_options(p) -> None:
-    """History-matching options (history-match, reproduce and run); default: the case's."""
-    g = p.add_argument_group("history matching (default: the case's settings)")
+def _add_rule_options(g) -> None:
+    """How implausibility is measured (history-match, reproduce, run and study)."""
     g.add_argument("--v-m", type=float, nargs="+", default=None, metavar="V",
                    help="model-discrepancy variance (output units²): one per output, or one "
                    "for output 1 that the others scale by (z̄_i / z̄_1)², as in the app")
     g.add_argument("--threshold", type=float, default=None, metavar="T",
-                   help="implausibility threshold T (default 3)")
-    g.add_argument("--rule", default=None, choices=["max", "2nd max", "3rd max"],
-                   help="how the outputs' implausibilities combine (default max)")
+                   help="implausibility threshold T of the max rules (default 3)")
+    g.add_argument("--rule", default=None, choices=list(RULE_NAMES),
+                   help="how the targets' implausibilities combine (default max); "
+                   "multivariate: I_M² over all targets with the full covariance, against a "
+                   "χ² quantile")
+    g.add_argument("--v-m-length", type=float, nargs="+", default=None, metavar="L",
+                   help="correlation length ℓ_m of V_m over the inputs (inputs' units), one "
+                   "or one per output; 0: independent. Used by the multivariate rule "
+                   "(default: the case's)")
+    g.add_argument("--v-m-corr", type=float, nargs="+", default=None, metavar="RHO",
+                   help="correlation of the outputs' discrepancies: one ρ for every pair, or "
+                   "the n_out × n_out matrix row by row (multivariate rule; default none)")
+    g.add_argument("--chi2-probability", type=float, default=None, metavar="P",
+                   help="the multivariate rule's cut-off is the χ² quantile at P (default "
+                   "0.995)")
+
+
+def _add_history_options(p) -> None:
+    """History-matching options (history-match, reproduce and run); default: the case's."""
+    g = p.add_argument_group("history matching (default: the case's settings)")
+    _add_rule_options(g)
     g.add_argument("--max-waves", type=int, default=None, help="at most this many waves")
     g.add_argument("--n-runs", type=int, default=None,
                    help="simulator runs added per wave (default max(10, 5 p))")
@@ -509,6 +550,8 @@ def main(argv=None) -> int:
                     help="run the seeds on the Dask scheduler at ADDRESS instead")
     st.add_argument("--timeout", type=_timeout, default=None, metavar="SECONDS",
                     help="seconds one simulator run may take (default: no limit)")
+    _add_rule_options(st.add_argument_group("history matching (default: the case's "
+                                            "settings)"))
     args = parser.parse_args(argv)
     if args.command in ("reproduce", "run", "study"):
         # Load (or compile) the numba kernels while history matching runs.

@@ -25,8 +25,8 @@ __all__ = ["SCHEMA_VERSION", "CaseRun", "default_methods", "parse_methods", "rep
            "run_case", "run_methods"]
 
 #: Version of the JSON layout written by :meth:`CaseRun.to_dict` (3: the failed simulator
-#: runs of each wave).
-SCHEMA_VERSION = 3
+#: runs of each wave; 4: the rule, its cut-off and V_m's correlation).
+SCHEMA_VERSION = 4
 
 
 def default_methods(name: str) -> tuple[Method, ...]:
@@ -77,7 +77,12 @@ class CaseRun:
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
                              "fit_iterations": s.fit_iterations,
                              "backend": compiled.resolve_backend(s.backend)},
-                "history_matching": {"waves": len(self.hm.waves),
+                "history_matching": {"rule": self.hm.problem.rule,
+                                     "cutoff": self.hm.problem.cutoff,
+                                     "V_m_length": self.hm.problem.V_m_length.tolist(),
+                                     "V_m_corr": None if self.hm.problem.V_m_corr is None
+                                     else self.hm.problem.V_m_corr.tolist(),
+                                     "waves": len(self.hm.waves),
                                      "nroy_fraction": self.hm.nroy_fraction,
                                      "theta_map": self.hm.theta_map.tolist(),
                                      "truth_nroy": self.truth_in_nroy,
@@ -110,7 +115,8 @@ def _entry(r: MethodResult) -> dict:
 def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed=0,
               report: Callable[[str], None] | None = None,
               progress: Progress | None = None,
-              executor: Executor | None = None, timeout: float | None = None) -> CaseRun:
+              executor: Executor | None = None, timeout: float | None = None,
+              history_matching: dict | None = None) -> CaseRun:
     """History-match a case, run the methods, and score them (the ``reproduce`` command).
 
     Parameters
@@ -133,6 +139,8 @@ def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed
         (see :func:`run_case`); the numbers are identical to the serial run's.
     timeout : float, optional
         Seconds one simulator run may take (:attr:`mdcore.cases.Case.timeout`).
+    history_matching : dict, optional
+        Options of :func:`mdcore.history_matching.setup` (``rule``, ``V_m_length`` …).
 
     Returns
     -------
@@ -142,7 +150,8 @@ def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed
     case = dataclasses.replace(_cases.load(name, seed=seed), timeout=timeout)
     return run_case(case, methods=default_methods(name) if methods is None else methods,
                     settings=Settings.paper(name) if settings is None else settings,
-                    seed=case.seed, report=report, progress=progress, executor=executor)
+                    seed=case.seed, report=report, progress=progress, executor=executor,
+                    **(history_matching or {}))
 
 
 def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),

@@ -81,12 +81,12 @@ def parse_seeds(text: str) -> tuple[int, ...]:
 
 
 def _one(name: str, seed: int, methods: tuple, settings: Settings,
-         timeout: float | None = None) -> dict:
+         timeout: float | None = None, history: dict | None = None) -> dict:
     """One seed's reproduce run as its JSON dict (picklable, small: no models)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")          # collected in each method's "warnings"
         return reproduce(name, methods=methods, settings=settings, seed=seed,
-                         timeout=timeout).to_dict()
+                         timeout=timeout, history_matching=history).to_dict()
 
 
 @dataclass(frozen=True)
@@ -139,6 +139,19 @@ class Study:
                                  "min": np.min([e["ess"] for e in ess], axis=0).tolist()}
         return out
 
+    def history(self) -> dict:
+        """History matching over the seeds: the rule, the final NROY share (mean and sd over
+        seeds), how many seeds keep the truth in NROY, and θ_MAP's mean absolute error per
+        parameter (None where the truth is unknown)."""
+        hm = [r["history_matching"] for r in self.runs]
+        share = np.array([h["nroy_fraction"][-1] for h in hm])
+        truth = cases.load(self.case).theta_true
+        return {"rule": hm[0].get("rule"), "nroy_mean": float(share.mean()),
+                "nroy_sd": float(share.std(ddof=1)) if len(share) > 1 else 0.0,
+                "truth_in": sum(bool(h["truth_nroy"]) for h in hm), "n": len(hm),
+                "theta_map_error": None if truth is None else np.mean(
+                    [np.abs(np.array(h["theta_map"]) - truth) for h in hm], axis=0).tolist()}
+
     def patterns(self) -> dict:
         """The paper's patterns over the seeds' means (None where they cannot be judged)."""
         decoupled: list[str] = [m for m in ("1", "2", "3") if m in self.methods]
@@ -170,12 +183,14 @@ class Study:
                 "settings": {"n_s": s.n_s, "n_phi": s.n_phi, "n_iter": s.n_iter,
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
                              "fit_iterations": s.fit_iterations},
-                "summary": self.summary(), "paper": PAPER.get(self.case),
+                "summary": self.summary(), "history_matching": self.history(),
+                "paper": PAPER.get(self.case),
                 "patterns": self.patterns(), "runs": list(self.runs)}
 
 
 def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
-          executor: Executor | None = None, timeout: float | None = None) -> Study:
+          executor: Executor | None = None, timeout: float | None = None,
+          history: dict | None = None) -> Study:
     """Reproduce ``name`` once per seed and collect the runs.
 
     Parameters
@@ -194,6 +209,9 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
         not depend on the executor.
     timeout : float, optional
         Seconds one simulator run may take (:attr:`mdcore.cases.Case.timeout`).
+    history : dict, optional
+        History-matching options for every seed (:func:`mdcore.history_matching.setup`:
+        ``rule``, ``V_m_length`` …); default the case's.
 
     Returns
     -------
@@ -210,9 +228,9 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
     settings = Settings.paper(name) if settings is None else settings
     labels = tuple(m.value for m in chosen)
     if executor is None:
-        runs = [_one(name, int(s), labels, settings, timeout) for s in seeds]
+        runs = [_one(name, int(s), labels, settings, timeout, history) for s in seeds]
     else:
-        futures = [executor.submit(_one, name, int(s), labels, settings, timeout)
+        futures = [executor.submit(_one, name, int(s), labels, settings, timeout, history)
                    for s in seeds]
         runs = [f.result() for f in futures]
     return Study(name, tuple(int(s) for s in seeds), settings, tuple(runs))

@@ -13,7 +13,7 @@ def test_reproduce_writes_the_documented_json(tmp_path, capsys):
     assert main(["reproduce", "beam-1d", "--n-s", "40", "--n-phi", "10", "--n-iter", "3000",
                  "--burn-in", "1000", "--json", str(path)]) == 0
     out = json.loads(path.read_text())
-    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 3
+    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 4
     assert out["settings"]["n_s"] == 40 and out["settings"]["n_phi"] == 10
     hm = out["history_matching"]
     assert hm["truth_nroy"] is True and hm["status"] == "converged"

@@ -89,7 +89,9 @@ class Case:
         with ``dataclasses.replace(case, timeout=30.0)``; None: no limit.
     V_m_length : ndarray of shape (n_out,), default 0
         Default correlation length ℓ_m of V_m over x per output, in ``x_units`` (0:
-        independent); only the multivariate rule uses it (:mod:`mdcore.multivariate`).
+        independent); only the multivariate rule uses it (:mod:`mdcore.multivariate`). The
+        built-in cases keep 0: on them any ℓ_m > 0 weakened the rule
+        (docs/multivariate_history_matching.md).
     V_m_corr : ndarray of shape (n_out, n_out) or None, default None
         Default correlation of the outputs' discrepancies (None: independent).
     """
@@ -188,12 +190,6 @@ class Case:
 
 BEAM_NOISE_VAR = 1e-3          # mm²
 BEAM_V_M = 0.05                # mm²
-# Correlation lengths ℓ_m of V_m (multivariate rule): an eighth of the widest input range,
-# so that V_m allows a discrepancy that changes sign a few times across the inputs
-# (docs/multivariate_history_matching.md).
-BEAM1D_V_M_LENGTH = 0.8 / 8    # m
-BEAM2D_V_M_LENGTH = 0.4 / 8    # m
-SHEAR5_V_M_LENGTH = 0.5 / 8    # kg
 
 
 def _beam_prior(d_x: int) -> GaussianPrior:
@@ -254,7 +250,6 @@ def _beam1d(seed: int) -> Case:
         X_train=X_train, z_train=z_train, X_test=X_test, z_test=z_test,
         noise_var=np.array([BEAM_NOISE_VAR]), V_m=np.array([BEAM_V_M]),
         phi_prior=_beam_prior(1), initial_design=grid, seed=seed,
-        V_m_length=np.array([BEAM1D_V_M_LENGTH]),
         # SPEC §7: l_cr ~ N(35, 10) mm, E ~ N(70, 36) GPa (second argument a variance).
         theta_prior=ThetaPrior(mean=np.array([35.0, 70.0]), var=np.array([10.0, 36.0])),
         _simulator=_beam1d_simulator, _true_delta=_beam1d_delta)
@@ -285,7 +280,6 @@ def _beam2d(seed: int) -> Case:
         X_train=X_train, z_train=z_train, X_test=X_test, z_test=z_test,
         noise_var=np.array([BEAM_NOISE_VAR]), V_m=np.array([BEAM_V_M]),
         phi_prior=_beam_prior(2), initial_design=np.linspace(50, 90, 4)[:, None], seed=seed,
-        V_m_length=np.array([BEAM2D_V_M_LENGTH]),
         # Not in the paper: beam-1d's E ~ N(70, 36) GPa, the same material.
         theta_prior=ThetaPrior(mean=np.array([70.0]), var=np.array([36.0])),
         _simulator=_beam2d_simulator, _true_delta=_beam2d_delta)
@@ -551,7 +545,6 @@ def _shear5(seed: int) -> Case:
         noise_var=np.full(5, SHEAR5_NOISE_SD**2),
         V_m=(0.03 * z_train.mean(axis=0)) ** 2,   # SPEC §9: V_m,i = (0.03 z̄_i)², per mode
         phi_prior=prior, initial_design=design, seed=seed,
-        V_m_length=np.full(5, SHEAR5_V_M_LENGTH),
         # Not in the paper: nominal values with a 5 % standard deviation (the box is ±3 sd).
         theta_prior=ThetaPrior(mean=SHEAR5_NOMINAL, var=(0.05 * SHEAR5_NOMINAL) ** 2),
         _simulator=_shear5_simulator, _true_delta=_shear5_delta)

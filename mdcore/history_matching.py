@@ -82,6 +82,9 @@ MAX_MCMC_STEPS = 1_000
 POSTERIOR_MEMO = 4
 RULED_OUT_HINT = ("nothing is non-implausible: every candidate θ has I > T. Raise V_m (the "
                   "model-discrepancy variance) or the threshold T, or use the 2nd/3rd max rule.")
+RULED_OUT_HINT_MV = ("nothing is non-implausible: every candidate θ has I_M² above the χ² "
+                     "cut-off. Raise V_m, shorten V_m_length (a correlated V_m leaves less "
+                     "room for a discrepancy that varies faster) or raise chi2_probability.")
 
 
 def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
@@ -691,7 +694,8 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
         max_var = np.full(problem.z.shape[1], np.nan)
         converged = False
     if not nroy.shape[0]:
-        status, message = "ruled_out", f"wave {k}: " + RULED_OUT_HINT
+        status, message = "ruled_out", f"wave {k}: " + (
+            RULED_OUT_HINT_MV if problem.rule == MULTIVARIATE else RULED_OUT_HINT)
     elif converged:
         status = "converged"
         message = (f"wave {k}: converged — the emulator variance is below V_o + V_m at every "

@@ -88,6 +88,12 @@ def test_a_valid_case_file_builds_a_case(folder):
     assert case.theta_true is None and case.true_delta(case.X_test) is None
     np.testing.assert_allclose(case.simulate(case.X_test, [[1.0, 0.1]])[0, :, 0], [0.35, 0.85])
     assert case.initial_design.shape == (20, 2) and not case.stand_in
+    np.testing.assert_array_equal(case.V_m_length, [0.0])
+    assert case.V_m_corr is None
+    correlated = load_case_file(write(folder, TOML.replace(
+        "V_m = [0.01]", "V_m = [0.01]\nV_m_length = [0.25]\nV_m_corr = [[1.0]]")))
+    np.testing.assert_array_equal(correlated.V_m_length, [0.25])
+    np.testing.assert_array_equal(correlated.V_m_corr, [[1.0]])
 
 
 def test_the_worked_example_runs_end_to_end(tmp_path):
@@ -165,6 +171,16 @@ BAD = [
      r"\[history_matching\] V_m must be a list of 1 positive numbers"),
     ("V_m text", lambda f: write(f, TOML.replace("V_m = [0.01]", 'V_m = "small"')),
      r"V_m must be a list of 1 positive numbers .*; found 'small'"),
+    ("V_m_length negative", lambda f: write(f, TOML.replace("V_m = [0.01]",
+                                                            "V_m = [0.01]\nV_m_length = [-1]")),
+     r"\[history_matching\] V_m_length must be a list of 1 numbers ≥ 0"),
+    ("V_m_corr shape", lambda f: write(f, TOML.replace("V_m = [0.01]",
+                                                       "V_m = [0.01]\nV_m_corr = [1.0]")),
+     r"\[history_matching\] V_m_corr must be a list of 1 rows of 1 numbers"),
+    ("V_m_corr diagonal", lambda f: write(f, TOML.replace("V_m = [0.01]",
+                                                          "V_m = [0.01]\nV_m_corr = [[2.0]]")),
+     r"\[history_matching\] V_m_corr must be a symmetric \(1, 1\) correlation matrix with "
+     "ones on its diagonal"),
     ("partial truth", lambda f: write(f, TOML.replace("upper = 2.0", "upper = 2.0\ntrue = 1.0")),
      "true must be given for every parameter or for none"),
 ]

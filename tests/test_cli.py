@@ -108,6 +108,24 @@ def test_history_options_reach_the_history_match(capsys):
     assert "--v-m takes 1 value or one per output (5 for shear-5" in capsys.readouterr().err
 
 
+def test_multivariate_rule_options(capsys):
+    assert main(["history-match", "beam-2d", "--rule", "multivariate", "--v-m-length", "0.2",
+                 "--n-candidates", "3000", "--max-waves", "1"]) == 0
+    assert "θ_MAP: E = " in capsys.readouterr().out
+    assert main(["history-match", "shear-5", "--rule", "multivariate", "--v-m-corr", "0.5",
+                 "--chi2-probability", "0.99", "--n-candidates", "3000", "--max-waves", "1"]) == 0
+    capsys.readouterr()
+    assert main(["history-match", "shear-5", "--rule", "multivariate", "--v-m-corr", "-0.3",
+                 "--n-candidates", "3000"]) == 2
+    assert "V_m_corr is not positive definite: its smallest eigenvalue is -0.2" \
+        in capsys.readouterr().err
+    assert main(["history-match", "shear-5", "--v-m-corr", "0.1", "0.2"]) == 2
+    assert "--v-m-corr takes 1 value (ρ for every pair of outputs) or the 5 × 5 = 25" \
+        in capsys.readouterr().err
+    assert main(["history-match", "beam-1d", "--v-m-length", "-1"]) == 2
+    assert "V_m_length must be one length ≥ 0" in capsys.readouterr().err
+
+
 def test_warnings_are_summarised_once_in_words(capsys, monkeypatch):
     import warnings as w
 

@@ -327,7 +327,8 @@ class Wave:
         Largest emulator variance at the retained points (NaN if none is retained).
     var_threshold : ndarray of shape (n_out,)
         Smallest ``V_o + V_m`` over the observed inputs (× ``convergence_ratio``);
-        converged when ``max_var`` is below it for every output.
+        converged when ``max_var`` is below it for every output (the multivariate rule
+        asks ``V_em(θ) ≼ convergence_ratio · (V_o + V_m)`` instead, see :func:`setup`).
     status : str
         ``"running"``, ``"converged"``, ``"max_waves"`` or ``"ruled_out"``.
     message : str
@@ -698,7 +699,8 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
             RULED_OUT_HINT_MV if problem.rule == MULTIVARIATE else RULED_OUT_HINT)
     elif converged:
         status = "converged"
-        message = (f"wave {k}: converged — the emulator variance is below V_o + V_m at every "
+        what = "covariance" if problem.rule == MULTIVARIATE else "variance"
+        message = (f"wave {k}: converged — the emulator {what} is below V_o + V_m at every "
                    f"retained point; NROY is {100 * fraction:.3g}% of the box.")
     elif k >= problem.max_waves:
         status = "max_waves"

@@ -49,7 +49,7 @@ __all__ = ["EmulatorCov", "chi2_cutoff", "discrepancy_cov", "emulator_cov",
 
 #: Relative truncation error of the Neumann series (below the Cholesky route's rounding).
 SERIES_TOL = 1e-14
-#: Largest ε = max e / λ_min(B) summed as a series (at most three products); above it, Cholesky.
+#: Largest ε = max e / λ_min(B) summed as a series (at most three steps); above it, Cholesky.
 SERIES_MAX_EPS = 0.01
 
 

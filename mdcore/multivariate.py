@@ -211,7 +211,8 @@ def _dense(B, r, s, log_det: bool):
 
 def _series(B, p, r, s):
     """``rᵀ (B + diag s)⁻¹ r`` per row of r, s (M, n), for one output block, by the Neumann
-    series of the module docstring; rows with ε > ``SERIES_MAX_EPS`` go to :func:`_dense`.
+    series of the module docstring; rows with ε > ``SERIES_MAX_EPS`` get a Cholesky factor
+    each (:func:`_factor_rows`).
 
     With ``Y`` such that ``Yᵀ B Y = I`` and ``Yᵀ diag(p) Y = diag(γ)``, ``D = I + v γ`` and
     ``G = D^-½ Yᵀ diag(e) Y D^-½`` (0 ≼ G ≼ ε I)::
@@ -324,8 +325,9 @@ def cov_ratio(emulator, theta, V) -> float:
 
     ``diag s(θ) ≼ diag s_max`` (the largest s over the θ, per direction), so every
     ``λ_max(V⁻¹ V_em(θ))`` is at most the largest eigenvalue of
-    ``diag(√s_max) B⁻¹ diag(√s_max)``, ``B = Qᵀ V Q``. Below 1, a better emulator would
-    change no I_M² by more than that factor.
+    ``diag(√s_max) B⁻¹ diag(√s_max)``, ``B = Qᵀ V Q`` (equal to it for one θ). With the
+    bound r, ``V ≼ V + V_em(θ) ≼ (1 + r) V``: a perfect emulator would change no I_M² by
+    more than the factor 1 + r.
     """
     cov = emulator_cov(emulator, theta)
     Q = scipy.linalg.block_diag(*cov.basis)

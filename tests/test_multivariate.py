@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+import scipy.linalg
 import scipy.stats
 from scipy.linalg import cho_factor, cho_solve
 
@@ -82,6 +83,22 @@ def test_matches_a_naive_per_candidate_cholesky(seed, coupled):
     ll = multivariate.log_likelihood(em, theta, z, V)
     np.testing.assert_allclose(ll, -0.5 * (ref_I2 + ref_ld + V.shape[0] * math.log(2 * math.pi)),
                                rtol=1e-10, atol=1e-9)     # log scale: absolute near zero
+
+
+def test_convergence_bound_is_the_largest_generalised_eigenvalue():
+    em, z, V_m, rng = random_problem(4, 2)
+    V = np.diag(np.full(V_m.size, 0.002)) + multivariate.discrepancy_cov(em.X_train, V_m, 0.3)
+    theta = rng.uniform(size=(6, 2))
+    _, cov = em.at(em.X_train).moments(theta)
+    N = em.X_train.shape[0]
+    exact = []
+    for c in cov:
+        S = np.zeros_like(V)
+        for o in range(2):
+            S[o * N:(o + 1) * N, o * N:(o + 1) * N] = c[o]
+        exact.append(scipy.linalg.eigh(S, V, eigvals_only=True)[-1])
+    assert multivariate.cov_ratio(em, theta[:1], V) == pytest.approx(exact[0], rel=1e-8)
+    assert multivariate.cov_ratio(em, theta, V) >= max(exact) * (1 - 1e-10)
 
 
 def test_series_and_its_cholesky_fallback_agree_with_the_reference(monkeypatch):

@@ -292,6 +292,7 @@ def _print_run(run, args) -> int:
 
 
 def _cmd_study(args) -> int:
+    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     settings = _settings(args, args.case)
@@ -305,7 +306,10 @@ def _cmd_study(args) -> int:
         result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
                        timeout=args.timeout, history=history)
     else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        # Fresh interpreters, not forks: a fork copies the locks that this process's
+        # threads (the kernels' background warm-up, BLAS) hold, and its children hang.
+        with ProcessPoolExecutor(max_workers=workers,
+                                 mp_context=multiprocessing.get_context("spawn")) as pool:
             result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
                            executor=pool, timeout=args.timeout, history=history)
     summary, paper, hm = result.summary(), PAPER.get(args.case, {}), result.history()

@@ -20,7 +20,6 @@ every training input costs two small matrix products.
 
 from __future__ import annotations
 
-import importlib
 import warnings
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -28,11 +27,11 @@ from typing import NamedTuple
 import numpy as np
 import scipy.optimize
 
-from . import compiled
 from .exceptions import ConvergenceWarning
 from .gp import LOG_2PI
 from .hyperfit import lbfgs_advice, lbfgs_converged
-from .kernels import SQRT3, matern32, scaled_sq_dist
+from .kernels import SQRT3, matern32, matern32_and_dlog_ell, scaled_sq_dist
+from .linalg import chunks, for_each_chunk
 from .threads import single_threaded_blas
 from .validation import as_float_array, check_bounds
 
@@ -135,79 +134,22 @@ def _eig(K):
     return np.maximum(lam, 0.0), Q
 
 
-def _numpy_eigh_kernel():
-    """The kernel np.linalg.eigh calls for a real matrix (UPLO="L"), or None if NumPy
-    moved it (then :func:`_eigh` calls np.linalg.eigh)."""
-    try:
-        return importlib.import_module("numpy.linalg._umath_linalg").eigh_lo
-    except (ImportError, AttributeError):                # pragma: no cover
-        return None
-
-
-_eigh_lo = _numpy_eigh_kernel()
-
-
-def _eigh(K):
-    """``np.linalg.eigh(K)`` of a float64 matrix, bit for bit, without the ~4 µs of its
-    checks and wrapping (the fit calls it ~1,000 times): NumPy's own LAPACK kernel. When
-    that gives NaN (NaN in ``K``, or no convergence), the answer is np.linalg.eigh's own:
-    its NaN, or its ``LinAlgError``."""
-    if _eigh_lo is None:
-        return np.linalg.eigh(K)
-    with np.errstate(invalid="ignore"):
-        lam, Q = _eigh_lo(K, signature="d->dd")
-    if lam.size and np.isnan(lam[0]):
-        return np.linalg.eigh(K)
-    return lam, Q
-
-
 def _design(Xu, Tu):
     """Rows [1, x, θ] for every (run, input) pair in run-major order: (R·N, 1 + d_x + p)."""
     R, N = Tu.shape[0], Xu.shape[0]
     return np.column_stack([np.ones(R * N), np.tile(Xu, (R, 1)), np.repeat(Tu, N, axis=0)])
 
 
-def _sq_diffs(A) -> np.ndarray:
-    """Squared differences of the rows of ``A`` (n, d) per column, shape (d, n, n)."""
-    A = np.asarray(A, dtype=np.float64)
-    return np.ascontiguousarray(((A[:, None, :] - A[None, :, :]) ** 2).transpose(2, 0, 1))
-
-
-def _m32_and_dlog_ell(A, ell, diffs):
-    """:func:`mdcore.kernels.matern32_and_dlog_ell` of ``A`` (n, d) at lengthscales ``ell``,
-    given ``diffs = _sq_diffs(A)`` (fixed during a fit).
-
-    The same floating-point operations in the same order (``scaled_sq_dist``, one
-    exponential shared by ``m32`` and its derivative), so the results are bit-identical
-    (``test_emulator`` checks), with about half the NumPy calls: the emulator fit is
-    dominated by per-call overhead on these small matrices, and its result must not move
-    (L-BFGS-B turns a 1-ulp change of the NLML into ~1e-5 in the hyperparameters).
-    """
-    n, d = A.shape
-    inv = 1.0 / ell
-    r2 = np.zeros((n, n))
-    for k in range(d):
-        a = A[:, k] * inv[k]
-        diff = a[:, None] - a[None, :]
-        r2 += diff * diff
-    r = np.sqrt(r2)                            # r2 ≥ +0: what matern32's max(r2, 0) gives
-    e = np.exp(-SQRT3 * r)
-    ell2 = np.array([ell[k] ** 2 for k in range(d)])    # a scalar ** 2 is pow(), not x * x
-    D = (3.0 * e) * diffs / ell2[:, None, None]
-    return (1.0 + SQRT3 * r) * e, D
-
-
-def _kron_solve(lp, Tu, Xu, res, diffs=None):
+def _kron_solve(lp, Tu, Xu, res):
     """Eigen-solve of ``K = σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N).
 
     Returns the factors, their log-ℓ derivatives, the eigenpairs, ``σ_f² λ_a μ_b``,
     ``S_ab = σ_f² λ_a μ_b + σ_n²`` and ``α`` in the eigenbasis, ``(Q_θᵀ Res Q_x) / S``;
-    shared by the likelihood and the fit. ``diffs``: ``(_sq_diffs(Tu), _sq_diffs(Xu))``.
+    shared by the likelihood and the fit.
     """
     p = Tu.shape[1]
-    dt2, dx2 = (_sq_diffs(Tu), _sq_diffs(Xu)) if diffs is None else diffs
-    Kt, Dt = _m32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]), dt2)
-    Kx, Dx = _m32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]), dx2)
+    Kt, Dt = matern32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]))
+    Kx, Dx = matern32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
     lam, Qt = _eig(Kt)
     mu, Qx = _eig(Kx)
     SO = np.exp(2 * lp[0]) * (lam[:, None] * mu[None, :])
@@ -215,7 +157,7 @@ def _kron_solve(lp, Tu, Xu, res, diffs=None):
     return Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, (Qt.T @ res @ Qx) / S
 
 
-def _kron_nlml(lp, Tu, Xu, res, diffs=None):
+def _kron_nlml(lp, Tu, Xu, res):
     """NLML of the Kronecker GP and its analytic gradient; ``res`` (R, N) residuals.
 
     With ``S_ab = σ_f² λ_a μ_b + σ_n²`` and ``P = Q_θᵀ Res Q_x``::
@@ -223,12 +165,10 @@ def _kron_nlml(lp, Tu, Xu, res, diffs=None):
         NLML = ½ Σ P²/S + ½ Σ log S + (RN/2) log 2π
         ∂NLML/∂φ = ½ tr(K⁻¹ ∂K) − ½ αᵀ ∂K α,   α = vec(Q_θ (P/S) Q_xᵀ)
 
-    ``diffs`` as in :func:`_kron_solve` (precomputed once per fit).
-    :func:`_kron_nlml_compiled` gives the same bits, faster.
     """
     p = Tu.shape[1]
     sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
-    Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, Pa = _kron_solve(lp, Tu, Xu, res, diffs)
+    Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, Pa = _kron_solve(lp, Tu, Xu, res)
     PP = Pa * Pa
     f = 0.5 * (PP * S).sum() + 0.5 * np.log(S).sum() + 0.5 * res.size * LOG_2PI
     A0 = Qt @ Pa @ Qx.T
@@ -247,43 +187,8 @@ def _kron_nlml(lp, Tu, Xu, res, diffs=None):
     return f, g
 
 
-def _kron_nlml_compiled(lp, Tu, Xu, res, diffs, k):
-    """:func:`_kron_nlml` to the last bit, with its elementwise arithmetic and sums in the
-    compiled kernels ``k`` (:func:`mdcore.compiled.fit_kernels`): about 30 calls per
-    evaluation instead of about 100 (the fit is dominated by per-call overhead on these
-    small matrices). ``exp``, ``log``, ``pow``, ``eigh`` (:func:`_eigh`) and the matrix
-    products stay the NumPy/BLAS calls of :func:`_kron_nlml`, on the same operands."""
-    p = Tu.shape[1]
-    sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
-    (dt2, dx2), R, N = diffs, Tu.shape[0], Xu.shape[0]
-    ell_t, ell_x = np.exp(lp[1:1 + p]), np.exp(lp[1 + p:-1])
-    rt, tt, rx, tx = np.empty((R, R)), np.empty((R, R)), np.empty((N, N)), np.empty((N, N))
-    k.fit_factors(Tu, ell_t, rt, tt, Xu, ell_x, rx, tx)
-    Kt, Dt = np.empty((R, R)), np.empty((p, R, R))
-    Kx, Dx = np.empty((N, N)), np.empty((Xu.shape[1], N, N))
-    k.fit_kernels(rt, np.exp(tt), dt2, np.array([v ** 2 for v in ell_t]), Kt, Dt,
-                  rx, np.exp(tx), dx2, np.array([v ** 2 for v in ell_x]), Kx, Dx)
-    lam, Qt = _eigh(Kt)
-    mu, Qx = _eigh(Kx)
-    SO, S, Pa = np.empty((R, N)), np.empty((R, N)), np.empty((R, N))
-    k.fit_spectrum(lam, mu, sf2, sn2, SO, S)
-    s_f, s_log, s_0, s_n = k.fit_terms(Qt.T @ res @ Qx, S, SO, np.log(S), Pa)
-    f = 0.5 * s_f + 0.5 * s_log + 0.5 * res.size * LOG_2PI
-    A0 = Qt @ Pa @ Qx.T
-    g = np.empty_like(lp)
-    g[0] = s_0
-    g[-1] = sn2 * s_n
-    # the products of every dimension at once: a stack's matmul is each slice's, bit for bit
-    k.fit_gradient(sf2, Qt, Dt, mu, Qx, Dx, lam, S, A0, Dt @ A0 @ Kx, Kt @ A0 @ Dx, g)
-    return f, g
-
-
-def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None):
-    """Fit one output: least-squares linear mean, then empirical Bayes for the GP.
-
-    ``kernels`` (:func:`mdcore.compiled.fit_kernels`): evaluate the likelihood with
-    :func:`_kron_nlml_compiled`, the same bits as :func:`_kron_nlml`, faster.
-    """
+def _fit_one(Tu, Xu, y, rng, n_starts, output=0):
+    """Fit one output: least-squares linear mean, then empirical Bayes for the GP."""
     F = _design(Xu, Tu)
     beta, *_ = np.linalg.lstsq(F, y.ravel(), rcond=None)
     res = (y.ravel() - F @ beta).reshape(y.shape)
@@ -294,11 +199,8 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None):
     best = None
     starts = lo + (hi - lo) * rng.uniform(size=(n_starts, lo.size))
     starts[0] = np.r_[np.log(sd), np.full(p + d_x, np.log(0.5)), np.log(sd * 1e-3)]
-    diffs = (_sq_diffs(Tu), _sq_diffs(Xu))
-    fun, args = ((_kron_nlml, (Tu, Xu, res, diffs)) if kernels is None else
-                 (_kron_nlml_compiled, (Tu, Xu, res, diffs, kernels)))
     for x0 in starts:
-        r = scipy.optimize.minimize(fun, x0, args=args, jac=True,
+        r = scipy.optimize.minimize(_kron_nlml, x0, args=(Tu, Xu, res), jac=True,
                                     method="L-BFGS-B", bounds=list(zip(lo, hi)))
         if best is None or r.fun < best.fun:
             best = r
@@ -308,7 +210,7 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None):
                       "predictions may be off. Add simulator runs (n_runs) or raise n_starts.",
                       ConvergenceWarning, stacklevel=3)
     lp = best.x
-    *_, Qt, _, Qx, _, S, Pa = _kron_solve(lp, Tu, Xu, res, diffs)
+    *_, Qt, _, Qx, _, S, Pa = _kron_solve(lp, Tu, Xu, res)
     return KronGP(lp, beta, Qt, Qx, np.exp(2 * lp[0]) * Qt @ Pa @ Qx.T, 1.0 / S)
 
 
@@ -366,20 +268,13 @@ class Emulator:
         return X, theta
 
     @single_threaded_blas
-    def predict(self, X, theta, *, backend: str | None = None) -> EmulatorPrediction:
+    def predict(self, X, theta) -> EmulatorPrediction:
         """Emulator mean and variance for every (θ, x) pair.
 
         Parameters
         ----------
         X : ndarray of shape (N, d_x)
         theta : ndarray of shape (n_theta, p)
-        backend : {"auto", "numpy", "numba"}, optional
-            ``"numpy"`` is the reference below; ``"numba"`` the compiled kernel
-            (:func:`mdcore.compiled.emulator_moments`). Default ``MDCORE_BACKEND``, else
-            numba when installed (:func:`mdcore.compiled.resolve_backend`). The two agree
-            to rounding: the variance to ~1e-15 σ_f²; the mean to ~1e-11 of its magnitude,
-            because with a tiny nugget it is a sum of terms ``k_θ A k_x`` up to ~1e5 times
-            larger than itself, so either path carries that rounding.
 
         Returns
         -------
@@ -387,8 +282,6 @@ class Emulator:
             ``mean`` and ``var`` of shape (n_theta, N, n_out).
         """
         X, theta = self._inputs(X, theta)
-        if compiled.resolve_backend(backend) == "numba":
-            return EmulatorPrediction(*compiled.emulator_moments(self.at(X).arrays(), theta))
         d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
         t_lo, t_span = self.bounds[:, 0], self.bounds[:, 1] - self.bounds[:, 0]
         Xu, Xtr = _unit(X, self._x_lo, self._x_span), _unit(self.X_train, self._x_lo, self._x_span)
@@ -407,15 +300,15 @@ class Emulator:
         return EmulatorPrediction(mean, var)
 
     @single_threaded_blas
-    def implausibility(self, X, theta, z, V, *, rank: int = 1,
-                       backend: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Combined implausibility of every θ (SPEC §5, Eq. 16) and the emulator variance.
+    def implausibility(self, X, theta, z, V, *, rank: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Combined implausibility of every θ (Eq. 16) and the emulator variance.
 
         ``I(θ)`` is the ``rank``-th largest over the targets (n, o) of
         ``|z[n, o] − E[y]| / sqrt(V[n, o] + V[y])`` at ``(θ, X[n])``, output ``o``: with
         ``V = V_o + V_m`` what :func:`mdcore.history_matching.implausibility` and
-        :func:`~mdcore.history_matching.combine` give on :meth:`predict`. The compiled path
-        fuses the three and never stores the mean.
+        :func:`~mdcore.history_matching.combine` give on :meth:`predict` (to rounding:
+        the mean is a sum of terms up to ~1e5 times larger than itself with a tiny
+        nugget, so ``I`` agrees to ~1e-11), in chunks on the compute threads.
 
         Parameters
         ----------
@@ -425,9 +318,6 @@ class Emulator:
             Observations and the variance ``V_o + V_m`` added to the emulator's.
         rank : {1, 2, 3}, default=1
             The max, 2nd max or 3rd max rule.
-        backend : {"auto", "numpy", "numba"}, optional
-            As in :meth:`predict`; on the same backend, ``var`` equals :meth:`predict`'s
-            and ``I`` is the formula above on its moments, to the last bit.
 
         Returns
         -------
@@ -448,20 +338,10 @@ class Emulator:
                              f"received {rank!r}.")
         if z.size < rank:
             raise ValueError(f"rank {rank} needs at least {rank} targets; received {z.size}.")
-        if compiled.resolve_backend(backend) == "numba":
-            I, var, n_bad = compiled.emulator_scores(self.at(X).arrays(), theta, z, V,
-                                                     int(rank))
-            total = None
-        else:
-            mean, var = self.predict(X, theta, backend="numpy")
-            total = V + var
-            n_bad = int(np.count_nonzero(total <= 0))
+        I, var, n_bad = _implausibility(self.at(X).arrays(), theta, z, V, rank)
         if n_bad:
             raise ValueError("V_o + V_m + var must be positive for every target; received a "
                              "zero. Give V_m > 0 or a positive observation variance.")
-        if total is not None:                   # the NumPy reference
-            I = np.abs(z - mean) / np.sqrt(total)
-            I = -np.partition(-I.reshape(len(I), z.size), rank - 1, axis=-1)[:, rank - 1]
         return I, var
 
     def at(self, X) -> EmulatorAt:
@@ -490,6 +370,41 @@ class Emulator:
             prior.append(np.exp(2 * g.log_params[0]) * matern32(
                 scaled_sq_dist(Xu, Xu, np.exp(g.log_params[1 + p:-1]))))
         return EmulatorAt(self, X, Xu, np.stack(lin), np.stack(AK), np.stack(V), np.stack(prior))
+
+
+def _implausibility(a: EmulatorArrays, theta: np.ndarray, z: np.ndarray, vt: np.ndarray,
+                    rank: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Eq. 16, combined by ``rank`` over the targets, and the emulator variance, from the
+    pieces of :meth:`EmulatorAt.arrays`, chunks of candidates on the compute threads.
+
+    Per output: ``k_θ = m32(θ, Θ_train)`` (distances by one product), ``E = lin + θᵀβ_θ
+    + k_θ AK`` and ``V = max(σ_f² − σ_f⁴ (k_θ Q_θ)² G, 0)``. Returns ``(I (M,), var
+    (M, N, n_out), n_bad)``, ``n_bad`` the targets with ``V_o + V_m + var ≤ 0``.
+    """
+    M, (N, n_out) = theta.shape[0], z.shape
+    imp, var = np.empty(M), np.empty((M, N, n_out))
+    bad = []
+
+    def work(sl, multi, n):
+        Tu = _unit(theta[sl], a.t_lo, a.t_span)
+        I = np.empty((n, N, n_out))
+        for o in range(n_out):
+            U, T = Tu * (SQRT3 * a.inv_ell[o]), a.T_train * (SQRT3 * a.inv_ell[o])
+            r = U @ (-2.0 * T.T)                      # (√3 r)² = |u|² − 2 u·t + |t|²
+            r += (U * U).sum(axis=1)[:, None] + (T * T).sum(axis=1)
+            r = np.sqrt(np.maximum(r, 0.0))
+            kt = (1.0 + r) * np.exp(-r)                                    # (n, R)
+            mean = kt @ a.AK[o] + (a.lin[o] + (Tu @ a.beta_t[o])[:, None])
+            q = kt @ a.Q_t[o]
+            v = var[sl, :, o] = np.maximum(a.sf2[o] - a.sf2[o] ** 2 * ((q * q) @ a.G[o]), 0.0)
+            total = vt[:, o] + v
+            bad.append(np.count_nonzero(total <= 0))
+            I[..., o] = np.abs(z[:, o] - mean) / np.sqrt(total)
+        I = I.reshape(n, -1)
+        imp[sl] = -np.partition(-I, rank - 1, axis=1)[:, rank - 1]
+
+    for_each_chunk(work, chunks((M,), 8.0 * (6 * N * n_out + 6 * a.T_train.shape[0])))
+    return imp, var, int(sum(bad))
 
 
 @dataclass(frozen=True, eq=False)
@@ -613,8 +528,7 @@ class EmulatorAt:
 
 
 @single_threaded_blas
-def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
-                 backend: str | None = None) -> Emulator:
+def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulator:
     """Fit one GP emulator per output from full simulator sweeps.
 
     Parameters
@@ -630,11 +544,6 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
     n_starts : int, default=2
         L-BFGS-B starts per output for the hyperparameters (empirical Bayes).
     seed : int or Generator, optional
-    backend : {"auto", "numpy", "numba"}, optional
-        ``"numba"`` evaluates the likelihood and its gradient with compiled kernels that
-        give the NumPy evaluation's exact bits (:func:`_kron_nlml_compiled`), so the
-        fitted emulator is identical on both backends, only faster. Default as
-        :func:`mdcore.compiled.resolve_backend`.
 
     Returns
     -------
@@ -655,7 +564,6 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
     x_span = np.where(np.ptp(X, axis=0) > 0, np.ptp(X, axis=0), 1.0)
     Xu = _unit(X, x_lo, x_span)
     Tu = _unit(theta, bounds[:, 0], bounds[:, 1] - bounds[:, 0])
-    kernels = compiled.fit_kernels() if compiled.resolve_backend(backend) == "numba" else None
-    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o, kernels)
+    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o)
                 for o in range(y.shape[2]))
     return Emulator(X, theta, y, bounds, x_lo, x_span, gps)

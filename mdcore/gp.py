@@ -1,4 +1,4 @@
-"""Batched Gaussian-process regression (SPEC §2–3, paper Eqs. 2–9).
+"""Batched Gaussian-process regression (paper Eqs. 2–9).
 
 The discrepancy GP maps simulator outputs and inputs ``{y, x}`` to observations ``z``
 with the separable Matérn 3/2 kernel of :mod:`mdcore.kernels` (Eq. 3). This module holds
@@ -19,13 +19,10 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 
-from . import compiled
 from .kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
 from .linalg import (
-    JITTER_LADDER,
     JitterLog,
     cholesky,
-    cholesky_steps,
     chunks,
     for_each_chunk,
     gather,
@@ -96,9 +93,8 @@ def check_problem(log_params, Y, X, z) -> Problem:
 
 
 @single_threaded_blas
-def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "numpy",
-                                jitter_log: JitterLog | None = None,
-                                stop: float | None = None) -> np.ndarray:
+def neg_log_marginal_likelihood(log_params, Y, X, z, *,
+                                jitter_log: JitterLog | None = None) -> np.ndarray:
     """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``.
 
     ``NLML = ½ zᵀ K⁻¹ z + Σ log L_ii + (N/2) log 2π`` with ``K = K_ff + σ_n² I``,
@@ -107,33 +103,18 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     Parameters
     ----------
     log_params : ndarray of shape (..., P)
-        ``P = 2 + d_y + d_x``, SPEC §2 layout.
+        ``P = 2 + d_y + d_x``: ``[log σ_f, log ℓ_y…, log ℓ_x…, log σ_n]``.
     Y : ndarray of shape (..., N, d_y)
         Simulator outputs used as GP inputs; leading dims broadcast with ``log_params``.
     X : ndarray of shape (N, d_x)
         Inputs.
     z : ndarray of shape (N,)
         Observations.
-    backend : {"numpy", "numba", "auto"} or None, default="numpy"
-        ``"numpy"`` is this function's reference implementation; ``"numba"`` the fused
-        kernels of :mod:`mdcore.compiled` (same ladder, warnings and results to ~1e-12);
-        ``"auto"`` is numba when installed; ``None`` reads ``MDCORE_BACKEND``
-        (:func:`mdcore.compiled.resolve_backend`). The scenario-3 paths of
-        :mod:`mdcore.discrepancy` choose the compiled one by default.
     jitter_log : JitterLog, optional
         Receives the counts of jittered and failed matrices instead of a warning (for
         callers that report them once, or not at all: an optimiser's trial points).
         Warnings filters are process-wide, so silencing them with ``catch_warnings``
         from several threads at once is not safe; this is.
-    stop : float, optional
-        An NLML beyond which the value is not wanted (a weight too small to matter):
-        elements whose NLML exceeds ``stop`` get ``+inf`` and count neither as jittered nor
-        as failed, nor do those whose NLML a bound from σ_f, σ_n and zᵀz alone puts
-        above ``stop`` (the compiled backend skips their entries: half of shear-5's
-        pairs). The compiled backend stops factorising such a matrix at the first
-        row where a lower bound of its NLML passes ``stop`` (every later row adds at
-        least ``log σ_n``), from N = 24 training points (below, the checks cost more
-        than they save). Scenario 3's weights use it (:data:`mdcore.discrepancy.ABANDON_MASS`).
 
     Returns
     -------
@@ -150,10 +131,6 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     """
     prob = check_problem(log_params, Y, X, z)
     _check_jitter_log(jitter_log)
-    stop = _check_stop(stop)
-    if compiled.resolve_backend(backend) == "numba":
-        return compiled.nlml(prob.log_params, prob.Y, prob.X, prob.z, jitter_log=jitter_log,
-                             stop=stop)
     N = prob.X.shape[0]
     out = np.empty(int(np.prod(prob.batch_shape, dtype=np.int64)))
     log = JitterLog() if jitter_log is None else jitter_log
@@ -162,15 +139,11 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     def work(sl, multi, n):
         theta = gather(prob.log_params, 1, prob.batch_shape, multi)
         Yc = gather(prob.Y, 2, prob.batch_shape, multi)
-        L, ok, step = cholesky_steps(train_cov(theta, Yc, prob.X, border=prob.z), n_cov=N)
+        L, ok = cholesky(train_cov(theta, Yc, prob.X, border=prob.z), log, n_cov=N)
         w = L[:, N, :N]                                   # L⁻¹ z from the bordered factor
         logdet = np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)[:, :N]), axis=-1)
         val = 0.5 * np.sum(w * w, axis=-1) + logdet + 0.5 * N * LOG_2PI  # Eq. 9
-        floor = _nlml_floor(theta, prob.z, N) > stop      # gone before any entry
-        gone = floor | (ok & (val > stop))                # not wanted: not jittered either
-        step[gone] = 0.0
-        log.record_steps(step, ~ok & ~floor)
-        out[sl] = np.where(ok & ~gone, val, np.inf)
+        out[sl] = np.where(ok, val, np.inf)
 
     for_each_chunk(work, chunks(prob.batch_shape, per_item))
     if jitter_log is None:
@@ -178,23 +151,8 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     return out.reshape(prob.batch_shape)
 
 
-def _nlml_floor(theta: np.ndarray, z: np.ndarray, N: int) -> np.ndarray:
-    """A lower bound of the NLML (Eq. 9) from σ_f, σ_n and zᵀz alone, for theta (b, P).
-
-    ``½ zᵀz / λ_max + N log σ_n + (N/2) log 2π``: every eigenvalue of K is at least σ_n²,
-    and ``λ_max ≤ N σ_f² + σ_n²`` (no entry of K_ff exceeds σ_f²) plus the jitter ladder's
-    largest step times the mean diagonal. The compiled kernel checks the same bound
-    before it computes a pair's entries, so both backends leave out these pairs alike.
-    """
-    sf2, sn2 = np.exp(2.0 * theta[:, 0]), np.exp(2.0 * theta[:, -1])
-    top = max(JITTER_LADDER, default=0.0)
-    lam = N * sf2 + sn2 + top * (sf2 + sn2)
-    return 0.5 * float(z @ z) / lam + N * theta[:, -1] + 0.5 * N * LOG_2PI
-
-
 @single_threaded_blas
-def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy"
-            ) -> GPPrediction:
+def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
     """Posterior predictive moments of the latent GP (Eq. 7), batched.
 
     Parameters
@@ -207,8 +165,6 @@ def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy
     Y_star : ndarray of shape (..., N*, d_y)
         Test simulator outputs; leading dims broadcast with ``Y`` and ``log_params``.
     X_star : ndarray of shape (N*, d_x)
-    backend : {"auto", "numpy", "numba"}, optional
-        As in :func:`neg_log_marginal_likelihood`.
 
     Returns
     -------
@@ -239,9 +195,6 @@ def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy
     except ValueError:
         raise ValueError(f"the leading dimensions of Y_star {Y_star.shape} do not broadcast "
                          f"with log_params/Y ({prob.batch_shape}).") from None
-    if compiled.resolve_backend(backend) == "numba":
-        return GPPrediction(*compiled.predict(prob.log_params, prob.Y, prob.X, prob.z, Y_star,
-                                              X_star))
     N, M = prob.X.shape[0], X_star.shape[0]
     total = int(np.prod(batch, dtype=np.int64))
     mean = np.empty((total, M))
@@ -269,16 +222,6 @@ def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy
     log.warn("predict")
     return GPPrediction(mean.reshape(batch + (M,)), var.reshape(batch + (M,)),
                         noise.reshape(batch))
-
-
-def _check_stop(stop) -> float:
-    """``stop`` as a float (None: +inf, never); NaN is refused."""
-    if stop is None:
-        return np.inf
-    value = float(as_float_array(stop, "stop", ndim=0, finite=False))
-    if np.isnan(value):
-        raise ValueError("stop must be an NLML level (a number, or inf for none); received NaN.")
-    return value
 
 
 def _check_jitter_log(jitter_log) -> None:

@@ -39,7 +39,6 @@ import scipy.optimize
 import scipy.special
 import scipy.stats
 
-from . import compiled
 from .emulator import Emulator, fit_emulator
 from .runs import run_simulator
 from .threads import single_threaded_blas
@@ -184,10 +183,6 @@ class HistoryMatchProblem:
         Seconds after which a batch of simulator runs counts as failed.
     max_failed_fraction : float
         A wave whose share of failed simulator runs exceeds this is an error.
-    backend : {"numpy", "numba"}
-        How waves fit the emulator and score candidates (:meth:`score`): the NumPy
-        reference or the compiled kernels (:func:`mdcore.emulator.fit_emulator`,
-        :meth:`mdcore.emulator.Emulator.implausibility`).
     """
 
     simulate: Callable = field(repr=False)
@@ -209,7 +204,6 @@ class HistoryMatchProblem:
     batch_size: int | None = None
     timeout: float | None = None
     max_failed_fraction: float = MAX_FAILED_FRACTION
-    backend: str = "numpy"
 
     @property
     def p(self) -> int:
@@ -236,12 +230,8 @@ class HistoryMatchProblem:
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (M, p) with p = {self.p}; received "
                              f"{theta.shape}.")
-        if self.backend == "numba":       # the fused compiled kernel
-            return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
-                                                  rank=RULES[self.rule], backend="numba"))
-        pred = emulator.predict(self.X, theta, backend="numpy")
-        I = implausibility(self.z, pred.mean, pred.var, V_o=self.V_o, V_m=self.V_m)
-        return Score(combine(I, self.rule), pred.var)
+        return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
+                                              rank=RULES[self.rule]))
 
     def implausibility(self, theta, emulator: Emulator) -> np.ndarray:
         """Combined implausibility (Eq. 16) of ``theta`` (M, p) under ``emulator``, (M,)."""
@@ -336,8 +326,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
           mcmc_steps: int = 4, convergence_ratio: float = 1.0,
           executor: Executor | None = None, batch_size: int | None = None,
           timeout: float | None = None,
-          max_failed_fraction: float = MAX_FAILED_FRACTION,
-          backend: str | None = None) -> HistoryMatchProblem:
+          max_failed_fraction: float = MAX_FAILED_FRACTION) -> HistoryMatchProblem:
     """Validate and assemble a history-matching problem.
 
     Parameters
@@ -384,12 +373,6 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Failed runs (raised, timed out, NaN/inf) are dropped and reported on the wave; when
         more than this share of a wave's runs fail (or all do), the wave is an error that
         names the first failure.
-    backend : {"auto", "numpy", "numba"}, optional
-        How each wave fits its emulator and scores its candidates: ``"numpy"`` (the
-        reference) or ``"numba"`` (compiled: a fit with the same bits, and scoring fused
-        with the implausibility; the same NROY sets). Default ``MDCORE_BACKEND``, else numba
-        when installed (:func:`mdcore.compiled.resolve_backend`).
-        :meth:`HistoryMatchResult.log_likelihood` (and so θ_MAP) always uses NumPy.
     """
     if not callable(simulate):
         raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
@@ -468,7 +451,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                                as_int(mcmc_steps, "mcmc_steps", 0, MAX_MCMC_STEPS),
                                convergence_ratio,
                                executor, batch_size, None if timeout is None else float(timeout),
-                               max_failed_fraction, compiled.resolve_backend(backend))
+                               max_failed_fraction)
 
 
 def _in_nroy(problem, waves, theta) -> np.ndarray:
@@ -557,8 +540,7 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
             "(simulate) or narrow the bounds to where it runs.")
     new_runs, new_y = new_runs[runs.ok], runs.y
     emulator = fit_emulator(problem.X, np.vstack([old_theta, new_runs]),
-                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng,
-                            backend=problem.backend)
+                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng)
     if k == 1:
         candidates = problem.bounds[:, 0] + span * rng.uniform(size=(problem.n_candidates,
                                                                       problem.p))
@@ -715,9 +697,7 @@ class HistoryMatchResult:
         Eq. 16 standardises by. θ (M, p) -> (M,).
         """
         theta = np.atleast_2d(as_float_array(theta, "theta"))
-        # NumPy on every backend: theta_map's Nelder–Mead turns 1e-16 changes of this into
-        # ~1e-7 changes of θ_MAP, and θ_MAP must not depend on the backend.
-        pred = self.waves[-1].emulator.predict(self.problem.X, theta, backend="numpy")
+        pred = self.waves[-1].emulator.predict(self.problem.X, theta)
         s2 = self.problem.V_o + self.problem.V_m + pred.var
         r2 = (self.problem.z - pred.mean) ** 2 / s2
         return -0.5 * np.sum(r2 + np.log(2.0 * np.pi * s2), axis=(1, 2))

@@ -22,15 +22,13 @@ Examples
 
 from __future__ import annotations
 
-import functools
-
 import numpy as np
 
 from .linalg import workspace
 from .validation import as_float_array, as_log_params
 
 __all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "split_log_params",
-           "separable_matern", "kernel", "train_cov", "cross_cov", "distinct_rows"]
+           "separable_matern", "kernel", "train_cov", "cross_cov"]
 
 SQRT3 = np.sqrt(3.0)
 
@@ -179,89 +177,6 @@ def _scaled_dist(D: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("btd,bd->bt", D2, scale * scale))
 
 
-def _pair_diffs(Y: np.ndarray, I: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """``Y[:, I, :] − Y[:, J, :]`` (b, T, d_y) for Y (b, N, d_y).
-
-    When every batch element has the same Y (a view broadcast over the batch, as in a
-    hyperparameter fit, whose particles share Y), the differences are taken once and
-    copied out: indexing a broadcast view gathers b copies (1.3 ms of a 1.7 ms call at
-    b = 40, N = 30, d_y = 5). The copy has the memory layout that the indexing gives
-    (batch fastest), so :func:`_scaled_dist` sums in the same order and the numbers are
-    the same bits (``tests/test_kernels.py``).
-    """
-    b = Y.shape[0]
-    if b < 2 or Y.strides[0] != 0:
-        return Y[:, I, :] - Y[:, J, :]
-    once = Y[0, I, :] - Y[0, J, :]                                  # (T, d_y)
-    out = np.empty(once.shape + (b,)).transpose(2, 0, 1)
-    out[...] = once
-    return out
-
-
-def distinct_rows(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct rows of ``A`` (N, d), exactly equal, in order of first appearance, and
-    the index of every row's distinct row, (N,): ``distinct[inverse]`` is ``A``.
-
-    Replicated inputs (shear-5 repeats each mass ten times) have equal kernel entries and
-    equal predictions: :func:`train_cov` and
-    :meth:`mdcore.discrepancy.DiscrepancyModel.predict` compute them once.
-
-    Raises
-    ------
-    ValueError
-        If ``A`` is not 2-D, is empty, or holds NaN or inf.
-
-    Examples
-    --------
-    >>> d, inv = distinct_rows(np.array([[3.0], [1.0], [3.0]]))
-    >>> d.ravel().tolist(), inv.tolist()
-    ([3.0, 1.0], [0, 1, 0])
-    """
-    A = as_float_array(A, "A", ndim=2)
-    _, first, inverse = np.unique(A, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)                    # distinct rows in order of first sight
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    return A[first[order]], rank[inverse.reshape(-1)]
-
-
-#: Whether :func:`train_cov` computes replicated inputs' entries once (tests turn it off
-#: to compare the bits).
-DISTINCT_INPUTS = True
-
-
-@functools.lru_cache(maxsize=32)
-def _distinct_pairs_of(rows: bytes, shape: tuple[int, int]):
-    """:func:`_distinct_pairs` for the (N, d) float64 rows given by their bytes (cached: a
-    hyperparameter fit asks for the same rows hundreds of times)."""
-    distinct, of = distinct_rows(np.frombuffer(rows, dtype=np.float64).reshape(shape))
-    U = distinct.shape[0]
-    if U == shape[0]:
-        return None
-    I, J = np.tril_indices(shape[0])
-    a, b = of[I], of[J]
-    key = np.maximum(a, b) * U + np.minimum(a, b)               # an unordered pair of inputs
-    _, pick, inverse = np.unique(key, return_index=True, return_inverse=True)
-    return I[pick], J[pick], inverse.reshape(-1)
-
-
-def _distinct_pairs(Y: np.ndarray, X: np.ndarray):
-    """``(I, J, inverse)`` for replicated inputs, else None: ``(I[k], J[k])`` is one
-    lower-triangle pair of each distinct pair of distinct rows of the joint input
-    ``[Y[0], X]``, and ``inverse`` gives, for every pair of :func:`numpy.tril_indices`,
-    the k of its distinct pair.
-
-    Replicated observations (shear-5 repeats each mass ten times, with the same simulator
-    output) have equal kernel entries: ``|a − b|`` and ``(a − b)²`` do not depend on the
-    order of a and b, so an entry computed for another pair of the same inputs has the
-    same bits. Only for a Y shared by the batch (a hyperparameter fit's particles).
-    """
-    if not DISTINCT_INPUTS or (Y.shape[0] > 1 and Y.strides[0] != 0) or X.shape[0] < 2:
-        return None
-    A = np.ascontiguousarray(np.concatenate([Y[0], X], axis=1), dtype=np.float64)
-    return _distinct_pairs_of(A.tobytes(), A.shape)
-
-
 def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> np.ndarray:
     """``K = K_ff + σ_n² I`` for a flat chunk: theta (b, P), Y (b, N, d_y) -> (b, N, N).
 
@@ -275,13 +190,10 @@ def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> n
     n = N if border is None else N + 1
     d_x = X.shape[1]
     I, J = np.tril_indices(N)
-    distinct = _distinct_pairs(Y, X)            # replicated inputs: their entries once
-    Ic, Jc = (I, J) if distinct is None else distinct[:2]
-    ry = _scaled_dist(_pair_diffs(Y, Ic, Jc), SQRT3 * np.exp(-theta[:, 1:1 + d_y]))
-    rx = _scaled_dist((X[Ic] - X[Jc])[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]))
+    ry = _scaled_dist(Y[:, I, :] - Y[:, J, :], SQRT3 * np.exp(-theta[:, 1:1 + d_y]))
+    rx = _scaled_dist((X[I] - X[J])[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]))
     K = np.zeros((b, n, n))
-    entries = separable_matern(2.0 * theta[:, :1], ry, rx)
-    K[:, I, J] = entries if distinct is None else entries[:, distinct[2]]
+    K[:, I, J] = separable_matern(2.0 * theta[:, :1], ry, rx)
     sn2 = np.exp(2.0 * theta[:, -1:])
     K[:, np.arange(N), np.arange(N)] += sn2
     if border is not None:

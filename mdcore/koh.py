@@ -60,12 +60,12 @@ from .emulator import Emulator, EmulatorAt, ThetaTerms
 from .exceptions import ConvergenceWarning, NumericalWarning
 from .hyperfit import default_bounds, lbfgs_advice, lbfgs_converged
 from .kernels import kernel, matern32_and_dlog_ell
-from .linalg import JitterLog, cholesky, solve_lower_inplace
-from .mcmc import MAX_CHAIN, Chain, adaptive_metropolis
+from .linalg import JITTER_LADDER, JitterLog, cholesky, solve_lower_inplace
+from .mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_setup
 from .priors import GaussianPrior, ThetaPrior
 from .validation import as_float_array, as_int, as_outputs, check_bounds
 
-__all__ = ["KOHModel", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
+__all__ = ["KOHModel", "KOHOptions", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
            "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST", "MAX_CHAIN"]
 
 #: The paper's chain: 150,000 iterations of which the first 50,000 are burn-in (SPEC §7).
@@ -471,18 +471,61 @@ class KOHModel:
         return DiscrepancyPrediction(z_mean.T, z_var.T, d_mean.T, d_var.T)
 
 
-def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
-          phi_prior: GaussianPrior | None = None, n_iter: int = N_ITER,
-          burn_in: int = BURN_IN, n_theta_eb: int = N_THETA_EB, n_predict: int = N_PREDICT,
-          seed=None, backend: str | None = None,
-          progress: Callable[[float], None] | None = None) -> KOHModel:
+@dataclass(frozen=True, eq=False)
+class KOHOptions:
+    """Settings of :func:`infer_koh`.
+
+    Parameters
+    ----------
+    n_iter, burn_in : int
+        Chain length and burn-in (the paper's 150,000 and 50,000; :data:`FAST` for the app).
+    n_theta_eb : int, default=200
+        Prior θ draws averaged over in the empirical-Bayes objective.
+    n_predict : int, default=1000
+        θ samples used by :meth:`KOHModel.predict`.
+    log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
+        Fixed discrepancy hyperparameters; default: :func:`fit_phi`.
+    phi_prior : GaussianPrior of size 2 + d_x, optional
+        Hyperprior for :func:`fit_phi` (MAP); None is plain empirical Bayes.
+    backend : {"auto", "numpy", "numba"} or None, default="auto"
+        The chain with an emulator: ``"numba"`` runs it in compiled blocks
+        (:func:`mdcore.compiled.koh_chain`), ``"numpy"`` in the Python loop of
+        :func:`mdcore.mcmc.adaptive_metropolis`; the chains agree to ~1e-12. ``"auto"`` is
+        numba when installed, None reads ``MDCORE_BACKEND``.
+    """
+
+    n_iter: int = N_ITER
+    burn_in: int = BURN_IN
+    n_theta_eb: int = N_THETA_EB
+    n_predict: int = N_PREDICT
+    log_phi: np.ndarray | None = None
+    phi_prior: GaussianPrior | None = None
+    backend: str = "auto"
+
+    def __post_init__(self):
+        n_iter = as_int(self.n_iter, "n_iter", 2, MAX_CHAIN)
+        burn_in = as_int(self.burn_in, "burn_in", 0, MAX_CHAIN)
+        if burn_in >= n_iter - 1:          # checked before φ̂, not after it
+            raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so "
+                             f"that at least two samples are kept; received burn_in={burn_in}."
+                             " The paper: n_iter = 150,000 with burn_in = 50,000.")
+        object.__setattr__(self, "n_iter", n_iter)
+        object.__setattr__(self, "burn_in", burn_in)
+        object.__setattr__(self, "n_theta_eb",
+                           as_int(self.n_theta_eb, "n_theta_eb", 1, 1_000_000))
+        object.__setattr__(self, "n_predict", as_int(self.n_predict, "n_predict", 1, MAX_CHAIN))
+        object.__setattr__(self, "backend", compiled.resolve_backend(self.backend))
+
+
+def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = None,
+              seed=None, progress: Callable[[float], None] | None = None) -> KOHModel:
     """Kennedy–O'Hagan calibration: φ̂ by empirical Bayes, then θ by adaptive Metropolis.
 
     Parameters
     ----------
     model : Emulator or callable
-        The emulator of SPEC §4 (its mean and covariance enter the likelihood), or an
-        exact ``simulate(X, theta) -> (n_theta, N, n_out)`` (no emulator variance).
+        The history-matching emulator (its mean and covariance enter the likelihood), or
+        an exact ``simulate(X, theta) -> (n_theta, N, n_out)`` (no emulator variance).
     X : ndarray of shape (N, d_x)
         Observed inputs (repeated rows are replicates).
     z : ndarray of shape (N, n_out) or (N,)
@@ -492,22 +535,9 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
         mm, E ~ N(70, 36) GPa). Truncated to ``bounds``.
     bounds : ndarray of shape (p, 2)
         Box of θ (the emulator is only trusted inside it).
-    log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
-        Fixed discrepancy hyperparameters; default: :func:`fit_phi`.
-    phi_prior : GaussianPrior of size 2 + d_x, optional
-        Hyperprior for :func:`fit_phi` (MAP); None is plain empirical Bayes.
-    n_iter, burn_in : int
-        Chain length and burn-in (the paper's 150,000 and 50,000; :data:`FAST` for the app).
-    n_theta_eb : int, default=200
-        Prior θ draws averaged over in the empirical-Bayes objective.
-    n_predict : int, default=1000
-        θ samples used by :meth:`KOHModel.predict`.
+    options : KOHOptions, optional
+        Chain length, φ̂ and the backend; default ``KOHOptions()`` (the paper's chain).
     seed : int or Generator, optional
-    backend : {"auto", "numpy", "numba"}, optional
-        The chain's likelihood step with an emulator: ``"numba"`` evaluates it in one
-        compiled call (:func:`mdcore.compiled.koh_log_likelihood`), ``"numpy"`` with the
-        reference code below; the same numbers to ~1e-12. Default ``MDCORE_BACKEND``, else
-        numba when installed (:func:`mdcore.compiled.resolve_backend`).
     progress : callable, optional
         Fraction done (0–1); if it raises, inference stops (use this to cancel).
 
@@ -516,6 +546,9 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
     KOHModel
     """
     start = time.perf_counter()
+    options = KOHOptions() if options is None else options
+    if not isinstance(options, KOHOptions):
+        raise ValueError(f"options must be a KOHOptions; received {type(options).__name__}.")
     bounds = check_bounds(bounds)
     p = bounds.shape[0]
     prior = _theta_prior(theta_prior, bounds)
@@ -531,27 +564,19 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
     elif not callable(model):
         raise ValueError("model must be an Emulator or a callable simulate(X, theta); "
                          f"received {type(model).__name__}.")
+    phi_prior = options.phi_prior
     if phi_prior is not None and phi_prior.size != 2 + d_x:
         raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
                          f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
-    n_iter = as_int(n_iter, "n_iter", 2, MAX_CHAIN)
-    burn_in = as_int(burn_in, "burn_in", 0, MAX_CHAIN)
-    if burn_in >= n_iter - 1:          # checked before φ̂, not after it (mcmc checks again)
-        raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so that at "
-                         f"least two samples are kept; received burn_in={burn_in}. The "
-                         "paper: n_iter = 150,000 with burn_in = 50,000.")
-    n_theta_eb = as_int(n_theta_eb, "n_theta_eb", 1, 1_000_000)
-    n_predict = as_int(n_predict, "n_predict", 1, MAX_CHAIN)
-    backend = compiled.resolve_backend(backend)
     rng = np.random.default_rng(seed)
     at = _at(model, X, n_out)
 
-    draws = prior.sample_in(bounds, n_theta_eb, seed=rng)
+    draws = prior.sample_in(bounds, options.n_theta_eb, seed=rng)
     mean, cov = at.moments_at(at.theta_terms(draws))     # for φ̂ and the starting point
-    if log_phi is None:
+    if options.log_phi is None:
         log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng)
     else:
-        log_phi, log_evidence = _log_phi(log_phi, n_out, d_x), None
+        log_phi, log_evidence = _log_phi(options.log_phi, n_out, d_x), None
     seconds_phi = time.perf_counter() - start
     if progress is not None:
         progress(0.05)
@@ -562,6 +587,7 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
     log = JitterLog()
     mu, sd = prior.mean, np.sqrt(prior.var)
     lo_u, hi_u = (bounds[:, 0] - mu) / sd, (bounds[:, 1] - mu) / sd
+
     def log_target(u):
         """log p(z | θ, φ̂) + log p(θ) in standardised coordinates u = (θ − μ) / sd."""
         if np.any(u < lo_u) or np.any(u > hi_u):
@@ -570,18 +596,22 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
         mean, cov = at.moments_at(at.theta_terms(theta, check=False))
         return float(gaussian_log_likelihood(mean, cov, B, zT, log)[0]) - 0.5 * float(u @ u)
 
-    if backend == "numba" and isinstance(at, EmulatorAt):   # the same target, compiled
-        arrays = at.arrays()
-        log_target = compiled.KOHTarget(arrays, arrays.prior + B, zT, log, mu, sd, lo_u, hi_u)
-
     # Start at the most probable of the prior draws (φ̂ is fixed now).
     lp0 = gaussian_log_likelihood(mean, cov, B, zT, log) + prior.logpdf(draws)
     u0 = (draws[int(np.argmax(lp0))] - mu) / sd
     report = None if progress is None else (lambda f: progress(0.05 + 0.95 * f))
-    chain = adaptive_metropolis(log_target, u0, n_iter=n_iter, burn_in=burn_in,
-                                seed=rng, progress=report)
+    chain_options = dict(n_iter=options.n_iter, burn_in=options.burn_in)
+    if options.backend == "numba" and isinstance(at, EmulatorAt):
+        arrays = at.arrays()
+        koh = compiled.KOHData(arrays.prior + B, zT, mu, sd, lo_u, hi_u,
+                               np.asarray(JITTER_LADDER, dtype=np.float64))
+        chain = compiled.koh_chain(arrays, koh, chain_setup(log_target, u0, **chain_options),
+                                   rng, report, log)
+    else:
+        chain = adaptive_metropolis(log_target, u0, seed=rng, progress=report,
+                                    **chain_options)
     log.warn("KOH likelihood")
     chain = dataclasses.replace(chain, samples=mu + sd * chain.samples,
                                 proposal_cov=chain.proposal_cov * np.outer(sd, sd))
-    return KOHModel("koh", X, z, bounds, prior, log_phi, log_evidence, chain, n_predict,
-                    seconds_phi, time.perf_counter() - start, model, at)
+    return KOHModel("koh", X, z, bounds, prior, log_phi, log_evidence, chain,
+                    options.n_predict, seconds_phi, time.perf_counter() - start, model, at)

@@ -1,13 +1,13 @@
-"""Batched linear algebra and the chunk engine of the GP core (SPEC §3 numerics).
+"""Batched linear algebra and the chunk engine of the GP core.
 
-- :func:`cholesky`: lower Cholesky factors of a batch of matrices with the SPEC §3 jitter
-  ladder per matrix (growing steps × mean diagonal), and :class:`JitterLog`, which counts
-  what needed jitter or failed so a public call warns once (never a silent NaN).
+- :func:`cholesky`: lower Cholesky factors of a batch of matrices with a jitter ladder per
+  matrix (growing steps × mean diagonal), and :class:`JitterLog`, which counts what needed
+  jitter or failed so a public call warns once (never a silent NaN).
 - :func:`solve_lower_inplace`: forward substitution over a batch without temporaries.
 - The chunk engine: :func:`chunks` splits a broadcast batch into pieces of bounded memory,
   :func:`gather` picks a chunk's rows without materialising the broadcast, and
-  :func:`for_each_chunk` runs chunks on the machine's cores; :func:`workspace` hands each
-  thread reusable buffers.
+  :func:`for_each_chunk` runs chunks on the compute threads (:mod:`mdcore.threads`);
+  :func:`workspace` hands each thread reusable buffers.
 
 Examples
 --------
@@ -20,25 +20,22 @@ Examples
 
 from __future__ import annotations
 
-import os
 import threading
 import warnings
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from .exceptions import NumericalWarning
+from .threads import run_pieces
 
-__all__ = ["JITTER_LADDER", "CHUNK_BYTES", "N_WORKERS", "JitterLog", "cholesky",
+__all__ = ["JITTER_LADDER", "CHUNK_BYTES", "JitterLog", "cholesky", "cholesky_steps",
            "solve_lower_inplace", "workspace", "gather", "chunks", "for_each_chunk"]
 
-#: Relative jitter steps (× mean diagonal) tried when a Cholesky fails (SPEC §3).
+#: Relative jitter steps (× mean diagonal) tried when a Cholesky fails.
 JITTER_LADDER = (1e-10, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4)
 #: Working-memory budget of one chunk, in bytes.
 CHUNK_BYTES = 4 * 2**20
-#: Threads used over chunks (the core is otherwise single-threaded NumPy).
-N_WORKERS = max(1, min(os.cpu_count() or 1, 8))
 
 
 def _raw_cholesky(K: np.ndarray) -> np.ndarray:
@@ -100,7 +97,7 @@ class JitterLog:
 def cholesky(K: np.ndarray, log: JitterLog, n_cov: int | None = None):
     """Lower Cholesky factors of (B, n, n) matrices with a per-matrix jitter ladder.
 
-    The jitter (SPEC §3: growing steps × mean diagonal) is scaled by, and added to, the
+    The jitter (growing steps × mean diagonal) is scaled by, and added to, the
     first ``n_cov`` diagonal entries only (default all), so a bordered matrix
     ``[[K, z], [zᵀ, c]]`` jitters just its covariance block. ``log`` records the matrices
     that needed jitter or failed.
@@ -191,39 +188,10 @@ def chunks(batch_shape: tuple, bytes_per_item: float):
     return out
 
 
-_POOL: list[ThreadPoolExecutor] = []       # the process's chunk pool, made on first use
-_POOL_LOCK = threading.Lock()
-
-
-def _forget_pool_after_fork() -> None:
-    """In a forked child the pool's threads are gone: start a new pool on first use."""
-    _POOL.clear()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool_after_fork)
-
-
-def _chunk_pool() -> ThreadPoolExecutor:
-    with _POOL_LOCK:
-        if not _POOL:
-            _POOL.append(ThreadPoolExecutor(max_workers=N_WORKERS,
-                                            thread_name_prefix="mdcore-chunks"))
-        return _POOL[0]
-
-
 def for_each_chunk(work: Callable, pieces: list) -> None:
-    """Run ``work(slice, multi, n)`` on every chunk, on all cores.
+    """Run ``work(slice, multi, n)`` on every chunk, on the compute threads.
 
     NumPy's element-wise loops and LAPACK release the GIL, so threads over independent
-    chunks scale on the machine's cores; each chunk writes a disjoint output slice. The
-    threads are one process-wide pool: a pool per call started and joined two threads
-    every time, a third of a small call (the 120 swarm steps of a hyperparameter fit).
-    ``work`` must not call this function (the pool's threads would wait on themselves).
+    chunks scale on the machine's cores; each chunk writes a disjoint output slice.
     """
-    if min(N_WORKERS, len(pieces)) <= 1:
-        for c in pieces:
-            work(*c)
-        return
-    for f in [_chunk_pool().submit(work, *c) for c in pieces]:
-        f.result()
+    run_pieces(work, pieces)

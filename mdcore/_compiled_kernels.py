@@ -130,13 +130,7 @@ def _factor_row(A, R, j, n, jitter):
     for t in range(m):
         rj[t] = aj[t]
     rj[0] += jitter
-    j4 = j - j % 4
-    for k in range(0, j4, 4):                       # four rows a pass: a quarter the stores
-        r0, r1, r2, r3 = R[k, j:], R[k + 1, j:], R[k + 2, j:], R[k + 3, j:]
-        l0, l1, l2, l3 = r0[0], r1[0], r2[0], r3[0]
-        for t in range(m):
-            rj[t] -= (l0 * r0[t] + l1 * r1[t]) + (l2 * r2[t] + l3 * r3[t])
-    for k in range(j4, j):
+    for k in range(j):
         rk = R[k, j:]
         lk = rk[0]
         for t in range(m):
@@ -190,7 +184,7 @@ def _log_density(R, n, c):
 
 
 @_kernel
-def pair_range(mode, b0, b1, pairs, test, stop, out, acc):
+def pair_range(mode, b0, b1, pairs, test, ladder, out, acc):
     """Pairs ``b0 ≤ b < b1``: the NLML (Eq. 9) of ``(θ = pairs.theta[b],
     y = pairs.Y[pairs.row[b]])`` for every column of ``pairs.z`` (one factorisation), and
     in :data:`MIXTURE` mode the mixture sums (Eq. 15) of the first column.
@@ -206,16 +200,11 @@ def pair_range(mode, b0, b1, pairs, test, stop, out, acc):
         ``test.X_star`` (Eq. 7), noise ``σ_n²``, ``y* = test.y_out[row]``, weight
         ``w = test.weight[b]``, ``dz = μ − test.centre[0]``, ``dd = μ − y* −
         test.centre[1]``, adds ``w · [dz, dd, v + σ_n² + dz², v + dd²]`` to ``acc`` (4, M).
-    stop : (ladder (L,), cut (n_z,))
-        The relative jitter steps, and per column an NLML beyond which it is not wanted
-        (``inf``: none). The factorisation stops at the first row where, for every column,
-        ``½ Σ (L⁻¹z)² + Σ log L_ii`` so far plus ``log σ_n`` for each row still to come
-        (each adds at least that) passes its cut; a column past its cut gets ``inf``.
+    ladder : (L,) relative jitter steps
     out : mdcore.compiled.PairOut
         ``nlml`` (B, n_z), ``step`` (the jitter step used), ``failed`` (no step worked:
-        NLML ``inf``) and ``dropped`` (failed, past every cut, or non-finite moments).
+        NLML ``inf``) and ``dropped`` (failed, or non-finite moments).
     """
-    ladder, cut = stop
     theta, row, Y, X, z = pairs
     N, d_x = X.shape
     d_y, n_z = Y.shape[2], z.shape[1]
@@ -229,12 +218,8 @@ def pair_range(mode, b0, b1, pairs, test, stop, out, acc):
     entries, V = np.empty(T), np.empty((N, M))
     mean, ss = np.empty(M), np.empty(M)
     sy, sx = np.empty(d_y), np.empty(d_x)
-    ww = np.empty(n_z)
     n_work = max(T, N * M)
     work = (np.empty(n_work), np.empty(n_work), np.empty(n_work, np.int64))
-    check = False
-    for c in range(n_z):
-        check |= cut[c] < np.inf
     last = -1
     for b in range(b0, b1):
         th = theta[b]
@@ -258,30 +243,11 @@ def pair_range(mode, b0, b1, pairs, test, stop, out, acc):
             A[i, i] += math.exp(2.0 * log_sn)
             for c in range(n_z):
                 A[i, N + c] = z[i, c]
-        ok, gone, step = True, False, 0.0
-        ww[:] = 0.0
-        logdet = 0.0
-        for j in range(N):
-            if not _factor_row(A, R, j, N, 0.0):
-                ok = False
-                break
-            if check:                                 # every column past its cut?
-                logdet += math.log(R[j, j])
-                gone = True
-                for c in range(n_z):
-                    ww[c] += R[j, N + c] * R[j, N + c]
-                    gone &= 0.5 * ww[c] + logdet + (N - 1 - j) * log_sn \
-                        > cut[c] - 0.5 * N * LOG_2PI
-                if gone:
-                    break
-        if not ok:
-            ok, step = _factor(A, R, N, ladder)
+        ok, step = _factor(A, R, N, ladder)
         out.step[b] = step
-        out.failed[b] = not ok
-        out.dropped[b] = gone or not ok
+        out.failed[b] = out.dropped[b] = not ok
         for c in range(n_z):
-            value = -_log_density(R, N, c) + 0.5 * N * LOG_2PI if ok and not gone else np.inf
-            out.nlml[b, c] = value if value <= cut[c] else np.inf
+            out.nlml[b, c] = -_log_density(R, N, c) + 0.5 * N * LOG_2PI if ok else np.inf
         if mode == NLML or not ok:
             continue
         _matern_flat(DYc, DXc, sy, sx, log_sf2, V.reshape(N * M), work)       # K_f*

@@ -179,8 +179,7 @@ def _pieces(n: int) -> list[tuple[int, int]]:
     return [(a, min(n, a + size)) for a in range(0, n, size)]
 
 
-def _run_pairs(mode: int, pairs: Pairs, test: Test, jitter_log: JitterLog | None,
-               stop=np.inf):
+def _run_pairs(mode: int, pairs: Pairs, test: Test, jitter_log: JitterLog | None):
     k = _kernels()
     theta, row, Y, X, z = pairs
     z = np.asarray(z, dtype=np.float64)
@@ -191,12 +190,11 @@ def _run_pairs(mode: int, pairs: Pairs, test: Test, jitter_log: JitterLog | None
     B, M = pairs.theta.shape[0], test.X_star.shape[0]
     out = PairOut(np.empty((B, z.shape[1])), np.empty(B), np.empty(B, bool),
                   np.empty(B, bool))
-    cut = (np.asarray(JITTER_LADDER, dtype=np.float64),
-           _contiguous(np.broadcast_to(np.asarray(stop, dtype=np.float64), z.shape[1:])))
+    ladder = np.asarray(JITTER_LADDER, dtype=np.float64)
 
     def work(b0, b1):
         acc = np.zeros((4, M))
-        k.pair_range(mode, b0, b1, pairs, test, cut, out, acc)
+        k.pair_range(mode, b0, b1, pairs, test, ladder, out, acc)
         return acc
 
     acc = np.zeros((4, M))
@@ -209,7 +207,7 @@ def _run_pairs(mode: int, pairs: Pairs, test: Test, jitter_log: JitterLog | None
     return out, acc
 
 
-def nlml(pairs: Pairs, jitter_log: JitterLog | None = None, stop=np.inf) -> np.ndarray:
+def nlml(pairs: Pairs, jitter_log: JitterLog | None = None) -> np.ndarray:
     """NLML (Eq. 9) of every pair: :func:`mdcore.gp.neg_log_marginal_likelihood` of
     ``(pairs.theta[b], pairs.Y[pairs.row[b]])``, with the same jitter ladder; ``inf`` for a
     covariance that no step factorises.
@@ -220,10 +218,6 @@ def nlml(pairs: Pairs, jitter_log: JitterLog | None = None, stop=np.inf) -> np.n
         ``z`` of shape (N,) or (N, n_z): several outputs share each pair's factor.
     jitter_log : JitterLog, optional
         Receives the jitter counts (without it they are a warning).
-    stop : float or ndarray of shape (n_z,), default=inf
-        Per output, an NLML beyond which the value is not wanted: it becomes ``inf``, and
-        a pair's factorisation stops as soon as a lower bound of its NLML passes the
-        stop of every output (such a pair counts neither as jittered nor as failed).
 
     Returns
     -------
@@ -232,7 +226,7 @@ def nlml(pairs: Pairs, jitter_log: JitterLog | None = None, stop=np.inf) -> np.n
     d_y, d_x = pairs.Y.shape[2], pairs.X.shape[1]
     empty = Test(np.zeros((1, 0, d_y)), np.zeros((1, 0)), np.zeros((0, d_x)),
                  np.zeros(1), np.zeros((2, 0)))
-    out = _run_pairs(_kernels().NLML, pairs, empty, jitter_log, stop)[0].nlml
+    out = _run_pairs(_kernels().NLML, pairs, empty, jitter_log)[0].nlml
     return out[:, 0] if np.ndim(pairs.z) == 1 else out
 
 

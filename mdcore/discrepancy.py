@@ -85,13 +85,6 @@ BLOCK_BYTES = 32 * 2**20
 MIN_FUSED_BLOCK = 2048
 #: (θ, φ) pairs per chunk of scenario 3's weights (one task, one progress step).
 WEIGHT_PAIRS = 100_000
-#: The compiled path of scenario 3 (prior proposal) stops weighing a pair as soon as its
-#: weight is provably below ``ABANDON_MASS / (N_s N_φ)`` of the total, so the pairs left
-#: out (log weight ``-inf``) add up to less than this (float64 resolves ~1.1e-16 of a sum
-#: of 1); the bound comes from the best of the first :data:`PILOT_PAIRS` pairs, weighed
-#: in full (:func:`_nlml_rows`).
-ABANDON_MASS = 1e-16
-PILOT_PAIRS = 10_000
 #: Chunks submitted to an executor and not yet collected, at most.
 IN_FLIGHT = 32
 #: Scenario 3's prior draws φ (N_s, N_φ, P) are kept up to this size, in bytes; larger
@@ -266,7 +259,7 @@ def _counts(log: JitterLog) -> tuple:
 
 
 def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
-                   backend: str, stop: np.ndarray) -> tuple[np.ndarray, tuple]:
+                   backend: str) -> tuple[np.ndarray, tuple]:
     """Scenario 3's log weights ``−NLML`` (Eq. 15) of one chunk of pairs, every output.
 
     Module level and on plain arrays, so that process and Dask executors can run it.
@@ -280,15 +273,11 @@ def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
     X : ndarray of shape (N, d_x)
     z : ndarray of shape (N, n_out)
     backend : {"numpy", "numba"}
-    stop : ndarray of shape (n_out,)
-        Compiled backend: the NLML per output beyond which a pair is left out
-        (:func:`mdcore.compiled.nlml`); ``inf`` for none.
 
     Returns
     -------
     log_w : ndarray of shape (n_out, R, K)
-        Unnormalised log weights; ``-inf`` where the covariance could not be factorised
-        (or, compiled, the NLML passed ``stop``).
+        Unnormalised log weights; ``-inf`` where the covariance could not be factorised.
     jitter : tuple
         ``(jittered, failed, max_jitter)`` for the caller to report once.
     """
@@ -296,7 +285,7 @@ def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
     log = JitterLog()
     if backend == "numba":          # the outputs share each pair's factor
         pairs = compiled.Pairs(phi.reshape(R * K, P), np.repeat(np.arange(R), K), Y, X, z)
-        out = -compiled.nlml(pairs, log, stop).T.reshape(z.shape[1], R, K)
+        out = -compiled.nlml(pairs, log).T.reshape(z.shape[1], R, K)
         return out, _counts(log)
     out = np.empty((z.shape[1], R, K))
     for o in range(z.shape[1]):
@@ -611,54 +600,31 @@ class _Data(NamedTuple):
 
 
 def _nlml_rows(blocks: Iterable[tuple[slice, np.ndarray]], K: int, data: _Data,
-               jitter: JitterLog, progress: Callable[[float], None] | None = None,
-               abandon: bool = False) -> np.ndarray:
+               jitter: JitterLog, progress: Callable[[float], None] | None = None
+               ) -> np.ndarray:
     """``−NLML`` (Eq. 15) of every pair ``(φ^(j,k), Y[j])`` and output, (n_out, S, K), one
     chunk of θ rows at a time (on ``data.executor`` or here).
 
     ``blocks`` gives the θ rows of each chunk and their φ draws (R, K, P), in row order,
     covering every row; made lazily, so only the chunks in flight are held. ``progress``
     gets the fraction of rows done after each chunk; ``jitter`` the jitter counts.
-
-    With ``abandon`` (compiled backend), the first :data:`PILOT_PAIRS` pairs are weighed in
-    full; every later pair whose NLML exceeds ``stop = best + log(S K / ABANDON_MASS)``
-    (``best`` the pilot's smallest NLML per output) gets ``−inf``. Its normalised weight
-    is below ``ABANDON_MASS / (S K)`` (the normaliser is at least the best pair's weight),
-    so these pairs add up to less than :data:`ABANDON_MASS`. The pilot is fixed, so the
-    numbers do not depend on the executor.
     """
     S = data.Y.shape[0]
-    n_out = data.z.shape[1]
-    log_weights = np.empty((n_out, S, K))
-    stop = np.full(n_out, np.inf)
+    log_weights = np.empty((data.z.shape[1], S, K))
     steps: collections.deque = collections.deque()
-    blocks = iter(blocks)
 
-    def payloads(chunks):
-        for sl, phi in chunks:
+    def payloads():
+        for sl, phi in blocks:
             steps.append(sl)
-            yield phi, data.Y[sl], data.X, data.z, data.backend, stop.copy()
+            yield phi, data.Y[sl], data.X, data.z, data.backend
 
-    def collect(chunks):
-        with contextlib.closing(_in_order(data.executor, _weights_chunk,
-                                          payloads(chunks))) as results:
-            for part, counts in results:
-                sl = steps.popleft()
-                log_weights[:, sl] = part
-                jitter.record(*counts)
-                if progress is not None:
-                    progress(sl.stop / S)
-
-    first = next(blocks, None) if abandon else None
-    if first is not None:
-        sl, phi = first
-        r0 = min(phi.shape[0], -(-PILOT_PAIRS // K))
-        collect([(slice(sl.start, sl.start + r0), phi[:r0])])
-        best = -np.max(log_weights[:, sl.start:sl.start + r0].reshape(n_out, -1), axis=1)
-        stop[:] = np.where(np.isfinite(best), best + np.log(S * K / ABANDON_MASS), np.inf)
-        if r0 < phi.shape[0]:
-            collect([(slice(sl.start + r0, sl.stop), phi[r0:])])
-    collect(blocks)
+    with contextlib.closing(_in_order(data.executor, _weights_chunk, payloads())) as results:
+        for part, counts in results:
+            sl = steps.popleft()
+            log_weights[:, sl] = part
+            jitter.record(*counts)
+            if progress is not None:
+                progress(sl.stop / S)
     return log_weights
 
 
@@ -686,8 +652,7 @@ def _prior_proposal(data: _Data, prior, n_phi, rng, progress, jitter):
                 phi[sl] = draws
             yield sl, draws
 
-    log_weights = _nlml_rows(blocks(), n_phi, data, jitter, progress,
-                             abandon=data.backend == "numba" and ABANDON_MASS > 0)
+    log_weights = _nlml_rows(blocks(), n_phi, data, jitter, progress)
     for o in range(n_out):
         _normalise(log_weights[o], o)
     log_params = None if phi is None else np.broadcast_to(phi, (n_out, S, n_phi, P))

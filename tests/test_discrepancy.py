@@ -2,7 +2,6 @@
 between scenarios, pruning, and beam-1d at reduced sizes."""
 
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 
 import naive_gp
 import numpy as np
@@ -179,41 +178,6 @@ def test_pruning_matches_unpruned_and_reports_mass(toy):
     Xs = np.linspace(0, 1, 9)[:, None]
     for a, b in zip(model.predict(Xs), model.predict(Xs, prune=0)):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-8)
-
-
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
-def test_negligible_pairs_are_left_out_and_their_mass_bounded(rng, monkeypatch):
-    """The compiled path of scenario 3 leaves out (−inf) the pairs whose weight is provably
-    negligible. Against every pair's NLML computed in full by NumPy: the other log weights
-    agree, and the left-out ones' true weights add up to less than ABANDON_MASS. A pilot
-    of one θ row, so the cut is set before most chunks; an executor gives the same."""
-    pytest.importorskip("numba")
-    from mdcore import discrepancy, gp
-
-    monkeypatch.setattr(discrepancy, "PILOT_PAIRS", 200)
-    monkeypatch.setattr(discrepancy, "WEIGHT_PAIRS", 600)          # several chunks
-    X = np.linspace(0, 1, 30)[:, None]
-    truth = np.array([1.0, 0.2])
-    z = toy_simulate(X, truth)[0] + 0.3 * np.cos(4 * X) + 0.05 * rng.normal(size=(30, 2))
-    theta = truth + 0.1 * rng.normal(size=(8, 2))
-    wide = GaussianPrior(mean=[0.0, 0.0, 0.0, -0.5, -2.5], var=[4.0, 4.0, 4.0, 4.0, 4.0])
-    options = DiscrepancyOptions(n_phi=200, phi_prior=wide, backend="numba")
-    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=5, options=options)
-    for o in range(2):
-        full = -gp.neg_log_marginal_likelihood(model.log_params[o], model.Y[:, None], X,
-                                               z[:, o])
-        full -= logsumexp(full)
-        gone = model.log_weights[o] == -np.inf
-        assert 0.3 < gone.mean() < 1.0                      # most of the wide prior is hopeless
-        np.testing.assert_allclose(model.log_weights[o][~gone], full[~gone], rtol=1e-8)
-        assert 0 < np.exp(logsumexp(full[gone])) <= discrepancy.ABANDON_MASS
-    with ThreadPoolExecutor(2) as pool:                   # chunks in flight: the same cut
-        other = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=5,
-                                  options=options, executor=pool)
-    np.testing.assert_array_equal(other.log_weights, model.log_weights)
-    monkeypatch.setattr(discrepancy, "ABANDON_MASS", 0.0)      # the switch: every pair
-    every = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=5, options=options)
-    assert np.all(np.isfinite(every.log_weights))
 
 
 @pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")

@@ -1,29 +1,18 @@
-"""Compiled (numba) kernels for the three loops a user waits on.
+"""Compiled (numba) kernels for the two loops where NumPy cannot reach a user's target.
 
-The NumPy code is the implementation of record; this module computes the same numbers
-(to rounding: ``tests/test_compiled.py`` compares them at rtol 1e-8) in the two loops where
-compiled code alone makes a user-visible target reachable:
+The NumPy code is the implementation of record; this module computes the same numbers to
+rounding (``tests/test_compiled.py``: rtol 1e-8) for
 
 - scenario 3's (φ, y) pairs: the NLML of every pair (Eq. 9, :func:`nlml`) and the mixture
   prediction (Eq. 15, :func:`mixture_sums`), fused per pair in small buffers;
-- the Kennedy–O'Hagan chain, whole stretches of adaptive Metropolis per call
-  (:func:`koh_chain`).
+- the Kennedy–O'Hagan chain, stretches of adaptive Metropolis per call (:func:`koh_chain`).
 
-numba is optional: nothing imports it until a kernel is needed (or :func:`warm_up` runs);
-:func:`available` says whether it can. Kernels are compiled once per machine and cached on
-disk (next to the module, or in ``NUMBA_CACHE_DIR``); :func:`warm_up_in_background`
-prepares them while the app or the command line starts. Inputs are validated by the
-callers. Large calls run as pieces on the compute threads of :mod:`mdcore.threads`; the
-pieces depend on the problem size only, so sums over them are reproducible.
-
-Examples
---------
->>> import numpy as np
->>> from mdcore import compiled
->>> X = np.linspace(0, 1, 5)[:, None]; Y = np.sin(3 * X); z = (Y + X)[:, 0]
->>> pairs = compiled.Pairs(np.array([[0.0, 0.0, 0.0, -2.0]]), np.zeros(1, int), Y[None], X, z)
->>> compiled.nlml(pairs).shape  # doctest: +SKIP
-(1,)
+numba is optional: nothing imports it until a kernel is needed; :func:`available` says
+whether it can be. Kernels are compiled once per machine and cached on disk (next to the
+module, or in ``NUMBA_CACHE_DIR``); :func:`warm_up_in_background` prepares them while the
+app or the command line starts. Callers validate the inputs. Large calls run as pieces on
+the compute threads (:mod:`mdcore.threads`); the pieces depend on the problem size only, so
+sums over them are reproducible.
 """
 
 from __future__ import annotations

@@ -1,33 +1,23 @@
 """Discrepancy inference: the GP map {y = η(X, θ), X} -> z, scenarios 1–3 (paper Section 2).
 
-For each output a zero-mean GP maps all simulator outputs ``y`` (the GP's "y" inputs,
-``d_y = n_out``) and the inputs ``X`` to the observations ``z``. A scenario is a Gaussian
-mixture over components ``(θ^(j), φ^(j,k))`` with normalised weights ``w_jk``:
+Per output a zero-mean GP maps all simulator outputs ``y`` (``d_y = n_out``) and the inputs
+``X`` to ``z``. A scenario is a Gaussian mixture over components ``(θ^(j), φ^(j,k))``:
 
-- scenario 1: one component, θ_MAP with the empirical-Bayes φ̂ (Eq. 8);
-- scenario 2: N_s components θ^(j) with φ̂ from scenario 1 and ``w_j = 1/N_s`` (Eq. 13);
-- scenario 3: N_s × N_φ components, φ^(j,k) drawn from the prior (or an adaptive
-  proposal), ``log w_jk = −NLML`` normalised jointly with logsumexp (Eq. 15).
+- scenario 1: θ_MAP with the empirical-Bayes φ̂ (Eq. 8);
+- scenario 2: N_s samples θ^(j) with φ̂ and ``w_j = 1/N_s`` (Eq. 13);
+- scenario 3: N_s × N_φ components, φ^(j,k) from the prior (or an adaptive proposal),
+  ``log w_jk = −NLML`` normalised jointly (Eq. 15).
 
-Per component the discrepancy is ``δ^(j,k)(X*) = E[z*^(j,k)] − y*^(j)``, and the mixture
-moments are the laws of total expectation and variance::
+With ``δ^(j,k) = E[z*^(j,k)] − y*^(j)`` and ``V_f`` the latent variance, the mixture moments
+are ``E[δ] = Σ w δ``, ``V[δ] = Σ w (V_f + δ²) − E[δ]²``, ``E[z] = Σ w E[z*]``,
+``V[z] = Σ w (V_f + σ_n² + E[z*]²) − E[z]²``, summed about the heaviest component so large
+means do not cancel small variances.
 
-    E[δ] = Σ w (E[z*] − y*),   V[δ] = Σ w (V_f + (E[z*] − y*)²) − E[δ]²
-    E[z] = Σ w E[z*],          V[z] = Σ w (V_f + σ_n² + E[z*]²) − E[z]²
+The (θ, φ) pairs go in chunks whose layout depends on the problem size only, each one call
+of a module-level function on the few MB it needs, so ``executor=`` (any
+``concurrent.futures.Executor``, e.g. Dask's) can run them elsewhere with the serial run's
+numbers (the results are reduced in chunk order; at most :data:`IN_FLIGHT` in flight).
 
-with ``V_f`` the latent GP variance. The sums are accumulated about a reference component
-(the heaviest), so large means do not cancel the small variances.
-
-Chunks and executors: the (θ, φ) pairs are processed in chunks whose layout depends on
-the problem size only (:data:`WEIGHT_PAIRS` pairs per chunk of scenario 3's weights; about
-20 blocks per output for the prediction), each one call of a module-level function on the
-few MB of arrays it needs. So ``executor=`` (any ``concurrent.futures.Executor``, e.g. a
-Dask ``Client(...).get_executor()``) can run them elsewhere; the results are reduced in
-chunk order, so the numbers equal the serial run's. At most :data:`IN_FLIGHT` chunks are
-in flight.
-
-Examples
---------
 >>> from mdcore import cases
 >>> from mdcore.discrepancy import infer_discrepancy
 >>> case = cases.load("beam-1d")
@@ -55,7 +45,7 @@ from scipy.special import logsumexp
 
 from . import compiled, gp
 from .exceptions import LowESSWarning, NumericalWarning
-from .hyperfit import default_bounds, fit_hyperparameters
+from .hyperfit import FitOptions, default_bounds, fit_hyperparameters
 from .importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis
 from .linalg import JitterLog
 from .priors import GaussianPrior
@@ -71,38 +61,28 @@ SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
 #: Scenario 3 warns when an output's effective sample size is below this.
 LOW_ESS = 30.0
-#: Default pruning level: components with normalised weight below ``PRUNE × max`` are
-#: skipped in the prediction step (their mass is reported).
+#: Components with weight below ``PRUNE × max`` are skipped by the prediction (reported).
 PRUNE = 1e-12
-#: Largest θ samples, φ samples per θ and (θ, φ) pairs accepted (the paper's are N_s = 1000,
-#: N_φ = 500–1000); beyond them the work would not fit in memory, so it is refused up front.
+#: Largest θ samples, φ samples per θ and pairs accepted: beyond them the work would not
+#: fit in memory, so it is refused up front (the paper: N_s = 1000, N_φ = 500–1000).
 MAX_N_S = 100_000
 MAX_N_PHI = 100_000
 MAX_PAIRS = 100_000_000
-#: Working-memory budget of one prediction block on the NumPy backend, in bytes.
+#: Temporaries of one NumPy prediction block, in bytes; fewest pairs per compiled block
+#: (about 20 blocks per output); pairs per chunk of the weights; chunks in flight.
 BLOCK_BYTES = 32 * 2**20
-#: Fewest pairs per block of the compiled prediction (which aims at ~20 blocks per output).
 MIN_FUSED_BLOCK = 2048
-#: (θ, φ) pairs per chunk of scenario 3's weights (one task, one progress step).
 WEIGHT_PAIRS = 100_000
-#: Chunks submitted to an executor and not yet collected, at most.
 IN_FLIGHT = 32
-#: Scenario 3's prior draws φ (N_s, N_φ, P) are kept up to this size, in bytes; larger
-#: sets are drawn again from their random stream when needed (:class:`PriorDraws`).
+#: Scenario 3's prior draws (N_s, N_φ, P) are kept up to this many bytes; larger sets are
+#: drawn again from their random stream when needed (:class:`PriorDraws`).
 KEEP_DRAWS_BYTES = 64 * 2**20
 
 
 class DiscrepancyPrediction(NamedTuple):
-    """Mixture moments at the prediction inputs.
-
-    Attributes
-    ----------
-    z_mean, z_var : ndarray of shape (N*, n_out)
-        Bias-corrected prediction of a new observation; the variance includes σ_n².
-        Output units and output units squared.
-    delta_mean, delta_var : ndarray of shape (N*, n_out)
-        The inferred discrepancy δ(X*) and its (latent) variance.
-    """
+    """Mixture moments at the prediction inputs, each (N*, n_out) in output units (squared):
+    the bias-corrected prediction ``z_mean``, ``z_var`` of a new observation (with σ_n²),
+    and the discrepancy ``delta_mean``, ``delta_var`` (latent)."""
 
     z_mean: np.ndarray
     z_var: np.ndarray
@@ -120,12 +100,10 @@ class DiscrepancyOptions:
         Hyperparameter samples per θ sample (scenario 3).
     phi_prior : GaussianPrior, optional
         Prior of the log hyperparameters (P = 2 + n_out + d_x), shared by the outputs.
-        Scenario 3 samples from it. Scenarios 1–2 use it as the hyperprior of the φ̂ fit
-        (type-II MAP): with N = 13 points, plain empirical Bayes drives σ_n to its lower
-        bound and the z band misses the noisy test data; pass
-        ``fit_options={"log_prior": None}`` for the plain empirical Bayes of Eq. 8.
-        Default: no hyperprior for scenarios 1–2, :func:`default_phi_prior` of the first
-        output's data for scenario 3.
+        Scenario 3 samples from it; scenarios 1–2 use it as the hyperprior of the φ̂ fit
+        (type-II MAP: with N = 13 points, plain empirical Bayes drives σ_n to its lower
+        bound and the z band misses the noisy test data). Default: plain empirical Bayes
+        (Eq. 8) for scenarios 1–2, :func:`default_phi_prior` for scenario 3.
     proposal : {"prior", "adaptive"}, default="prior"
         Scenario 3's φ proposal. ``"prior"`` is the paper's: N_φ prior draws per θ.
         ``"adaptive"`` spends the same N_φ draws per θ in stages
@@ -135,12 +113,11 @@ class DiscrepancyOptions:
     prune : float, default=1e-12
         See :attr:`DiscrepancyModel.prune`.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
-        Kernels of scenario 3's weights and of :meth:`DiscrepancyModel.predict`
-        (:func:`mdcore.compiled.resolve_backend`: ``"auto"`` is numba when installed,
-        None reads ``MDCORE_BACKEND``); resolved on construction. The two agree to
-        rounding; ``"numpy"`` is the reference. The φ̂ fit of scenarios 1–2 is NumPy's.
-    fit_options : dict, optional
-        Extra keywords for :func:`mdcore.hyperfit.fit_hyperparameters`.
+        Kernels of scenario 3's weights and of the prediction: ``"numpy"`` (the reference)
+        or compiled (:mod:`mdcore.compiled`), equal to rounding; ``"auto"`` is numba when
+        installed, None reads ``MDCORE_BACKEND``. The φ̂ fit is NumPy's on either.
+    fit : FitOptions, optional
+        How the φ̂ of scenarios 1–2 is searched (:func:`mdcore.hyperfit.fit_hyperparameters`).
     log_params_hat : ndarray of shape (n_out, P), optional
         φ̂ from an earlier scenario-1 fit, to skip refitting (scenarios 1–2).
     """
@@ -150,7 +127,7 @@ class DiscrepancyOptions:
     proposal: str = "prior"
     prune: float = PRUNE
     backend: str = "auto"
-    fit_options: dict | None = None
+    fit: FitOptions = FitOptions()
     log_params_hat: np.ndarray | None = None
 
     def __post_init__(self):
@@ -164,18 +141,8 @@ class DiscrepancyOptions:
 
 
 def default_phi_prior(Y, X, z) -> GaussianPrior:
-    """A weak prior on the log hyperparameters, centred in :func:`mdcore.hyperfit.default_bounds`.
-
-    Each log hyperparameter gets the midpoint of its data-scaled search box as mean and
-    a standard deviation of a quarter of the box width, so ±2 sd spans the box
-    (σ_f and σ_n scale with the RMS of ``z``, each ℓ with its input's range).
-
-    Parameters
-    ----------
-    Y : ndarray of shape (N, d_y)
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N,)
-    """
+    """A weak prior on the log hyperparameters of ``Y`` (N, d_y), ``X`` (N, d_x), ``z`` (N,):
+    mean the centre of :func:`mdcore.hyperfit.default_bounds`' box, ±2 sd spanning it."""
     b = default_bounds(Y, X, z)
     return GaussianPrior(mean=b.mean(axis=1), var=((b[:, 1] - b[:, 0]) / 4.0) ** 2)
 
@@ -260,27 +227,9 @@ def _counts(log: JitterLog) -> tuple:
 
 def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
                    backend: str) -> tuple[np.ndarray, tuple]:
-    """Scenario 3's log weights ``−NLML`` (Eq. 15) of one chunk of pairs, every output.
-
-    Module level and on plain arrays, so that process and Dask executors can run it.
-
-    Parameters
-    ----------
-    phi : ndarray of shape (R, K, P)
-        Log hyperparameters of the chunk's pairs: R θ rows × K draws.
-    Y : ndarray of shape (R, N, n_out)
-        Simulator outputs at the training inputs of the R θ.
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N, n_out)
-    backend : {"numpy", "numba"}
-
-    Returns
-    -------
-    log_w : ndarray of shape (n_out, R, K)
-        Unnormalised log weights; ``-inf`` where the covariance could not be factorised.
-    jitter : tuple
-        ``(jittered, failed, max_jitter)`` for the caller to report once.
-    """
+    """Scenario 3's log weights ``−NLML`` (Eq. 15), (n_out, R, K), of a chunk of pairs:
+    ``phi`` (R, K, P) draws for R θ rows, ``Y`` (R, N, n_out), ``X`` (N, d_x), ``z``
+    (N, n_out); and ``(jittered, failed, max_jitter)`` for the caller to report once."""
     R, K, P = phi.shape
     log = JitterLog()
     if backend == "numba":          # the outputs share each pair's factor
@@ -296,21 +245,9 @@ def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
 @single_threaded_blas       # one BLAS thread, as on a Dask worker: the same sums everywhere
 def _mixture_chunk(pairs: compiled.Pairs, test: compiled.Test, backend: str
                    ) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Weighted mixture sums (Eq. 13/15) of one block of components of one output.
-
-    Module level and on plain arrays (only the θ rows the block uses), so that process and
-    Dask executors can run it; the caller adds the blocks' sums in block order.
-
-    Returns
-    -------
-    acc : ndarray of shape (4, M)
-        ``Σ w dz``, ``Σ w dδ``, ``Σ w (V_f + σ_n² + dz²)``, ``Σ w (V_f + dδ²)`` about
-        ``test.centre`` (:func:`mdcore.compiled.mixture_sums`).
-    bad : bool ndarray of shape (B,)
-        Components left out (not factorisable, or non-finite moments).
-    jitter : tuple
-        As in :func:`_weights_chunk`.
-    """
+    """Weighted mixture sums (Eq. 13/15) of one block of components of one output, as
+    :func:`mdcore.compiled.mixture_sums`: ``acc`` (4, M), the components left out ``bad``
+    (B,), and the jitter counts (as :func:`_weights_chunk`)."""
     log = JitterLog()
     if backend == "numba":
         acc, bad = compiled.mixture_sums(pairs, test, log)
@@ -336,12 +273,9 @@ def _mixture_chunk(pairs: compiled.Pairs, test: compiled.Test, backend: str
 
 @dataclass(frozen=True, eq=False)
 class PriorDraws:
-    """Scenario 3's prior draws ``φ^(j,k) ~ p(φ)`` kept as the random stream that made them.
-
-    Block ``b`` of θ rows (``[b·rows, (b+1)·rows)``) is ``prior.sample(R_b · N_φ, seed=g)``
-    with ``g`` at ``states[b]``, so any block can be drawn again, bit for bit, and a large
-    run need not keep the (N_s, N_φ, P) array.
-    """
+    """Scenario 3's prior draws kept as their random stream: block ``b`` of θ rows is
+    ``prior.sample(R_b · N_φ, seed=g)`` with ``g`` at ``states[b]``, so any block can be
+    drawn again, bit for bit, without keeping the (N_s, N_φ, P) array."""
 
     prior: GaussianPrior
     n_theta: int
@@ -359,9 +293,8 @@ class PriorDraws:
                                  ).reshape(n_rows, self.n_phi, self.prior.size)
 
     def between(self, lo: int, hi: int, cache: dict | None = None) -> np.ndarray:
-        """The draws of θ rows ``lo`` to ``hi − 1``, shape (hi − lo, N_φ, P). ``cache``
-        (block -> draws) keeps the blocks drawn for a caller going through the rows in
-        order (blocks before ``lo``'s are dropped)."""
+        """The draws of θ rows ``lo`` to ``hi − 1``, (hi − lo, N_φ, P); ``cache`` keeps the
+        blocks drawn for a caller going through the rows in order."""
         first, last = lo // self.rows, (hi - 1) // self.rows
         cache = {} if cache is None else cache
         for b in [b for b in cache if b < first]:
@@ -387,40 +320,28 @@ class DiscrepancyModel:
     Attributes
     ----------
     scenario : int
-        1, 2 or 3.
     theta : ndarray of shape (S, p)
-        The θ of the mixture (S = 1 for scenario 1, N_s otherwise).
-    Y : ndarray of shape (S, N, n_out)
-        Simulator outputs at the training inputs, ``η(X, θ^(j))``.
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N, n_out)
+        The θ of the mixture (S = 1 for scenario 1); ``Y`` (S, N, n_out) = ``η(X, θ^(j))``.
+    X, z : ndarray of shape (N, d_x) and (N, n_out)
     log_params : ndarray of shape (n_out, S, K, P)
-        Hyperparameters of every component (K = 1 for scenarios 1–2, N_φ for 3); with
-        :attr:`weights` this is scenario 3's hyperparameter posterior. Scenario 3 shares
-        one prior draw between outputs (common random numbers). A property: prior draws
-        larger than :data:`KEEP_DRAWS_BYTES` are kept as :attr:`phi_draws` and drawn again
-        on first access.
+        Hyperparameters of every component (K = 1 for scenarios 1–2, N_φ for 3; scenario
+        3's outputs share the prior draws). Drawn again from :attr:`phi_draws` on first
+        access when they were too large to keep (:data:`KEEP_DRAWS_BYTES`).
     log_weights : ndarray of shape (n_out, S, K)
-        Normalised log weights; ``logsumexp`` over (S, K) is 0 for every output.
-    log_params_hat : ndarray of shape (n_out, P) or None
-        Empirical-Bayes φ̂ (scenarios 1–2).
-    nlml_hat : ndarray of shape (n_out,) or None
-        NLML at φ̂ on ``y(θ_MAP)``.
+        Normalised log weights (``logsumexp`` over (S, K) is 0 per output).
+    log_params_hat, nlml_hat : ndarray of shape (n_out, P) and (n_out,), or None
+        Scenarios 1–2: φ̂, and the NLML there on ``y(θ_MAP)``.
     prune : float
-        Components whose weight is below ``prune × max`` are skipped in :meth:`predict`.
+        Components below ``prune × max`` weight are skipped in :meth:`predict`.
     phi_prior : GaussianPrior or None
         The prior scenario 3 sampled from.
     seconds : float
-        Time spent in :func:`infer_discrepancy`.
     proposal : str or None
-        Scenario 3's φ proposal, ``"prior"`` (the paper's) or ``"adaptive"``.
+        Scenario 3's φ proposal.
     k_hat : ndarray of shape (n_out,) or None
-        Scenario 3: Pareto shape of each output's raw importance weights (Vehtari et al.;
-        above 0.7 the mixture is unreliable).
+        Scenario 3: Pareto shape of each output's raw weights (above 0.7: unreliable).
     backend : {"numpy", "numba"}
         The kernels :meth:`predict` uses.
-    phi_draws : PriorDraws or None
-        Scenario 3 with the prior proposal: the φ draws as their random stream.
     """
 
     scenario: int
@@ -458,9 +379,8 @@ class DiscrepancyModel:
         return self._log_params
 
     def _params(self, o: int, j: np.ndarray, k: np.ndarray, cache: dict) -> np.ndarray:
-        """Hyperparameters of components ``(j, k)`` of output ``o``, (B, P); ``j`` ascending.
-        From the kept array, or drawn again from :attr:`phi_draws` (``cache`` holds the
-        blocks of draws between calls)."""
+        """Hyperparameters of components ``(j, k)`` (``j`` ascending) of output ``o``, (B, P),
+        kept or drawn again (``cache`` holds blocks of draws between calls)."""
         if self._log_params is not None or self.phi_draws is None:
             return self.log_params[o][j, k]
         lo = int(j[0])
@@ -500,26 +420,12 @@ class DiscrepancyModel:
     def predict(self, X_star, *, prune: float | None = None,
                 progress: Callable[[float], None] | None = None,
                 executor: Executor | None = None) -> DiscrepancyPrediction:
-        """Bias-corrected prediction and discrepancy at ``X_star`` (Eq. 13/15).
+        """Bias-corrected prediction and discrepancy at ``X_star`` (N*, d_x) (Eq. 13/15).
 
-        Parameters
-        ----------
-        X_star : ndarray of shape (N*, d_x)
-            Prediction inputs, in the case's input units; repeated rows are predicted once.
-        prune : float, optional
-            Override :attr:`prune`; ``0`` evaluates every component. The kept weights are
-            renormalised; the skipped mass is at most ``prune × S × K``.
-        progress : callable, optional
-            Called with the fraction done in [0, 1] after each block. If it raises, the
-            prediction stops and the exception propagates (use this to cancel).
-        executor : concurrent.futures.Executor, optional
-            Runs the blocks of components (module docstring); the numbers are the serial
-            run's. Default: in this process.
-
-        Returns
-        -------
-        DiscrepancyPrediction
-            Each field of shape (N*, n_out).
+        Repeated rows of ``X_star`` are predicted once. ``prune`` overrides :attr:`prune`
+        (``0`` evaluates every component; the kept weights are renormalised).
+        ``progress`` gets the fraction done after each block and may raise to cancel;
+        ``executor`` runs the blocks (module docstring) with the serial run's numbers.
         """
         X_star = as_float_array(X_star, "X_star", ndim=2)
         if X_star.shape[1] != self.X.shape[1]:
@@ -602,13 +508,9 @@ class _Data(NamedTuple):
 def _nlml_rows(blocks: Iterable[tuple[slice, np.ndarray]], K: int, data: _Data,
                jitter: JitterLog, progress: Callable[[float], None] | None = None
                ) -> np.ndarray:
-    """``−NLML`` (Eq. 15) of every pair ``(φ^(j,k), Y[j])`` and output, (n_out, S, K), one
-    chunk of θ rows at a time (on ``data.executor`` or here).
-
-    ``blocks`` gives the θ rows of each chunk and their φ draws (R, K, P), in row order,
-    covering every row; made lazily, so only the chunks in flight are held. ``progress``
-    gets the fraction of rows done after each chunk; ``jitter`` the jitter counts.
-    """
+    """``−NLML`` (Eq. 15), (n_out, S, K), of every pair ``(φ^(j,k), Y[j])``, chunk by chunk
+    of θ rows (``blocks``: their slice and φ draws (R, K, P), in order, made lazily so only
+    the chunks in flight are held); ``progress`` gets the fraction of rows done."""
     S = data.Y.shape[0]
     log_weights = np.empty((data.z.shape[1], S, K))
     steps: collections.deque = collections.deque()
@@ -629,16 +531,10 @@ def _nlml_rows(blocks: Iterable[tuple[slice, np.ndarray]], K: int, data: _Data,
 
 
 def _prior_proposal(data: _Data, prior, n_phi, rng, progress, jitter):
-    """Scenario 3 as in the paper: φ^(j,k) ~ p(φ), shared by the outputs (common random
-    numbers); ``log w_jk = −NLML`` (Eq. 15), normalised jointly over (j, k) per output.
-
-    The draws are made chunk by chunk from one stream (the same numbers as one big draw)
-    and weighed as they come; they are kept when they fit in :data:`KEEP_DRAWS_BYTES`,
-    else only the generator state before each chunk is (:class:`PriorDraws`).
-
-    Returns ``(log_params (n_out, S, N_φ, P) or None, log_weights (n_out, S, N_φ),
-    PriorDraws)``.
-    """
+    """Scenario 3 as in the paper: φ^(j,k) ~ p(φ), shared by the outputs; ``log w_jk =
+    −NLML`` (Eq. 15) normalised per output. The draws come chunk by chunk from one stream
+    and are kept up to :data:`KEEP_DRAWS_BYTES` (else their :class:`PriorDraws`). Returns
+    ``(log_params (n_out, S, N_φ, P) or None, log_weights (n_out, S, N_φ), PriorDraws)``."""
     n_out, S, P = data.z.shape[1], data.Y.shape[0], prior.size
     rows = max(1, WEIGHT_PAIRS // n_phi)
     phi = np.empty((S, n_phi, P)) if 8 * S * n_phi * P <= KEEP_DRAWS_BYTES else None
@@ -660,10 +556,8 @@ def _prior_proposal(data: _Data, prior, n_phi, rng, progress, jitter):
 
 
 def _adaptive_proposal(data: _Data, prior, n_phi, rng, progress, jitter):
-    """Scenario 3 with adaptive importance sampling of φ per output
-    (:func:`mdcore.importance.adaptive_importance_sampling`): the same budget of N_φ draws
-    per θ, drawn in stages from the prior and then from Student-t fits to the weighted
-    draws, with deterministic-mixture weights normalised jointly over (j, k)."""
+    """Scenario 3 with adaptive importance sampling of φ per output, N_φ draws per θ
+    (:func:`mdcore.importance.adaptive_importance_sampling`)."""
     n_out, S = data.z.shape[1], data.Y.shape[0]
     log_params = np.empty((n_out, S, n_phi, prior.size))
     log_weights = np.empty((n_out, S, n_phi))
@@ -702,9 +596,8 @@ def _normalise(log_weights: np.ndarray, o: int) -> None:
 
 
 def _fit_phi_hat(Y_map, X, z, options, rng, progress):
-    """φ̂ of scenarios 1–2 (Eq. 8: empirical Bayes on {y(X, θ_MAP), X, z}, with
-    ``options.phi_prior`` as hyperprior), or ``options.log_params_hat``; and the NLML at φ̂
-    on ``Y_map = y(X, θ_MAP)`` (N, n_out)."""
+    """φ̂ of scenarios 1–2 (Eq. 8 on ``Y_map = y(X, θ_MAP)`` (N, n_out), ``phi_prior`` as
+    hyperprior) or ``options.log_params_hat``, and the NLML at φ̂."""
     n_out = z.shape[1]
     P = 2 + n_out + X.shape[1]
     if options.log_params_hat is not None:
@@ -713,10 +606,10 @@ def _fit_phi_hat(Y_map, X, z, options, rng, progress):
             raise ValueError(f"log_params_hat must have shape (n_out, P) = ({n_out}, {P}); "
                              f"received {hat.shape}.")
     else:
-        fit_options = {"log_prior": options.phi_prior, **(options.fit_options or {})}
         fits = []
         for o in range(n_out):
-            fits.append(fit_hyperparameters(Y_map, X, z[:, o], seed=rng, **fit_options))
+            fits.append(fit_hyperparameters(Y_map, X, z[:, o], log_prior=options.phi_prior,
+                                            seed=rng, options=options.fit))
             if progress is not None:
                 progress((o + 1) / n_out)
         hat = np.array([f.log_params for f in fits])
@@ -735,31 +628,21 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     Parameters
     ----------
     simulate : callable
-        ``simulate(X, theta) -> (n_theta, N, n_out)`` like :meth:`mdcore.cases.Case.simulate`.
+        ``simulate(X, theta) -> (n_theta, N, n_out)``.
     theta_samples : ndarray of shape (N_s, p)
-        Calibration samples, e.g. ``HistoryMatchResult.samples``. Unused by scenario 1.
+        Calibration samples (unused by scenario 1).
     X : ndarray of shape (N, d_x)
-        Training inputs.
     z : ndarray of shape (N, n_out) or (N,)
-        Observations.
     scenario : {1, 2, 3}
     theta_map : ndarray of shape (p,), optional
-        Required by scenarios 1 and 2 (φ̂ is fitted at θ_MAP) unless
-        ``options.log_params_hat`` is given to scenario 2.
+        Where scenarios 1–2 fit φ̂ (scenario 2 may get ``options.log_params_hat`` instead).
     options : DiscrepancyOptions, optional
-        N_φ, the φ prior and proposal, pruning, the backend and the φ̂ fit; default
-        ``DiscrepancyOptions()``.
     seed : int or numpy.random.Generator, optional
         Seeds the empirical-Bayes swarm and the φ draws.
     progress : callable, optional
-        Called with the fraction done in [0, 1]; raising from it cancels.
+        Fraction done in [0, 1]; raising from it cancels.
     executor : concurrent.futures.Executor, optional
-        Runs scenario 3's chunks of (θ, φ) pairs (module docstring); the numbers are the
-        serial run's. Default: in this process.
-
-    Returns
-    -------
-    DiscrepancyModel
+        Runs scenario 3's chunks of pairs (module docstring), with the serial run's numbers.
 
     Warns
     -----

@@ -1,21 +1,16 @@
-"""GP emulator of a simulator over the joint input (x, θ) (SPEC §4).
+"""GP emulator of a simulator over the joint input (x, θ), for history matching and KOH.
 
-One emulator per output: a linear mean ``m = β₀ + βᵀ[x, θ]`` fitted by least squares,
-plus a zero-mean GP on the residuals with the core's separable Matérn 3/2 kernel
-(:func:`mdcore.kernels.matern32` on each block; ARD lengthscales in θ and in x)::
+One emulator per output: a linear mean ``m = β₀ + βᵀ[x, θ]`` fitted by least squares, plus
+a zero-mean GP on the residuals with the core's separable Matérn 3/2 kernel (ARD
+lengthscales in θ and in x, inputs scaled to [0, 1])::
 
     k((θ, x), (θ', x')) = σ_f² m32(r_θ) m32(r_x) + σ_n² δ
 
-Inputs are scaled to [0, 1] internally. This is the core's kernel with the simulator
-parameters θ in the "y" slot, not a Matérn over the joint distance (SPEC §4 says
-"Matérn 3/2 ARD over the joint input"); the product form is what makes the design
-below solvable exactly and fast.
-
-Simulator runs come as full sweeps: every run θ_r is evaluated at every training input
-x_i, so the training covariance is ``σ_f² K_θ ⊗ K_x + σ_n² I``. With the eigenpairs
-``K_θ = Q_θ Λ Q_θᵀ`` and ``K_x = Q_x M Q_xᵀ`` the marginal likelihood and predictions are
-exact at O(R³ + N³ + R N (R + N)) instead of O(R³ N³), and scoring 100,000 candidate θ at
-every training input costs two small matrix products.
+a product rather than one Matérn over the joint distance, because the product makes the
+design solvable exactly and fast: every run θ_r is evaluated at every training input x_i,
+so the training covariance is ``σ_f² K_θ ⊗ K_x + σ_n² I``, and with the eigenpairs
+``K_θ = Q_θ Λ Q_θᵀ``, ``K_x = Q_x M Q_xᵀ`` the likelihood and predictions cost
+O(R³ + N³ + R N (R + N)) instead of O(R³ N³).
 """
 
 from __future__ import annotations
@@ -40,74 +35,35 @@ __all__ = ["Emulator", "EmulatorArrays", "EmulatorAt", "EmulatorPrediction", "Kr
 
 
 class EmulatorArrays(NamedTuple):
-    """The fixed pieces of :class:`EmulatorAt`'s algebra as stacked float64 arrays, for
-    compiled kernels (:meth:`EmulatorAt.arrays`). Shapes: R training θ, p parameters,
-    N inputs, N_t training inputs of the emulator, n_out outputs.
+    """The fixed pieces of :class:`EmulatorAt`'s algebra at N inputs, stacked over the n_out
+    outputs (:meth:`EmulatorAt.arrays`); R training θ of p parameters, N_t training inputs."""
 
-    Attributes
-    ----------
-    t_lo, t_span : ndarray of shape (p,)
-        θ's unit box: ``unit = (θ − t_lo) / t_span``.
-    T_train : ndarray of shape (R, p)
-        Training θ in the unit box.
-    inv_ell : ndarray of shape (n_out, p)
-        ``1 / ℓ_θ``.
-    Q_t : ndarray of shape (n_out, R, R)
-    W : ndarray of shape (n_out, R, N_t)
-    lin : ndarray of shape (n_out, N)
-        ``β₀ + β_xᵀ x``.
-    beta_t : ndarray of shape (n_out, p)
-    AK : ndarray of shape (n_out, R, N)
-    V : ndarray of shape (n_out, N, N_t)
-    sf4 : ndarray of shape (n_out,)
-    prior : ndarray of shape (n_out, N, N)
-        ``σ_f² m32(X, X)``.
-    sf2 : ndarray of shape (n_out,)
-        ``σ_f²``.
-    G : ndarray of shape (n_out, R, N)
-        ``W (V ⊙ V)ᵀ``: the predictive variance at ``x_n`` is
-        ``σ_f² − σ_f⁴ Σ_a (k_θ Q_θ)_a² G[a, n]``.
-    """
-
-    t_lo: np.ndarray
-    t_span: np.ndarray
-    T_train: np.ndarray
-    inv_ell: np.ndarray
-    Q_t: np.ndarray
-    W: np.ndarray
-    lin: np.ndarray
-    beta_t: np.ndarray
-    AK: np.ndarray
-    V: np.ndarray
-    sf4: np.ndarray
-    prior: np.ndarray
-    sf2: np.ndarray
-    G: np.ndarray
+    t_lo: np.ndarray     # (p,) θ's box: unit θ = (θ − t_lo) / t_span
+    t_span: np.ndarray   # (p,)
+    T_train: np.ndarray  # (R, p) training θ, unit box
+    inv_ell: np.ndarray  # (n_out, p) 1 / ℓ_θ
+    Q_t: np.ndarray      # (n_out, R, R) eigenvectors of K_θ
+    W: np.ndarray        # (n_out, R, N_t) 1 / (σ_f² λ_a μ_b + σ_n²)
+    lin: np.ndarray      # (n_out, N) β₀ + β_xᵀ x
+    beta_t: np.ndarray   # (n_out, p)
+    AK: np.ndarray       # (n_out, R, N) A m32(X, X_train)ᵀ
+    V: np.ndarray        # (n_out, N, N_t) m32(X, X_train) Q_x
+    sf4: np.ndarray      # (n_out,) σ_f⁴
+    prior: np.ndarray    # (n_out, N, N) σ_f² m32(X, X)
+    sf2: np.ndarray      # (n_out,) σ_f²
+    G: np.ndarray        # (n_out, R, N) W (V ⊙ V)ᵀ: V[y(θ, x_n)] = σ_f² − σ_f⁴ (k_θ Q_θ)² G
 
 
 class ThetaTerms(NamedTuple):
-    """The θ-dependent pieces of the emulator's posterior (:meth:`EmulatorAt.theta_terms`).
-
-    Attributes
-    ----------
-    unit : ndarray of shape (M, p)
-        θ scaled to the unit box.
-    per_output : tuple of (ndarray (M, R), ndarray (M, N_train))
-        Per output, ``k_θ = m32(θ, Θ_train)`` and ``d(θ) = (k_θ Q_θ)² W``.
-    """
+    """The θ-dependent pieces (:meth:`EmulatorAt.theta_terms`): ``unit`` θ (M, p) and, per
+    output, ``(k_θ = m32(θ, Θ_train) (M, R), d(θ) = (k_θ Q_θ)² W (M, N_t))``."""
 
     unit: np.ndarray
     per_output: tuple
 
 
 class EmulatorPrediction(NamedTuple):
-    """Emulator moments.
-
-    Attributes
-    ----------
-    mean, var : ndarray of shape (n_theta, N, n_out)
-        Predictive mean ``E[y]`` and latent variance ``V[y]`` (simulator units).
-    """
+    """Predictive ``mean`` ``E[y]`` and latent ``var`` ``V[y]``, (n_theta, N, n_out)."""
 
     mean: np.ndarray
     var: np.ndarray
@@ -141,12 +97,9 @@ def _design(Xu, Tu):
 
 
 def _kron_solve(lp, Tu, Xu, res):
-    """Eigen-solve of ``K = σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N).
-
-    Returns the factors, their log-ℓ derivatives, the eigenpairs, ``σ_f² λ_a μ_b``,
-    ``S_ab = σ_f² λ_a μ_b + σ_n²`` and ``α`` in the eigenbasis, ``(Q_θᵀ Res Q_x) / S``;
-    shared by the likelihood and the fit.
-    """
+    """Eigen-solve of ``K = σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N): the
+    factors, their log-ℓ derivatives, the eigenpairs, ``σ_f² λ_a μ_b``, ``S_ab = σ_f² λ_a
+    μ_b + σ_n²`` and ``α`` in the eigenbasis, ``(Q_θᵀ Res Q_x) / S``."""
     p = Tu.shape[1]
     Kt, Dt = matern32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]))
     Kx, Dx = matern32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
@@ -216,20 +169,9 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0):
 
 @dataclass(frozen=True, eq=False)
 class Emulator:
-    """Fitted GP emulators (one per output) of ``simulate(X, θ)``.
-
-    Build with :func:`fit_emulator`; call :meth:`predict`.
-
-    Attributes
-    ----------
-    X_train : ndarray of shape (N, d_x)
-        Training inputs (original units).
-    theta_train : ndarray of shape (R, p)
-        Simulator runs (original units).
-    y_train : ndarray of shape (R, N, n_out)
-    bounds : ndarray of shape (p, 2)
-        Box the θ inputs are scaled with.
-    """
+    """Fitted GP emulators (one per output) of ``simulate(X, θ)`` (:func:`fit_emulator`):
+    training inputs ``X_train`` (N, d_x) and runs ``theta_train`` (R, p) in the case's
+    units, ``y_train`` (R, N, n_out), and the ``bounds`` (p, 2) θ is scaled with."""
 
     X_train: np.ndarray
     theta_train: np.ndarray
@@ -269,18 +211,8 @@ class Emulator:
 
     @single_threaded_blas
     def predict(self, X, theta) -> EmulatorPrediction:
-        """Emulator mean and variance for every (θ, x) pair.
-
-        Parameters
-        ----------
-        X : ndarray of shape (N, d_x)
-        theta : ndarray of shape (n_theta, p)
-
-        Returns
-        -------
-        EmulatorPrediction
-            ``mean`` and ``var`` of shape (n_theta, N, n_out).
-        """
+        """Emulator mean and variance at every (θ, x) pair: ``X`` (N, d_x), ``theta``
+        (n_theta, p) -> ``mean``, ``var`` (n_theta, N, n_out)."""
         X, theta = self._inputs(X, theta)
         d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
         t_lo, t_span = self.bounds[:, 0], self.bounds[:, 1] - self.bounds[:, 0]
@@ -301,29 +233,25 @@ class Emulator:
 
     @single_threaded_blas
     def implausibility(self, X, theta, z, V, *, rank: int = 1) -> tuple[np.ndarray, np.ndarray]:
-        """Combined implausibility of every θ (Eq. 16) and the emulator variance.
+        """Combined implausibility (Eq. 16) of every θ and the emulator variance.
 
-        ``I(θ)`` is the ``rank``-th largest over the targets (n, o) of
-        ``|z[n, o] − E[y]| / sqrt(V[n, o] + V[y])`` at ``(θ, X[n])``, output ``o``: with
-        ``V = V_o + V_m`` what :func:`mdcore.history_matching.implausibility` and
-        :func:`~mdcore.history_matching.combine` give on :meth:`predict` (to rounding:
-        the mean is a sum of terms up to ~1e5 times larger than itself with a tiny
-        nugget, so ``I`` agrees to ~1e-11), in chunks on the compute threads.
+        ``I(θ)`` is the ``rank``-th largest (1–3: the max, 2nd, 3rd max rule) over the
+        targets (n, o) of ``|z[n, o] − E[y]| / √(V[n, o] + V[y])`` at ``(θ, X[n])``: the
+        formula on :meth:`predict`'s moments, to rounding (with a tiny nugget the mean is a
+        sum of terms up to ~1e5 times larger than itself), in chunks on the compute threads.
 
         Parameters
         ----------
         X : ndarray of shape (N, d_x)
         theta : ndarray of shape (M, p)
         z, V : ndarray of shape (N, n_out)
-            Observations and the variance ``V_o + V_m`` added to the emulator's.
+            Observations and ``V_o + V_m``.
         rank : {1, 2, 3}, default=1
-            The max, 2nd max or 3rd max rule.
 
         Returns
         -------
         implausibility : ndarray of shape (M,)
         var : ndarray of shape (M, N, n_out)
-            ``V[y]``, as :meth:`predict`'s.
         """
         X, theta = self._inputs(X, theta)
         shape = (X.shape[0], self.n_out)
@@ -345,17 +273,9 @@ class Emulator:
         return I, var
 
     def at(self, X) -> EmulatorAt:
-        """The emulator's joint Gaussian at fixed inputs ``X`` as a function of θ.
-
-        Everything that does not depend on θ is computed here, once, so that
-        :meth:`EmulatorAt.moments` costs O(R² + R N + N² N_train) per θ (the Kennedy–
-        O'Hagan likelihood evaluates it at every MCMC step).
-
-        Parameters
-        ----------
-        X : ndarray of shape (N, d_x)
-            Inputs (original units); repeated rows are allowed.
-        """
+        """The emulator's joint Gaussian at fixed inputs ``X`` (N, d_x) as a function of θ:
+        what does not depend on θ is computed here, once, so that a θ costs
+        O(R² + R N + N² N_train) (the KOH likelihood evaluates one per MCMC step)."""
         X = as_float_array(X, "X", ndim=2)
         d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
         if X.shape[1] != d_x:
@@ -374,13 +294,10 @@ class Emulator:
 
 def _implausibility(a: EmulatorArrays, theta: np.ndarray, z: np.ndarray, vt: np.ndarray,
                     rank: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Eq. 16, combined by ``rank`` over the targets, and the emulator variance, from the
-    pieces of :meth:`EmulatorAt.arrays`, chunks of candidates on the compute threads.
-
-    Per output: ``k_θ = m32(θ, Θ_train)`` (distances by one product), ``E = lin + θᵀβ_θ
-    + k_θ AK`` and ``V = max(σ_f² − σ_f⁴ (k_θ Q_θ)² G, 0)``. Returns ``(I (M,), var
-    (M, N, n_out), n_bad)``, ``n_bad`` the targets with ``V_o + V_m + var ≤ 0``.
-    """
+    """Eq. 16 combined by ``rank``, and the emulator variance, by chunks of candidates:
+    per output ``k_θ`` (distances by one product), ``E = lin + θᵀβ_θ + k_θ AK``,
+    ``V = max(σ_f² − σ_f⁴ (k_θ Q_θ)² G, 0)``. Returns ``(I (M,), var (M, N, n_out),
+    n_bad)``, ``n_bad`` the targets with ``V_o + V_m + var ≤ 0``."""
     M, (N, n_out) = theta.shape[0], z.shape
     imp, var = np.empty(M), np.empty((M, N, n_out))
     bad = []
@@ -409,24 +326,17 @@ def _implausibility(a: EmulatorArrays, theta: np.ndarray, z: np.ndarray, vt: np.
 
 @dataclass(frozen=True, eq=False)
 class EmulatorAt:
-    """Emulator moments at fixed inputs ``X``, for any θ; build with :meth:`Emulator.at`.
+    """Emulator moments at fixed inputs ``X`` (N, d_x), for any θ (:meth:`Emulator.at`).
 
-    For output ``o`` with Kronecker GP ``σ_f² K_θ ⊗ K_x + σ_n² I`` (eigenpairs
-    ``Q_θ Λ Q_θᵀ``, ``Q_x M Q_xᵀ``, ``W = 1 / (σ_f² λ_a μ_b + σ_n²)``) the posterior of
-    the emulated simulator at ``(θ, X_A)`` and ``(θ, X_B)`` is, with
-    ``k_θ = m32(θ, Θ_train)``, ``V_A = m32(X_A, X_train) Q_x`` and
-    ``d(θ) = (k_θ Q_θ)² W`` (a length-N_train vector)::
+    For output ``o`` (eigenpairs ``Q_θ Λ Q_θᵀ``, ``Q_x M Q_xᵀ``, ``W = 1 / (σ_f² λ_a μ_b +
+    σ_n²)``), with ``k_θ = m32(θ, Θ_train)``, ``V_A = m32(X_A, X_train) Q_x`` and
+    ``d(θ) = (k_θ Q_θ)² W``::
 
         m_η(X_A, θ)       = β₀ + βᵀ[x, θ] + k_θ A m32(X_A, X_train)ᵀ
         Σ_η(X_A, X_B; θ)  = σ_f² m32(X_A, X_B) − σ_f⁴ V_A diag(d(θ)) V_Bᵀ
 
-    Only ``k_θ`` and ``d(θ)`` depend on θ. The diagonal of Σ_η equals
-    :meth:`Emulator.predict`'s ``var``.
-
-    Attributes
-    ----------
-    emulator : Emulator
-    X : ndarray of shape (N, d_x)
+    Only ``k_θ`` and ``d(θ)`` depend on θ; the diagonal of Σ_η is :meth:`Emulator.predict`'s
+    ``var``.
     """
 
     emulator: Emulator
@@ -438,12 +348,8 @@ class EmulatorAt:
     _prior: np.ndarray   # (n_out, N, N) σ_f² m32(X, X)
 
     def theta_terms(self, theta, *, check: bool = True) -> ThetaTerms:
-        """The θ-dependent pieces at ``theta`` (M, p), shared by every input set.
-
-        One evaluation serves :meth:`moments_at` and :meth:`cross_cov_at` of every
-        :class:`EmulatorAt` of the same emulator (an MCMC step, a prediction block).
-        ``check=False`` skips validating ``theta`` (hot loops that built it themselves).
-        """
+        """The θ-dependent pieces at ``theta`` (M, p): one evaluation serves every
+        :class:`EmulatorAt` of the emulator; ``check=False`` skips validating ``theta``."""
         em = self.emulator
         p = em.theta_train.shape[1]
         if check:
@@ -474,18 +380,7 @@ class EmulatorAt:
             np.stack([g.W @ (V * V).T for g, V in zip(gps, self._V)]))
 
     def moments(self, theta):
-        """Mean and covariance of the emulated simulator at ``X`` for each θ.
-
-        Parameters
-        ----------
-        theta : ndarray of shape (M, p) or (p,)
-
-        Returns
-        -------
-        mean : ndarray of shape (M, n_out, N)
-        cov : ndarray of shape (M, n_out, N, N)
-            ``Σ_η(X, X; θ)`` (output units squared).
-        """
+        """``m_η`` (M, n_out, N) and ``Σ_η(X, X; θ)`` (M, n_out, N, N) for ``theta`` (M, p)."""
         return self.moments_at(self.theta_terms(theta))
 
     def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
@@ -508,8 +403,7 @@ class EmulatorAt:
         return self.cross_cov_at(self.theta_terms(theta), other)
 
     def cross_cov_at(self, terms: ThetaTerms, other: EmulatorAt):
-        """:meth:`cross_cov` from :meth:`theta_terms`. The θ-terms belong to the emulator,
-        so one evaluation serves every input set."""
+        """:meth:`cross_cov` from :meth:`theta_terms`."""
         if other.emulator is not self.emulator:
             raise ValueError("other must come from the same emulator (Emulator.at).")
         per_output = terms.per_output
@@ -529,26 +423,9 @@ class EmulatorAt:
 
 @single_threaded_blas
 def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulator:
-    """Fit one GP emulator per output from full simulator sweeps.
-
-    Parameters
-    ----------
-    X : ndarray of shape (N, d_x)
-        Distinct training inputs (replicates removed).
-    theta : ndarray of shape (R, p)
-        Simulator runs.
-    y : ndarray of shape (R, N, n_out)
-        ``simulate(X, theta)``.
-    bounds : ndarray of shape (p, 2)
-        Parameter box used to scale θ to [0, 1].
-    n_starts : int, default=2
-        L-BFGS-B starts per output for the hyperparameters (empirical Bayes).
-    seed : int or Generator, optional
-
-    Returns
-    -------
-    Emulator
-    """
+    """Fit one GP emulator per output from full simulator sweeps ``y = simulate(X, theta)``
+    (R, N, n_out): distinct inputs ``X`` (N, d_x), runs ``theta`` (R, p), the ``bounds``
+    (p, 2) θ is scaled with, and ``n_starts`` L-BFGS-B starts per output (empirical Bayes)."""
     X = as_float_array(X, "X", ndim=2)
     theta = as_float_array(theta, "theta", ndim=2)
     y = as_float_array(y, "y", ndim=3)

@@ -1,15 +1,10 @@
-"""Batched Gaussian-process regression (paper Eqs. 2–9).
+"""Batched Gaussian-process regression (paper Eqs. 2–9): the implementation of record.
 
-The discrepancy GP maps simulator outputs and inputs ``{y, x}`` to observations ``z``
-with the separable Matérn 3/2 kernel of :mod:`mdcore.kernels` (Eq. 3). This module holds
-the regression itself: the negative log marginal likelihood (Eq. 9) and its gradient,
-and the posterior predictive moments (Eq. 7). Hyperparameter fitting is in
-:mod:`mdcore.hyperfit`, the batched linear algebra in :mod:`mdcore.linalg`, priors in
-:mod:`mdcore.priors`.
-
-Every function is batched: leading dimensions of ``log_params`` (..., P) and ``Y``
-(..., N, d_y) broadcast against each other, and the work is chunked internally so that
-hundreds of thousands of (hyperparameter, Y) pairs run in bounded memory.
+The discrepancy GP maps simulator outputs and inputs ``{y, x}`` to observations ``z`` with
+the kernel of :mod:`mdcore.kernels` (Eq. 3): the negative log marginal likelihood (Eq. 9)
+and its gradient, and the predictive moments (Eq. 7). Leading dimensions of ``log_params``
+(..., P) and ``Y`` (..., N, d_y) broadcast, and the work is chunked, so hundreds of
+thousands of (hyperparameter, Y) pairs run in bounded memory.
 """
 
 from __future__ import annotations
@@ -20,14 +15,7 @@ import numpy as np
 import scipy.linalg
 
 from .kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
-from .linalg import (
-    JitterLog,
-    cholesky,
-    chunks,
-    for_each_chunk,
-    gather,
-    solve_lower_inplace,
-)
+from .linalg import JitterLog, cholesky, chunks, for_each_chunk, gather, solve_lower_inplace
 from .threads import single_threaded_blas
 from .validation import as_float_array, as_log_params
 
@@ -38,18 +26,9 @@ LOG_2PI = np.log(2.0 * np.pi)
 
 
 class GPPrediction(NamedTuple):
-    """Predictive moments of the latent GP.
-
-    Attributes
-    ----------
-    mean : ndarray of shape (..., N*)
-        Predictive mean (Eq. 7).
-    var : ndarray of shape (..., N*)
-        Latent predictive variance ``k** − diag(K*f K⁻¹ Kf*)``; add ``noise_var``
-        for the variance of a new observation.
-    noise_var : ndarray of shape (...)
-        ``σ_n²`` of each batch element.
-    """
+    """Predictive moments of the latent GP (Eq. 7): ``mean`` and latent ``var``
+    (``k** − diag(K*f K⁻¹ Kf*)``) of shape (..., N*), ``noise_var`` ``σ_n²`` (...); a new
+    observation's variance is ``var + noise_var``."""
 
     mean: np.ndarray
     var: np.ndarray
@@ -111,16 +90,14 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *,
     z : ndarray of shape (N,)
         Observations.
     jitter_log : JitterLog, optional
-        Receives the counts of jittered and failed matrices instead of a warning (for
-        callers that report them once, or not at all: an optimiser's trial points).
-        Warnings filters are process-wide, so silencing them with ``catch_warnings``
-        from several threads at once is not safe; this is.
+        Receives the counts of jittered and failed matrices instead of a warning (callers
+        that report them once or not at all; ``catch_warnings`` is not thread-safe).
 
     Returns
     -------
     ndarray of shape (...)
-        The NLML of every broadcast batch element. A matrix that stays non-positive-definite
-        after the jitter ladder gets ``+inf`` and a :class:`NumericalWarning`.
+        The NLML of every batch element; ``+inf`` (and a :class:`NumericalWarning`) for a
+        matrix that stays non-positive-definite after the jitter ladder.
 
     Examples
     --------
@@ -153,23 +130,10 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *,
 
 @single_threaded_blas
 def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
-    """Posterior predictive moments of the latent GP (Eq. 7), batched.
-
-    Parameters
-    ----------
-    log_params : ndarray of shape (..., P)
-    Y : ndarray of shape (..., N, d_y)
-        Training simulator outputs.
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N,)
-    Y_star : ndarray of shape (..., N*, d_y)
-        Test simulator outputs; leading dims broadcast with ``Y`` and ``log_params``.
-    X_star : ndarray of shape (N*, d_x)
-
-    Returns
-    -------
-    GPPrediction
-        ``mean`` and latent ``var`` of shape (..., N*), ``noise_var`` of shape (...).
+    """Posterior predictive moments of the latent GP (Eq. 7), batched: ``log_params``,
+    ``Y``, ``X``, ``z`` as :func:`neg_log_marginal_likelihood`, ``Y_star`` (..., N*, d_y)
+    (broadcasting with them) and ``X_star`` (N*, d_x); NaN moments (and a warning) for a
+    matrix that no jitter step factorises.
 
     Examples
     --------
@@ -232,26 +196,9 @@ def _check_jitter_log(jitter_log) -> None:
 
 def nlml_and_gradient(log_params, Y, X, z, *, jitter_log: JitterLog | None = None
                       ) -> tuple[float, np.ndarray]:
-    """NLML (Eq. 9) and its analytic gradient for one hyperparameter vector.
-
-    Uses ``∂NLML/∂φ = ½ tr((K⁻¹ − ααᵀ) ∂K/∂φ)``, ``α = K⁻¹ z`` (Rasmussen & Williams
-    Eq. 5.9), with ``∂m32/∂log ℓ_d = 3 exp(−√3 r) Δ_d² / ℓ_d²``.
-
-    Parameters
-    ----------
-    log_params : ndarray of shape (P,)
-    Y : ndarray of shape (N, d_y)
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N,)
-    jitter_log : JitterLog, optional
-        As in :func:`neg_log_marginal_likelihood`: receives the jitter counts instead of
-        a warning.
-
-    Returns
-    -------
-    nlml : float
-    grad : ndarray of shape (P,)
-    """
+    """NLML (Eq. 9) and its gradient ``½ tr((K⁻¹ − ααᵀ) ∂K/∂φ)``, ``α = K⁻¹ z``
+    (Rasmussen & Williams Eq. 5.9), for one vector: ``log_params`` (P,), ``Y`` (N, d_y);
+    the rest as :func:`neg_log_marginal_likelihood`. Returns ``(nlml, grad (P,))``."""
     prob = check_problem(log_params, Y, X, z)
     _check_jitter_log(jitter_log)
     if prob.batch_shape != ():

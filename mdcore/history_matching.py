@@ -1,23 +1,15 @@
-"""Bayesian history matching in waves (SPEC §5, paper Eq. 16).
+"""Bayesian history matching in waves (paper Eq. 16).
 
-Implausibility of θ at observed input/output ``i``::
+The implausibility of θ at observed input/output ``i``,
+``I_i(θ) = |z_i − E[y_i(θ)]| / √(V_o,i + V_m,i + V[y_i(θ)])``, is combined over the targets
+by the max (or 2nd / 3rd max); θ is not ruled out yet (NROY) when ``I(θ) ≤ T``.
 
-    I_i(θ) = |z_i − E[y_i(θ)]| / sqrt(V_o,i + V_m,i + V[y_i(θ)])
+Each wave fits an emulator to all runs so far, scores candidates uniform in the previous
+NROY set and keeps those with ``I ≤ T``. Candidates of wave ``k > 1`` are the previous
+survivors moved by a few random-walk Metropolis steps whose target is the uniform density
+on that set; the walk leaves it invariant, so the NROY fraction of the box is estimated
+without bias by ``f_k = f_{k−1} · P(I_k ≤ T | θ ∈ NROY_{k−1})``.
 
-combined over all targets by the max (or 2nd / 3rd max). θ is not ruled out yet (NROY)
-when the combined ``I(θ) ≤ T``.
-
-Each wave fits an emulator to all simulator runs so far, scores candidates that are
-uniform in the previous NROY set, and keeps those with ``I ≤ T``. Candidates of wave
-``k > 1`` come from the previous wave's survivors, which are uniform in the previous NROY
-set, moved by a few random-walk Metropolis steps whose target is the uniform density on
-that set (accept a move iff it stays inside the box and is non-implausible under every
-earlier wave). The walk leaves the uniform distribution invariant, so the NROY fraction
-of the original box is estimated without bias by the chain rule
-``f_k = f_{k−1} · P(I_k ≤ T | θ ∈ NROY_{k−1})``.
-
-Examples
---------
 >>> from mdcore import cases
 >>> from mdcore.history_matching import history_match_case
 >>> result = history_match_case(cases.load("beam-1d"), n_candidates=20_000, max_waves=2, seed=0)
@@ -61,9 +53,8 @@ __all__ = ["RULES", "implausibility", "combine", "Score", "Wave", "HistoryMatchP
 RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
 #: Default largest share of a wave's simulator runs that may fail (and be dropped).
 MAX_FAILED_FRACTION = 0.5
-#: Largest sizes accepted up front: candidates scored per wave (and NROY samples drawn at
-#: once), simulator runs per wave (the emulator's θ covariance is runs × runs), and the
-#: Metropolis steps that spread the candidates. Beyond these the work would not fit in
+#: Largest candidates per wave (and NROY samples at once), runs per wave (the emulator's θ
+#: covariance is runs × runs) and spreading steps: beyond these the work would not fit in
 #: memory, so it is refused before it starts.
 MAX_CANDIDATES = 10_000_000
 MAX_RUNS = 10_000
@@ -75,24 +66,9 @@ RULED_OUT_HINT = ("nothing is non-implausible: every candidate θ has I > T. Rai
 
 
 def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
-    """Elementwise implausibility (Eq. 16).
+    """Elementwise implausibility (Eq. 16), ``|z − mean| / √(V_o + V_m + var)``, of arrays
+    that broadcast together (``var``, ``V_o``, ``V_m`` ≥ 0).
 
-    Parameters
-    ----------
-    z : array_like
-        Observations, broadcastable against ``mean``.
-    mean, var : array_like
-        Emulator (or simulator) mean and variance; ``var ≥ 0``.
-    V_o, V_m : array_like
-        Observation and model-discrepancy variances (≥ 0), broadcastable.
-
-    Returns
-    -------
-    ndarray
-        ``|z − mean| / sqrt(V_o + V_m + var)``, broadcast shape.
-
-    Examples
-    --------
     >>> float(implausibility(1.0, 0.0, 0.5, V_o=0.25, V_m=0.25))
     1.0
     """
@@ -109,19 +85,9 @@ def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
 
 
 def combine(I, rule: str = "max") -> np.ndarray:
-    """Combine implausibilities over targets (the last two axes: inputs × outputs).
+    """Combine implausibilities ``I`` (..., N, n_out) over the targets by ``rule``
+    ("max", "2nd max" or "3rd max"): shape (...).
 
-    Parameters
-    ----------
-    I : ndarray of shape (..., N, n_out)
-    rule : {"max", "2nd max", "3rd max"}
-
-    Returns
-    -------
-    ndarray of shape (...)
-
-    Examples
-    --------
     >>> combine(np.array([[[1.0], [9.0], [4.0]]]), "2nd max")
     array([4.])
     """
@@ -211,21 +177,9 @@ class HistoryMatchProblem:
         return self.bounds.shape[0]
 
     def score(self, theta, emulator: Emulator) -> Score:
-        """Combined implausibility and emulator variance of ``theta`` under ``emulator``.
-
-        Parameters
-        ----------
-        theta : ndarray of shape (M, p)
-            Candidate parameters, in the case's units.
-        emulator : Emulator
-            A wave's emulator (:attr:`Wave.emulator`).
-
-        Returns
-        -------
-        Score
-            ``implausibility`` (M,), combined by :attr:`rule` over every observed input
-            and output (Eq. 16), and the emulator ``var`` (M, N_u, n_out).
-        """
+        """Implausibility (Eq. 16, combined by :attr:`rule`) and emulator variance of
+        candidates ``theta`` (M, p) under a wave's ``emulator``
+        (:meth:`mdcore.emulator.Emulator.implausibility`)."""
         theta = np.atleast_2d(as_float_array(theta, "theta"))
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (M, p) with p = {self.p}; received "
@@ -239,15 +193,8 @@ class HistoryMatchProblem:
 
 
 class Score(NamedTuple):
-    """Implausibility of candidate θ under one emulator (:meth:`HistoryMatchProblem.score`).
-
-    Attributes
-    ----------
-    implausibility : ndarray of shape (M,)
-        Combined implausibility ``I(θ)`` (Eq. 16 and the problem's rule).
-    var : ndarray of shape (M, N_u, n_out)
-        Emulator variance ``V[y(θ)]`` at each observed input and output.
-    """
+    """:meth:`HistoryMatchProblem.score`: the combined ``implausibility`` (M,) and the
+    emulator ``var`` (M, N_u, n_out) at each observed input and output."""
 
     implausibility: np.ndarray
     var: np.ndarray
@@ -310,13 +257,8 @@ class Wave:
         return self.status != "running"
 
     def implausibility(self, theta) -> np.ndarray:
-        """Combined implausibility (Eq. 16) of ``theta`` (M, p) under this wave's emulator.
-
-        Returns
-        -------
-        ndarray of shape (M,)
-            θ with a value ≤ the problem's threshold is non-implausible in this wave.
-        """
+        """Combined implausibility (Eq. 16), (M,), of ``theta`` (M, p) under this wave's
+        emulator: non-implausible in this wave where ≤ the problem's threshold."""
         return self.problem.implausibility(theta, self.emulator)
 
 
@@ -343,7 +285,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Model-discrepancy variance, > 0.
     V_o : float or ndarray, optional
         Observation variance. Inputs with replicates use the replicate sample variance
-        (SPEC §5); ``V_o`` is required for inputs without replicates.
+        (``V_o`` is required for inputs without replicates).
     threshold : float, default=3
         Implausibility cut-off T > 0 (Pukelsheim's 3σ rule).
     rule : {"max", "2nd max", "3rd max"}, default="max"
@@ -361,7 +303,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Uniform-target Metropolis steps that spread candidates through the NROY set.
     convergence_ratio : float, default=1
         Converged when the emulator variance at every retained point is below
-        ``convergence_ratio × (V_o + V_m)`` (SPEC §5 uses 1); smaller values keep refining.
+        ``convergence_ratio × (V_o + V_m)``; smaller values keep refining.
     executor : concurrent.futures.Executor, optional
         Runs the simulator runs of each wave (for example a ``ProcessPoolExecutor`` or a
         Dask ``Client(...).get_executor()``); the results equal the serial run's.
@@ -412,7 +354,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                              "replicate variance is available. Pass the noise variance as V_o.")
         V_o = zv
     else:
-        V_o = np.where(has_rep[:, None], zv, V_o)     # SPEC §5: replicate variance wins
+        V_o = np.where(has_rep[:, None], zv, V_o)     # the replicate variance wins
     n_runs = as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1, MAX_RUNS)
     n_candidates = as_int(50_000 * p if n_candidates is None else n_candidates,
                            "n_candidates", 10, MAX_CANDIDATES)

@@ -1,23 +1,16 @@
-"""Kernel maths of the discrepancy GP (SPEC §3, paper Eq. 3, corrected).
+"""The Matérn 3/2 kernel of the GPs, in NumPy (Eq. 3, corrected): the one place it is written.
 
-The separable Matérn 3/2 kernel over simulator outputs ``y`` and inputs ``x``::
+The separable kernel over simulator outputs ``y`` and inputs ``x``::
 
     k((y, x), (y', x')) = σ_f² · m32(r_y) · m32(r_x),   m32(r) = (1 + √3 r) exp(−√3 r)
 
 The paper prints ``exp(+√3 r)``; the Matérn 3/2 kernel decays, so ``exp(−√3 r)`` is used.
-Hyperparameters travel as one log vector of length ``P = 2 + d_y + d_x`` (SPEC §2)::
+Hyperparameters travel as one log vector of length ``P = 2 + d_y + d_x``::
 
     [log σ_f, log ℓ_y,1 … log ℓ_y,d_y, log ℓ_x,1 … log ℓ_x,d_x, log σ_n]
 
-:func:`kernel` is the plain, broadcasting form; :func:`train_cov` and :func:`cross_cov` are
-the chunk kernels of :mod:`mdcore.gp` (flat batches, lower triangle only, reused buffers);
-:func:`matern32_and_dlog_ell` is the one place the kernel's derivative is written.
-
-Examples
---------
->>> import numpy as np
->>> float(matern32(0.0)), round(float(matern32(1.0)), 6)
-(1.0, 0.483358)
+:func:`kernel` is the broadcasting form; :func:`train_cov` and :func:`cross_cov` the chunk
+kernels of :mod:`mdcore.gp` (flat batches, lower triangle only, reused buffers).
 """
 
 from __future__ import annotations
@@ -34,12 +27,11 @@ SQRT3 = np.sqrt(3.0)
 
 
 def matern32(r2) -> np.ndarray:
-    """Matérn 3/2 correlation from squared scaled distance, ``(1 + √3 r) exp(−√3 r)``.
+    """``(1 + √3 r) exp(−√3 r)`` from squared scaled distances ``r²`` (any shape; tiny
+    negative round-off is clipped).
 
-    Parameters
-    ----------
-    r2 : ndarray
-        Squared scaled distances ``r²`` (any shape); tiny negative round-off is clipped.
+    >>> float(matern32(0.0)), round(float(matern32(1.0)), 6)
+    (1.0, 0.483358)
     """
     r = np.sqrt(np.maximum(r2, 0.0))
     return (1.0 + SQRT3 * r) * np.exp(-SQRT3 * r)
@@ -65,12 +57,9 @@ def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
 
 
 def matern32_and_dlog_ell(A, ell) -> tuple[np.ndarray, np.ndarray]:
-    """Matérn 3/2 correlation of the rows of ``A`` and its derivative in each ``log ℓ_d``.
-
-    ``∂m32/∂log ℓ_d = 3 exp(−√3 r) Δ_d² / ℓ_d²`` (with ``m32 = (1 + √3 r) e^{−√3 r}`` and
-    ``∂r/∂log ℓ_d = −Δ_d² / (ℓ_d² r)``). The one place this derivative is written: the
-    GP's analytic gradient (:func:`mdcore.gp.nlml_and_gradient`), the emulator's and the
-    Kennedy–O'Hagan evidence's all use it.
+    """Matérn 3/2 correlation of the rows of ``A`` and its derivative in each ``log ℓ_d``,
+    ``3 exp(−√3 r) Δ_d² / ℓ_d²``: for the analytic gradients of the GP, the emulator and
+    the Kennedy–O'Hagan evidence.
 
     Parameters
     ----------
@@ -93,23 +82,16 @@ def matern32_and_dlog_ell(A, ell) -> tuple[np.ndarray, np.ndarray]:
 
 
 def split_log_params(log_params, d_y: int, d_x: int):
-    """Split (..., P) log hyperparameters into natural-scale pieces.
-
-    Returns ``(sigma_f, ell_y, ell_x, sigma_n)`` with shapes (...), (..., d_y),
-    (..., d_x), (...).
-    """
+    """``(σ_f (...), ℓ_y (..., d_y), ℓ_x (..., d_x), σ_n (...))`` from (..., P) logs."""
     lp = np.asarray(log_params, dtype=np.float64)
     return (np.exp(lp[..., 0]), np.exp(lp[..., 1:1 + d_y]),
             np.exp(lp[..., 1 + d_y:1 + d_y + d_x]), np.exp(lp[..., -1]))
 
 
 def separable_matern(log_sf2, ry, rx, tmp=None) -> np.ndarray:
-    """``σ_f² m32(r_y) m32(r_x)`` from distances already multiplied by √3 (Eq. 3).
-
-    ``(1 + a)(1 + b) exp(−a − b) = (1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``:
-    one exp. The result overwrites ``ry`` (which must have the full broadcast shape;
-    ``rx`` may broadcast against it); ``tmp``, a buffer like ``ry``, is optional.
-    """
+    """``σ_f² m32(r_y) m32(r_x)`` from ``a = √3 r_y``, ``b = √3 r_x`` (Eq. 3) as
+    ``(1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``: one exponential. Overwrites ``ry``
+    (full broadcast shape; ``rx`` may broadcast); ``tmp`` is an optional buffer like it."""
     s = np.add(ry, rx, out=tmp)
     ry *= rx
     ry += s
@@ -148,16 +130,10 @@ def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
 
 
 def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
-    """Cross-covariance ``σ_f² m32(r_y) m32(r_x)`` (Eq. 3), without the noise term.
-
-    Shapes: ``log_params`` (..., P); ``Ya`` (..., Na, d_y); ``Xa`` (Na, d_x);
-    ``Yb`` (..., Nb, d_y); ``Xb`` (Nb, d_x) -> (..., Na, Nb).
-
-    Raises
-    ------
-    ValueError
-        For shapes that do not fit together (naming the argument), or NaN/inf anywhere.
-    """
+    """Cross-covariance ``σ_f² m32(r_y) m32(r_x)`` (Eq. 3), without the noise term:
+    ``log_params`` (..., P), ``Ya`` (..., Na, d_y), ``Xa`` (Na, d_x), ``Yb`` (..., Nb, d_y),
+    ``Xb`` (Nb, d_x) -> (..., Na, Nb). A ValueError names an argument whose shape does not
+    fit, or which holds NaN or inf."""
     log_params, Ya, Xa, Yb, Xb = _check_kernel_args(log_params, Ya, Xa, Yb, Xb)
     d_y, d_x = Ya.shape[-1], Xa.shape[-1]
     sf, ly, lx, _ = split_log_params(log_params, d_y, d_x)
@@ -167,8 +143,7 @@ def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
 
 
 def _scaled_dist(D: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """``scale_b · sqrt(Σ_d D²/ℓ²)``-style distances (b, T) from differences D (b or 1, T, d)
-    and per-dimension factors ``scale`` (b, d) (``√3/ℓ`` here)."""
+    """``√(Σ_d (D_d scale_d)²)`` (b, T) from differences D (b or 1, T, d), scale (b, d)."""
     if D.shape[-1] == 1:                              # no square root needed in 1-D
         return np.abs(D[..., 0]) * scale
     if D.shape[-1] == 0:
@@ -178,14 +153,10 @@ def _scaled_dist(D: np.ndarray, scale: np.ndarray) -> np.ndarray:
 
 
 def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> np.ndarray:
-    """``K = K_ff + σ_n² I`` for a flat chunk: theta (b, P), Y (b, N, d_y) -> (b, N, N).
-
-    Only the lower triangle is filled (the upper one is zero): the Cholesky factorisation
-    and forward substitution read nothing else, and this halves the kernel work.
-    With ``border = z`` (N,) the result is the bordered (b, N+1, N+1) matrix
-    ``[[K, ·], [zᵀ, c]]`` with ``c = 2 zᵀz / σ_n² + 1 > zᵀ K⁻¹ z``: its Cholesky factor
-    carries ``L⁻¹ z`` in the last row, so the NLML needs no separate triangular solve.
-    """
+    """``K = K_ff + σ_n² I`` for a flat chunk: theta (b, P), Y (b, N, d_y) -> (b, N, N),
+    lower triangle only (all the Cholesky reads). With ``border = z`` (N,): the bordered
+    ``[[K, ·], [zᵀ, c]]``, ``c = 2 zᵀz / σ_n² + 1 > zᵀ K⁻¹ z``, whose factor carries
+    ``L⁻¹ z`` in its last row (the NLML needs no separate solve)."""
     b, N, d_y = Y.shape
     n = N if border is None else N + 1
     d_x = X.shape[1]
@@ -204,13 +175,9 @@ def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> n
 
 def _scaled_cross_dist(A: np.ndarray, B: np.ndarray, scale: np.ndarray, out: np.ndarray,
                        tmp: np.ndarray) -> np.ndarray:
-    """``out[b, n, m] = sqrt(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place.
-
-    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); ``out`` and ``tmp``
-    are (b, Na, Nb) work buffers. The scale is applied to the (b, N, d) inputs, not to the
-    (b, Na, Nb) differences, and writing into buffers avoids a fresh allocation per
-    element-wise step, which at these sizes costs more than the arithmetic.
-    """
+    """``out[b, n, m] = √(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place, for
+    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); ``out``, ``tmp``
+    (b, Na, Nb) buffers (a fresh array per step would cost more than the arithmetic)."""
     d = A.shape[-1]
     if d == 0:
         out[...] = 0.0

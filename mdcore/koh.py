@@ -1,42 +1,30 @@
-"""Kennedy–O'Hagan hierarchical Bayesian baseline: θ and δ(x) inferred jointly (SPEC §7).
+"""Kennedy–O'Hagan hierarchical Bayesian baseline: θ and δ(x) inferred jointly.
 
 For each output the observations at the N inputs X are modelled, given θ, as
 
     z | θ, φ ~ N( m_η(X, θ),  Σ_η(X, X; θ) + K_δ(X, X; φ) + σ_n² I )
 
-with ``m_η`` and ``Σ_η`` the emulator's posterior mean and (full) covariance (SPEC §4) and
-``K_δ`` a zero-mean Matérn 3/2 GP over x with ``φ = [log σ_f, log ℓ_x,1 … log ℓ_x,d_x,
-log σ_n]`` (the SPEC §2 layout with no ``ℓ_y``). Outputs are independent given θ.
+with ``m_η``, ``Σ_η`` the emulator's posterior mean and full covariance and ``K_δ`` a
+Matérn 3/2 GP over x, ``φ = [log σ_f, log ℓ_x…, log σ_n]``; outputs independent given θ.
 
-1. φ by empirical Bayes on the prior-averaged marginal likelihood (SPEC §7)::
-
-       φ̂ = argmax_φ log (1/M) Σ_m p(z | θ_m, φ),   θ_m ~ p(θ) truncated to the bounds
-
-   (optionally times a hyperprior ``p(φ)``, i.e. type-II MAP, as scenarios 1–2 do).
-2. θ | z, φ̂ by adaptive Metropolis (:func:`mdcore.mcmc.adaptive_metropolis`) on the
-   Gaussian prior truncated to the box the emulator was built on.
-3. Per kept θ sample, the Gaussian conditional of ``δ*`` and ``z*`` given z::
+1. φ̂ maximises the prior-averaged marginal likelihood ``log (1/M) Σ_m p(z | θ_m, φ)``,
+   θ_m from the prior truncated to the box (times a hyperprior ``p(φ)`` if given).
+2. θ | z, φ̂ by adaptive Metropolis on that truncated Gaussian prior.
+3. Per kept θ, the Gaussian conditionals, combined with equal weights::
 
        δ*: mean K_δ(X*, X) C⁻¹ r,   var σ_f² − diag(K_δ(X*, X) C⁻¹ K_δ(X, X*))
        z*: mean m_η(X*) + G C⁻¹ r,  var V_η(X*) + σ_f² + σ_n² − diag(G C⁻¹ Gᵀ)
 
-   with ``r = z − m_η(X, θ)``, ``C`` the covariance above and ``G = Σ_η(X*, X; θ) +
-   K_δ(X*, X)``; combined with equal weights (laws of total expectation and variance).
+   with ``r = z − m_η(X, θ)``, ``C`` the covariance above, ``G = Σ_η(X*, X; θ) + K_δ(X*, X)``.
 
-Nothing that is fixed during sampling is recomputed per step: the emulator's x-parts come
-from :meth:`mdcore.emulator.Emulator.at` and ``K_δ + σ_n² I`` is built once.
-
-Examples
---------
->>> import numpy as np
 >>> from mdcore import cases
 >>> from mdcore.emulator import fit_emulator
->>> from mdcore.koh import infer_koh
 >>> case = cases.load("beam-1d")
 >>> y = case.simulate(case.X_train, case.initial_design)
 >>> em = fit_emulator(case.X_train, case.initial_design, y, case.theta_bounds, seed=0)
 >>> model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
-...               bounds=case.theta_bounds, n_iter=3000, burn_in=1000, seed=0)
+...                   bounds=case.theta_bounds, seed=0,
+...                   options=KOHOptions(n_iter=3000, burn_in=1000))
 >>> model.predict(case.X_test).delta_mean.shape
 (200, 1)
 """
@@ -68,7 +56,7 @@ from .validation import as_float_array, as_int, as_outputs, check_bounds
 __all__ = ["KOHModel", "KOHOptions", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
            "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST", "MAX_CHAIN"]
 
-#: The paper's chain: 150,000 iterations of which the first 50,000 are burn-in (SPEC §7).
+#: The paper's chain: 150,000 iterations of which the first 50,000 are burn-in.
 N_ITER, BURN_IN = 150_000, 50_000
 #: A short chain for interactive use (the app).
 FAST = {"n_iter": 20_000, "burn_in": 5_000}
@@ -79,21 +67,9 @@ N_PREDICT = 1000
 LOG_2PI = float(np.log(2 * np.pi))
 
 
-# ---------------------------------------------------------------------------------------
-# The simulator side: emulator (mean + covariance) or an exact simulator (covariance 0)
-
 class SimulatorAt:
-    """A cheap exact simulator at fixed inputs ``X``, with the protocol of
-    :class:`mdcore.emulator.EmulatorAt` (``theta_terms``, ``moments_at``, ``cross_cov_at``)
-    and no emulator covariance.
-
-    Parameters
-    ----------
-    simulate : callable
-        ``simulate(X, theta) -> (n_theta, N, n_out)``.
-    X : ndarray of shape (N, d_x)
-    n_out : int
-    """
+    """A cheap exact ``simulate(X, theta) -> (n_theta, N, n_out)`` at fixed inputs ``X``
+    (N, d_x), with :class:`mdcore.emulator.EmulatorAt`'s protocol and no covariance."""
 
     def __init__(self, simulate: Callable, X: np.ndarray, n_out: int):
         self.simulate, self.X, self.n_out = simulate, X, n_out
@@ -129,10 +105,7 @@ def _at(model, X: np.ndarray, n_out: int):
 
 
 def _k_delta(log_phi: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
-    """Discrepancy covariance ``σ_f² m32(r_x)`` per output: (n_out, Na, Nb).
-
-    The core's kernel with no ``y`` inputs (``d_y = 0`` gives exactly the KOH layout).
-    """
+    """``K_δ = σ_f² m32(r_x)`` per output, (n_out, Na, Nb): the kernel with no y inputs."""
     n_out = log_phi.shape[0]
     return kernel(log_phi, np.empty((n_out, Xa.shape[0], 0)), Xa,
                      np.empty((n_out, Xb.shape[0], 0)), Xb)
@@ -151,11 +124,8 @@ def _chol(C: np.ndarray, log: JitterLog) -> np.ndarray:
 
 
 def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``L⁻¹ B`` for (b, N, N) lower factors and (b, N, k) right-hand sides (B is overwritten).
-
-    A few matrices (one MCMC step): LAPACK per matrix; many: the core's row sweep, which
-    is vectorised over the batch.
-    """
+    """``L⁻¹ B`` for (b, N, N) lower factors and (b, N, k) right-hand sides, B overwritten:
+    LAPACK per matrix for a few, the batch-vectorised row sweep for many."""
     if L.shape[0] > 8:
         return solve_lower_inplace(L, B)
     for i in range(L.shape[0]):
@@ -173,9 +143,6 @@ def gaussian_log_likelihood(mean, cov, B, zT, log) -> np.ndarray:
     ll = -0.5 * np.sum(a * a, axis=(-2, -1)) - logdet - 0.5 * mean[0].size * LOG_2PI
     return np.where(np.isfinite(ll), ll, -np.inf)
 
-
-# ---------------------------------------------------------------------------------------
-# Inputs
 
 def _theta_prior(theta_prior, bounds: np.ndarray) -> ThetaPrior:
     """The θ prior as a :class:`~mdcore.priors.ThetaPrior` of size p (from a pair too)."""
@@ -202,18 +169,10 @@ def _log_phi(log_phi, n_out: int, d_x: int) -> np.ndarray:
     return np.array(np.broadcast_to(lp, (n_out, 2 + d_x)))
 
 
-# ---------------------------------------------------------------------------------------
-# Empirical Bayes for φ
-
 class _EvidenceObjective:
-    """``−log (1/M) Σ_m p(z | θ_m, φ) − log p(φ)`` and its analytic gradient in φ.
-
-    With ``C_mo = Σ_η,m,o + K_δ,o + σ_n,o² I``, ``α = C⁻¹ r`` and the normalised weights
-    ``w_m ∝ p(z | θ_m, φ)``, the gradient of the log evidence in one of output o's
-    hyperparameters is ``½ Σ_m w_m tr((α αᵀ − C⁻¹) ∂K_δ,o)`` (the usual GP identity,
-    averaged with the weights), with ``∂/∂log σ_f = 2 K_δ``, ``∂/∂log σ_n = 2 σ_n² I``
-    and ``∂/∂log ℓ_d = σ_f² · 3 exp(−√3 r) Δ_d² / ℓ_d²``.
-    """
+    """``−log (1/M) Σ_m p(z | θ_m, φ) − log p(φ)`` and its gradient in φ: with
+    ``C = Σ_η + K_δ + σ_n² I``, ``α = C⁻¹ r`` and weights ``w_m ∝ p(z | θ_m, φ)``, the log
+    evidence's derivative is ``½ Σ_m w_m tr((α αᵀ − C⁻¹) ∂K_δ)``."""
 
     def __init__(self, mean, cov, X, zT, n_out, phi_prior, log):
         self.cov, self.r = cov, zT - mean                          # (M, n_out, N[, N])
@@ -266,15 +225,12 @@ class _EvidenceObjective:
 
 def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
             n_starts: int = 4, seed=None):
-    """φ̂ maximising the prior-averaged marginal likelihood (SPEC §7).
+    """φ̂ maximising the prior-averaged marginal likelihood.
 
     Parameters
     ----------
-    at : EmulatorAt
-        The emulator at ``X`` (:meth:`mdcore.emulator.Emulator.at`), or the exact-simulator
-        equivalent used by :func:`infer`.
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N, n_out)
+    at : EmulatorAt or SimulatorAt
+        The simulator's side at ``X`` (N, d_x); ``z`` (N, n_out) the observations.
     theta_draws : ndarray of shape (M, p)
         Draws from the θ prior; the objective averages the likelihood over them.
     phi_prior : GaussianPrior of size 2 + d_x, optional
@@ -330,9 +286,6 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
     return best.x.reshape(n_out, P), objective.log_evidence(best.x)
 
 
-# ---------------------------------------------------------------------------------------
-# The fitted model
-
 @dataclass(frozen=True, eq=False)
 class KOHModel:
     """A Kennedy–O'Hagan posterior; call :meth:`predict` for z* and δ*.
@@ -340,25 +293,19 @@ class KOHModel:
     Attributes
     ----------
     scenario : str
-        ``"koh"`` (so the app and the CLI can treat it as a fourth column).
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N, n_out)
+        ``"koh"`` (so the app and the CLI can treat it as a fourth method).
+    X, z : ndarray of shape (N, d_x) and (N, n_out)
     bounds : ndarray of shape (p, 2)
-        Box the θ prior is truncated to.
-    theta_prior : ThetaPrior
-        Gaussian prior of θ (mean and variance in parameter units).
+        Box the θ prior (:class:`~mdcore.priors.ThetaPrior` ``theta_prior``) is truncated to.
     log_phi : ndarray of shape (n_out, 2 + d_x)
-        Discrepancy hyperparameters ``[log σ_f, log ℓ_x…, log σ_n]`` per output.
-    log_evidence : float or None
-        Prior-averaged log marginal likelihood at ``log_phi`` (None when ``log_phi`` was
-        given).
+        ``[log σ_f, log ℓ_x…, log σ_n]`` per output; ``log_evidence`` the prior-averaged
+        log marginal likelihood there (None when ``log_phi`` was given).
     chain : Chain
-        Adaptive-Metropolis output in parameter units: ``samples`` (n_kept, p), acceptance
-        rate, final proposal covariance, integrated autocorrelation times.
+        The adaptive-Metropolis output in parameter units.
     n_predict : int
         θ samples (evenly spaced over the kept chain) used by :meth:`predict`.
     seconds_phi, seconds : float
-        Time spent fitting φ and in :func:`infer` in total.
+        Time spent fitting φ, and in total.
     """
 
     scenario: str
@@ -400,22 +347,9 @@ class KOHModel:
 
     def predict(self, X_star, *, n_samples: int | None = None,
                 progress: Callable[[float], None] | None = None) -> DiscrepancyPrediction:
-        """Bias-corrected prediction and discrepancy at ``X_star`` (SPEC §7).
-
-        Parameters
-        ----------
-        X_star : ndarray of shape (N*, d_x)
-        n_samples : int, optional
-            θ samples, evenly spaced over the kept chain (default :attr:`n_predict`;
-            capped at the chain length).
-        progress : callable, optional
-            Called with the fraction done after each block; raising cancels.
-
-        Returns
-        -------
-        DiscrepancyPrediction
-            Each field (N*, n_out); the z variance includes σ_n².
-        """
+        """Bias-corrected prediction and discrepancy at ``X_star`` (N*, d_x), each field
+        (N*, n_out) (the z variance includes σ_n²), from ``n_samples`` θ evenly spaced over
+        the kept chain (default :attr:`n_predict`); ``progress`` may raise to cancel."""
         X_star = as_float_array(X_star, "X_star", ndim=2)
         if X_star.shape[1] != self.X.shape[1]:
             raise ValueError(f"X_star must have shape (N*, d_x) with d_x = {self.X.shape[1]} "
@@ -484,14 +418,13 @@ class KOHOptions:
     n_predict : int, default=1000
         θ samples used by :meth:`KOHModel.predict`.
     log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
-        Fixed discrepancy hyperparameters; default: :func:`fit_phi`.
+        Fixed discrepancy hyperparameters instead of :func:`fit_phi`'s.
     phi_prior : GaussianPrior of size 2 + d_x, optional
-        Hyperprior for :func:`fit_phi` (MAP); None is plain empirical Bayes.
+        Hyperprior of :func:`fit_phi` (MAP); None is plain empirical Bayes.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
-        The chain with an emulator: ``"numba"`` runs it in compiled blocks
-        (:func:`mdcore.compiled.koh_chain`), ``"numpy"`` in the Python loop of
-        :func:`mdcore.mcmc.adaptive_metropolis`; the chains agree to ~1e-12. ``"auto"`` is
-        numba when installed, None reads ``MDCORE_BACKEND``.
+        The chain with an emulator: compiled (:func:`mdcore.compiled.koh_chain`) or the
+        Python loop of :func:`mdcore.mcmc.adaptive_metropolis`, equal to rounding;
+        ``"auto"`` is numba when installed, None reads ``MDCORE_BACKEND``.
     """
 
     n_iter: int = N_ITER
@@ -525,25 +458,18 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
     ----------
     model : Emulator or callable
         The history-matching emulator (its mean and covariance enter the likelihood), or
-        an exact ``simulate(X, theta) -> (n_theta, N, n_out)`` (no emulator variance).
+        an exact ``simulate(X, theta) -> (n_theta, N, n_out)``.
     X : ndarray of shape (N, d_x)
         Observed inputs (repeated rows are replicates).
     z : ndarray of shape (N, n_out) or (N,)
-        Observations.
     theta_prior : ThetaPrior or (mean, var)
-        Gaussian prior of θ; ``var`` is a variance per parameter (beam-1d: l_cr ~ N(35, 10)
-        mm, E ~ N(70, 36) GPa). Truncated to ``bounds``.
-    bounds : ndarray of shape (p, 2)
-        Box of θ (the emulator is only trusted inside it).
+        Gaussian prior of θ (``var`` a variance per parameter), truncated to ``bounds``
+        (p, 2), the box the emulator is trusted in.
     options : KOHOptions, optional
-        Chain length, φ̂ and the backend; default ``KOHOptions()`` (the paper's chain).
+        Chain length, φ̂ and the backend; default the paper's chain.
     seed : int or Generator, optional
     progress : callable, optional
-        Fraction done (0–1); if it raises, inference stops (use this to cancel).
-
-    Returns
-    -------
-    KOHModel
+        Fraction done (0–1); raising from it cancels.
     """
     start = time.perf_counter()
     options = KOHOptions() if options is None else options

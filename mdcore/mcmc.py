@@ -5,13 +5,12 @@ The sampler is a random-walk Metropolis whose Gaussian proposal covariance is, a
     C_t = C_0                                   for t ≤ t_0
     C_t = s_d Cov(x_0, …, x_{t−1}) + s_d ε I     for t > t_0,      s_d = 2.4² / d
 
-(Haario et al. 2001, Eq. 2.1). The chain covariance is updated at every step with
-Welford's recursion, so the adaptation is the paper's, not a batched approximation.
+(Haario et al. 2001, Eq. 2.1), the chain covariance updated at every step by Welford's
+recursion. :func:`adaptive_metropolis` runs it in Python; :func:`chain_setup`,
+:func:`draw_blocks` and :func:`finish_chain` are its parts, which a compiled chain
+(:func:`mdcore.compiled.koh_chain`) shares, so both draw the same random numbers.
 
-Examples
---------
 >>> import numpy as np
->>> from mdcore.mcmc import adaptive_metropolis
 >>> chain = adaptive_metropolis(lambda x: -0.5 * float(x @ x), np.zeros(2), n_iter=5000,
 ...                             burn_in=1000, seed=0)
 >>> chain.samples.shape, 0.1 < chain.acceptance_rate < 0.9
@@ -50,15 +49,11 @@ class Chain:
     Attributes
     ----------
     samples : ndarray of shape (n_iter − burn_in, d)
-        States after burn-in (every state, repeats included).
-    log_target : ndarray of shape (n_iter − burn_in,)
-        Log target density at each kept state.
-    acceptance_rate : float
-        Fraction of accepted proposals after burn-in.
-    acceptance_rate_burn_in : float
-        The same during burn-in.
+        States after burn-in (repeats included); ``log_target`` (n_iter − burn_in,) theirs.
+    acceptance_rate, acceptance_rate_burn_in : float
+        Fractions of accepted proposals after and during burn-in.
     proposal_cov : ndarray of shape (d, d)
-        The proposal covariance ``C_t`` at the last step.
+        ``C_t`` at the last step.
     iat : ndarray of shape (d,)
         Integrated autocorrelation time of each coordinate of :attr:`samples`.
     n_iter, burn_in, adapt_start : int
@@ -78,8 +73,8 @@ class Chain:
 
     @property
     def reliable(self) -> bool:
-        """Whether the kept chain is longer than 50 autocorrelation times in every
-        coordinate (emcee's check): otherwise the IAT, and the ESS, are themselves unsure."""
+        """Whether the kept chain spans 50 autocorrelation times in every coordinate
+        (emcee's check): otherwise the IAT and the ESS are themselves unsure."""
         return bool(np.all(self.samples.shape[0] > RELIABLE_TAUS * self.iat))
 
     @property
@@ -89,25 +84,10 @@ class Chain:
 
 
 def integrated_autocorr_time(x, *, c: float = 5.0) -> np.ndarray:
-    """Integrated autocorrelation time per coordinate, with Sokal's automatic window.
-
-    ``τ = 1 + 2 Σ_{k=1}^{M} ρ(k)`` where ``ρ`` is the FFT estimate of the normalised
-    autocorrelation and ``M`` is the smallest window with ``M ≥ c τ(M)`` (Sokal 1997; the
-    estimator of ``emcee``). For an AR(1) chain with coefficient a, ``τ = (1 + a)/(1 − a)``.
-
-    Parameters
-    ----------
-    x : ndarray of shape (n,) or (n, d)
-        A chain (rows are successive states), n ≥ 2.
-    c : float, default=5
-        Window constant.
-
-    Returns
-    -------
-    ndarray of shape (d,)
-        τ ≥ 1 per coordinate in samples; ``n / τ`` is the effective sample size. A
-        constant coordinate (a chain that never moved) gets τ = n.
-    """
+    """Integrated autocorrelation time ``τ = 1 + 2 Σ_{k≤M} ρ(k)`` per coordinate of a chain
+    ``x`` (n ≥ 2,) or (n, d), ``ρ`` by FFT and ``M`` the smallest window with ``M ≥ c τ(M)``
+    (Sokal 1997, as emcee). Returns τ (d,), 1 ≤ τ ≤ n (n for a chain that never moved);
+    ``n / τ`` is the effective sample size. AR(1) with coefficient a: ``(1 + a)/(1 − a)``."""
     x = as_float_array(x, "x")
     if x.ndim == 1:
         x = x[:, None]
@@ -177,15 +157,10 @@ def chain_setup(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int, b
 
 def draw_blocks(setup: ChainSetup, seed, progress: Callable[[float], None] | None = None
                 ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
-    """The random numbers of the chain, in blocks ``(t, steps, log_u)``: the standard normal
-    draws (b, d) and log uniforms (b,) of steps ``t … t + b − 1``.
-
-    Every sampler of :func:`adaptive_metropolis`'s chain draws through this, so the same
-    seed gives the same numbers whatever runs the steps. A block ends at the end of a
-    draw of :data:`DRAW_BLOCK` steps or at a progress point (every 1 % of the run); when
-    the caller asks for the next block, ``progress(t / n_iter)`` is called at a progress
-    point (if it raises, sampling stops there).
-    """
+    """The chain's random numbers in blocks ``(t, steps (b, d), log_u (b,))`` for steps
+    ``t … t + b − 1``: the same for any sampler of the same seed. A block ends at the end
+    of a draw of :data:`DRAW_BLOCK` steps or at a progress point (every 1 % of the run),
+    where ``progress(t / n_iter)`` runs before the next block (raising stops sampling)."""
     rng = np.random.default_rng(seed)
     n_iter, d = setup.n_iter, setup.x0.size
     every = max(1, n_iter // 100)
@@ -227,25 +202,19 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
     Parameters
     ----------
     log_target : callable
-        ``log_target(x)`` for x of shape (d,): the log density up to a constant; ``-inf``
-        outside the support.
+        ``log_target(x)``, x (d,): the log density up to a constant, ``-inf`` outside.
     x0 : ndarray of shape (d,)
         Starting state; ``log_target(x0)`` must be finite.
-    n_iter : int
-        Total iterations, burn-in included.
-    burn_in : int
-        Leading iterations dropped from :attr:`Chain.samples` (0 ≤ burn_in < n_iter − 1).
+    n_iter, burn_in : int
+        Iterations, and the leading ones dropped (0 ≤ burn_in < n_iter − 1).
     initial_cov : ndarray of shape (d, d), optional
-        ``C_0``, used up to ``adapt_start``. Default ``(0.1)² I``.
-    adapt_start : int, optional
-        ``t_0``: adaptation starts after this many iterations (default
+        ``C_0`` (default ``(0.1)² I``), used up to ``adapt_start`` (default
         ``min(1000, n_iter // 10)``, at least 2 d).
     epsilon : float, default=1e-8
-        ``ε`` of the regularising term ``s_d ε I`` (in the units of x squared).
+        ``ε`` of ``s_d ε I`` (units of x squared).
     seed : int or numpy.random.Generator, optional
     progress : callable, optional
-        Called with the fraction done (0–1) about every 1 % of the run; if it raises,
-        sampling stops and the exception propagates (use this to cancel).
+        Fraction done (0–1) about every 1 %; raising from it cancels.
 
     Returns
     -------

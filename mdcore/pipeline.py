@@ -48,7 +48,7 @@ from .discrepancy import (
 )
 from .exceptions import Cancelled
 from .history_matching import HistoryMatchResult
-from .hyperfit import QPSO_ITERATIONS
+from .hyperfit import QPSO_ITERATIONS, FitOptions
 from .importance import K_HAT_THRESHOLD
 from .koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
 from .metrics import coverage, lpl, mmd, nmse
@@ -576,7 +576,7 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
         options = DiscrepancyOptions(
             n_phi=settings.n_phi, phi_prior=case.phi_prior, proposal=settings.proposal,
             prune=settings.prune, backend=settings.backend,
-            fit_options={"n_iterations": settings.fit_iterations},
+            fit=FitOptions(n_iterations=settings.fit_iterations),
             log_params_hat=log_params_hat if method is Method.S2 else None)
         model = infer_discrepancy(
             case.simulate, theta, case.X_train, case.z_train, scenario=method.scenario,

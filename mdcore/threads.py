@@ -1,18 +1,13 @@
-"""mdcore's one thread policy: one pool of compute threads and one BLAS thread.
+"""mdcore's one thread policy: one pool of compute threads, and BLAS at one thread.
 
-The core works on many small matrices (13–100 rows). Threads pay over independent pieces of
-work (chunks of pairs, of candidates), not inside one BLAS call: on such sizes a second BLAS
-thread only spins. So:
-
-- :func:`run_pieces` runs pieces on one process-wide pool of :func:`num_threads` threads
-  (``MDCORE_NUM_THREADS``, default every core). Every caller, NumPy chunks and compiled
-  kernels alike, queues on the same pool, so the process never runs more compute threads
-  than that, and concurrent calls (app sessions, jobs) take turns piece by piece.
-- :func:`single_threaded_blas_for_process` limits BLAS to one thread for the whole process,
-  once. The numerical entry points call it (through :func:`single_threaded_blas`) on first
-  use; a program that owns its process (the app, the command line) calls it at start.
-  The limit is never undone: undoing a process-wide setting is not safe while another
-  thread still relies on it.
+The core works on many small matrices (13–100 rows): threads pay over independent pieces
+of work (chunks of pairs, of candidates), while a second BLAS thread on such sizes only
+spins. So :func:`run_pieces` runs pieces on one process-wide pool of :func:`num_threads`
+threads, which NumPy chunks and compiled kernels alike queue on (concurrent app sessions
+and jobs take turns piece by piece), and :func:`single_threaded_blas_for_process` sets BLAS
+to one thread for the whole process, once: the numerical entry points call it on first use
+(:func:`single_threaded_blas`). It is never undone, because undoing a process-wide setting
+is not safe while another thread relies on it.
 """
 
 from __future__ import annotations
@@ -37,8 +32,7 @@ _blas_modules = -1                         # len(sys.modules) when BLAS was last
 
 
 def _forget_pool_after_fork() -> None:
-    """A forked child has none of the pool's threads: it starts a new pool on first use."""
-    _pool.clear()
+    _pool.clear()             # a forked child has none of the pool's threads
 
 
 if hasattr(os, "register_at_fork"):
@@ -54,13 +48,7 @@ def cores() -> int:
 
 
 def num_threads() -> int:
-    """Compute threads: ``MDCORE_NUM_THREADS`` if set, else every core.
-
-    Raises
-    ------
-    ValueError
-        If ``MDCORE_NUM_THREADS`` is set to anything but a positive integer.
-    """
+    """Compute threads: ``MDCORE_NUM_THREADS`` (a positive integer) if set, else every core."""
     raw = os.environ.get(THREADS_ENV, "").strip()
     if not raw:
         return cores()
@@ -79,12 +67,8 @@ def _mark_pool_thread() -> None:
 
 
 def run_pieces(work: Callable, pieces: list) -> list:
-    """``[work(*piece) for piece in pieces]``, on the process's compute threads.
-
-    A single piece, one compute thread, or a call from a pool thread (nested work would
-    wait on itself) runs in the calling thread. ``work`` must release the GIL to gain
-    anything (NumPy's loops, LAPACK and the compiled kernels do).
-    """
+    """``[work(*piece) for piece in pieces]`` on the compute threads; in the calling thread
+    for one piece, one thread, or a call from a pool thread (it would wait on itself)."""
     n = num_threads()
     if len(pieces) <= 1 or n == 1 or getattr(_in_pool, "active", False):
         return [work(*p) for p in pieces]
@@ -100,11 +84,8 @@ def run_pieces(work: Callable, pieces: list) -> list:
 
 
 def single_threaded_blas_for_process() -> None:
-    """Limit every BLAS library loaded so far to one thread, for the whole process.
-
-    Idempotent and cheap: it scans the loaded libraries again only when modules were
-    imported since the last call (one of them may have loaded another BLAS).
-    """
+    """Limit every BLAS library loaded so far to one thread, for the whole process; cheap
+    when repeated (a new scan only if modules were imported since: one may load a BLAS)."""
     global _blas_modules
     if len(sys.modules) == _blas_modules:
         return

@@ -1,15 +1,7 @@
-"""Numba kernels behind :mod:`mdcore.compiled` (imported lazily; needs numba).
-
-Two kernels, each serial with the GIL released, on C-contiguous float64/int64 arrays that
-come in NamedTuples (one signature per kernel, cached on disk):
-
-- :func:`pair_range`: scenario 3's (φ, y) pairs: the NLML (Eq. 9) and, in mixture mode,
-  the weighted mixture sums of Eq. 15;
-- :func:`koh_steps`: steps of adaptive Metropolis on the Kennedy–O'Hagan target.
-
-The Matérn 3/2 kernel (Eq. 3) is :func:`_matern_parts`; every kernel factorises with
-:func:`_factor`. Hot loops are flat loops from index 0 over contiguous arrays, which LLVM
-vectorises. Nothing here validates input: :mod:`mdcore.compiled` does.
+"""Numba kernels behind :mod:`mdcore.compiled`: :func:`pair_range` (scenario 3's pairs)
+and :func:`koh_steps` (the KOH chain), serial with the GIL released, on C-contiguous arrays
+in NamedTuples (one signature each). The Matérn 3/2 kernel (Eq. 3) is :func:`_matern_parts`;
+hot loops are flat loops over contiguous arrays, which LLVM vectorises.
 """
 
 from __future__ import annotations
@@ -185,26 +177,11 @@ def _log_density(R, n, c):
 
 @_kernel
 def pair_range(mode, b0, b1, pairs, test, ladder, out, acc):
-    """Pairs ``b0 ≤ b < b1``: the NLML (Eq. 9) of ``(θ = pairs.theta[b],
-    y = pairs.Y[pairs.row[b]])`` for every column of ``pairs.z`` (one factorisation), and
-    in :data:`MIXTURE` mode the mixture sums (Eq. 15) of the first column.
-
-    Parameters
-    ----------
-    mode : int
-        :data:`NLML` or :data:`MIXTURE`.
-    pairs : mdcore.compiled.Pairs
-        Pairs of one row of Y follow each other (their differences are computed once).
-    test : mdcore.compiled.Test
-        MIXTURE: with the pair's predictive mean ``μ`` and latent variance ``v`` at
-        ``test.X_star`` (Eq. 7), noise ``σ_n²``, ``y* = test.y_out[row]``, weight
-        ``w = test.weight[b]``, ``dz = μ − test.centre[0]``, ``dd = μ − y* −
-        test.centre[1]``, adds ``w · [dz, dd, v + σ_n² + dz², v + dd²]`` to ``acc`` (4, M).
-    ladder : (L,) relative jitter steps
-    out : mdcore.compiled.PairOut
-        ``nlml`` (B, n_z), ``step`` (the jitter step used), ``failed`` (no step worked:
-        NLML ``inf``) and ``dropped`` (failed, or non-finite moments).
-    """
+    """Pairs ``b0 ≤ b < b1``: the NLML (Eq. 9) of ``(pairs.theta[b], pairs.Y[pairs.row[b]])``
+    for every column of ``pairs.z`` (one factorisation) into ``out``
+    (:class:`mdcore.compiled.PairOut`), and in :data:`MIXTURE` mode the sums of
+    :func:`mdcore.compiled.mixture_sums` into ``acc`` (4, M). Pairs of one row of Y should
+    follow each other: their differences are computed once."""
     theta, row, Y, X, z = pairs
     N, d_x = X.shape
     d_y, n_z = Y.shape[2], z.shape[1]
@@ -351,13 +328,9 @@ def _koh_log_likelihood(u, em, koh, work):
 
 @_kernel
 def koh_steps(t_start, lp, steps, log_u, chain, em, koh, stats):
-    """Steps ``t_start ≤ t < t_start + len(steps)`` of adaptive Metropolis
-    (:func:`mdcore.mcmc.adaptive_metropolis`, the same operations) on the KOH target in
-    standardised coordinates ``u = (θ − μ) / sd``: the log likelihood minus ``½ uᵀu``,
-    ``-inf`` outside the box ``koh.lo_u ≤ u ≤ koh.hi_u``. The chain state (``chain``:
-    :class:`mdcore.compiled.ChainState`) is updated in place; returns the log target of
-    the state. ``stats`` (3,) adds up [matrices jittered, failed, largest jitter step].
-    """
+    """Steps ``t_start …`` of :func:`mdcore.mcmc.adaptive_metropolis` (the same operations)
+    on the KOH target, updating ``chain`` (:class:`mdcore.compiled.ChainState`) in place;
+    returns the state's log target. ``stats`` adds up [jittered, failed, largest step]."""
     x, mean, m2, L = chain.x, chain.mean, chain.m2, chain.L
     d = x.size
     N, R_train = em.lin.shape[1], em.T_train.shape[0]

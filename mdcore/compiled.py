@@ -1,18 +1,15 @@
 """Compiled (numba) kernels for the two loops where NumPy cannot reach a user's target.
 
-The NumPy code is the implementation of record; this module computes the same numbers to
-rounding (``tests/test_compiled.py``: rtol 1e-8) for
+The NumPy code is the implementation of record; these compute the same numbers to rounding:
 
 - scenario 3's (φ, y) pairs: the NLML of every pair (Eq. 9, :func:`nlml`) and the mixture
   prediction (Eq. 15, :func:`mixture_sums`), fused per pair in small buffers;
-- the Kennedy–O'Hagan chain, stretches of adaptive Metropolis per call (:func:`koh_chain`).
+- the Kennedy–O'Hagan chain (:func:`koh_chain`).
 
-numba is optional: nothing imports it until a kernel is needed; :func:`available` says
-whether it can be. Kernels are compiled once per machine and cached on disk (next to the
-module, or in ``NUMBA_CACHE_DIR``); :func:`warm_up_in_background` prepares them while the
-app or the command line starts. Callers validate the inputs. Large calls run as pieces on
-the compute threads (:mod:`mdcore.threads`); the pieces depend on the problem size only, so
-sums over them are reproducible.
+numba is optional and imported on first use; kernels are cached on disk, and
+:func:`warm_up_in_background` prepares them while the app starts. Callers validate inputs.
+Large calls run as pieces on the compute threads; the pieces depend on the problem size
+only, so sums over them are reproducible.
 """
 
 from __future__ import annotations
@@ -117,18 +114,8 @@ def available() -> bool:
 
 
 def resolve_backend(backend: str | None = None) -> str:
-    """The backend to use: ``"numpy"`` (the reference) or ``"numba"`` (this module).
-
-    Parameters
-    ----------
-    backend : {"auto", "numpy", "numba"} or None
-        ``None`` reads ``MDCORE_BACKEND``, default ``"auto"``: numba when it is installed.
-
-    Raises
-    ------
-    ValueError
-        For an unknown name, or ``"numba"`` without numba installed.
-    """
+    """``"numpy"`` or ``"numba"`` for ``backend`` (None reads ``MDCORE_BACKEND``; ``"auto"``
+    is numba when installed); a ValueError for an unknown name or a missing numba."""
     source = "backend"
     if backend is None:
         backend, source = os.environ.get(BACKEND_ENV, "").strip() or "auto", BACKEND_ENV
@@ -144,7 +131,7 @@ def resolve_backend(backend: str | None = None) -> str:
 
 
 def _kernels():
-    """The kernel module, imported on first use (the import may compile or load cache)."""
+    """The kernel module, imported on first use."""
     global _module
     if _module is None:
         try:
@@ -197,21 +184,9 @@ def _run_pairs(mode: int, pairs: Pairs, test: Test, jitter_log: JitterLog | None
 
 
 def nlml(pairs: Pairs, jitter_log: JitterLog | None = None) -> np.ndarray:
-    """NLML (Eq. 9) of every pair: :func:`mdcore.gp.neg_log_marginal_likelihood` of
-    ``(pairs.theta[b], pairs.Y[pairs.row[b]])``, with the same jitter ladder; ``inf`` for a
-    covariance that no step factorises.
-
-    Parameters
-    ----------
-    pairs : Pairs
-        ``z`` of shape (N,) or (N, n_z): several outputs share each pair's factor.
-    jitter_log : JitterLog, optional
-        Receives the jitter counts (without it they are a warning).
-
-    Returns
-    -------
-    ndarray of shape (B,) or (B, n_z), as ``z``.
-    """
+    """NLML (Eq. 9) of every pair ``(pairs.theta[b], pairs.Y[pairs.row[b]])``, as
+    :func:`mdcore.gp.neg_log_marginal_likelihood`: (B,) or (B, n_z) as ``pairs.z`` (outputs
+    share each pair's factor); ``jitter_log`` receives the jitter counts, else a warning."""
     d_y, d_x = pairs.Y.shape[2], pairs.X.shape[1]
     empty = Test(np.zeros((1, 0, d_y)), np.zeros((1, 0)), np.zeros((0, d_x)),
                  np.zeros(1), np.zeros((2, 0)))
@@ -221,17 +196,14 @@ def nlml(pairs: Pairs, jitter_log: JitterLog | None = None) -> np.ndarray:
 
 def mixture_sums(pairs: Pairs, test: Test, jitter_log: JitterLog | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted mixture sums of Eq. 15 over the pairs, about a reference component
-    (one output: ``pairs.z`` of shape (N,)).
+    """Weighted mixture sums of Eq. 15 over the pairs of one output (``pairs.z`` (N,)).
 
-    For pair b with predictive mean ``μ`` and latent variance ``v`` at ``test.X_star``
-    (Eq. 7), noise ``σ_n²``, ``y* = test.y_out[row[b]]``, ``dz = μ − test.centre[0]`` and
-    ``dd = μ − y* − test.centre[1]``::
+    For pair b with predictive mean ``μ`` and latent variance ``v`` (Eq. 7), noise ``σ_n²``,
+    ``dz = μ − test.centre[0]`` and ``dd = μ − test.y_out[row[b]] − test.centre[1]``::
 
         acc = Σ_b weight[b] · [dz, dd, v + σ_n² + dz², v + dd²]
 
-    Returns ``acc`` (4, M) and ``dropped`` (B,) bool: the pairs left out (not
-    factorisable, or non-finite moments).
+    Returns ``acc`` (4, M) and ``dropped`` (B,) bool (not factorisable, or non-finite).
     """
     out, acc = _run_pairs(_kernels().MIXTURE, pairs, test, jitter_log)
     return acc, out.dropped
@@ -239,24 +211,13 @@ def mixture_sums(pairs: Pairs, test: Test, jitter_log: JitterLog | None = None
 
 def koh_chain(arrays: EmulatorArrays, koh: KOHData, setup: mcmc.ChainSetup, seed,
               progress=None, jitter_log: JitterLog | None = None) -> mcmc.Chain:
-    """:func:`mdcore.mcmc.adaptive_metropolis` on the KOH target, compiled.
+    """:func:`mdcore.mcmc.adaptive_metropolis` on the KOH target ``log p(z | θ, φ̂) −
+    ½ uᵀu`` in ``u = (θ − μ) / sd`` (``-inf`` outside the box), compiled.
 
-    The random numbers are :func:`mdcore.mcmc.draw_blocks`'s, as the Python loop's; each
-    block of steps is one kernel call, and ``progress`` (which may raise to cancel) runs
-    between blocks. Target: ``log p(z | θ, φ̂) − ½ uᵀu`` in ``u = (θ − μ) / sd``, ``-inf``
-    outside the box, with the emulator's moments (:class:`mdcore.emulator.EmulatorAt`).
-
-    Parameters
-    ----------
-    arrays : mdcore.emulator.EmulatorArrays
-        The emulator at the observed inputs.
-    koh : KOHData
-    setup : mdcore.mcmc.ChainSetup
-        From :func:`mdcore.mcmc.chain_setup` on the NumPy target (which gives ``lp0``).
-    seed : int or numpy.random.Generator
-    progress : callable, optional
-    jitter_log : JitterLog, optional
-        Receives the jitter counts of every evaluation.
+    ``arrays`` is the emulator at the observed inputs; ``setup`` comes from
+    :func:`mdcore.mcmc.chain_setup` on the NumPy target. The random numbers are
+    :func:`mdcore.mcmc.draw_blocks`'s, as the Python loop's; each block is one kernel call,
+    and ``progress`` (which may raise to cancel) runs between blocks.
     """
     k = _kernels()
     em = type(arrays)(*map(_contiguous, arrays))
@@ -278,15 +239,8 @@ def koh_chain(arrays: EmulatorArrays, koh: KOHData, setup: mcmc.ChainSetup, seed
                              time.perf_counter() - start)
 
 
-# ---------------------------------------------------------------------------------------
-# Warm-up
-
-
 def warm_up() -> float:
-    """Load (or, the first time on a machine, compile) every kernel; returns seconds.
-
-    Safe to call from several threads: numba compiles each kernel once.
-    """
+    """Load (the first time on a machine: compile) every kernel; returns seconds."""
     from .emulator import EmulatorArrays
 
     start = time.perf_counter()
@@ -313,11 +267,8 @@ def warm_up() -> float:
 
 
 def warm_up_in_background() -> threading.Thread | None:
-    """Start :func:`warm_up` in a daemon thread, once per process; ``None`` without numba.
-
-    Later calls return the same thread. A compiled call made meanwhile waits for the
-    compilation instead of repeating it.
-    """
+    """Start :func:`warm_up` in a daemon thread, once per process (later calls return the
+    same thread); ``None`` without numba."""
     global _warm_thread
     if not available():
         return None

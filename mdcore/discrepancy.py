@@ -8,15 +8,10 @@ Per output a zero-mean GP maps all simulator outputs ``y`` (``d_y = n_out``) and
 - scenario 3: N_s × N_φ components, φ^(j,k) from the prior (or an adaptive proposal),
   ``log w_jk = −NLML`` normalised jointly (Eq. 15).
 
-With ``δ^(j,k) = E[z*^(j,k)] − y*^(j)`` and ``V_f`` the latent variance, the mixture moments
-are ``E[δ] = Σ w δ``, ``V[δ] = Σ w (V_f + δ²) − E[δ]²``, ``E[z] = Σ w E[z*]``,
-``V[z] = Σ w (V_f + σ_n² + E[z*]²) − E[z]²``, summed about the heaviest component so large
-means do not cancel small variances.
-
-The (θ, φ) pairs go in chunks whose layout depends on the problem size only, each one call
-of a module-level function on the few MB it needs, so ``executor=`` (any
-``concurrent.futures.Executor``, e.g. Dask's) can run them elsewhere with the serial run's
-numbers (the results are reduced in chunk order; at most :data:`IN_FLIGHT` in flight).
+The mixture moments are summed about the heaviest component, so large means do not cancel
+small variances. The (θ, φ) pairs go in chunks that depend on the problem size only, each
+one call of a module-level function, so ``executor=`` (any ``concurrent.futures.Executor``,
+e.g. Dask's) runs them with the serial run's numbers (results reduced in chunk order).
 
 >>> from mdcore import cases
 >>> from mdcore.discrepancy import infer_discrepancy
@@ -57,32 +52,28 @@ __all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions",
            "PROPOSALS", "LOW_ESS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
 
 SCENARIOS = (1, 2, 3)
-#: Scenario 3's φ proposals: the paper's prior draws, or adaptive importance sampling.
 PROPOSALS = ("prior", "adaptive")
 #: Scenario 3 warns when an output's effective sample size is below this.
 LOW_ESS = 30.0
-#: Components with weight below ``PRUNE × max`` are skipped by the prediction (reported).
+#: Components below ``PRUNE × max`` weight are skipped by the prediction (reported).
 PRUNE = 1e-12
-#: Largest θ samples, φ samples per θ and pairs accepted: beyond them the work would not
-#: fit in memory, so it is refused up front (the paper: N_s = 1000, N_φ = 500–1000).
+#: Largest N_s, N_φ and pairs accepted: beyond them the work would not fit in memory.
 MAX_N_S = 100_000
 MAX_N_PHI = 100_000
 MAX_PAIRS = 100_000_000
-#: Temporaries of one NumPy prediction block, in bytes; fewest pairs per compiled block
-#: (about 20 blocks per output); pairs per chunk of the weights; chunks in flight.
+#: Bytes of one NumPy prediction block; fewest pairs per compiled block; pairs per chunk
+#: of the weights; chunks in flight.
 BLOCK_BYTES = 32 * 2**20
 MIN_FUSED_BLOCK = 2048
 WEIGHT_PAIRS = 100_000
 IN_FLIGHT = 32
-#: Scenario 3's prior draws (N_s, N_φ, P) are kept up to this many bytes; larger sets are
-#: drawn again from their random stream when needed (:class:`PriorDraws`).
+#: Scenario 3's draws are kept up to this many bytes, else redrawn (:class:`PriorDraws`).
 KEEP_DRAWS_BYTES = 64 * 2**20
 
 
 class DiscrepancyPrediction(NamedTuple):
-    """Mixture moments at the prediction inputs, each (N*, n_out) in output units (squared):
-    the bias-corrected prediction ``z_mean``, ``z_var`` of a new observation (with σ_n²),
-    and the discrepancy ``delta_mean``, ``delta_var`` (latent)."""
+    """Mixture moments, each (N*, n_out): bias-corrected ``z_mean``, ``z_var`` (with σ_n²),
+    and the latent discrepancy ``delta_mean``, ``delta_var``."""
 
     z_mean: np.ndarray
     z_var: np.ndarray
@@ -99,25 +90,19 @@ class DiscrepancyOptions:
     n_phi : int, default=500
         Hyperparameter samples per θ sample (scenario 3).
     phi_prior : GaussianPrior, optional
-        Prior of the log hyperparameters (P = 2 + n_out + d_x), shared by the outputs.
-        Scenario 3 samples from it; scenarios 1–2 use it as the hyperprior of the φ̂ fit
-        (type-II MAP: with N = 13 points, plain empirical Bayes drives σ_n to its lower
-        bound and the z band misses the noisy test data). Default: plain empirical Bayes
-        (Eq. 8) for scenarios 1–2, :func:`default_phi_prior` for scenario 3.
+        Prior of the log hyperparameters (P = 2 + n_out + d_x). Scenario 3 samples from it
+        (default :func:`default_phi_prior`); scenarios 1–2 use it as the hyperprior of the
+        φ̂ fit (default none: plain empirical Bayes, Eq. 8).
     proposal : {"prior", "adaptive"}, default="prior"
-        Scenario 3's φ proposal. ``"prior"`` is the paper's: N_φ prior draws per θ.
-        ``"adaptive"`` spends the same N_φ draws per θ in stages
-        (:func:`mdcore.importance.adaptive_importance_sampling`) with Pareto-smoothed
-        weights; it keeps far more effective samples where the likelihood is narrow
-        compared with the prior (beam-2d).
+        Scenario 3's φ proposal: the paper's N_φ prior draws per θ, or the same number in
+        adaptive stages (:func:`mdcore.importance.adaptive_importance_sampling`).
     prune : float, default=1e-12
         See :attr:`DiscrepancyModel.prune`.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
-        Kernels of scenario 3's weights and of the prediction: ``"numpy"`` (the reference)
-        or compiled (:mod:`mdcore.compiled`), equal to rounding; ``"auto"`` is numba when
-        installed, None reads ``MDCORE_BACKEND``. The φ̂ fit is NumPy's on either.
+        Scenario 3's kernels: NumPy (the reference) or :mod:`mdcore.compiled`; None reads
+        ``MDCORE_BACKEND``.
     fit : FitOptions, optional
-        How the φ̂ of scenarios 1–2 is searched (:func:`mdcore.hyperfit.fit_hyperparameters`).
+        The φ̂ search of scenarios 1–2.
     log_params_hat : ndarray of shape (n_out, P), optional
         φ̂ from an earlier scenario-1 fit, to skip refitting (scenarios 1–2).
     """
@@ -227,9 +212,8 @@ def _counts(log: JitterLog) -> tuple:
 
 def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
                    backend: str) -> tuple[np.ndarray, tuple]:
-    """Scenario 3's log weights ``−NLML`` (Eq. 15), (n_out, R, K), of a chunk of pairs:
-    ``phi`` (R, K, P) draws for R θ rows, ``Y`` (R, N, n_out), ``X`` (N, d_x), ``z``
-    (N, n_out); and ``(jittered, failed, max_jitter)`` for the caller to report once."""
+    """``−NLML`` (Eq. 15), (n_out, R, K), of ``phi`` (R, K, P) on ``Y`` (R, N, n_out), and
+    the jitter counts for the caller to report once."""
     R, K, P = phi.shape
     log = JitterLog()
     if backend == "numba":          # the outputs share each pair's factor
@@ -245,9 +229,8 @@ def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
 @single_threaded_blas       # one BLAS thread, as on a Dask worker: the same sums everywhere
 def _mixture_chunk(pairs: compiled.Pairs, test: compiled.Test, backend: str
                    ) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """Weighted mixture sums (Eq. 13/15) of one block of components of one output, as
-    :func:`mdcore.compiled.mixture_sums`: ``acc`` (4, M), the components left out ``bad``
-    (B,), and the jitter counts (as :func:`_weights_chunk`)."""
+    """:func:`mdcore.compiled.mixture_sums` of one block of one output: ``acc`` (4, M), the
+    components left out (B,) and the jitter counts."""
     log = JitterLog()
     if backend == "numba":
         acc, bad = compiled.mixture_sums(pairs, test, log)
@@ -273,9 +256,8 @@ def _mixture_chunk(pairs: compiled.Pairs, test: compiled.Test, backend: str
 
 @dataclass(frozen=True, eq=False)
 class PriorDraws:
-    """Scenario 3's prior draws kept as their random stream: block ``b`` of θ rows is
-    ``prior.sample(R_b · N_φ, seed=g)`` with ``g`` at ``states[b]``, so any block can be
-    drawn again, bit for bit, without keeping the (N_s, N_φ, P) array."""
+    """Scenario 3's prior draws as their random stream: block ``b`` of θ rows is drawn
+    again, bit for bit, from the generator state ``states[b]``."""
 
     prior: GaussianPrior
     n_theta: int
@@ -284,7 +266,6 @@ class PriorDraws:
     states: tuple      # the generator's ``bit_generator.state`` before each block's draws
 
     def block(self, b: int) -> np.ndarray:
-        """The draws of block ``b``, shape (R_b, N_φ, P)."""
         state = self.states[b]
         bit_generator = getattr(np.random, state["bit_generator"])()
         bit_generator.state = state
@@ -293,8 +274,8 @@ class PriorDraws:
                                  ).reshape(n_rows, self.n_phi, self.prior.size)
 
     def between(self, lo: int, hi: int, cache: dict | None = None) -> np.ndarray:
-        """The draws of θ rows ``lo`` to ``hi − 1``, (hi − lo, N_φ, P); ``cache`` keeps the
-        blocks drawn for a caller going through the rows in order."""
+        """The draws of θ rows ``lo`` to ``hi − 1``, (hi − lo, N_φ, P); ``cache`` keeps
+        blocks between calls that go through the rows in order."""
         first, last = lo // self.rows, (hi - 1) // self.rows
         cache = {} if cache is None else cache
         for b in [b for b in cache if b < first]:
@@ -309,7 +290,6 @@ class PriorDraws:
         return draws[lo - offset:hi - offset]
 
     def all(self) -> np.ndarray:
-        """Every draw, shape (N_s, N_φ, P)."""
         return self.between(0, self.n_theta)
 
 
@@ -319,29 +299,19 @@ class DiscrepancyModel:
 
     Attributes
     ----------
-    scenario : int
     theta : ndarray of shape (S, p)
         The θ of the mixture (S = 1 for scenario 1); ``Y`` (S, N, n_out) = ``η(X, θ^(j))``.
-    X, z : ndarray of shape (N, d_x) and (N, n_out)
     log_params : ndarray of shape (n_out, S, K, P)
-        Hyperparameters of every component (K = 1 for scenarios 1–2, N_φ for 3; scenario
-        3's outputs share the prior draws). Drawn again from :attr:`phi_draws` on first
-        access when they were too large to keep (:data:`KEEP_DRAWS_BYTES`).
+        Every component's hyperparameters (K = 1 for scenarios 1–2, N_φ for 3), redrawn
+        from :attr:`phi_draws` when too large to keep.
     log_weights : ndarray of shape (n_out, S, K)
         Normalised log weights (``logsumexp`` over (S, K) is 0 per output).
     log_params_hat, nlml_hat : ndarray of shape (n_out, P) and (n_out,), or None
         Scenarios 1–2: φ̂, and the NLML there on ``y(θ_MAP)``.
     prune : float
         Components below ``prune × max`` weight are skipped in :meth:`predict`.
-    phi_prior : GaussianPrior or None
-        The prior scenario 3 sampled from.
-    seconds : float
-    proposal : str or None
-        Scenario 3's φ proposal.
     k_hat : ndarray of shape (n_out,) or None
         Scenario 3: Pareto shape of each output's raw weights (above 0.7: unreliable).
-    backend : {"numpy", "numba"}
-        The kernels :meth:`predict` uses.
     """
 
     scenario: int
@@ -379,8 +349,7 @@ class DiscrepancyModel:
         return self._log_params
 
     def _params(self, o: int, j: np.ndarray, k: np.ndarray, cache: dict) -> np.ndarray:
-        """Hyperparameters of components ``(j, k)`` (``j`` ascending) of output ``o``, (B, P),
-        kept or drawn again (``cache`` holds blocks of draws between calls)."""
+        """Hyperparameters (B, P) of components ``(j, k)``, ``j`` ascending, of output ``o``."""
         if self._log_params is not None or self.phi_draws is None:
             return self.log_params[o][j, k]
         lo = int(j[0])
@@ -397,7 +366,7 @@ class DiscrepancyModel:
         return np.exp(-logsumexp(2.0 * self.log_weights.reshape(self.n_out, -1), axis=1))
 
     def _kept(self, prune: float):
-        """Per output: flat indices of the kept components and the skipped mass."""
+        """Per output: the kept components' flat indices and the skipped mass."""
         out = []
         for o in range(self.n_out):
             lw = self.log_weights[o].ravel()
@@ -422,10 +391,8 @@ class DiscrepancyModel:
                 executor: Executor | None = None) -> DiscrepancyPrediction:
         """Bias-corrected prediction and discrepancy at ``X_star`` (N*, d_x) (Eq. 13/15).
 
-        Repeated rows of ``X_star`` are predicted once. ``prune`` overrides :attr:`prune`
-        (``0`` evaluates every component; the kept weights are renormalised).
-        ``progress`` gets the fraction done after each block and may raise to cancel;
-        ``executor`` runs the blocks (module docstring) with the serial run's numbers.
+        ``prune`` overrides :attr:`prune` (0 keeps every component); ``progress`` gets the
+        fraction done and may raise to cancel; ``executor`` runs the blocks.
         """
         X_star = as_float_array(X_star, "X_star", ndim=2)
         if X_star.shape[1] != self.X.shape[1]:
@@ -496,8 +463,6 @@ class DiscrepancyModel:
 
 
 class _Data(NamedTuple):
-    """Scenario 3's training data and where its chunks run."""
-
     Y: np.ndarray          # (S, N, n_out)
     X: np.ndarray          # (N, d_x)
     z: np.ndarray          # (N, n_out), or one output's column
@@ -508,9 +473,8 @@ class _Data(NamedTuple):
 def _nlml_rows(blocks: Iterable[tuple[slice, np.ndarray]], K: int, data: _Data,
                jitter: JitterLog, progress: Callable[[float], None] | None = None
                ) -> np.ndarray:
-    """``−NLML`` (Eq. 15), (n_out, S, K), of every pair ``(φ^(j,k), Y[j])``, chunk by chunk
-    of θ rows (``blocks``: their slice and φ draws (R, K, P), in order, made lazily so only
-    the chunks in flight are held); ``progress`` gets the fraction of rows done."""
+    """``−NLML`` (Eq. 15), (n_out, S, K), of every pair ``(φ^(j,k), Y[j])``; ``blocks``
+    yields (slice of θ rows, their φ (R, K, P)) lazily, so only chunks in flight are held."""
     S = data.Y.shape[0]
     log_weights = np.empty((data.z.shape[1], S, K))
     steps: collections.deque = collections.deque()
@@ -531,10 +495,8 @@ def _nlml_rows(blocks: Iterable[tuple[slice, np.ndarray]], K: int, data: _Data,
 
 
 def _prior_proposal(data: _Data, prior, n_phi, rng, progress, jitter):
-    """Scenario 3 as in the paper: φ^(j,k) ~ p(φ), shared by the outputs; ``log w_jk =
-    −NLML`` (Eq. 15) normalised per output. The draws come chunk by chunk from one stream
-    and are kept up to :data:`KEEP_DRAWS_BYTES` (else their :class:`PriorDraws`). Returns
-    ``(log_params (n_out, S, N_φ, P) or None, log_weights (n_out, S, N_φ), PriorDraws)``."""
+    """The paper's scenario 3: φ^(j,k) ~ p(φ) shared by the outputs, ``log w = −NLML``
+    (Eq. 15). Returns ``(log_params (n_out, S, N_φ, P) or None, log_weights, PriorDraws)``."""
     n_out, S, P = data.z.shape[1], data.Y.shape[0], prior.size
     rows = max(1, WEIGHT_PAIRS // n_phi)
     phi = np.empty((S, n_phi, P)) if 8 * S * n_phi * P <= KEEP_DRAWS_BYTES else None
@@ -556,8 +518,7 @@ def _prior_proposal(data: _Data, prior, n_phi, rng, progress, jitter):
 
 
 def _adaptive_proposal(data: _Data, prior, n_phi, rng, progress, jitter):
-    """Scenario 3 with adaptive importance sampling of φ per output, N_φ draws per θ
-    (:func:`mdcore.importance.adaptive_importance_sampling`)."""
+    """Scenario 3 with adaptive importance sampling of φ per output."""
     n_out, S = data.z.shape[1], data.Y.shape[0]
     log_params = np.empty((n_out, S, n_phi, prior.size))
     log_weights = np.empty((n_out, S, n_phi))
@@ -588,7 +549,7 @@ def _all_zero_message(o: int) -> str:
 
 
 def _normalise(log_weights: np.ndarray, o: int) -> None:
-    """Normalise one output's log weights in place (logsumexp over all pairs = 0)."""
+    """Normalise one output's log weights in place."""
     norm = logsumexp(log_weights)
     if not np.isfinite(norm):
         raise ValueError(_all_zero_message(o))
@@ -596,8 +557,7 @@ def _normalise(log_weights: np.ndarray, o: int) -> None:
 
 
 def _fit_phi_hat(Y_map, X, z, options, rng, progress):
-    """φ̂ of scenarios 1–2 (Eq. 8 on ``Y_map = y(X, θ_MAP)`` (N, n_out), ``phi_prior`` as
-    hyperprior) or ``options.log_params_hat``, and the NLML at φ̂."""
+    """φ̂ of scenarios 1–2 (Eq. 8 on ``Y_map = y(X, θ_MAP)``), and the NLML there."""
     n_out = z.shape[1]
     P = 2 + n_out + X.shape[1]
     if options.log_params_hat is not None:

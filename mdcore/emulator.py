@@ -1,16 +1,10 @@
 """GP emulator of a simulator over the joint input (x, θ), for history matching and KOH.
 
-One emulator per output: a linear mean ``m = β₀ + βᵀ[x, θ]`` fitted by least squares, plus
-a zero-mean GP on the residuals with the core's separable Matérn 3/2 kernel (ARD
-lengthscales in θ and in x, inputs scaled to [0, 1])::
-
-    k((θ, x), (θ', x')) = σ_f² m32(r_θ) m32(r_x) + σ_n² δ
-
-a product rather than one Matérn over the joint distance, because the product makes the
-design solvable exactly and fast: every run θ_r is evaluated at every training input x_i,
-so the training covariance is ``σ_f² K_θ ⊗ K_x + σ_n² I``, and with the eigenpairs
-``K_θ = Q_θ Λ Q_θᵀ``, ``K_x = Q_x M Q_xᵀ`` the likelihood and predictions cost
-O(R³ + N³ + R N (R + N)) instead of O(R³ N³).
+One emulator per output: a linear mean ``β₀ + βᵀ[x, θ]`` by least squares plus a zero-mean
+GP on the residuals with kernel ``σ_f² m32(r_θ) m32(r_x) + σ_n² δ`` (inputs scaled to
+[0, 1]). Every run is evaluated at every training input, so the training covariance is
+``σ_f² K_θ ⊗ K_x + σ_n² I``: with the eigenpairs ``K_θ = Q_θ Λ Q_θᵀ``, ``K_x = Q_x M Q_xᵀ``
+the likelihood and predictions cost O(R³ + N³ + R N (R + N)) instead of O(R³ N³).
 """
 
 from __future__ import annotations
@@ -25,7 +19,7 @@ import scipy.optimize
 from .exceptions import ConvergenceWarning
 from .gp import LOG_2PI
 from .hyperfit import lbfgs_advice, lbfgs_converged
-from .kernels import SQRT3, matern32, matern32_and_dlog_ell, scaled_sq_dist
+from .kernels import SQRT3, matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
 from .linalg import chunks, for_each_chunk
 from .threads import single_threaded_blas
 from .validation import as_float_array, check_bounds
@@ -35,8 +29,8 @@ __all__ = ["Emulator", "EmulatorArrays", "EmulatorAt", "EmulatorPrediction", "Kr
 
 
 class EmulatorArrays(NamedTuple):
-    """The fixed pieces of :class:`EmulatorAt`'s algebra at N inputs, stacked over the n_out
-    outputs (:meth:`EmulatorAt.arrays`); R training θ of p parameters, N_t training inputs."""
+    """:class:`EmulatorAt`'s fixed pieces at N inputs, stacked over outputs; R training θ
+    of p parameters, N_t training inputs."""
 
     t_lo: np.ndarray     # (p,) θ's box: unit θ = (θ − t_lo) / t_span
     t_span: np.ndarray   # (p,)
@@ -81,7 +75,6 @@ class KronGP(NamedTuple):
 
 
 def _unit(A, lo, span):
-    """Scale inputs to the unit box: (A − lo) / span."""
     return (A - lo) / span
 
 
@@ -97,9 +90,8 @@ def _design(Xu, Tu):
 
 
 def _kron_solve(lp, Tu, Xu, res):
-    """Eigen-solve of ``K = σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N): the
-    factors, their log-ℓ derivatives, the eigenpairs, ``σ_f² λ_a μ_b``, ``S_ab = σ_f² λ_a
-    μ_b + σ_n²`` and ``α`` in the eigenbasis, ``(Q_θᵀ Res Q_x) / S``."""
+    """Eigen-solve of ``σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N): the factors,
+    their log-ℓ derivatives, eigenpairs, ``σ_f² λ_a μ_b``, ``S`` and ``(Q_θᵀ Res Q_x) / S``."""
     p = Tu.shape[1]
     Kt, Dt = matern32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]))
     Kx, Dx = matern32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
@@ -169,9 +161,8 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0):
 
 @dataclass(frozen=True, eq=False)
 class Emulator:
-    """Fitted GP emulators (one per output) of ``simulate(X, θ)`` (:func:`fit_emulator`):
-    training inputs ``X_train`` (N, d_x) and runs ``theta_train`` (R, p) in the case's
-    units, ``y_train`` (R, N, n_out), and the ``bounds`` (p, 2) θ is scaled with."""
+    """GP emulators of ``simulate(X, θ)`` (:func:`fit_emulator`): ``X_train`` (N, d_x),
+    ``theta_train`` (R, p), ``y_train`` (R, N, n_out) and the θ ``bounds`` (p, 2)."""
 
     X_train: np.ndarray
     theta_train: np.ndarray
@@ -235,10 +226,8 @@ class Emulator:
     def implausibility(self, X, theta, z, V, *, rank: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Combined implausibility (Eq. 16) of every θ and the emulator variance.
 
-        ``I(θ)`` is the ``rank``-th largest (1–3: the max, 2nd, 3rd max rule) over the
-        targets (n, o) of ``|z[n, o] − E[y]| / √(V[n, o] + V[y])`` at ``(θ, X[n])``: the
-        formula on :meth:`predict`'s moments, to rounding (with a tiny nugget the mean is a
-        sum of terms up to ~1e5 times larger than itself), in chunks on the compute threads.
+        ``I(θ)`` is the ``rank``-th largest over the targets (n, o) of ``|z[n, o] − E[y]| /
+        √(V[n, o] + V[y])`` at ``(θ, X[n])``, with :meth:`predict`'s moments.
 
         Parameters
         ----------
@@ -273,9 +262,8 @@ class Emulator:
         return I, var
 
     def at(self, X) -> EmulatorAt:
-        """The emulator's joint Gaussian at fixed inputs ``X`` (N, d_x) as a function of θ:
-        what does not depend on θ is computed here, once, so that a θ costs
-        O(R² + R N + N² N_train) (the KOH likelihood evaluates one per MCMC step)."""
+        """The emulator's joint Gaussian at fixed inputs ``X`` (N, d_x) as a function of θ,
+        with what does not depend on θ computed once (the KOH likelihood's per-step cost)."""
         X = as_float_array(X, "X", ndim=2)
         d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
         if X.shape[1] != d_x:
@@ -294,10 +282,9 @@ class Emulator:
 
 def _implausibility(a: EmulatorArrays, theta: np.ndarray, z: np.ndarray, vt: np.ndarray,
                     rank: int) -> tuple[np.ndarray, np.ndarray, int]:
-    """Eq. 16 combined by ``rank``, and the emulator variance, by chunks of candidates:
-    per output ``k_θ`` (distances by one product), ``E = lin + θᵀβ_θ + k_θ AK``,
-    ``V = max(σ_f² − σ_f⁴ (k_θ Q_θ)² G, 0)``. Returns ``(I (M,), var (M, N, n_out),
-    n_bad)``, ``n_bad`` the targets with ``V_o + V_m + var ≤ 0``."""
+    """Eq. 16 by chunks of candidates: ``E = lin + θᵀβ_θ + k_θ AK``, ``V = max(σ_f² −
+    σ_f⁴ (k_θ Q_θ)² G, 0)``. Returns ``I`` (M,), ``var`` (M, N, n_out) and the count of
+    targets with ``V_o + V_m + var ≤ 0``."""
     M, (N, n_out) = theta.shape[0], z.shape
     imp, var = np.empty(M), np.empty((M, N, n_out))
     bad = []
@@ -310,7 +297,7 @@ def _implausibility(a: EmulatorArrays, theta: np.ndarray, z: np.ndarray, vt: np.
             r = U @ (-2.0 * T.T)                      # (√3 r)² = |u|² − 2 u·t + |t|²
             r += (U * U).sum(axis=1)[:, None] + (T * T).sum(axis=1)
             r = np.sqrt(np.maximum(r, 0.0))
-            kt = (1.0 + r) * np.exp(-r)                                    # (n, R)
+            kt = separable_matern(0.0, r, 0.0, np.empty_like(r))          # (n, R)
             mean = kt @ a.AK[o] + (a.lin[o] + (Tu @ a.beta_t[o])[:, None])
             q = kt @ a.Q_t[o]
             v = var[sl, :, o] = np.maximum(a.sf2[o] - a.sf2[o] ** 2 * ((q * q) @ a.G[o]), 0.0)
@@ -335,8 +322,7 @@ class EmulatorAt:
         m_η(X_A, θ)       = β₀ + βᵀ[x, θ] + k_θ A m32(X_A, X_train)ᵀ
         Σ_η(X_A, X_B; θ)  = σ_f² m32(X_A, X_B) − σ_f⁴ V_A diag(d(θ)) V_Bᵀ
 
-    Only ``k_θ`` and ``d(θ)`` depend on θ; the diagonal of Σ_η is :meth:`Emulator.predict`'s
-    ``var``.
+    Only ``k_θ`` and ``d(θ)`` depend on θ.
     """
 
     emulator: Emulator
@@ -348,8 +334,8 @@ class EmulatorAt:
     _prior: np.ndarray   # (n_out, N, N) σ_f² m32(X, X)
 
     def theta_terms(self, theta, *, check: bool = True) -> ThetaTerms:
-        """The θ-dependent pieces at ``theta`` (M, p): one evaluation serves every
-        :class:`EmulatorAt` of the emulator; ``check=False`` skips validating ``theta``."""
+        """The θ-dependent pieces at ``theta`` (M, p), shared by every :class:`EmulatorAt` of
+        the emulator."""
         em = self.emulator
         p = em.theta_train.shape[1]
         if check:
@@ -365,7 +351,7 @@ class EmulatorAt:
         return ThetaTerms(Tu, tuple(terms))
 
     def arrays(self) -> EmulatorArrays:
-        """The fixed pieces of the algebra above, stacked over outputs (for compiled code)."""
+        """The fixed pieces, stacked over outputs (for compiled code)."""
         em = self.emulator
         p, d_x = em.theta_train.shape[1], self.X.shape[1]
         t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
@@ -423,9 +409,8 @@ class EmulatorAt:
 
 @single_threaded_blas
 def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulator:
-    """Fit one GP emulator per output from full simulator sweeps ``y = simulate(X, theta)``
-    (R, N, n_out): distinct inputs ``X`` (N, d_x), runs ``theta`` (R, p), the ``bounds``
-    (p, 2) θ is scaled with, and ``n_starts`` L-BFGS-B starts per output (empirical Bayes)."""
+    """Fit one GP emulator per output to ``y = simulate(X, theta)`` (R, N, n_out): inputs
+    ``X`` (N, d_x), runs ``theta`` (R, p) in ``bounds`` (p, 2); ``n_starts`` L-BFGS-B starts."""
     X = as_float_array(X, "X", ndim=2)
     theta = as_float_array(theta, "theta", ndim=2)
     y = as_float_array(y, "y", ndim=3)

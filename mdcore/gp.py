@@ -1,10 +1,8 @@
-"""Batched Gaussian-process regression (paper Eqs. 2–9): the implementation of record.
+"""Batched GP regression of ``z`` on ``{y, x}`` (Eqs. 2–9): the implementation of record.
 
-The discrepancy GP maps simulator outputs and inputs ``{y, x}`` to observations ``z`` with
-the kernel of :mod:`mdcore.kernels` (Eq. 3): the negative log marginal likelihood (Eq. 9)
-and its gradient, and the predictive moments (Eq. 7). Leading dimensions of ``log_params``
-(..., P) and ``Y`` (..., N, d_y) broadcast, and the work is chunked, so hundreds of
-thousands of (hyperparameter, Y) pairs run in bounded memory.
+The NLML (Eq. 9) and its gradient, and the predictive moments (Eq. 7). Leading dimensions
+of ``log_params`` (..., P) and ``Y`` (..., N, d_y) broadcast; the work runs in chunks of
+bounded memory on the compute threads.
 """
 
 from __future__ import annotations
@@ -26,9 +24,7 @@ LOG_2PI = np.log(2.0 * np.pi)
 
 
 class GPPrediction(NamedTuple):
-    """Predictive moments of the latent GP (Eq. 7): ``mean`` and latent ``var``
-    (``k** − diag(K*f K⁻¹ Kf*)``) of shape (..., N*), ``noise_var`` ``σ_n²`` (...); a new
-    observation's variance is ``var + noise_var``."""
+    """Latent ``mean`` and ``var`` (Eq. 7), (..., N*), and ``noise_var`` σ_n² (...)."""
 
     mean: np.ndarray
     var: np.ndarray
@@ -74,30 +70,25 @@ def check_problem(log_params, Y, X, z) -> Problem:
 @single_threaded_blas
 def neg_log_marginal_likelihood(log_params, Y, X, z, *,
                                 jitter_log: JitterLog | None = None) -> np.ndarray:
-    """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``.
-
-    ``NLML = ½ zᵀ K⁻¹ z + Σ log L_ii + (N/2) log 2π`` with ``K = K_ff + σ_n² I``,
-    ``L = chol(K)``.
+    """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``:
+    ``½ zᵀ K⁻¹ z + Σ log L_ii + (N/2) log 2π``, ``K = K_ff + σ_n² I = L Lᵀ``.
 
     Parameters
     ----------
     log_params : ndarray of shape (..., P)
-        ``P = 2 + d_y + d_x``: ``[log σ_f, log ℓ_y…, log ℓ_x…, log σ_n]``.
+        ``[log σ_f, log ℓ_y (d_y), log ℓ_x (d_x), log σ_n]``.
     Y : ndarray of shape (..., N, d_y)
-        Simulator outputs used as GP inputs; leading dims broadcast with ``log_params``.
+        Simulator outputs, the GP's inputs; leading dims broadcast with ``log_params``.
     X : ndarray of shape (N, d_x)
-        Inputs.
     z : ndarray of shape (N,)
-        Observations.
     jitter_log : JitterLog, optional
-        Receives the counts of jittered and failed matrices instead of a warning (callers
-        that report them once or not at all; ``catch_warnings`` is not thread-safe).
+        Receives the jitter counts instead of a warning (``catch_warnings`` is not
+        thread-safe).
 
     Returns
     -------
     ndarray of shape (...)
-        The NLML of every batch element; ``+inf`` (and a :class:`NumericalWarning`) for a
-        matrix that stays non-positive-definite after the jitter ladder.
+        ``+inf`` (and a :class:`NumericalWarning`) where no jitter step factorises.
 
     Examples
     --------
@@ -130,10 +121,9 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *,
 
 @single_threaded_blas
 def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
-    """Posterior predictive moments of the latent GP (Eq. 7), batched: ``log_params``,
-    ``Y``, ``X``, ``z`` as :func:`neg_log_marginal_likelihood`, ``Y_star`` (..., N*, d_y)
-    (broadcasting with them) and ``X_star`` (N*, d_x); NaN moments (and a warning) for a
-    matrix that no jitter step factorises.
+    """Predictive moments of the latent GP (Eq. 7), batched: arguments as
+    :func:`neg_log_marginal_likelihood`, ``Y_star`` (..., N*, d_y), ``X_star`` (N*, d_x);
+    NaN (and a warning) where no jitter step factorises.
 
     Examples
     --------

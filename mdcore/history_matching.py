@@ -372,7 +372,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         raise ValueError(f"initial_design must have at most {MAX_RUNS:,} rows (simulator runs "
                          f"of wave 1); received {initial_design.shape[0]:,}.")
     convergence_ratio = as_positive_float(convergence_ratio, "convergence_ratio",
-                                          "1 is SPEC §5's rule.")
+                                          "1 is the paper's rule.")
     try:
         failed = float(max_failed_fraction)
     except (TypeError, ValueError):
@@ -603,7 +603,7 @@ class HistoryMatchResult:
         Sampling-importance-resampling: a pool of ``max(20 n, 20,000)`` uniform NROY
         samples (the prior is uniform on the box) is resampled with replacement in
         proportion to :meth:`log_likelihood` (normalised in log space). These are the
-        θ^(j) of the discrepancy scenarios (SPEC §1: θ^(j) ~ p(θ | z)); repeats are
+        θ^(j) ~ p(θ | z) of the discrepancy scenarios; repeats are
         possible when the likelihood is concentrated.
 
         With an integer ``seed`` the draws are kept (a few, the newest) and a repeated call

@@ -26,19 +26,17 @@ from .validation import as_float_array, as_int, choose
 __all__ = ["FitOptions", "HyperFit", "PROJECTED_GRADIENT_TOL", "QPSO_ITERATIONS",
            "default_bounds", "fit_hyperparameters", "lbfgs_converged"]
 
-#: An L-BFGS-B run that stopped in its line search counts as converged when its projected
-#: gradient is below this, per log hyperparameter: from there a 1 % change of any
-#: hyperparameter moves the objective by less than 1e-4 (see :func:`lbfgs_converged`).
+#: Projected gradient per log hyperparameter below which a stalled L-BFGS-B run counts as
+#: converged: a 1 % change of any hyperparameter then moves the objective by < 1e-4.
 PROJECTED_GRADIENT_TOL = 1e-2
 #: Swarm steps of the QPSO (the default of :func:`fit_hyperparameters`).
 QPSO_ITERATIONS = 120
 
 
 class HyperFit(NamedTuple):
-    """Result of :func:`fit_hyperparameters`: the optimum ``log_params`` (P,), its
-    ``nlml`` (Eq. 9), the minimised ``objective`` (``nlml − log prior`` for MAP), the
-    ``method``, the ``n_evaluations`` used (each particle counts) and whether the L-BFGS-B
-    run behind it ``converged`` (:func:`lbfgs_converged`; False without a polish)."""
+    """The optimum ``log_params`` (P,), its ``nlml`` (Eq. 9), the minimised ``objective``
+    (``nlml − log prior`` for MAP), the evaluations used, and whether the L-BFGS-B run
+    behind it ``converged`` (False without a polish)."""
 
     log_params: np.ndarray
     nlml: float
@@ -70,12 +68,10 @@ def default_bounds(Y, X, z) -> np.ndarray:
 
 def lbfgs_converged(res: scipy.optimize.OptimizeResult, lo: np.ndarray,
                     hi: np.ndarray) -> bool:
-    """Whether an L-BFGS-B result (``jac=True``) is at a local optimum of its box ``lo``,
-    ``hi`` (P,). Besides SciPy's ``success``: a run whose line search found no descent
-    beyond rounding (``status == 2``, typically at a bound of an ill-conditioned problem,
-    as shear-5's) is one when its projected gradient (without the components pushing
-    against a bound it sits on) is below :data:`PROJECTED_GRADIENT_TOL`; a run out of
-    iterations never is."""
+    """Whether an L-BFGS-B result is at a local optimum of its box ``lo``, ``hi`` (P,):
+    SciPy's ``success``, or a line search that found no descent beyond rounding (typical
+    at a bound of an ill-conditioned problem) with the projected gradient below
+    :data:`PROJECTED_GRADIENT_TOL`."""
     if res.success:
         return True
     if res.status != 2 or not np.isfinite(res.fun) or res.fun >= 1e300:
@@ -88,8 +84,7 @@ def lbfgs_converged(res: scipy.optimize.OptimizeResult, lo: np.ndarray,
 
 
 def lbfgs_advice(res: scipy.optimize.OptimizeResult, iterations: str | None = None) -> str:
-    """Why a run :func:`lbfgs_converged` rejects stopped: out of iterations (then raise the
-    option named ``iterations``, if any) or no descent found (a better-posed problem)."""
+    """Why a run :func:`lbfgs_converged` rejects stopped, and what to change."""
     if res.status == 1:
         return "it ran out of iterations" + (f": raise {iterations}" if iterations else "")
     return ("its line search found no descent (the objective or its gradient is inaccurate "
@@ -168,11 +163,6 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
     Returns
     -------
     HyperFit
-
-    Warns
-    -----
-    ConvergenceWarning
-        When the L-BFGS-B run behind the result did not report convergence.
 
     Examples
     --------

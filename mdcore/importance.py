@@ -1,13 +1,11 @@
 """Importance sampling for scenario 3 (Eq. 15): ESS, Pareto smoothing and Student-t proposals.
 
-Whether the (θ, φ) weights can be trusted is judged by the effective sample size
-``1 / Σ w²`` and by the Pareto shape ``k̂`` of their right tail (Vehtari, Simpson, Gelman,
-Yao & Gabry, "Pareto smoothed importance sampling", JMLR 2024, Algorithm 1): above 0.7 the
-estimate is unreliable whatever the ESS says. PSIS replaces the largest
-``min(0.2 S, 3 √(S / r_eff))`` weights by the expected order statistics of a generalised
-Pareto fitted to them (Zhang & Stephens 2009, with Vehtari et al.'s prior on k), truncated
-at the largest raw weight. The adaptive proposal draws φ from heavy-tailed Student-t fits
-to the weighted draws (:class:`StudentT`; AMIS, Cornuet, Marin, Mira & Robert 2012).
+The (θ, φ) weights are judged by the ESS ``1 / Σ w²`` and the Pareto shape ``k̂`` of their
+right tail (Vehtari et al., "Pareto smoothed importance sampling", JMLR 2024): above 0.7 the
+estimate is unreliable whatever the ESS. PSIS replaces the largest weights by the expected
+order statistics of a generalised Pareto fitted to them (Zhang & Stephens 2009). The
+adaptive proposal draws φ from Student-t fits to the weighted draws (AMIS, Cornuet et al.
+2012).
 
 >>> rng = np.random.default_rng(0)
 >>> result = psis(rng.standard_normal(4000))        # light-tailed weights: reliable
@@ -204,9 +202,8 @@ class StudentT:
         return self.mean + (g @ self._chol.T) / np.sqrt(chi / self.df)[:, None]
 
 
-#: Adaptive proposal: share of the budget drawn from the prior in the first stage, number
-#: of stages, Student-t degrees of freedom and covariance inflation: of the settings tried
-#: on the three cases, these gave the largest ESS over φ with k̂ < 0.4 on every case.
+#: Adaptive proposal: prior share of the budget in stage 1, stages, Student-t degrees of
+#: freedom and covariance inflation (the largest ESS with k̂ < 0.4 on the three cases).
 FIRST_STAGE, N_STAGES, DF, INFLATE = 0.1, 8, 5.0, 1.5
 
 
@@ -247,12 +244,10 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     """Adaptive multiple importance sampling (AMIS, Cornuet et al. 2012) of ``p(x | group)``.
 
     For each of ``n_groups`` groups (scenario 3: the θ samples) the target is
-    ``log_likelihood(x, group) + log prior(x)``. Stage 1 draws from the prior; each later
-    stage draws from a Student-t fitted to all weighted draws so far, pooled over the
-    groups (:meth:`StudentT.fit`, covariance × ``inflate``). Every draw is weighted against
-    the mixture of all stages' proposals, ``log w = log L + log p − log Σ_t (n_t / n) q_t``,
-    normalised jointly over groups and draws (a group's total weight estimates its
-    marginal likelihood). One stage is plain importance sampling from the prior.
+    ``log_likelihood(x, group) + log prior(x)``. Stage 1 draws from the prior, later stages
+    from a Student-t fitted to all weighted draws so far, pooled over groups. Every draw is
+    weighted against the mixture of all proposals, ``log w = log L + log p − log Σ_t (n_t /
+    n) q_t``, normalised jointly over groups and draws.
 
     Parameters
     ----------

@@ -1,16 +1,12 @@
-"""The Matérn 3/2 kernel of the GPs, in NumPy (Eq. 3, corrected): the one place it is written.
-
-The separable kernel over simulator outputs ``y`` and inputs ``x``::
+"""The Matérn 3/2 kernel of the GPs in NumPy (Eq. 3, corrected), written once in
+:func:`separable_matern`::
 
     k((y, x), (y', x')) = σ_f² · m32(r_y) · m32(r_x),   m32(r) = (1 + √3 r) exp(−√3 r)
 
-The paper prints ``exp(+√3 r)``; the Matérn 3/2 kernel decays, so ``exp(−√3 r)`` is used.
-Hyperparameters travel as one log vector of length ``P = 2 + d_y + d_x``::
-
-    [log σ_f, log ℓ_y,1 … log ℓ_y,d_y, log ℓ_x,1 … log ℓ_x,d_x, log σ_n]
-
-:func:`kernel` is the broadcasting form; :func:`train_cov` and :func:`cross_cov` the chunk
-kernels of :mod:`mdcore.gp` (flat batches, lower triangle only, reused buffers).
+The paper prints ``exp(+√3 r)``; the Matérn 3/2 kernel decays. Hyperparameters travel as
+one log vector ``[log σ_f, log ℓ_y (d_y), log ℓ_x (d_x), log σ_n]`` of length
+``P = 2 + d_y + d_x``. :func:`kernel` broadcasts; :func:`train_cov` and :func:`cross_cov`
+are :mod:`mdcore.gp`'s chunk kernels.
 """
 
 from __future__ import annotations
@@ -26,23 +22,33 @@ __all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "spli
 SQRT3 = np.sqrt(3.0)
 
 
+def separable_matern(log_sf2, ry, rx, tmp=None) -> np.ndarray:
+    """``σ_f² m32(r_y) m32(r_x)`` (Eq. 3) from ``a = √3 r_y``, ``b = √3 r_x`` as
+    ``(1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``: one exponential. Overwrites ``ry``
+    (full broadcast shape; ``rx`` may broadcast); ``tmp`` is an optional buffer like it."""
+    s = np.add(ry, rx, out=tmp)
+    ry *= rx
+    ry += s
+    ry += 1.0
+    np.subtract(log_sf2, s, out=s)
+    np.exp(s, out=s)
+    ry *= s
+    return ry
+
+
 def matern32(r2) -> np.ndarray:
-    """``(1 + √3 r) exp(−√3 r)`` from squared scaled distances ``r²`` (any shape; tiny
-    negative round-off is clipped).
+    """``m32(r)`` from squared scaled distances ``r²`` (round-off below 0 is clipped).
 
     >>> float(matern32(0.0)), round(float(matern32(1.0)), 6)
     (1.0, 0.483358)
     """
-    r = np.sqrt(np.maximum(r2, 0.0))
-    return (1.0 + SQRT3 * r) * np.exp(-SQRT3 * r)
+    a = SQRT3 * np.sqrt(np.maximum(r2, 0.0))
+    return separable_matern(0.0, a, 0.0, np.empty_like(a))
 
 
 def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
-    """Squared distance ``Σ_d (a_d − b_d)² / ℓ_d²`` between all rows of ``A`` and ``B``.
-
-    Shapes: ``A`` (..., Na, d), ``B`` (..., Nb, d), ``lengthscale`` (..., d) ->
-    (..., Na, Nb); leading dimensions broadcast. With ``d = 0`` the result is zeros.
-    """
+    """``Σ_d (a_d − b_d)² / ℓ_d²`` between the rows of ``A`` (..., Na, d) and ``B`` (..., Nb,
+    d), ``lengthscale`` (..., d) -> (..., Na, Nb); leading dimensions broadcast."""
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
     inv = 1.0 / np.asarray(lengthscale, dtype=np.float64)
@@ -57,21 +63,8 @@ def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
 
 
 def matern32_and_dlog_ell(A, ell) -> tuple[np.ndarray, np.ndarray]:
-    """Matérn 3/2 correlation of the rows of ``A`` and its derivative in each ``log ℓ_d``,
-    ``3 exp(−√3 r) Δ_d² / ℓ_d²``: for the analytic gradients of the GP, the emulator and
-    the Kennedy–O'Hagan evidence.
-
-    Parameters
-    ----------
-    A : ndarray of shape (n, d)
-    ell : ndarray of shape (d,)
-        Lengthscales (not logs).
-
-    Returns
-    -------
-    m32 : ndarray of shape (n, n)
-    dm32 : ndarray of shape (d, n, n)
-    """
+    """``m32`` (n, n) between the rows of ``A`` (n, d) for lengthscales ``ell`` (d,), and its
+    derivatives in each ``log ℓ_d``, ``3 exp(−√3 r) Δ_d² / ℓ_d²`` (d, n, n)."""
     A = np.asarray(A, dtype=np.float64)
     ell = np.asarray(ell, dtype=np.float64)
     r2 = scaled_sq_dist(A, A, ell)
@@ -86,20 +79,6 @@ def split_log_params(log_params, d_y: int, d_x: int):
     lp = np.asarray(log_params, dtype=np.float64)
     return (np.exp(lp[..., 0]), np.exp(lp[..., 1:1 + d_y]),
             np.exp(lp[..., 1 + d_y:1 + d_y + d_x]), np.exp(lp[..., -1]))
-
-
-def separable_matern(log_sf2, ry, rx, tmp=None) -> np.ndarray:
-    """``σ_f² m32(r_y) m32(r_x)`` from ``a = √3 r_y``, ``b = √3 r_x`` (Eq. 3) as
-    ``(1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``: one exponential. Overwrites ``ry``
-    (full broadcast shape; ``rx`` may broadcast); ``tmp`` is an optional buffer like it."""
-    s = np.add(ry, rx, out=tmp)
-    ry *= rx
-    ry += s
-    ry += 1.0
-    np.subtract(log_sf2, s, out=s)
-    np.exp(s, out=s)
-    ry *= s
-    return ry
 
 
 def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
@@ -132,8 +111,7 @@ def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
 def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
     """Cross-covariance ``σ_f² m32(r_y) m32(r_x)`` (Eq. 3), without the noise term:
     ``log_params`` (..., P), ``Ya`` (..., Na, d_y), ``Xa`` (Na, d_x), ``Yb`` (..., Nb, d_y),
-    ``Xb`` (Nb, d_x) -> (..., Na, Nb). A ValueError names an argument whose shape does not
-    fit, or which holds NaN or inf."""
+    ``Xb`` (Nb, d_x) -> (..., Na, Nb)."""
     log_params, Ya, Xa, Yb, Xb = _check_kernel_args(log_params, Ya, Xa, Yb, Xb)
     d_y, d_x = Ya.shape[-1], Xa.shape[-1]
     sf, ly, lx, _ = split_log_params(log_params, d_y, d_x)
@@ -176,8 +154,7 @@ def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> n
 def _scaled_cross_dist(A: np.ndarray, B: np.ndarray, scale: np.ndarray, out: np.ndarray,
                        tmp: np.ndarray) -> np.ndarray:
     """``out[b, n, m] = √(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place, for
-    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); ``out``, ``tmp``
-    (b, Na, Nb) buffers (a fresh array per step would cost more than the arithmetic)."""
+    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); buffers (b, Na, Nb)."""
     d = A.shape[-1]
     if d == 0:
         out[...] = 0.0

@@ -7,15 +7,9 @@ For each output the observations at the N inputs X are modelled, given θ, as
 with ``m_η``, ``Σ_η`` the emulator's posterior mean and full covariance and ``K_δ`` a
 Matérn 3/2 GP over x, ``φ = [log σ_f, log ℓ_x…, log σ_n]``; outputs independent given θ.
 
-1. φ̂ maximises the prior-averaged marginal likelihood ``log (1/M) Σ_m p(z | θ_m, φ)``,
-   θ_m from the prior truncated to the box (times a hyperprior ``p(φ)`` if given).
-2. θ | z, φ̂ by adaptive Metropolis on that truncated Gaussian prior.
-3. Per kept θ, the Gaussian conditionals, combined with equal weights::
-
-       δ*: mean K_δ(X*, X) C⁻¹ r,   var σ_f² − diag(K_δ(X*, X) C⁻¹ K_δ(X, X*))
-       z*: mean m_η(X*) + G C⁻¹ r,  var V_η(X*) + σ_f² + σ_n² − diag(G C⁻¹ Gᵀ)
-
-   with ``r = z − m_η(X, θ)``, ``C`` the covariance above, ``G = Σ_η(X*, X; θ) + K_δ(X*, X)``.
+φ̂ maximises the prior-averaged marginal likelihood ``log (1/M) Σ_m p(z | θ_m, φ)`` (θ_m
+from the truncated prior); θ | z, φ̂ is sampled by adaptive Metropolis; predictions average
+the Gaussian conditionals of δ* and z* over the kept θ with equal weights.
 
 >>> from mdcore import cases
 >>> from mdcore.emulator import fit_emulator
@@ -68,19 +62,17 @@ LOG_2PI = float(np.log(2 * np.pi))
 
 
 class SimulatorAt:
-    """A cheap exact ``simulate(X, theta) -> (n_theta, N, n_out)`` at fixed inputs ``X``
-    (N, d_x), with :class:`mdcore.emulator.EmulatorAt`'s protocol and no covariance."""
+    """An exact ``simulate(X, theta)`` at fixed ``X`` (N, d_x), with
+    :class:`mdcore.emulator.EmulatorAt`'s protocol and zero covariance."""
 
     def __init__(self, simulate: Callable, X: np.ndarray, n_out: int):
         self.simulate, self.X, self.n_out = simulate, X, n_out
 
     def theta_terms(self, theta, *, check: bool = True) -> ThetaTerms:
-        """θ itself: an exact simulator has nothing to precompute."""
         theta = np.atleast_2d(as_float_array(theta, "theta")) if check else theta
         return ThetaTerms(theta, ())
 
     def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
-        """``simulate`` at ``X`` for each θ, (M, n_out, N), and a zero covariance."""
         theta = terms.unit
         y = np.asarray(self.simulate(self.X, theta), dtype=np.float64)
         want = (theta.shape[0], self.X.shape[0], self.n_out)
@@ -92,7 +84,6 @@ class SimulatorAt:
         return mean, cov
 
     def cross_cov_at(self, terms: ThetaTerms, other: SimulatorAt):
-        """Zero cross-covariance (M, n_out, N_other, N) and variance (M, n_out, N_other)."""
         M, N_o = terms.unit.shape[0], other.X.shape[0]
         return (np.zeros((M, self.n_out, N_o, self.X.shape[0])),
                 np.zeros((M, self.n_out, N_o)))
@@ -117,15 +108,14 @@ def noise_cov(log_phi: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 
 def _chol(C: np.ndarray, log: JitterLog) -> np.ndarray:
-    """Batched lower Cholesky with the core's jitter ladder (NaN rows where it fails)."""
+    """Batched lower Cholesky with the jitter ladder (NaN where it fails)."""
     shape = C.shape
     L, _ = cholesky(C.reshape((-1,) + shape[-2:]), log)
     return L.reshape(shape)
 
 
 def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``L⁻¹ B`` for (b, N, N) lower factors and (b, N, k) right-hand sides, B overwritten:
-    LAPACK per matrix for a few, the batch-vectorised row sweep for many."""
+    """``L⁻¹ B`` for (b, N, N) factors and (b, N, k) right-hand sides, B overwritten."""
     if L.shape[0] > 8:
         return solve_lower_inplace(L, B)
     for i in range(L.shape[0]):
@@ -145,7 +135,7 @@ def gaussian_log_likelihood(mean, cov, B, zT, log) -> np.ndarray:
 
 
 def _theta_prior(theta_prior, bounds: np.ndarray) -> ThetaPrior:
-    """The θ prior as a :class:`~mdcore.priors.ThetaPrior` of size p (from a pair too)."""
+    """The θ prior as a :class:`~mdcore.priors.ThetaPrior` of size p."""
     if not isinstance(theta_prior, ThetaPrior):
         try:
             mean, var = theta_prior
@@ -288,15 +278,10 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
 
 @dataclass(frozen=True, eq=False)
 class KOHModel:
-    """A Kennedy–O'Hagan posterior; call :meth:`predict` for z* and δ*.
+    """A Kennedy–O'Hagan posterior (``scenario`` is ``"koh"``); :meth:`predict` gives z*, δ*.
 
     Attributes
     ----------
-    scenario : str
-        ``"koh"`` (so the app and the CLI can treat it as a fourth method).
-    X, z : ndarray of shape (N, d_x) and (N, n_out)
-    bounds : ndarray of shape (p, 2)
-        Box the θ prior (:class:`~mdcore.priors.ThetaPrior` ``theta_prior``) is truncated to.
     log_phi : ndarray of shape (n_out, 2 + d_x)
         ``[log σ_f, log ℓ_x…, log σ_n]`` per output; ``log_evidence`` the prior-averaged
         log marginal likelihood there (None when ``log_phi`` was given).
@@ -304,8 +289,6 @@ class KOHModel:
         The adaptive-Metropolis output in parameter units.
     n_predict : int
         θ samples (evenly spaced over the kept chain) used by :meth:`predict`.
-    seconds_phi, seconds : float
-        Time spent fitting φ, and in total.
     """
 
     scenario: str
@@ -337,19 +320,22 @@ class KOHModel:
 
     @property
     def iat(self) -> np.ndarray:
-        """Integrated autocorrelation time per parameter, (p,)."""
         return self.chain.iat
 
     @property
     def ess(self) -> np.ndarray:
-        """MCMC effective sample size per parameter, (p,)."""
         return self.chain.ess
 
     def predict(self, X_star, *, n_samples: int | None = None,
                 progress: Callable[[float], None] | None = None) -> DiscrepancyPrediction:
-        """Bias-corrected prediction and discrepancy at ``X_star`` (N*, d_x), each field
-        (N*, n_out) (the z variance includes σ_n²), from ``n_samples`` θ evenly spaced over
-        the kept chain (default :attr:`n_predict`); ``progress`` may raise to cancel."""
+        """Bias-corrected prediction and discrepancy at ``X_star`` (N*, d_x) from
+        ``n_samples`` θ over the kept chain (default :attr:`n_predict`).
+
+        Per θ, with ``r = z − m_η(X, θ)``, ``C = Σ_η + K_δ + σ_n² I`` and ``G = Σ_η(X*, X; θ)
+        + K_δ(X*, X)``: δ* has mean ``K_δ(X*, X) C⁻¹ r`` and variance ``σ_f² − diag(K_δ(X*,
+        X) C⁻¹ K_δ(X, X*))``; z* has mean ``m_η(X*) + G C⁻¹ r`` and variance ``V_η(X*) + σ_f²
+        + σ_n² − diag(G C⁻¹ Gᵀ)``.
+        """
         X_star = as_float_array(X_star, "X_star", ndim=2)
         if X_star.shape[1] != self.X.shape[1]:
             raise ValueError(f"X_star must have shape (N*, d_x) with d_x = {self.X.shape[1]} "
@@ -413,18 +399,15 @@ class KOHOptions:
     ----------
     n_iter, burn_in : int
         Chain length and burn-in (the paper's 150,000 and 50,000; :data:`FAST` for the app).
-    n_theta_eb : int, default=200
-        Prior θ draws averaged over in the empirical-Bayes objective.
-    n_predict : int, default=1000
-        θ samples used by :meth:`KOHModel.predict`.
+    n_theta_eb, n_predict : int
+        Prior θ draws of the empirical-Bayes objective; θ samples of the prediction.
     log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
         Fixed discrepancy hyperparameters instead of :func:`fit_phi`'s.
     phi_prior : GaussianPrior of size 2 + d_x, optional
         Hyperprior of :func:`fit_phi` (MAP); None is plain empirical Bayes.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
-        The chain with an emulator: compiled (:func:`mdcore.compiled.koh_chain`) or the
-        Python loop of :func:`mdcore.mcmc.adaptive_metropolis`, equal to rounding;
-        ``"auto"`` is numba when installed, None reads ``MDCORE_BACKEND``.
+        The chain with an emulator: :func:`mdcore.compiled.koh_chain` or the Python loop
+        of :func:`mdcore.mcmc.adaptive_metropolis`; None reads ``MDCORE_BACKEND``.
     """
 
     n_iter: int = N_ITER
@@ -460,13 +443,11 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
         The history-matching emulator (its mean and covariance enter the likelihood), or
         an exact ``simulate(X, theta) -> (n_theta, N, n_out)``.
     X : ndarray of shape (N, d_x)
-        Observed inputs (repeated rows are replicates).
     z : ndarray of shape (N, n_out) or (N,)
     theta_prior : ThetaPrior or (mean, var)
-        Gaussian prior of θ (``var`` a variance per parameter), truncated to ``bounds``
-        (p, 2), the box the emulator is trusted in.
+        Gaussian prior of θ, truncated to ``bounds`` (p, 2).
     options : KOHOptions, optional
-        Chain length, φ̂ and the backend; default the paper's chain.
+        Default: the paper's chain.
     seed : int or Generator, optional
     progress : callable, optional
         Fraction done (0–1); raising from it cancels.

@@ -1,10 +1,8 @@
 """Batched linear algebra and the chunk engine of the GP core.
 
-:func:`cholesky` factors a batch with a jitter ladder per matrix and :class:`JitterLog`
-counts what needed jitter or failed, so a public call warns once (never a silent NaN).
-:func:`chunks` splits a broadcast batch into pieces of bounded memory, :func:`gather` picks
-a chunk's rows without materialising the broadcast, and :func:`for_each_chunk` runs the
-chunks on the compute threads (:mod:`mdcore.threads`).
+:func:`cholesky` factors a batch with a jitter ladder per matrix; :class:`JitterLog`
+counts what needed jitter or failed, so a public call warns once. :func:`chunks` splits a
+broadcast batch into pieces of bounded memory, run by :func:`for_each_chunk`.
 """
 
 from __future__ import annotations

@@ -5,10 +5,9 @@ The sampler is a random-walk Metropolis whose Gaussian proposal covariance is, a
     C_t = C_0                                   for t ≤ t_0
     C_t = s_d Cov(x_0, …, x_{t−1}) + s_d ε I     for t > t_0,      s_d = 2.4² / d
 
-(Haario et al. 2001, Eq. 2.1), the chain covariance updated at every step by Welford's
-recursion. :func:`adaptive_metropolis` runs it in Python; :func:`chain_setup`,
-:func:`draw_blocks` and :func:`finish_chain` are its parts, which a compiled chain
-(:func:`mdcore.compiled.koh_chain`) shares, so both draw the same random numbers.
+(Haario et al. 2001, Eq. 2.1), updated every step by Welford's recursion.
+:func:`chain_setup`, :func:`draw_blocks` and :func:`finish_chain` are shared with the
+compiled chain (:func:`mdcore.compiled.koh_chain`), so both draw the same random numbers.
 
 >>> import numpy as np
 >>> chain = adaptive_metropolis(lambda x: -0.5 * float(x @ x), np.zeros(2), n_iter=5000,
@@ -44,21 +43,9 @@ DRAW_BLOCK = 4096
 
 @dataclass(frozen=True, eq=False)
 class Chain:
-    """The kept part of an adaptive-Metropolis run.
-
-    Attributes
-    ----------
-    samples : ndarray of shape (n_iter − burn_in, d)
-        States after burn-in (repeats included); ``log_target`` (n_iter − burn_in,) theirs.
-    acceptance_rate, acceptance_rate_burn_in : float
-        Fractions of accepted proposals after and during burn-in.
-    proposal_cov : ndarray of shape (d, d)
-        ``C_t`` at the last step.
-    iat : ndarray of shape (d,)
-        Integrated autocorrelation time of each coordinate of :attr:`samples`.
-    n_iter, burn_in, adapt_start : int
-    seconds : float
-    """
+    """The kept part of an adaptive-Metropolis run: ``samples`` (n_iter − burn_in, d) and
+    their ``log_target``, acceptance rates after and during burn-in, the last proposal
+    covariance ``C_t`` (d, d) and the integrated autocorrelation time ``iat`` (d,)."""
 
     samples: np.ndarray
     log_target: np.ndarray
@@ -73,8 +60,7 @@ class Chain:
 
     @property
     def reliable(self) -> bool:
-        """Whether the kept chain spans 50 autocorrelation times in every coordinate
-        (emcee's check): otherwise the IAT and the ESS are themselves unsure."""
+        """Whether the kept chain spans 50 autocorrelation times in every coordinate."""
         return bool(np.all(self.samples.shape[0] > RELIABLE_TAUS * self.iat))
 
     @property
@@ -110,8 +96,7 @@ def integrated_autocorr_time(x, *, c: float = 5.0) -> np.ndarray:
 
 
 class ChainSetup(NamedTuple):
-    """A validated adaptive-Metropolis run (:func:`chain_setup`): the start and the settings
-    of the proposal (Haario et al. 2001, Eq. 2.1)."""
+    """A validated adaptive-Metropolis run (:func:`chain_setup`)."""
 
     x0: np.ndarray       # (d,) starting state
     lp0: float           # log target at x0
@@ -158,9 +143,8 @@ def chain_setup(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int, b
 def draw_blocks(setup: ChainSetup, seed, progress: Callable[[float], None] | None = None
                 ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
     """The chain's random numbers in blocks ``(t, steps (b, d), log_u (b,))`` for steps
-    ``t … t + b − 1``: the same for any sampler of the same seed. A block ends at the end
-    of a draw of :data:`DRAW_BLOCK` steps or at a progress point (every 1 % of the run),
-    where ``progress(t / n_iter)`` runs before the next block (raising stops sampling)."""
+    ``t … t + b − 1``; ``progress(t / n_iter)`` runs between blocks every 1 % of the run
+    (raising stops sampling)."""
     rng = np.random.default_rng(seed)
     n_iter, d = setup.n_iter, setup.x0.size
     every = max(1, n_iter // 100)

@@ -1,13 +1,11 @@
 """mdcore's one thread policy: one pool of compute threads, and BLAS at one thread.
 
 The core works on many small matrices (13–100 rows): threads pay over independent pieces
-of work (chunks of pairs, of candidates), while a second BLAS thread on such sizes only
-spins. So :func:`run_pieces` runs pieces on one process-wide pool of :func:`num_threads`
-threads, which NumPy chunks and compiled kernels alike queue on (concurrent app sessions
-and jobs take turns piece by piece), and :func:`single_threaded_blas_for_process` sets BLAS
-to one thread for the whole process, once: the numerical entry points call it on first use
-(:func:`single_threaded_blas`). It is never undone, because undoing a process-wide setting
-is not safe while another thread relies on it.
+of work, while a second BLAS thread on such sizes only spins. So :func:`run_pieces` runs
+pieces on one process-wide pool that NumPy chunks and compiled kernels share (concurrent
+sessions take turns piece by piece), and :func:`single_threaded_blas_for_process` sets BLAS
+to one thread for the whole process. It is never undone: undoing a process-wide setting is
+not safe while another thread relies on it.
 """
 
 from __future__ import annotations

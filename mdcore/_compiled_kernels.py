@@ -39,59 +39,43 @@ def _matern_parts(a, b, log_sf2):
 
 
 @_jit
-def _exp_times(q, e, out, bits):
-    """``out = q · exp(e)`` elementwise; ``bits`` int64 scratch of the same length.
+def _matern_flat(DY, DX, sy, sx, log_sf2, out, work):
+    """Eq. 3 for entries whose squared input differences are ``DY`` (d_y, n) and ``DX``
+    (d_x, n) per dimension, with ``sy``, ``sx`` = √3/ℓ: into ``out`` (n,). ``work`` is
+    ``(a, b, bits)`` scratch at least n long.
 
-    The C library's exp is a call LLVM cannot vectorise; this one is branch-free:
-    ``exp(x) = 2^k exp(r)``, ``k = round(x / ln 2)``, ``r = x − k ln 2`` (ln 2 in two
-    parts, so ``r`` is exact to rounding), ``exp(r)`` by its degree-13 Taylor polynomial
-    (truncation below 1e-17) and ``2^k`` from exponent bits: within about 1 ulp. Outside
-    [−708, 709] (underflow, overflow, NaN) the C library's is used.
+    exp is branch-free (the C library's is a call LLVM cannot vectorise): ``exp(x) =
+    2^k exp(r)``, ``k = round(x / ln 2)``, ``r = x − k ln 2`` (ln 2 in two parts, so ``r``
+    is exact to rounding), ``exp(r)`` by its degree-13 Taylor polynomial (truncation below
+    1e-17) and ``2^k`` from exponent bits: within about 1 ulp. Below −708 it gives
+    ``exp(−708)``, zero next to any covariance entry it enters.
     """
-    for t in range(e.size):
-        x = min(max(e[t], -708.0), 709.0)
+    n = out.size
+    a, b, bits = work[0][:n], work[1][:n], work[2][:n]
+    for t in range(n):
+        a[t] = 0.0
+        b[t] = 0.0
+    for k in range(sy.size):                          # squared scaled distances
+        c, row = sy[k] * sy[k], DY[k]
+        for t in range(n):
+            a[t] += row[t] * c
+    for k in range(sx.size):
+        c, row = sx[k] * sx[k], DX[k]
+        for t in range(n):
+            b[t] += row[t] * c
+    for t in range(n):
+        q, e = _matern_parts(math.sqrt(a[t]), math.sqrt(b[t]), log_sf2)
+        x = e if e > -708.0 else -708.0
         k = (x * _INV_LN2 + _SHIFT) - _SHIFT          # round to nearest
         r = (x - k * _LN2_HI) - k * _LN2_LO
         p = ((((_C13 * r + _C12) * r + _C11) * r + _C10) * r + _C9) * r + _C8
         p = (((((((p * r + _C7) * r + _C6) * r + _C5) * r + _C4) * r + _C3) * r + 0.5) * r
              + 1.0) * r + 1.0
-        out[t] = q[t] * p
+        out[t] = q * p
         bits[t] = (np.int64(k) + 1023) << 52          # the bits of 2^k
     scale = bits.view(np.float64)
-    outside = 0
-    for t in range(e.size):
-        out[t] *= scale[t]
-        outside += not (e[t] >= -708.0 and e[t] <= 709.0)
-    if outside:
-        for t in range(e.size):
-            if not (e[t] >= -708.0 and e[t] <= 709.0):
-                out[t] = q[t] * math.exp(e[t])
-
-
-@_jit
-def _weighted_sum(D, s, out):
-    """``out = Σ_k D[k] s_k²``: squared scaled distances from squared differences."""
-    for t in range(out.size):
-        out[t] = 0.0
-    for k in range(s.size):
-        c = s[k] * s[k]
-        row = D[k]
-        for t in range(out.size):
-            out[t] += row[t] * c
-
-
-@_jit
-def _matern_flat(DY, DX, sy, sx, log_sf2, out, work):
-    """Eq. 3 for entries whose squared input differences are ``DY`` (d_y, n) and ``DX``
-    (d_x, n) per dimension, with ``sy``, ``sx`` = √3/ℓ: into ``out`` (n,). ``work`` is
-    ``(a, b, bits)`` scratch at least n long."""
-    n = out.size
-    a, b, bits = work[0][:n], work[1][:n], work[2][:n]
-    _weighted_sum(DY, sy, a)
-    _weighted_sum(DX, sx, b)
     for t in range(n):
-        a[t], b[t] = _matern_parts(math.sqrt(a[t]), math.sqrt(b[t]), log_sf2)
-    _exp_times(a, b, out, bits)
+        out[t] *= scale[t]
 
 
 @_jit
@@ -111,49 +95,38 @@ def _sq_diffs(A, B, out):
 
 
 @_jit
-def _factor_row(A, R, j, n, jitter):
-    """Row ``j`` of ``RᵀR = A[:, :n] + jitter I`` (rows above done), for the upper triangle
-    of ``A`` (n, n + c) stored by rows. The c extra columns B are carried along, so
-    ``R[:, n:] = R⁻ᵀ B`` (``L⁻¹ B``). Every update is a contiguous row operation (it
-    vectorises). False when the pivot is not positive (or NaN)."""
-    m = A.shape[1] - j
-    rj = R[j, j:]
-    aj = A[j, j:]
-    for t in range(m):
-        rj[t] = aj[t]
-    rj[0] += jitter
-    for k in range(j):
-        rk = R[k, j:]
-        lk = rk[0]
-        for t in range(m):
-            rj[t] -= lk * rk[t]
-    pivot = rj[0]
-    if not pivot > 0.0:
-        return False
-    d = math.sqrt(pivot)
-    rj[0] = d
-    for t in range(1, m):
-        rj[t] /= d
-    return True
-
-
-@_jit
 def _factor(A, R, n, ladder):
-    """Cholesky of ``A`` (:func:`_factor_row`) with the jitter ladder: when it fails,
-    ``ladder[t] × mean(diag A)`` is added to the diagonal, step by step, until one works.
+    """``RᵀR = A[:, :n] + jitter I`` for the upper triangle of ``A`` (n, n + c) stored by
+    rows, row by row; the c extra columns B are carried along, so ``R[:, n:] = R⁻ᵀ B``
+    (``L⁻¹ B``). Every update is a contiguous row operation (it vectorises). When a pivot
+    is not positive, ``ladder[t] × mean(diag A)`` is added to the diagonal, step by step.
     Returns ``(ok, step)``: the step that worked (0 without jitter), or the last tried."""
     scale = 0.0
     for i in range(n):
         scale += A[i, i]
     scale /= n
     step = 0.0
-    for t in range(-1, ladder.size):                 # t = −1: no jitter
-        step = 0.0 if t < 0 else ladder[t]
+    for s in range(-1, ladder.size):                 # s = −1: no jitter
+        step = 0.0 if s < 0 else ladder[s]
         ok = True
         for j in range(n):
-            if not _factor_row(A, R, j, n, step * scale):
+            m = A.shape[1] - j
+            rj, aj = R[j, j:], A[j, j:]
+            for t in range(m):
+                rj[t] = aj[t]
+            rj[0] += step * scale
+            for k in range(j):
+                rk = R[k, j:]
+                lk = rk[0]
+                for t in range(m):
+                    rj[t] -= lk * rk[t]
+            if not rj[0] > 0.0:                      # also NaN
                 ok = False
                 break
+            d = math.sqrt(rj[0])
+            rj[0] = d
+            for t in range(1, m):
+                rj[t] /= d
         if ok:
             return True, step
     return False, step
@@ -195,7 +168,7 @@ def pair_range(mode, b0, b1, pairs, test, ladder, out, acc):
     entries, V = np.empty(T), np.empty((N, M))
     mean, ss = np.empty(M), np.empty(M)
     sy, sx = np.empty(d_y), np.empty(d_x)
-    n_work = max(T, N * M)
+    n_work = T if T > N * M else N * M
     work = (np.empty(n_work), np.empty(n_work), np.empty(n_work, np.int64))
     last = -1
     for b in range(b0, b1):
@@ -246,8 +219,9 @@ def pair_range(mode, b0, b1, pairs, test, ladder, out, acc):
         sf2 = math.exp(log_sf2)
         finite = True
         for m in range(M):
-            ss[m] = max(sf2 - ss[m], 0.0)             # latent variance
             finite &= math.isfinite(mean[m]) and math.isfinite(ss[m])
+            v = sf2 - ss[m]
+            ss[m] = v if v > 0.0 else 0.0             # latent variance
         if not finite:
             out.dropped[b] = True
             continue
@@ -321,7 +295,7 @@ def _koh_log_likelihood(u, em, koh, work):
             continue
         if step > 0.0:
             jittered += 1
-            largest = max(largest, step)
+            largest = step if step > largest else largest
         total += _log_density(R, N, R.shape[1] - N - 1) - 0.5 * N * LOG_2PI   # z − m_η
     return total if math.isfinite(total) else -np.inf, jittered, failed, largest
 
@@ -338,8 +312,9 @@ def koh_steps(t_start, lp, steps, log_u, chain, em, koh, stats):
             np.empty(em.W.shape[2]), np.empty((N, N + 1)), np.empty((N, N + 1)))
     y = np.empty(d)
     delta = np.empty(d)
-    P = np.zeros((d, d + 1))
-    Rp = np.zeros((d, d + 1))
+    P, Rp = np.empty((d, d + 1)), np.empty((d, d + 1))   # upper triangles used
+    for r in range(d):
+        P[r, d] = 0.0                                # no extra column
     no_jitter = np.empty(0)
     for i in range(steps.shape[0]):
         t = t_start + i
@@ -355,7 +330,7 @@ def koh_steps(t_start, lp, steps, log_u, chain, em, koh, stats):
             lq, jittered, failed, largest = _koh_log_likelihood(y, em, koh, work)
             stats[0] += jittered
             stats[1] += failed
-            stats[2] = max(stats[2], largest)
+            stats[2] = largest if largest > stats[2] else stats[2]
             for k in range(d):
                 lq -= 0.5 * y[k] * y[k]
             if lq - lp > log_u[i]:                   # NaN and -inf are rejected

@@ -292,12 +292,14 @@ def _implausibility(a: EmulatorArrays, theta: np.ndarray, z: np.ndarray, vt: np.
     def work(sl, multi, n):
         Tu = _unit(theta[sl], a.t_lo, a.t_span)
         I = np.empty((n, N, n_out))
+        ones = np.ones((n, 1))
         for o in range(n_out):
             U, T = Tu * (SQRT3 * a.inv_ell[o]), a.T_train * (SQRT3 * a.inv_ell[o])
-            r = U @ (-2.0 * T.T)                      # (√3 r)² = |u|² − 2 u·t + |t|²
-            r += (U * U).sum(axis=1)[:, None] + (T * T).sum(axis=1)
-            r = np.sqrt(np.maximum(r, 0.0))
-            kt = separable_matern(0.0, r, 0.0, np.empty_like(r))          # (n, R)
+            U = np.hstack([U, ones, (U * U).sum(axis=1)[:, None]])  # (√3 r)² = |u|² − 2 u·t
+            T = np.vstack([-2.0 * T.T, (T * T).sum(axis=1), np.ones(len(T))])   # + |t|²
+            r = U @ T
+            np.sqrt(np.maximum(r, 0.0, out=r), out=r)
+            kt = separable_matern(0.0, r)                                  # (n, R)
             mean = kt @ a.AK[o] + (a.lin[o] + (Tu @ a.beta_t[o])[:, None])
             q = kt @ a.Q_t[o]
             v = var[sl, :, o] = np.maximum(a.sf2[o] - a.sf2[o] ** 2 * ((q * q) @ a.G[o]), 0.0)

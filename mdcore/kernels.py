@@ -22,15 +22,20 @@ __all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "spli
 SQRT3 = np.sqrt(3.0)
 
 
-def separable_matern(log_sf2, ry, rx, tmp=None) -> np.ndarray:
+def separable_matern(log_sf2, ry, rx=None, tmp=None) -> np.ndarray:
     """``σ_f² m32(r_y) m32(r_x)`` (Eq. 3) from ``a = √3 r_y``, ``b = √3 r_x`` as
-    ``(1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``: one exponential. Overwrites ``ry``
-    (full broadcast shape; ``rx`` may broadcast); ``tmp`` is an optional buffer like it."""
-    s = np.add(ry, rx, out=tmp)
-    ry *= rx
-    ry += s
-    ry += 1.0
-    np.subtract(log_sf2, s, out=s)
+    ``(1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``: one exponential; ``σ_f² m32(r_y)``
+    without ``rx``. Overwrites ``ry`` (full broadcast shape; ``rx`` may broadcast);
+    ``tmp`` is an optional buffer like it."""
+    if rx is None:
+        s = np.subtract(log_sf2, ry, out=tmp)
+        ry += 1.0
+    else:
+        s = np.add(ry, rx, out=tmp)
+        ry *= rx
+        ry += s
+        ry += 1.0
+        np.subtract(log_sf2, s, out=s)
     np.exp(s, out=s)
     ry *= s
     return ry
@@ -43,7 +48,7 @@ def matern32(r2) -> np.ndarray:
     (1.0, 0.483358)
     """
     a = SQRT3 * np.sqrt(np.maximum(r2, 0.0))
-    return separable_matern(0.0, a, 0.0, np.empty_like(a))
+    return separable_matern(0.0, a, tmp=np.empty_like(a))
 
 
 def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:

@@ -223,10 +223,11 @@ def koh_chain(arrays: EmulatorArrays, koh: KOHData, setup: mcmc.ChainSetup, seed
     em = type(arrays)(*map(_contiguous, arrays))
     koh = KOHData(*map(_contiguous, koh))
     d, kept = setup.x0.size, setup.n_iter - setup.burn_in
-    state = ChainState(setup.x0.copy(), setup.x0.copy(), np.zeros((d, d)),
-                       _contiguous(setup.L0), np.empty((kept, d)), np.empty(kept),
-                       np.zeros(2, np.int64), _contiguous(setup.reg), setup.burn_in,
-                       setup.t0, setup.s_d)
+    state = ChainState(x=setup.x0.copy(), mean=setup.x0.copy(), m2=np.zeros((d, d)),
+                       L=_contiguous(setup.L0), samples=np.empty((kept, d)),
+                       log_p=np.empty(kept), accepted=np.zeros(2, np.int64),
+                       reg=_contiguous(setup.reg), burn_in=setup.burn_in, t0=setup.t0,
+                       s_d=setup.s_d)
     stats = np.zeros(3)
     lp = setup.lp0
     start = time.perf_counter()
@@ -246,10 +247,11 @@ def warm_up() -> float:
     start = time.perf_counter()
     k = _kernels()
     one, eye = np.ones(1), np.eye(2)
-    em = EmulatorArrays(np.zeros(1), one, np.zeros((2, 1)), np.ones((1, 1)), eye[None].copy(),
-                        eye[None].copy(), np.zeros((1, 2)), np.zeros((1, 1)),
-                        eye[None].copy(), eye[None].copy(), one, eye[None].copy(), one,
-                        eye[None].copy())
+    em = EmulatorArrays(t_lo=np.zeros(1), t_span=one, T_train=np.zeros((2, 1)),
+                        inv_ell=np.ones((1, 1)), Q_t=eye[None].copy(), W=eye[None].copy(),
+                        lin=np.zeros((1, 2)), beta_t=np.zeros((1, 1)), AK=eye[None].copy(),
+                        V=eye[None].copy(), sf4=one, prior=eye[None].copy(), sf2=one,
+                        G=eye[None].copy())
     X = np.linspace(0.0, 1.0, 3)[:, None]
     pairs = Pairs(np.array([[0.0, 0.0, -1.0, -2.0], [0.1, 0.2, -0.5, -3.0]]),
                   np.array([0, 1]), np.stack([np.sin(3.0 * X), np.cos(2.0 * X)]), X,

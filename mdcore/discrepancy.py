@@ -663,10 +663,12 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         if options.proposal == "adaptive":  # Pareto-smoothed weights (Vehtari et al. 2024)
             log_weights = np.stack([psis(log_weights[o].ravel()).log_weights.reshape(S, -1)
                                     for o in range(n_out)])
-    model = DiscrepancyModel(scenario, simulate, theta, Y, X, z, log_params, log_weights,
-                             hat, nlml_hat, options.prune, prior, time.perf_counter() - start,
-                             options.proposal if scenario == 3 else None, k_hat,
-                             options.backend, draws)
+    model = DiscrepancyModel(
+        scenario=scenario, simulate=simulate, theta=theta, Y=Y, X=X, z=z,
+        _log_params=log_params, log_weights=log_weights, log_params_hat=hat,
+        nlml_hat=nlml_hat, prune=options.prune, phi_prior=prior,
+        seconds=time.perf_counter() - start, k_hat=k_hat, backend=options.backend,
+        proposal=options.proposal if scenario == 3 else None, phi_draws=draws)
     if scenario == 3:
         switch = " or use proposal='adaptive'" if options.proposal == "prior" else ""
         for o, (e, k) in enumerate(zip(model.ess, np.asarray(k_hat))):

@@ -359,13 +359,13 @@ class EmulatorAt:
         t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
         gps = em.gps
         return EmulatorArrays(
-            t_lo, t_span, _unit(em.theta_train, t_lo, t_span),
-            np.stack([np.exp(-g.log_params[1:1 + p]) for g in gps]),
-            np.stack([g.Q_t for g in gps]), np.stack([g.W for g in gps]), self._lin,
-            np.stack([g.beta[1 + d_x:] for g in gps]), self._AK, self._V,
-            np.array([np.exp(4 * g.log_params[0]) for g in gps]), self._prior,
-            np.array([np.exp(2 * g.log_params[0]) for g in gps]),
-            np.stack([g.W @ (V * V).T for g, V in zip(gps, self._V)]))
+            t_lo=t_lo, t_span=t_span, T_train=_unit(em.theta_train, t_lo, t_span),
+            inv_ell=np.stack([np.exp(-g.log_params[1:1 + p]) for g in gps]),
+            Q_t=np.stack([g.Q_t for g in gps]), W=np.stack([g.W for g in gps]),
+            lin=self._lin, beta_t=np.stack([g.beta[1 + d_x:] for g in gps]), AK=self._AK,
+            V=self._V, sf4=np.array([np.exp(4 * g.log_params[0]) for g in gps]),
+            prior=self._prior, sf2=np.array([np.exp(2 * g.log_params[0]) for g in gps]),
+            G=np.stack([g.W @ (V * V).T for g, V in zip(gps, self._V)]))
 
     def moments(self, theta):
         """``m_η`` (M, n_out, N) and ``Σ_η(X, X; θ)`` (M, n_out, N, N) for ``theta`` (M, p)."""

@@ -520,5 +520,7 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
     log.warn("KOH likelihood")
     chain = dataclasses.replace(chain, samples=mu + sd * chain.samples,
                                 proposal_cov=chain.proposal_cov * np.outer(sd, sd))
-    return KOHModel("koh", X, z, bounds, prior, log_phi, log_evidence, chain,
-                    options.n_predict, seconds_phi, time.perf_counter() - start, model, at)
+    return KOHModel(scenario="koh", X=X, z=z, bounds=bounds, theta_prior=prior,
+                    log_phi=log_phi, log_evidence=log_evidence, chain=chain,
+                    n_predict=options.n_predict, seconds_phi=seconds_phi,
+                    seconds=time.perf_counter() - start, _model=model, _at=at)

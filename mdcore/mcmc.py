@@ -164,9 +164,11 @@ def finish_chain(setup: ChainSetup, samples: np.ndarray, log_p: np.ndarray,
                  accepted: np.ndarray, L: np.ndarray, seconds: float) -> Chain:
     """The :class:`Chain` of a finished run; warns when it is too short to trust its IAT."""
     kept, burn_in = samples.shape[0], setup.burn_in
-    chain = Chain(samples, log_p, float(accepted[1] / kept),
-                  float(accepted[0] / burn_in) if burn_in else float("nan"), L @ L.T,
-                  integrated_autocorr_time(samples), setup.n_iter, burn_in, setup.t0, seconds)
+    chain = Chain(samples=samples, log_target=log_p,
+                  acceptance_rate=float(accepted[1] / kept),
+                  acceptance_rate_burn_in=float(accepted[0] / burn_in) if burn_in else np.nan,
+                  proposal_cov=L @ L.T, iat=integrated_autocorr_time(samples),
+                  n_iter=setup.n_iter, burn_in=burn_in, adapt_start=setup.t0, seconds=seconds)
     if not chain.reliable:
         tau = float(np.max(chain.iat))
         warnings.warn(f"adaptive Metropolis: the {kept:,} kept steps are fewer than 50 "

@@ -27,6 +27,8 @@ _C3, _C4, _C5, _C6, _C7, _C8, _C9, _C10, _C11, _C12, _C13 = (
 _OPTIONS: dict = dict(cache=True, nogil=True, error_model="numpy")
 _kernel = njit(**_OPTIONS)
 _jit = njit(**{**_OPTIONS, "no_cpython_wrapper": True})
+# A helper with one caller is typed into it: one compilation instead of two.
+_inline = njit(**{**_OPTIONS, "no_cpython_wrapper": True, "inline": "always"})
 
 
 @_jit
@@ -99,8 +101,8 @@ def _factor(A, R, n, ladder):
     """``RᵀR = A[:, :n] + jitter I`` for the upper triangle of ``A`` (n, n + c) stored by
     rows, row by row; the c extra columns B are carried along, so ``R[:, n:] = R⁻ᵀ B``
     (``L⁻¹ B``). Every update is a contiguous row operation (it vectorises), four rows
-    above at a time (a pass over row j costs loads and a store: four per pass make the
-    factorisation of a 64 × 64 matrix 1.7× faster). When a pivot is not positive,
+    above at a time (so row j is loaded and stored once per four updates, the bound on
+    this loop). When a pivot is not positive,
     ``ladder[t] × mean(diag A)`` is added to the diagonal, step by step. Returns
     ``(ok, step)``: the step that worked (0 without jitter), or the last tried."""
     scale = 0.0
@@ -124,8 +126,8 @@ def _factor(A, R, n, ladder):
                 for t in range(m):
                     rj[t] -= (l0 * r0[t] + l1 * r1[t]) + (l2 * r2[t] + l3 * r3[t])
                 k += 4
-            for k in range(k, j):
-                rk = R[k, j:]
+            for i in range(k, j):
+                rk = R[i, j:]
                 lk = rk[0]
                 for t in range(m):
                     rj[t] -= lk * rk[t]
@@ -250,7 +252,7 @@ def pair_range(mode, b0, b1, pairs, test, ladder, out, acc):
 # The Kennedy–O'Hagan chain
 
 
-@_jit
+@_inline
 def _koh_log_likelihood(u, em, koh, work):
     """``Σ_o log N(z_o | m_η(X, θ), Σ_η(X, X; θ) + K_δ,o + σ_n,o² I)`` at ``θ = μ + sd u``,
     with the emulator's moments (:class:`mdcore.emulator.EmulatorAt`): ``k_θ = m32(θ,

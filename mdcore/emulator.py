@@ -19,7 +19,7 @@ import scipy.optimize
 from .exceptions import ConvergenceWarning
 from .gp import LOG_2PI
 from .hyperfit import lbfgs_advice, lbfgs_converged
-from .kernels import SQRT3, matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
+from .kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
 from .linalg import chunks, for_each_chunk
 from .threads import single_threaded_blas
 from .validation import as_float_array, check_bounds
@@ -285,23 +285,27 @@ def _implausibility(a: EmulatorArrays, theta: np.ndarray, z: np.ndarray, vt: np.
     """Eq. 16 by chunks of candidates: ``E = lin + θᵀβ_θ + k_θ AK``, ``V = max(σ_f² −
     σ_f⁴ (k_θ Q_θ)² G, 0)``. Returns ``I`` (M,), ``var`` (M, N, n_out) and the count of
     targets with ``V_o + V_m + var ≤ 0``."""
-    M, (N, n_out) = theta.shape[0], z.shape
+    M, (N, n_out), (R, p) = theta.shape[0], z.shape, a.T_train.shape
     imp, var = np.empty(M), np.empty((M, N, n_out))
     bad = []
+    s2 = 3.0 * a.inv_ell ** 2                                   # (√3 / ℓ)², (n_out, p)
+    # (√3 r)² = |u|² − 2 u·t + |t|² in the s2 metric, as one product [u, 1, |u|²] @ T
+    T = [np.vstack([-2.0 * (a.T_train * s2[o]).T, a.T_train ** 2 @ s2[o], np.ones(R)])
+         for o in range(n_out)]
+    QA = [np.hstack([a.Q_t[o], a.AK[o]]) for o in range(n_out)]     # k_θ Q_θ and k_θ AK
 
     def work(sl, multi, n):
         Tu = _unit(theta[sl], a.t_lo, a.t_span)
+        U = np.empty((n, p + 2))
+        U[:, :p], U[:, p] = Tu, 1.0
         I = np.empty((n, N, n_out))
-        ones = np.ones((n, 1))
         for o in range(n_out):
-            U, T = Tu * (SQRT3 * a.inv_ell[o]), a.T_train * (SQRT3 * a.inv_ell[o])
-            U = np.hstack([U, ones, (U * U).sum(axis=1)[:, None]])  # (√3 r)² = |u|² − 2 u·t
-            T = np.vstack([-2.0 * T.T, (T * T).sum(axis=1), np.ones(len(T))])   # + |t|²
-            r = U @ T
+            U[:, p + 1] = Tu ** 2 @ s2[o]
+            r = U @ T[o]
             np.sqrt(np.maximum(r, 0.0, out=r), out=r)
-            kt = separable_matern(0.0, r)                                  # (n, R)
-            mean = kt @ a.AK[o] + (a.lin[o] + (Tu @ a.beta_t[o])[:, None])
-            q = kt @ a.Q_t[o]
+            kq = separable_matern(0.0, r) @ QA[o]                       # (n, R + N)
+            mean = kq[:, R:] + (a.lin[o] + (Tu @ a.beta_t[o])[:, None])
+            q = kq[:, :R]
             v = var[sl, :, o] = np.maximum(a.sf2[o] - a.sf2[o] ** 2 * ((q * q) @ a.G[o]), 0.0)
             total = vt[:, o] + v
             bad.append(np.count_nonzero(total <= 0))

@@ -186,9 +186,8 @@ def _check_jitter_log(jitter_log) -> None:
 
 def nlml_and_gradient(log_params, Y, X, z, *, jitter_log: JitterLog | None = None
                       ) -> tuple[float, np.ndarray]:
-    """NLML (Eq. 9) and its gradient ``½ tr((K⁻¹ − ααᵀ) ∂K/∂φ)``, ``α = K⁻¹ z``
-    (Rasmussen & Williams Eq. 5.9), for one vector: ``log_params`` (P,), ``Y`` (N, d_y);
-    the rest as :func:`neg_log_marginal_likelihood`. Returns ``(nlml, grad (P,))``."""
+    """NLML (Eq. 9) and its gradient ``½ tr((K⁻¹ − ααᵀ) ∂K/∂φ)``, ``α = K⁻¹ z``, (P,), for
+    one ``log_params`` (P,) and ``Y`` (N, d_y) (Rasmussen & Williams Eq. 5.9)."""
     prob = check_problem(log_params, Y, X, z)
     _check_jitter_log(jitter_log)
     if prob.batch_shape != ():

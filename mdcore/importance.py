@@ -151,9 +151,8 @@ class StudentT:
     @classmethod
     def fit(cls, samples, log_weights, *, df: float = 5.0, inflate: float = 1.0,
             floor=None) -> StudentT:
-        """Match the mean and covariance (× ``inflate``) of ``samples`` (n, P) weighted by
-        unnormalised ``log_weights`` (n,); ``floor`` (P,) is a smallest standard deviation
-        per dimension (keeps a collapsed sample usable)."""
+        """Match the weighted mean and covariance (× ``inflate``) of ``samples`` (n, P);
+        ``floor`` (P,) is a smallest standard deviation (keeps a collapsed sample usable)."""
         samples = as_float_array(samples, "samples", ndim=2)
         lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
         if lw.size != samples.shape[0] or np.any(np.isnan(lw)):
@@ -223,10 +222,9 @@ def stage_sizes(n: int, n_stages: int = N_STAGES) -> list[int]:
 
 
 class AdaptiveSample(NamedTuple):
-    """Result of :func:`adaptive_importance_sampling`: the ``samples`` (S, n, P), stage by
-    stage; their deterministic-mixture ``log_weights`` (S, n), normalised jointly over all
-    pairs, and ``log_likelihood`` (S, n); the fitted ``proposals`` of stages 2, 3, …
-    (stage 1 is the prior) and the ``stage_sizes``."""
+    """``samples`` (S, n, P) stage by stage, their deterministic-mixture ``log_weights``
+    (S, n) normalised jointly, ``log_likelihood`` (S, n), the proposals of stages 2, 3, …
+    and the ``stage_sizes``."""
 
     samples: np.ndarray
     log_weights: np.ndarray
@@ -249,19 +247,10 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     weighted against the mixture of all proposals, ``log w = log L + log p − log Σ_t (n_t /
     n) q_t``, normalised jointly over groups and draws.
 
-    Parameters
-    ----------
-    log_likelihood : callable
-        ``x`` (S, m, P), row j for group j -> (S, m) log likelihoods (``-inf`` allowed).
-    prior : object with ``sample(n, seed)``, ``logpdf(x)`` and ``var``
-        For example :class:`mdcore.priors.GaussianPrior`.
-    n_groups, n : int
-        Groups and draws per group.
-    seed : int or Generator, optional
-    n_stages, df, inflate
-        Stages, and the Student-t's degrees of freedom and covariance inflation.
-    progress : callable, optional
-        Fraction done after each stage; raising from it stops the sampling.
+    ``log_likelihood`` maps ``x`` (S, m, P), row j for group j, to (S, m) (``-inf``
+    allowed); ``prior`` has ``sample(n, seed)``, ``logpdf(x)`` and ``var`` (e.g.
+    :class:`mdcore.priors.GaussianPrior`); ``progress`` gets the fraction done after each
+    stage and may raise to stop.
     """
     S = as_int(n_groups, "n_groups", 1)
     sizes = stage_sizes(n, n_stages)

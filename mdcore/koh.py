@@ -50,13 +50,11 @@ from .validation import as_float_array, as_int, as_outputs, check_bounds
 __all__ = ["KOHModel", "KOHOptions", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
            "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST", "MAX_CHAIN"]
 
-#: The paper's chain: 150,000 iterations of which the first 50,000 are burn-in.
+#: The paper's chain (150,000 steps, 50,000 burn-in), a short one for the app, the prior θ
+#: draws of the empirical-Bayes objective and the θ samples of a prediction.
 N_ITER, BURN_IN = 150_000, 50_000
-#: A short chain for interactive use (the app).
 FAST = {"n_iter": 20_000, "burn_in": 5_000}
-#: Prior θ draws averaged over in the empirical-Bayes objective.
 N_THETA_EB = 200
-#: θ samples (evenly spaced over the kept chain) used for predictions by default.
 N_PREDICT = 1000
 LOG_2PI = float(np.log(2 * np.pi))
 
@@ -215,26 +213,10 @@ class _EvidenceObjective:
 
 def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
             n_starts: int = 4, seed=None):
-    """φ̂ maximising the prior-averaged marginal likelihood.
-
-    Parameters
-    ----------
-    at : EmulatorAt or SimulatorAt
-        The simulator's side at ``X`` (N, d_x); ``z`` (N, n_out) the observations.
-    theta_draws : ndarray of shape (M, p)
-        Draws from the θ prior; the objective averages the likelihood over them.
-    phi_prior : GaussianPrior of size 2 + d_x, optional
-        Hyperprior on each output's φ (MAP instead of plain empirical Bayes).
-    n_starts : int, default=4
-        L-BFGS-B starts (the first at the hyperprior mean or the box centre).
-    seed : int or Generator, optional
-
-    Returns
-    -------
-    log_phi : ndarray of shape (n_out, 2 + d_x)
-    log_evidence : float
-        ``log (1/M) Σ_m p(z | θ_m, φ̂)``.
-    """
+    """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` over the θ prior's
+    ``theta_draws`` (M, p), and that log evidence: ``at`` is the simulator's side at ``X``
+    (N, d_x), ``z`` (N, n_out); ``phi_prior`` makes it MAP; ``n_starts`` L-BFGS-B starts
+    (the first at the hyperprior mean or the box centre)."""
     X = as_float_array(X, "X", ndim=2)
     z = as_float_array(z, "z", ndim=2)
     if z.shape[0] != X.shape[0] or at.X.shape != X.shape:

@@ -70,10 +70,9 @@ class Chain:
 
 
 def integrated_autocorr_time(x, *, c: float = 5.0) -> np.ndarray:
-    """Integrated autocorrelation time ``τ = 1 + 2 Σ_{k≤M} ρ(k)`` per coordinate of a chain
-    ``x`` (n ≥ 2,) or (n, d), ``ρ`` by FFT and ``M`` the smallest window with ``M ≥ c τ(M)``
-    (Sokal 1997, as emcee). Returns τ (d,), 1 ≤ τ ≤ n (n for a chain that never moved);
-    ``n / τ`` is the effective sample size. AR(1) with coefficient a: ``(1 + a)/(1 − a)``."""
+    """Integrated autocorrelation time ``τ = 1 + 2 Σ_{k≤M} ρ(k)`` (d,) per coordinate of a
+    chain ``x`` (n ≥ 2,) or (n, d), ``ρ`` by FFT and ``M`` the smallest window with
+    ``M ≥ c τ(M)`` (Sokal 1997, as emcee); 1 ≤ τ ≤ n (n for a chain that never moved)."""
     x = as_float_array(x, "x")
     if x.ndim == 1:
         x = x[:, None]
@@ -195,16 +194,9 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
         Iterations, and the leading ones dropped (0 ≤ burn_in < n_iter − 1).
     initial_cov : ndarray of shape (d, d), optional
         ``C_0`` (default ``(0.1)² I``), used up to ``adapt_start`` (default
-        ``min(1000, n_iter // 10)``, at least 2 d).
-    epsilon : float, default=1e-8
-        ``ε`` of ``s_d ε I`` (units of x squared).
-    seed : int or numpy.random.Generator, optional
+        ``min(1000, n_iter // 10)``, at least 2 d); ``epsilon`` is the ε of ``s_d ε I``.
     progress : callable, optional
         Fraction done (0–1) about every 1 %; raising from it cancels.
-
-    Returns
-    -------
-    Chain
     """
     setup = chain_setup(log_target, x0, n_iter=n_iter, burn_in=burn_in,
                         initial_cov=initial_cov, adapt_start=adapt_start, epsilon=epsilon)

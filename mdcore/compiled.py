@@ -19,16 +19,14 @@ import os
 import threading
 import time
 import warnings
-from typing import TYPE_CHECKING, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 
 from . import mcmc
+from .emulator import EmulatorArrays
 from .linalg import JITTER_LADDER, JitterLog
 from .threads import run_pieces
-
-if TYPE_CHECKING:
-    from .emulator import EmulatorArrays
 
 __all__ = ["BACKENDS", "BACKEND_ENV", "ChainState", "KOHData", "Pairs", "Test", "available",
            "koh_chain", "mixture_sums", "nlml", "resolve_backend",
@@ -242,8 +240,6 @@ def koh_chain(arrays: EmulatorArrays, koh: KOHData, setup: mcmc.ChainSetup, seed
 
 def warm_up() -> float:
     """Load (the first time on a machine: compile) every kernel; returns seconds."""
-    from .emulator import EmulatorArrays
-
     start = time.perf_counter()
     k = _kernels()
     one, eye = np.ones(1), np.eye(2)

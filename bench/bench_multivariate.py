@@ -55,8 +55,8 @@ def main():
           f"{'naive s (scaled)':>16} {'naive / mv':>10} {'mv / max':>8} {'max rel diff':>12}")
     for name in ("beam-1d", "beam-2d", "shear-5"):
         case = cases.load(name, seed=0)
-        mv = case_problem(case, rule="multivariate", max_waves=1, backend="numpy")
-        mx = case_problem(case, rule="max", max_waves=1, backend="numpy")
+        mv = case_problem(case, rule="multivariate", max_waves=1)
+        mx = case_problem(case, rule="max", max_waves=1)
         emulator = next_wave(mv).emulator
         b = case.theta_bounds
         theta = b[:, 0] + (b[:, 1] - b[:, 0]) * np.random.default_rng(0).uniform(size=(M, case.p))

@@ -1,22 +1,18 @@
-"""Bayesian history matching in waves (SPEC §5, paper Eq. 16).
+"""Bayesian history matching in waves (paper Eq. 16).
 
-Implausibility of θ at observed input/output ``i``::
+The implausibility of θ at observed input/output ``i``,
+``I_i(θ) = |z_i − E[y_i(θ)]| / √(V_o,i + V_m,i + V[y_i(θ)])``, is combined over the targets
+by the max (or 2nd / 3rd max); θ is not ruled out yet (NROY) when ``I(θ) ≤ T``.
 
-    I_i(θ) = |z_i − E[y_i(θ)]| / sqrt(V_o,i + V_m,i + V[y_i(θ)])
+Each wave fits an emulator to all runs so far, scores candidates uniform in the previous
+NROY set and keeps those with ``I ≤ T``. Candidates of wave ``k > 1`` are the previous
+survivors moved by a few random-walk Metropolis steps whose target is the uniform density
+on that set; the walk leaves it invariant, so the NROY fraction of the box is estimated
+without bias by ``f_k = f_{k−1} · P(I_k ≤ T | θ ∈ NROY_{k−1})``.
 
-combined over all targets by the max (or 2nd / 3rd max). θ is not ruled out yet (NROY)
-when the combined ``I(θ) ≤ T``. The multivariate rule (Vernon, Goldstein & Bower 2010;
-:mod:`mdcore.multivariate`) scores all targets at once, I_M²(θ) with the full covariance
-``V_o + V_m + V_em(θ)`` (V_m possibly correlated), against a χ² quantile instead of T.
-
-Each wave fits an emulator to all simulator runs so far, scores candidates that are
-uniform in the previous NROY set, and keeps those with ``I ≤ T``. Candidates of wave
-``k > 1`` come from the previous wave's survivors, which are uniform in the previous NROY
-set, moved by a few random-walk Metropolis steps whose target is the uniform density on
-that set (accept a move iff it stays inside the box and is non-implausible under every
-earlier wave). The walk leaves the uniform distribution invariant, so the NROY fraction
-of the original box is estimated without bias by the chain rule
-``f_k = f_{k−1} · P(I_k ≤ T | θ ∈ NROY_{k−1})``.
+The multivariate rule (Vernon, Goldstein & Bower 2010; :mod:`mdcore.multivariate`)
+scores all targets at once, I_M²(θ) with the full covariance ``V_o + V_m + V_em(θ)``
+(V_m possibly correlated), against a χ² quantile instead of T.
 
 Examples
 --------
@@ -41,7 +37,7 @@ import scipy.optimize
 import scipy.special
 import scipy.stats
 
-from . import compiled, multivariate
+from . import multivariate
 from .emulator import Emulator, fit_emulator
 from .runs import run_simulator
 from .threads import single_threaded_blas
@@ -88,24 +84,9 @@ RULED_OUT_HINT_MV = ("nothing is non-implausible: every candidate θ has I_M² a
 
 
 def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
-    """Elementwise implausibility (Eq. 16).
+    """Elementwise implausibility (Eq. 16), ``|z − mean| / √(V_o + V_m + var)``, of arrays
+    that broadcast together (``var``, ``V_o``, ``V_m`` ≥ 0).
 
-    Parameters
-    ----------
-    z : array_like
-        Observations, broadcastable against ``mean``.
-    mean, var : array_like
-        Emulator (or simulator) mean and variance; ``var ≥ 0``.
-    V_o, V_m : array_like
-        Observation and model-discrepancy variances (≥ 0), broadcastable.
-
-    Returns
-    -------
-    ndarray
-        ``|z − mean| / sqrt(V_o + V_m + var)``, broadcast shape.
-
-    Examples
-    --------
     >>> float(implausibility(1.0, 0.0, 0.5, V_o=0.25, V_m=0.25))
     1.0
     """
@@ -122,19 +103,9 @@ def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
 
 
 def combine(I, rule: str = "max") -> np.ndarray:
-    """Combine implausibilities over targets (the last two axes: inputs × outputs).
+    """Combine implausibilities ``I`` (..., N, n_out) over the targets by ``rule``
+    ("max", "2nd max" or "3rd max"): shape (...).
 
-    Parameters
-    ----------
-    I : ndarray of shape (..., N, n_out)
-    rule : {"max", "2nd max", "3rd max"}
-
-    Returns
-    -------
-    ndarray of shape (...)
-
-    Examples
-    --------
     >>> combine(np.array([[[1.0], [9.0], [4.0]]]), "2nd max")
     array([4.])
     """
@@ -196,10 +167,6 @@ class HistoryMatchProblem:
         Seconds after which a batch of simulator runs counts as failed.
     max_failed_fraction : float
         A wave whose share of failed simulator runs exceeds this is an error.
-    backend : {"numpy", "numba"}
-        How waves fit the emulator and score candidates (:meth:`score`): the NumPy
-        reference or the compiled kernels (:func:`mdcore.emulator.fit_emulator`,
-        :meth:`mdcore.emulator.Emulator.implausibility`).
     V_m_length : ndarray of shape (n_out,)
         Correlation length ℓ_m of V_m per output, in X's units (0: independent).
     V_m_corr : ndarray of shape (n_out, n_out) or None
@@ -227,7 +194,6 @@ class HistoryMatchProblem:
     batch_size: int | None = None
     timeout: float | None = None
     max_failed_fraction: float = MAX_FAILED_FRACTION
-    backend: str = "numpy"
     V_m_length: np.ndarray = field(default_factory=lambda: np.zeros(1))
     V_m_corr: np.ndarray | None = None
     chi2_probability: float = 0.995
@@ -254,34 +220,18 @@ class HistoryMatchProblem:
         return self.threshold
 
     def score(self, theta, emulator: Emulator) -> Score:
-        """Combined implausibility and emulator variance of ``theta`` under ``emulator``.
-
-        Parameters
-        ----------
-        theta : ndarray of shape (M, p)
-            Candidate parameters, in the case's units.
-        emulator : Emulator
-            A wave's emulator (:attr:`Wave.emulator`).
-
-        Returns
-        -------
-        Score
-            ``implausibility`` (M,), combined by :attr:`rule` over every observed input
-            and output (Eq. 16), and the emulator ``var`` (M, N_u, n_out).
-        """
+        """Implausibility (Eq. 16, combined by :attr:`rule`) and emulator variance of
+        candidates ``theta`` (M, p) under a wave's ``emulator``
+        (:meth:`mdcore.emulator.Emulator.implausibility`)."""
         theta = np.atleast_2d(as_float_array(theta, "theta"))
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (M, p) with p = {self.p}; received "
                              f"{theta.shape}.")
-        if self.rule == MULTIVARIATE:     # issue 43: I_M² over all targets at once
+        if self.rule == MULTIVARIATE:     # I_M² over all targets at once
             return Score(*multivariate.multivariate_implausibility(emulator, theta, self.z,
                                                                    self.V))
-        if self.backend == "numba":       # the fused compiled kernel
-            return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
-                                                  rank=RULES[self.rule], backend="numba"))
-        pred = emulator.predict(self.X, theta, backend="numpy")
-        I = implausibility(self.z, pred.mean, pred.var, V_o=self.V_o, V_m=self.V_m)
-        return Score(combine(I, self.rule), pred.var)
+        return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
+                                              rank=RULES[self.rule]))
 
     def implausibility(self, theta, emulator: Emulator) -> np.ndarray:
         """Combined implausibility (Eq. 16) of ``theta`` (M, p) under ``emulator``, (M,)."""
@@ -289,15 +239,8 @@ class HistoryMatchProblem:
 
 
 class Score(NamedTuple):
-    """Implausibility of candidate θ under one emulator (:meth:`HistoryMatchProblem.score`).
-
-    Attributes
-    ----------
-    implausibility : ndarray of shape (M,)
-        Combined implausibility ``I(θ)`` (Eq. 16 and the problem's rule).
-    var : ndarray of shape (M, N_u, n_out)
-        Emulator variance ``V[y(θ)]`` at each observed input and output.
-    """
+    """:meth:`HistoryMatchProblem.score`: the combined ``implausibility`` (M,) and the
+    emulator ``var`` (M, N_u, n_out) at each observed input and output."""
 
     implausibility: np.ndarray
     var: np.ndarray
@@ -378,9 +321,8 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
           mcmc_steps: int = 4, convergence_ratio: float = 1.0,
           executor: Executor | None = None, batch_size: int | None = None,
           timeout: float | None = None,
-          max_failed_fraction: float = MAX_FAILED_FRACTION,
-          backend: str | None = None, V_m_length=0.0, V_m_corr=None,
-          chi2_probability: float = 0.995) -> HistoryMatchProblem:
+          max_failed_fraction: float = MAX_FAILED_FRACTION, V_m_length=0.0,
+          V_m_corr=None, chi2_probability: float = 0.995) -> HistoryMatchProblem:
     """Validate and assemble a history-matching problem.
 
     Parameters
@@ -397,7 +339,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Model-discrepancy variance, > 0.
     V_o : float or ndarray, optional
         Observation variance. Inputs with replicates use the replicate sample variance
-        (SPEC §5); ``V_o`` is required for inputs without replicates.
+        (``V_o`` is required for inputs without replicates).
     threshold : float, default=3
         Implausibility cut-off T > 0 (Pukelsheim's 3σ rule).
     rule : {"max", "2nd max", "3rd max", "multivariate"}, default="max"
@@ -419,7 +361,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Uniform-target Metropolis steps that spread candidates through the NROY set.
     convergence_ratio : float, default=1
         Converged when the emulator variance at every retained point is below
-        ``convergence_ratio × (V_o + V_m)`` (SPEC §5 uses 1); smaller values keep refining.
+        ``convergence_ratio × (V_o + V_m)``; smaller values keep refining.
     executor : concurrent.futures.Executor, optional
         Runs the simulator runs of each wave (for example a ``ProcessPoolExecutor`` or a
         Dask ``Client(...).get_executor()``); the results equal the serial run's.
@@ -431,12 +373,6 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Failed runs (raised, timed out, NaN/inf) are dropped and reported on the wave; when
         more than this share of a wave's runs fail (or all do), the wave is an error that
         names the first failure.
-    backend : {"auto", "numpy", "numba"}, optional
-        How each wave fits its emulator and scores its candidates: ``"numpy"`` (the
-        reference) or ``"numba"`` (compiled: a fit with the same bits, and scoring fused
-        with the implausibility; the same NROY sets). Default ``MDCORE_BACKEND``, else numba
-        when installed (:func:`mdcore.compiled.resolve_backend`).
-        :meth:`HistoryMatchResult.log_likelihood` (and so θ_MAP) always uses NumPy.
     V_m_length : float or ndarray of shape (n_out,), default=0
         Correlation length ℓ_m of the model discrepancy over x, per output, in X's units:
         ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps today's independent V_m. Only
@@ -486,7 +422,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                              "replicate variance is available. Pass the noise variance as V_o.")
         V_o = zv
     else:
-        V_o = np.where(has_rep[:, None], zv, V_o)     # SPEC §5: replicate variance wins
+        V_o = np.where(has_rep[:, None], zv, V_o)     # the replicate variance wins
     n_runs = as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1, MAX_RUNS)
     n_candidates = as_int(50_000 * p if n_candidates is None else n_candidates,
                            "n_candidates", 10, MAX_CANDIDATES)
@@ -508,7 +444,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                          f"{n_runs:,} × {max_waves - 1} = {total:,}. Lower n_runs or "
                          "max_waves.")
     convergence_ratio = as_positive_float(convergence_ratio, "convergence_ratio",
-                                          "1 is SPEC §5's rule.")
+                                          "1 is the paper's rule.")
     try:
         failed = float(max_failed_fraction)
     except (TypeError, ValueError):
@@ -534,8 +470,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                                as_int(mcmc_steps, "mcmc_steps", 0, MAX_MCMC_STEPS),
                                convergence_ratio,
                                executor, batch_size, None if timeout is None else float(timeout),
-                               max_failed_fraction, compiled.resolve_backend(backend),
-                               V_m_length, V_m_corr, chi2_probability)
+                               max_failed_fraction, V_m_length, V_m_corr, chi2_probability)
 
 
 def check_correlation(length, corr, probability, n_out: int):
@@ -668,8 +603,7 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
             "(simulate) or narrow the bounds to where it runs.")
     new_runs, new_y = new_runs[runs.ok], runs.y
     emulator = fit_emulator(problem.X, np.vstack([old_theta, new_runs]),
-                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng,
-                            backend=problem.backend)
+                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng)
     if k == 1:
         candidates = problem.bounds[:, 0] + span * rng.uniform(size=(problem.n_candidates,
                                                                       problem.p))
@@ -795,7 +729,7 @@ class HistoryMatchResult:
         Sampling-importance-resampling: a pool of ``max(20 n, 20,000)`` uniform NROY
         samples (the prior is uniform on the box) is resampled with replacement in
         proportion to :meth:`log_likelihood` (normalised in log space). These are the
-        θ^(j) of the discrepancy scenarios (SPEC §1: θ^(j) ~ p(θ | z)); repeats are
+        θ^(j) ~ p(θ | z) of the discrepancy scenarios; repeats are
         possible when the likelihood is concentrated.
 
         With an integer ``seed`` the draws are kept (a few, the newest) and a repeated call
@@ -831,12 +765,10 @@ class HistoryMatchResult:
         Eq. 16 standardises by. θ (M, p) -> (M,).
         """
         theta = np.atleast_2d(as_float_array(theta, "theta"))
-        if self.problem.rule == MULTIVARIATE:   # issue 43: the full Gaussian of I_M²
+        if self.problem.rule == MULTIVARIATE:   # the full Gaussian of I_M²
             return multivariate.log_likelihood(self.waves[-1].emulator, theta, self.problem.z,
                                                self.problem.V)
-        # NumPy on every backend: theta_map's Nelder–Mead turns 1e-16 changes of this into
-        # ~1e-7 changes of θ_MAP, and θ_MAP must not depend on the backend.
-        pred = self.waves[-1].emulator.predict(self.problem.X, theta, backend="numpy")
+        pred = self.waves[-1].emulator.predict(self.problem.X, theta)
         s2 = self.problem.V_o + self.problem.V_m + pred.var
         r2 = (self.problem.z - pred.mean) ** 2 / s2
         return -0.5 * np.sum(r2 + np.log(2.0 * np.pi * s2), axis=(1, 2))

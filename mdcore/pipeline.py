@@ -35,18 +35,22 @@ from . import compiled
 from .cases import Case
 from .discrepancy import (
     LOW_ESS,
+    MAX_N_PHI,
+    MAX_N_S,
+    MAX_PAIRS,
     PROPOSALS,
     PRUNE,
     DiscrepancyModel,
+    DiscrepancyOptions,
     DiscrepancyPrediction,
     check_executor,
     infer_discrepancy,
 )
 from .exceptions import Cancelled
 from .history_matching import HistoryMatchResult
-from .hyperfit import QPSO_ITERATIONS
+from .hyperfit import QPSO_ITERATIONS, FitOptions
 from .importance import K_HAT_THRESHOLD
-from .koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, infer_koh
+from .koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
 from .metrics import coverage, lpl, mmd, nmse
 from .priors import GaussianPrior
 from .validation import as_float_array, as_int, as_seed_int, choose
@@ -58,12 +62,8 @@ __all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics"
 #: The paper's (N_s, N_φ) per case study (SPEC §6).
 PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
 
-#: Largest sizes :class:`Settings` accepts (the paper's are N_s = 1000, N_φ = 500–1000 and a
-#: 150,000-step chain): θ samples, φ samples per θ, (θ, φ) pairs of scenario 3, and KOH
-#: chain steps. Anything larger would run out of memory, so it is refused up front.
-MAX_N_S = 100_000
-MAX_N_PHI = 100_000
-MAX_PAIRS = 100_000_000
+#: Longest KOH chain :class:`Settings` accepts (the sizes of scenarios 2–3 are limited by
+#: :data:`mdcore.discrepancy.MAX_N_S`, ``MAX_N_PHI`` and ``MAX_PAIRS``).
 MAX_N_ITER = MAX_CHAIN
 #: Most swarm steps of the φ̂ fit (10× the default; more only costs time).
 MAX_FIT_ITERATIONS = 10 * QPSO_ITERATIONS
@@ -267,9 +267,6 @@ class ImportanceDiagnostics:
         ``Σ_j w_j / Σ_k (w_jk / w_j)²``, ``w_j = Σ_k w_jk``; out of ``n_phi``.
     skipped_mass : tuple of float
         Weight the prediction skipped (below ``prune × max``).
-    abandoned_mass : tuple of float
-        A bound on the weight of the pairs the weighing left out as provably negligible
-        (:data:`mdcore.discrepancy.ABANDON_MASS`); 0 with the adaptive proposal.
     k_hat : tuple of float
         Pareto shape of the raw weights' tail (Vehtari et al.); above 0.7 unreliable.
     n_pairs, n_phi : int
@@ -280,7 +277,6 @@ class ImportanceDiagnostics:
     ess: tuple
     ess_phi: tuple
     skipped_mass: tuple
-    abandoned_mass: tuple
     k_hat: tuple
     n_pairs: int
     n_phi: int
@@ -427,9 +423,6 @@ def importance_diagnostics(model: DiscrepancyModel) -> ImportanceDiagnostics:
     return ImportanceDiagnostics(tuple(float(e) for e in model.ess),
                                  tuple(float(e) for e in ess_phi),
                                  tuple(float(m) for m in model.skipped_mass),
-                                 tuple(float(m) for m in np.broadcast_to(
-                                     0.0 if model.abandoned_mass is None
-                                     else model.abandoned_mass, n_out)),
                                  tuple(float(k) for k in np.broadcast_to(
                                      np.nan if model.k_hat is None else model.k_hat, n_out)),
                                  S * K, K,
@@ -571,20 +564,23 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     stage(0.0, 0.0, "starting")(0.0)
     model: DiscrepancyModel | KOHModel
     if method is Method.KOH:
+        koh_options = KOHOptions(n_iter=settings.n_iter, burn_in=settings.burn_in,
+                                 phi_prior=koh_phi_prior(case), backend=settings.backend)
         model = infer_koh(hm.waves[-1].emulator, case.X_train, case.z_train,
                           theta_prior=case.theta_prior, bounds=case.theta_bounds,
-                          phi_prior=koh_phi_prior(case), n_iter=settings.n_iter,
-                          burn_in=settings.burn_in, seed=seed, backend=settings.backend,
+                          options=koh_options, seed=seed,
                           progress=stage(0.0, 0.9, "KOH: φ̂ and the θ chain"))
     else:
         theta = hm.posterior_samples(settings.n_s, seed=seed) if method is not Method.S1 \
             else None
+        options = DiscrepancyOptions(
+            n_phi=settings.n_phi, phi_prior=case.phi_prior, proposal=settings.proposal,
+            prune=settings.prune, backend=settings.backend,
+            fit=FitOptions(n_iterations=settings.fit_iterations),
+            log_params_hat=log_params_hat if method is Method.S2 else None)
         model = infer_discrepancy(
             case.simulate, theta, case.X_train, case.z_train, scenario=method.scenario,
-            theta_map=hm.theta_map, n_phi=settings.n_phi, phi_prior=case.phi_prior, seed=seed,
-            log_params_hat=log_params_hat if method is Method.S2 else None,
-            fit_options={"n_iterations": settings.fit_iterations},
-            prune=settings.prune, proposal=settings.proposal, backend=settings.backend,
+            theta_map=hm.theta_map, options=options, seed=seed,
             progress=stage(0.0, 0.5, f"{method.label}: fitting the discrepancy GP"),
             executor=executor)
     predicting = stage(0.9 if method is Method.KOH else 0.5, 1.0, f"{method.label}: predicting")

@@ -28,7 +28,7 @@ import pytest
 from mdcore import cases, export, gp, importance, kernels, koh, metrics, runs
 from mdcore.case_file import CaseFileError, load_case_file
 from mdcore.cli import main
-from mdcore.discrepancy import infer_discrepancy
+from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
 from mdcore.history_matching import history_match, history_match_case, implausibility, setup
 from mdcore.pipeline import Settings, run_method
 
@@ -255,20 +255,18 @@ API = [
                                           with_value(X8, (0, 0), np.nan), Z8, scenario=3),
      r"X contains 1 NaN or infinite value\(s\)", ()),
     ("discrepancy-simulator-wrong-shape",
-     lambda c: _call(infer_discrepancy, toy_wrong_shape, BOUNDS.T, X8, Z8, scenario=3, n_phi=2),
+     lambda c: _call(infer_discrepancy, toy_wrong_shape, BOUNDS.T, X8, Z8, scenario=3,
+                     options=DiscrepancyOptions(n_phi=2)),
      r"simulate\(X, theta\) must return shape \(n_theta, N, n_out\) = \(2, 8, 1\); it "
      r"returned \(2, 8\)", ()),
     ("discrepancy-simulator-all-nan",
-     lambda c: _call(infer_discrepancy, toy_all_nan, BOUNDS.T, X8, Z8, scenario=3, n_phi=2),
+     lambda c: _call(infer_discrepancy, toy_all_nan, BOUNDS.T, X8, Z8, scenario=3,
+                     options=DiscrepancyOptions(n_phi=2)),
      r"simulate\(X, theta\) returned NaN or inf", ()),
-    ("discrepancy-n_phi-zero", lambda c: _call(infer_discrepancy, toy, BOUNDS.T, X8, Z8,
-                                               scenario=3, n_phi=0),
+    ("discrepancy-n_phi-zero", lambda c: _call(DiscrepancyOptions, n_phi=0),
      r"n_phi must be an integer ≥ 1.*; received 0", ()),
-    pytest.param("discrepancy-n_phi-huge",
-                 lambda c: _call(infer_discrepancy, toy, BOUNDS.T, X8, Z8, scenario=3, n_phi=HUGE),
-                 r"n_phi must be an integer ≥ 1 and ≤ [\d,]+; received 1000000000000",
-                 ("mdcore.discrepancy:_prior_proposal", "mdcore.discrepancy:_adaptive_proposal"),
-                 id="discrepancy-n_phi-huge"),
+    ("discrepancy-n_phi-huge", lambda c: _call(DiscrepancyOptions, n_phi=HUGE),
+     r"n_phi must be an integer ≥ 1 and ≤ [\d,]+; received 1000000000000", ()),
     # --- mdcore.pipeline ---------------------------------------------------------------
     ("Settings-n_s-zero", lambda c: _call(Settings, n_s=0),
      r"n_s must be an integer ≥ 1; received 0", ()),
@@ -340,22 +338,19 @@ API = [
     # --- mdcore.koh --------------------------------------------------------------------
     ("koh.infer_koh-theta_prior-var-negative",
      lambda c: _call(koh.infer_koh, toy, X8, Z8, theta_prior=([1.0, 0.0], [-1.0, 0.25]),
-                     bounds=BOUNDS, n_iter=100, burn_in=10),
+                     bounds=BOUNDS, options=koh.KOHOptions(n_iter=100, burn_in=10)),
      r"theta_prior var must be positive; received \[-1\.0, 0\.25\]",
      ("mdcore.koh:_fit_phi", "mdcore.koh:adaptive_metropolis")),
-    ("koh.infer_koh-n_iter-huge",
-     lambda c: _call(koh.infer_koh, toy, X8, Z8, theta_prior=([1.0, 0.0], [0.25, 0.25]),
-                     bounds=BOUNDS, n_iter=HUGE),
+    ("koh.infer_koh-n_iter-huge", lambda c: _call(koh.KOHOptions, n_iter=HUGE),
      r"n_iter must be an integer ≥ 2 and ≤ 100,000,000; received 1000000000000",
      ("mdcore.koh:_fit_phi", "mdcore.koh:adaptive_metropolis")),
     ("koh.infer_koh-burn_in-ge-n_iter",
-     lambda c: _call(koh.infer_koh, toy, X8, Z8, theta_prior=([1.0, 0.0], [0.25, 0.25]),
-                     bounds=BOUNDS, n_iter=500, burn_in=500),
+     lambda c: _call(koh.KOHOptions, n_iter=500, burn_in=500),
      r"burn_in must be smaller than n_iter − 1 = 499 .*received burn_in=500",
      ("mdcore.koh:_fit_phi", "mdcore.koh:adaptive_metropolis")),
     ("koh.infer_koh-z-wrong-rows",
      lambda c: _call(koh.infer_koh, toy, X8, Z8[:6], theta_prior=([1.0, 0.0], [0.25, 0.25]),
-                     bounds=BOUNDS, n_iter=100, burn_in=10),
+                     bounds=BOUNDS, options=koh.KOHOptions(n_iter=100, burn_in=10)),
      r"z must have shape \(N, n_out\) with N = 8 rows like X .*received \(6, 1\)",
      ("mdcore.koh:_fit_phi", "mdcore.koh:adaptive_metropolis")),
     # --- mdcore.metrics ----------------------------------------------------------------

@@ -78,7 +78,7 @@ def test_matches_a_naive_per_candidate_cholesky(seed, coupled):
     ref_I2, ref_ld = naive_scores(em, theta, z, V)
     I2, var = multivariate.multivariate_implausibility(em, theta, z, V)
     np.testing.assert_allclose(I2, ref_I2, rtol=1e-10)
-    np.testing.assert_allclose(var, em.predict(em.X_train, theta, backend="numpy").var,
+    np.testing.assert_allclose(var, em.predict(em.X_train, theta).var,
                                rtol=1e-8, atol=1e-12)
     ll = multivariate.log_likelihood(em, theta, z, V)
     np.testing.assert_allclose(ll, -0.5 * (ref_I2 + ref_ld + V.shape[0] * math.log(2 * math.pi)),
@@ -169,8 +169,7 @@ def test_truth_stays_in_nroy_with_a_correlated_discrepancy(seed):
 def test_old_rules_ignore_the_correlation(rule):
     """The max rules use V_m's diagonal only: NROY, implausibility and θ_MAP are unchanged."""
     case = cases.load("beam-1d")
-    a, b = (history_match_case(case, n_candidates=4000, max_waves=2, rule=rule,
-                               backend="numpy", **corr)
+    a, b = (history_match_case(case, n_candidates=4000, max_waves=2, rule=rule, **corr)
             for corr in (dict(V_m_length=0.0), dict(V_m_length=0.4)))
     for wa, wb in zip(a.waves, b.waves, strict=True):
         np.testing.assert_array_equal(wa.nroy, wb.nroy)

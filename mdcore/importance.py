@@ -20,14 +20,14 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
+import scipy.optimize
 from scipy.linalg import solve_triangular
 from scipy.special import gammaln, logsumexp
 
 from .validation import as_float_array, as_int, as_positive_float
 
-__all__ = ["K_HAT_THRESHOLD", "PSIS", "effective_sample_size", "psis",
-           "generalized_pareto_fit", "StudentT", "AdaptiveSample", "stage_sizes",
-           "adaptive_importance_sampling"]
+__all__ = ["K_HAT_THRESHOLD", "PSIS", "psis", "generalized_pareto_fit", "resample",
+           "StudentT", "AdaptiveSample", "stage_sizes", "adaptive_importance_sampling"]
 
 #: Above this Pareto shape the importance-sampling estimate is unreliable (Vehtari et al.).
 K_HAT_THRESHOLD = 0.7
@@ -39,19 +39,6 @@ class PSIS(NamedTuple):
 
     log_weights: np.ndarray
     k_hat: float
-
-
-def effective_sample_size(log_weights, axis=None) -> np.ndarray:
-    """Kish's effective sample size ``(Σ w)² / Σ w²`` (between 1 and the count) from
-    unnormalised log weights (``-inf``: zero weight), summed over ``axis`` (default all).
-
-    >>> round(float(effective_sample_size(np.zeros(10))), 12)
-    10.0
-    """
-    lw = as_float_array(log_weights, "log_weights", finite=False)
-    if np.any(np.isnan(lw)) or np.any(lw == np.inf):
-        raise ValueError("log_weights must not contain NaN or +inf; a zero weight is -inf.")
-    return np.exp(2.0 * logsumexp(lw, axis=axis) - logsumexp(2.0 * lw, axis=axis))
 
 
 def generalized_pareto_fit(x) -> tuple[float, float]:
@@ -118,6 +105,33 @@ def psis(log_weights, *, r_eff: float = 1.0) -> PSIS:
     return PSIS(x - logsumexp(x), float(k_hat))
 
 
+def resample(log_weights, n: int, seed=None) -> tuple[np.ndarray, np.ndarray]:
+    """Stratified resampling (Kitagawa 1996): ``n`` draws by the normalised weights of
+    ``log_weights`` (M,) (``-inf``: zero weight), one uniform in each ``[i / n, (i + 1) / n)``.
+    Returns the distinct indices drawn, ascending, and their counts (summing to ``n``):
+    ``Σ counts · f(idx) / n`` is unbiased for ``Σ w f``, with a variance of at most the
+    multinomial ``Var_w(f) / n`` (Douc, Cappé & Moulines 2005).
+
+    >>> resample(np.log([0.5, 0.25, 0.25]), 4, seed=0)
+    (array([0, 1, 2]), array([2, 1, 1]))
+    """
+    lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
+    if np.any(np.isnan(lw)) or np.any(lw == np.inf) or not np.any(np.isfinite(lw)):
+        raise ValueError("log_weights must have a finite value and no NaN or +inf; a zero "
+                         "weight is -inf.")
+    n = as_int(n, "n", 1)
+    cdf = np.cumsum(np.exp(lw - np.max(lw)))
+    u = (np.arange(n) + np.random.default_rng(seed).uniform(size=n)) * (cdf[-1] / n)
+    return np.unique(np.minimum(np.searchsorted(cdf, u, side="right"), lw.size - 1),
+                     return_counts=True)
+
+
+#: Adaptive proposal (docs/scenario3.md): prior share of the budget in stage 1, stages,
+#: Student-t degrees of freedom, covariance inflation, smallest sd as a share of the prior's,
+#: and the draws by weight a Student-t is fitted to.
+FIRST_STAGE, N_STAGES, DF, INFLATE, FLOOR, FIT_POINTS = 0.1, 6, 5.0, 1.5, 1e-3, 4000
+
+
 @dataclass(frozen=True)
 class StudentT:
     """A multivariate Student-t: ``mean`` (P,), positive-definite ``scale`` (P, P) (the
@@ -150,30 +164,24 @@ class StudentT:
 
     @classmethod
     def fit(cls, samples, log_weights, *, df: float = 5.0, inflate: float = 1.0,
-            floor=None) -> StudentT:
-        """Match the weighted mean and covariance (× ``inflate``) of ``samples`` (n, P);
-        ``floor`` (P,) is a smallest standard deviation (keeps a collapsed sample usable)."""
+            floor=None, seed=None) -> StudentT:
+        """Match the mean and covariance of :data:`FIT_POINTS` draws by weight
+        (:func:`resample`) from ``samples`` (n, P), ``floor`` (P,) squared added to its
+        variances (keeps a collapsed sample usable), × ``inflate``."""
         samples = as_float_array(samples, "samples", ndim=2)
         lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
         if lw.size != samples.shape[0] or np.any(np.isnan(lw)):
             raise ValueError(f"log_weights must have one value per sample ({samples.shape[0]}) "
                              f"and no NaN; received shape {lw.shape}.")
-        total = logsumexp(lw)
-        if not np.isfinite(total):
+        if not np.any(np.isfinite(lw)):
             raise ValueError("every weight is zero; cannot fit a proposal.")
-        w = np.exp(lw - total)
-        mean = w @ samples
-        d = samples - mean
-        cov = (d * w[:, None]).T @ d * float(inflate)
+        idx, counts = resample(lw, FIT_POINTS, seed)
+        x, w = samples[idx], counts / FIT_POINTS
+        mean = w @ x
+        cov = ((x - mean) * w[:, None]).T @ (x - mean)
         if floor is not None:
-            sd = np.sqrt(np.maximum(np.diag(cov), 0.0))
-            target = np.maximum(sd, as_float_array(floor, "floor", ndim=1))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ratio = np.where(sd > 0, target / sd, 1.0)
-            cov = cov * np.outer(ratio, ratio)
-            cov[np.diag_indices_from(cov)] = np.maximum(np.diag(cov), target ** 2)
-        cov += 1e-12 * np.mean(np.diag(cov)) * np.eye(cov.shape[0])
-        return cls(mean, cov * (df - 2.0) / df, df)
+            cov += np.diag(as_float_array(floor, "floor", ndim=1) ** 2)
+        return cls(mean, cov * (float(inflate) * (df - 2.0) / df), df)
 
     @property
     def size(self) -> int:
@@ -201,16 +209,14 @@ class StudentT:
         return self.mean + (g @ self._chol.T) / np.sqrt(chi / self.df)[:, None]
 
 
-#: Adaptive proposal: prior share of the budget in stage 1, stages, Student-t degrees of
-#: freedom and covariance inflation (the largest ESS with k̂ < 0.4 on the three cases).
-FIRST_STAGE, N_STAGES, DF, INFLATE = 0.1, 8, 5.0, 1.5
+
 
 
 def stage_sizes(n: int, n_stages: int = N_STAGES) -> list[int]:
     """Split a per-group budget ``n`` into stages: a tenth from the prior, the rest evenly.
 
     >>> stage_sizes(500), stage_sizes(3), stage_sizes(1)
-    ([50, 65, 65, 64, 64, 64, 64, 64], [1, 1, 1], [1])
+    ([50, 90, 90, 90, 90, 90], [1, 1, 1], [1])
     """
     n = as_int(n, "n", 1)
     n_stages = max(1, min(as_int(n_stages, "n_stages", 1), n))
@@ -235,6 +241,7 @@ class AdaptiveSample(NamedTuple):
 
 def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarray],
                                  prior, n_groups: int, n: int, *, seed=None,
+                                 log_likelihood_grad: Callable | None = None,
                                  n_stages: int = N_STAGES, df: float = DF,
                                  inflate: float = INFLATE,
                                  progress: Callable[[float], None] | None = None
@@ -242,20 +249,24 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     """Adaptive multiple importance sampling (AMIS, Cornuet et al. 2012) of ``p(x | group)``.
 
     For each of ``n_groups`` groups (scenario 3: the θ samples) the target is
-    ``log_likelihood(x, group) + log prior(x)``. Stage 1 draws from the prior, later stages
-    from a Student-t fitted to all weighted draws so far, pooled over groups. Every draw is
-    weighted against the mixture of all proposals, ``log w = log L + log p − log Σ_t (n_t /
-    n) q_t``, normalised jointly over groups and draws.
+    ``log_likelihood(x, group) + log prior(x)``. Stage 1 draws from the prior; stage 2, given
+    ``log_likelihood_grad``, from the Laplace approximation of the best stage-1 draw's group
+    (a posterior far narrower than the prior leaves few good prior draws to fit to); the
+    others from a Student-t fitted to all weighted draws so far, pooled over groups. Every
+    draw is weighted against the mixture of all proposals, ``log w = log L + log p − log
+    Σ_t (n_t / n) q_t``, normalised jointly over groups and draws.
 
     ``log_likelihood`` maps ``x`` (S, m, P), row j for group j, to (S, m) (``-inf``
-    allowed); ``prior`` has ``sample(n, seed)``, ``logpdf(x)`` and ``var`` (e.g.
+    allowed); ``log_likelihood_grad(x, j)`` its value and gradient at one ``x`` (P,) of
+    group j; ``prior`` has ``sample(n, seed)``, ``logpdf``, ``grad`` and ``var`` (e.g.
     :class:`mdcore.priors.GaussianPrior`); ``progress`` gets the fraction done after each
     stage and may raise to stop.
     """
     S = as_int(n_groups, "n_groups", 1)
     sizes = stage_sizes(n, n_stages)
     rng = np.random.default_rng(seed)
-    P = int(np.size(prior.var))
+    var = np.asarray(prior.var, dtype=np.float64)
+    P = var.size
     n_total = sum(sizes)
     x = np.empty((S, n_total, P))
     loglik = np.empty((S, n_total))
@@ -264,16 +275,20 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     # and all proposals to its new ones, so each q_s is evaluated once per draw.
     log_mass = np.empty((S, n_total))
     proposals: list = []
-    floor = 0.02 * np.sqrt(np.asarray(prior.var, dtype=np.float64))
+    floor = FLOOR * np.sqrt(var)
     col = 0
     for t, n_t in enumerate(sizes):
         if t == 0:
             draws = prior.sample(S * n_t, seed=rng)
         else:
-            lw = _mixture_log_weights(loglik[:, :col], log_prior[:, :col],
-                                      log_mass[:, :col], col)
-            q = StudentT.fit(x[:, :col].reshape(-1, P), lw.ravel(), df=df, inflate=inflate,
-                             floor=floor)
+            q = None if t > 1 or log_likelihood_grad is None else _laplace(
+                log_likelihood_grad, prior, x[:, :col], loglik[:, :col] + log_prior[:, :col],
+                df, inflate, floor)
+            if q is None:
+                lw = _mixture_log_weights(loglik[:, :col], log_prior[:, :col],
+                                          log_mass[:, :col], col)
+                q = StudentT.fit(x[:, :col].reshape(-1, P), lw.ravel(), df=df,
+                                 inflate=inflate, floor=floor, seed=rng)
             proposals.append(q)
             draws = q.sample(S * n_t, seed=rng)
             np.logaddexp(log_mass[:, :col], np.log(n_t) + q.logpdf(x[:, :col]),
@@ -294,6 +309,35 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
         raise ValueError("every adaptive importance weight is zero: the likelihood is zero "
                          "at every draw; check the prior.")
     return AdaptiveSample(x, lw - total, loglik, tuple(proposals), tuple(sizes))
+
+
+def _laplace(log_likelihood_grad, prior, x, log_post, df, inflate, floor):
+    """A Student-t at the Laplace approximation of the posterior of the group j whose draw
+    in ``x`` (S, m, P) has the largest ``log_post`` (S, m): L-BFGS-B from that draw, then the
+    inverse of the Hessian by central differences of the gradient (no variance above the
+    prior's largest), ``floor`` (P,) squared added to its variances, × ``inflate``. None
+    when no draw or no optimum is finite."""
+    if not np.any(np.isfinite(log_post)):
+        return None
+    j, k = np.unravel_index(int(np.argmax(log_post)), log_post.shape)
+
+    def objective(v):
+        f, g = log_likelihood_grad(v, int(j))
+        if not np.isfinite(f):
+            return 1e300, np.zeros_like(v)
+        return -(f + float(prior.logpdf(v))), -(g + prior.grad(v))
+
+    res = scipy.optimize.minimize(objective, x[j, k], jac=True, method="L-BFGS-B")
+    mode, h = np.asarray(res.x, dtype=np.float64), 1e-4
+    if not (np.all(np.isfinite(mode)) and res.fun < 1e300):
+        return None
+    H = np.array([objective(mode + h * e)[1] - objective(mode - h * e)[1]
+                  for e in np.eye(mode.size)]) / (2.0 * h)
+    lam, U = np.linalg.eigh(0.5 * (H + H.T))
+    if not np.all(np.isfinite(lam)):
+        return None
+    cov = (U / np.maximum(lam, 1.0 / np.max(prior.var))) @ U.T + np.diag(floor ** 2)
+    return StudentT(mode, cov * (inflate * (df - 2.0) / df), df)
 
 
 def _mixture_log_weights(loglik, log_prior, log_mass, n: int) -> np.ndarray:

@@ -1,4 +1,5 @@
-"""Importance-sampling tools: PSIS against arviz and known Pareto tails, ESS, Student-t."""
+"""Importance-sampling tools: PSIS against arviz and known Pareto tails, ESS, Student-t,
+stratified resampling and the adaptive proposal."""
 
 import warnings
 
@@ -9,9 +10,9 @@ from scipy import stats
 from mdcore.importance import (
     K_HAT_THRESHOLD,
     StudentT,
-    effective_sample_size,
     generalized_pareto_fit,
     psis,
+    resample,
 )
 
 
@@ -54,6 +55,12 @@ def test_k_hat_recovers_a_known_pareto_tail(k):
     assert (np.mean(estimates) > K_HAT_THRESHOLD) == (k > K_HAT_THRESHOLD)
 
 
+def effective_sample_size(log_weights):
+    """Kish's ``(Σ w)² / Σ w²`` from log weights (the oracle the tests compare with)."""
+    lw = np.ravel(log_weights)
+    return float(np.exp(2 * np.logaddexp.reduce(lw) - np.logaddexp.reduce(2 * lw)))
+
+
 def test_psis_edge_cases_and_bad_input():
     out = psis(np.zeros(3))                    # tail too short to fit: k̂ = inf, weights kept
     assert out.k_hat == np.inf
@@ -77,15 +84,6 @@ def test_generalized_pareto_fit_against_scipy_mle():
     assert abs(k - 0.3) < 0.05 and abs(sigma - 2.0) < 0.1
 
 
-def test_effective_sample_size_closed_forms():
-    assert float(effective_sample_size(np.full(7, -3.0))) == pytest.approx(7.0, rel=1e-12)
-    w = np.array([0.5, 0.25, 0.25])
-    assert float(effective_sample_size(np.log(w))) == pytest.approx(1 / np.sum(w**2))
-    assert float(effective_sample_size([0.0, -np.inf, -np.inf])) == pytest.approx(1.0)
-    lw = np.log(np.array([[1.0, 1.0, 0.0], [1.0, 3.0, 0.0]]) + 1e-300)
-    np.testing.assert_allclose(effective_sample_size(lw, axis=1), [2.0, 1.6], rtol=1e-12)
-
-
 def test_student_t_density_sampling_and_fit():
     mean = np.array([1.0, -2.0, 0.5])
     A = np.array([[1.0, 0.3, 0.0], [0.3, 2.0, -0.4], [0.0, -0.4, 0.5]])
@@ -99,18 +97,24 @@ def test_student_t_density_sampling_and_fit():
     se = np.sqrt(np.diag(cov) / 200_000)
     assert np.all(np.abs(draws.mean(axis=0) - mean) < 5 * se)
     np.testing.assert_allclose(np.cov(draws, rowvar=False), cov, atol=0.06)
-    # The moment fit reproduces the weighted mean and covariance exactly.
+    # The fit matches the moments of FIT_POINTS stratified draws by weight: exactly those of
+    # the samples when the weights are equal (each is drawn FIT_POINTS / n times), to
+    # within the draws' sampling error otherwise.
     rng = np.random.default_rng(2)
     s = rng.standard_normal((50, 3))
-    lw = rng.standard_normal(50)
-    w = np.exp(lw - np.log(np.sum(np.exp(lw))))
-    f = StudentT.fit(s, lw, df=4.0, inflate=2.0)
-    np.testing.assert_allclose(f.mean, w @ s, rtol=1e-12)
-    wcov = (s - w @ s).T @ ((s - w @ s) * w[:, None])
-    np.testing.assert_allclose(f.scale * 4.0 / 2.0, 2.0 * wcov, rtol=1e-9, atol=1e-12)
-    floored = StudentT.fit(s[:1].repeat(4, 0), np.zeros(4), df=4.0, floor=[0.1, 0.2, 0.3])
-    np.testing.assert_allclose(np.sqrt(np.diag(floored.scale) * 2.0), [0.1, 0.2, 0.3],
-                               rtol=1e-6)
+    f = StudentT.fit(s, np.zeros(50), df=4.0, inflate=2.0, seed=0)
+    np.testing.assert_allclose(f.mean, s.mean(axis=0), rtol=1e-12, atol=1e-14)
+    cov = np.cov(s, rowvar=False, bias=True)
+    np.testing.assert_allclose(f.scale * 4.0 / 2.0, 2.0 * cov, rtol=1e-9, atol=1e-12)
+    floored = StudentT.fit(s, np.zeros(50), df=4.0, inflate=2.0, floor=[0.1, 0.2, 0.3], seed=0)
+    np.testing.assert_allclose(floored.scale * 4.0 / 2.0,
+                               2.0 * (cov + np.diag([0.01, 0.04, 0.09])), rtol=1e-9)
+    x = rng.standard_normal((100_000, 2))
+    lw = stats.multivariate_normal([1.0, -0.5], [[0.5, 0.2], [0.2, 0.3]]).logpdf(x) - \
+        stats.multivariate_normal(np.zeros(2), np.eye(2)).logpdf(x)
+    g = StudentT.fit(x, lw, df=5.0, seed=1)
+    np.testing.assert_allclose(g.mean, [1.0, -0.5], atol=5 * np.sqrt(0.5 / 4000))
+    np.testing.assert_allclose(g.scale * 5.0 / 3.0, [[0.5, 0.2], [0.2, 0.3]], atol=0.05)
 
 
 def test_student_t_bad_input():
@@ -130,9 +134,33 @@ def test_student_t_bad_input():
         StudentT([0.0], [[1.0]], 5.0).sample(0)
 
 
+def test_stratified_resampling():
+    """Every index is drawn within 2 of n·w times (a stratum holds one draw); the mean of f
+    over the draws is unbiased with at most the multinomial variance Var_w(f) / n."""
+    rng = np.random.default_rng(6)
+    w = rng.dirichlet(np.full(500, 0.3))
+    f = rng.standard_normal(500) + 3.0 * (np.arange(500) % 2)
+    n = 200
+    estimates = []
+    for seed in range(2000):
+        idx, counts = resample(np.log(w), n, seed=seed)
+        assert counts.sum() == n and np.all(np.diff(idx) > 0)
+        full = np.zeros(500)
+        full[idx] = counts
+        assert np.all(np.abs(full - n * w) < 2)
+        estimates.append(counts @ f[idx] / n)
+    var_w = w @ (f - w @ f) ** 2
+    assert abs(np.mean(estimates) - w @ f) < 4 * np.sqrt(var_w / n / 2000)
+    assert np.var(estimates) < 1.2 * var_w / n
+    zero = resample([0.0, -np.inf, 0.0], 10, seed=0)
+    assert 1 not in zero[0] and zero[1].sum() == 10
+    with pytest.raises(ValueError, match="log_weights must have a finite value"):
+        resample([-np.inf, -np.inf], 3)
+
+
 def test_stage_sizes():
     from mdcore.importance import stage_sizes
-    assert stage_sizes(1000) == [100] + [129] * 4 + [128] * 3 and sum(stage_sizes(37)) == 37
+    assert stage_sizes(1000) == [100] + [180] * 5 and sum(stage_sizes(37)) == 37
     assert stage_sizes(1000, 4) == [100, 300, 300, 300]
     assert stage_sizes(3) == [1, 1, 1] and stage_sizes(2, 1) == [2]
     with pytest.raises(ValueError, match="n must be an integer ≥ 1"):
@@ -186,3 +214,36 @@ def test_adaptive_sampling_against_a_conjugate_gaussian():
     with pytest.raises(ValueError, match="every adaptive importance weight is zero"):
         adaptive_importance_sampling(lambda x: np.full(x.shape[:2], -np.inf), prior, 2, 8,
                                      seed=0, n_stages=1)
+
+
+def test_laplace_stage_finds_the_posterior_mode_and_curvature():
+    """With the likelihood's gradient, stage 2 is a Student-t at the mode and inverse
+    Hessian of the best stage-1 draw's group: for a Gaussian prior and likelihood both are
+    closed form, ``v y / r`` and ``v I`` with ``v = 1 / (1/v0 + 1/r)``."""
+    from mdcore.importance import DF, FLOOR, INFLATE, adaptive_importance_sampling
+    from mdcore.priors import GaussianPrior
+    P, v0, r = 4, 9.0, 1e-4                      # a posterior 300× narrower than the prior
+    y = np.array([[0.5, -1.0, 0.2, 0.1], [0.502, -0.998, 0.201, 0.099]])
+    prior = GaussianPrior(np.zeros(P), np.full(P, v0))
+
+    def loglik(x):
+        return -0.5 * np.sum((x - y[:, None, :]) ** 2, axis=-1) / r
+
+    def grad(x, j):
+        return -0.5 * np.sum((x - y[j]) ** 2) / r, -(x - y[j]) / r
+
+    out = adaptive_importance_sampling(loglik, prior, 2, 200, seed=1, log_likelihood_grad=grad)
+    v = 1.0 / (1.0 / v0 + 1.0 / r)
+    laplace = out.proposals[0]
+    assert any(np.allclose(laplace.mean, v * y[j] / r, atol=1e-6) for j in range(2))
+    np.testing.assert_allclose(laplace.scale * DF / (DF - 2.0) / INFLATE,
+                               v * np.eye(P) + np.diag(np.full(P, (FLOOR * 3.0) ** 2)),
+                               rtol=1e-4)
+    w = np.exp(out.log_weights)
+    for j in range(2):
+        wj = w[j] / w[j].sum()
+        np.testing.assert_allclose(wj @ out.samples[j], v * y[j] / r, atol=4 * np.sqrt(v / 100))
+    # Without the Laplace stage, 20 prior draws per group find nothing this narrow.
+    blind = adaptive_importance_sampling(loglik, prior, 2, 200, seed=1)
+    assert effective_sample_size(out.log_weights) > 100
+    assert effective_sample_size(blind.log_weights) < 2

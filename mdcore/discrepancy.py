@@ -41,7 +41,7 @@ from scipy.special import logsumexp
 from . import compiled, gp
 from .exceptions import LowESSWarning, NumericalWarning
 from .hyperfit import FitOptions, default_bounds, fit_hyperparameters
-from .importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis
+from .importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis, resample
 from .linalg import JitterLog
 from .priors import GaussianPrior
 from .threads import single_threaded_blas
@@ -49,7 +49,8 @@ from .validation import as_float_array, as_int, as_outputs, choose
 
 __all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions",
            "DiscrepancyPrediction", "default_phi_prior", "LowESSWarning", "SCENARIOS",
-           "PROPOSALS", "LOW_ESS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
+           "PROPOSALS", "LOW_ESS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "PREDICT_DRAWS",
+           "check_executor"]
 
 SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
@@ -57,6 +58,10 @@ PROPOSALS = ("prior", "adaptive")
 LOW_ESS = 30.0
 #: Components below ``PRUNE × max`` weight are skipped by the prediction (reported).
 PRUNE = 1e-12
+#: Pairs drawn by weight for the adaptive proposal's prediction: the error of its mean has
+#: an sd of at most ``1 / √PREDICT_DRAWS`` (2.2 %) of the predictive sd, whatever the ESS
+#: (:func:`mdcore.importance.resample`; docs/scenario3.md).
+PREDICT_DRAWS = 2_000
 #: Largest N_s, N_φ and pairs accepted: beyond them the work would not fit in memory.
 MAX_N_S = 100_000
 MAX_N_PHI = 100_000
@@ -94,8 +99,8 @@ class DiscrepancyOptions:
         (default :func:`default_phi_prior`); scenarios 1–2 use it as the hyperprior of the
         φ̂ fit (default none: plain empirical Bayes, Eq. 8).
     proposal : {"prior", "adaptive"}, default="prior"
-        Scenario 3's φ proposal: the paper's N_φ prior draws per θ, or the same number in
-        adaptive stages (:func:`mdcore.importance.adaptive_importance_sampling`).
+        Scenario 3's N_φ draws of φ per θ: the paper's prior draws, or in adaptive stages
+        (reliable weights, :func:`mdcore.importance.adaptive_importance_sampling`).
     prune : float, default=1e-12
         See :attr:`DiscrepancyModel.prune`.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
@@ -312,6 +317,9 @@ class DiscrepancyModel:
         Components below ``prune × max`` weight are skipped in :meth:`predict`.
     k_hat : ndarray of shape (n_out,) or None
         Scenario 3: Pareto shape of each output's raw weights (above 0.7: unreliable).
+    resampled : tuple of (ndarray, ndarray) or None
+        Adaptive proposal: per output, the pairs (flat indices) that :meth:`predict` uses,
+        drawn :data:`PREDICT_DRAWS` times by weight, and their counts.
     """
 
     scenario: int
@@ -331,6 +339,7 @@ class DiscrepancyModel:
     k_hat: np.ndarray | None = None
     backend: str = "numpy"
     phi_draws: PriorDraws | None = field(default=None, repr=False)
+    resampled: tuple | None = field(default=None, repr=False)
 
     @property
     def n_out(self) -> int:
@@ -365,40 +374,50 @@ class DiscrepancyModel:
         """Effective sample size ``1 / Σ w²`` per output, shape (n_out,)."""
         return np.exp(-logsumexp(2.0 * self.log_weights.reshape(self.n_out, -1), axis=1))
 
-    def _kept(self, prune: float):
-        """Per output: the kept components' flat indices and the skipped mass."""
+    def _kept(self, prune: float | None = None):
+        """Per output: flat indices, weights (sum 1) and skipped mass of the components
+        :meth:`predict` evaluates; ``prune`` None: :attr:`resampled` if any, else
+        :attr:`prune`."""
         out = []
         for o in range(self.n_out):
+            if prune is None and self.resampled is not None:
+                idx, counts = self.resampled[o]
+                out.append((idx, counts / counts.sum(), 0.0))
+                continue
             lw = self.log_weights[o].ravel()
+            prune = self.prune if prune is None else prune
             cut = lw.max() + np.log(prune) if prune > 0 else -np.inf
             keep = np.isfinite(lw) & (lw >= cut)
             skipped = float(np.exp(logsumexp(lw[~keep]))) if np.any(~keep) else 0.0
-            out.append((np.flatnonzero(keep), skipped))
+            idx = np.flatnonzero(keep)
+            w = np.exp(lw[idx] - logsumexp(lw[idx]))               # renormalised over kept
+            out.append((idx, w, skipped))
         return out
 
     @property
     def skipped_mass(self) -> np.ndarray:
-        """Normalised weight mass that :meth:`predict` skips at :attr:`prune`, (n_out,)."""
-        return np.array([s for _, s in self._kept(self.prune)])
+        """Normalised weight mass that :meth:`predict` skips, (n_out,)."""
+        return np.array([s for *_, s in self._kept()])
 
     @property
     def n_components(self) -> np.ndarray:
-        """Components :meth:`predict` evaluates per output at :attr:`prune`, (n_out,)."""
-        return np.array([idx.size for idx, _ in self._kept(self.prune)])
+        """Components :meth:`predict` evaluates per output, (n_out,)."""
+        return np.array([idx.size for idx, *_ in self._kept()])
 
     def predict(self, X_star, *, prune: float | None = None,
                 progress: Callable[[float], None] | None = None,
                 executor: Executor | None = None) -> DiscrepancyPrediction:
         """Bias-corrected prediction and discrepancy at ``X_star`` (N*, d_x) (Eq. 13/15).
 
-        ``prune`` overrides :attr:`prune` (0 keeps every component); ``progress`` gets the
-        fraction done and may raise to cancel; ``executor`` runs the blocks.
+        Over :attr:`resampled` if set, else above :attr:`prune`; a ``prune`` given asks for
+        every component above it (0: all). ``progress`` gets the fraction done and may raise
+        to cancel; ``executor`` runs the blocks.
         """
         X_star = as_float_array(X_star, "X_star", ndim=2)
         if X_star.shape[1] != self.X.shape[1]:
             raise ValueError(f"X_star must have shape (N*, d_x) with d_x = {self.X.shape[1]} "
                              f"like the training X; received {X_star.shape}.")
-        prune = self.prune if prune is None else _prune(prune)
+        prune = None if prune is None else _prune(prune)
         executor = check_executor(executor)
         distinct, inverse = np.unique(X_star, axis=0, return_inverse=True)
         if distinct.shape[0] < X_star.shape[0]:     # replicates: predict each input once
@@ -412,14 +431,11 @@ class DiscrepancyModel:
         else:           # pairs per NumPy chunk, in BLOCK_BYTES of temporaries
             block = max(1, int(BLOCK_BYTES // (8 * (M * (d_y + 6) + N * (d_y + 2) + P))))
         kept = self._kept(prune)
-        total = sum(max(1, -(-idx.size // block)) for idx, _ in kept)
+        total = sum(max(1, -(-idx.size // block)) for idx, *_ in kept)
         done = 0
         jitter = JitterLog()
         out = np.empty((4, M, self.n_out))
-        for o, (idx, _) in enumerate(kept):
-            w = self.log_weights[o].ravel()[idx]
-            w -= logsumexp(w)
-            np.exp(w, out=w)                                # renormalised over kept
+        for o, (idx, w, _) in enumerate(kept):
             z_o = self.z[:, o]
             ys_o = np.ascontiguousarray(Ys[..., o])          # (S, N*)
             # The heaviest component is the reference the sums are taken about.
@@ -529,12 +545,17 @@ def _adaptive_proposal(data: _Data, prior, n_phi, rng, progress, jitter):
             rows = _blocks(S, max(1, WEIGHT_PAIRS // phi.shape[1]))
             return _nlml_rows(((sl, phi[sl]) for sl in rows), phi.shape[1], one, jitter)[0]
 
+        def loglik_grad(phi, j, o=o):       # Eq. 9 and its gradient: the Laplace stage
+            return tuple(-v for v in gp.nlml_and_gradient(phi, data.Y[j], data.X,
+                                                          data.z[:, o], jitter_log=JitterLog()))
+
         def report(f, o=o):
             if progress is not None:
                 progress((o + f) / n_out)
 
         try:
             out = adaptive_importance_sampling(loglik, prior, S, n_phi, seed=rng,
+                                               log_likelihood_grad=loglik_grad,
                                                progress=report)
         except ValueError:
             raise ValueError(_all_zero_message(o)) from None
@@ -642,7 +663,7 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
                          f"{S:,} × {options.n_phi:,}. Lower N_s or n_phi.")
     Y = _simulate(simulate, X, theta, n_out)
 
-    hat, nlml_hat, prior, draws, k_hat = None, None, None, None, None
+    hat, nlml_hat, prior, draws, k_hat, resampled = None, None, None, None, None, None
     if scenario in (1, 2):
         # Without θ_MAP (scenario 2 given φ̂) the first θ sample stands in for nlml_hat.
         Y_map = Y[0] if scenario == 1 or theta_map is None else \
@@ -659,16 +680,19 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
             _Data(Y, X, z, options.backend, executor), prior, options.n_phi, rng, progress,
             jitter)
         jitter.warn("neg_log_marginal_likelihood")
-        k_hat = np.array([psis(log_weights[o].ravel()).k_hat for o in range(n_out)])
+        smoothed = [psis(log_weights[o].ravel()) for o in range(n_out)]
+        k_hat = np.array([p.k_hat for p in smoothed])
         if options.proposal == "adaptive":  # Pareto-smoothed weights (Vehtari et al. 2024)
-            log_weights = np.stack([psis(log_weights[o].ravel()).log_weights.reshape(S, -1)
-                                    for o in range(n_out)])
+            log_weights = np.stack([p.log_weights.reshape(S, -1) for p in smoothed])
+            # The prediction's pairs: its cost does not grow with the ESS (docs/scenario3.md).
+            resampled = tuple(resample(p.log_weights, PREDICT_DRAWS, rng) for p in smoothed)
     model = DiscrepancyModel(
         scenario=scenario, simulate=simulate, theta=theta, Y=Y, X=X, z=z,
         _log_params=log_params, log_weights=log_weights, log_params_hat=hat,
         nlml_hat=nlml_hat, prune=options.prune, phi_prior=prior,
         seconds=time.perf_counter() - start, k_hat=k_hat, backend=options.backend,
-        proposal=options.proposal if scenario == 3 else None, phi_draws=draws)
+        proposal=options.proposal if scenario == 3 else None, phi_draws=draws,
+        resampled=resampled)
     if scenario == 3:
         switch = " or use proposal='adaptive'" if options.proposal == "prior" else ""
         for o, (e, k) in enumerate(zip(model.ess, np.asarray(k_hat))):

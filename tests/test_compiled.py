@@ -225,7 +225,8 @@ def test_scenario_3_on_shear_5_agrees_to_its_conditioning():
     set by that, not by the kernels: rtol 1e-5 on the pairs above 1e-4 of the largest
     weight and on the predictions."""
     case, hm = posterior("shear-5", 20)
-    ref, new = both_backends(case, hm.posterior_samples(20, seed=1), n_phi=40)
+    ref, new = both_backends(case, hm.posterior_samples(20, seed=1), n_phi=40,
+                             proposal="prior")
     assert_same_scenario_3(ref, new, 1e-5, level=1e-4)
 
 
@@ -236,7 +237,7 @@ def test_fused_prediction_reports_progress_and_stops_when_asked(beam1d):
         model = infer_discrepancy(
             case.simulate, theta, case.X_train, case.z_train, scenario=3, seed=0,
             options=DiscrepancyOptions(n_phi=200, phi_prior=case.phi_prior, backend="numba",
-                                       prune=0.0))
+                                       prune=0.0, proposal="prior"))
     seen = []
     model.predict(case.X_test, progress=seen.append)
     assert seen[-1] == 1.0 and seen == sorted(seen) and len(seen) >= 5

@@ -58,7 +58,7 @@ def naive_mixture(model, X_star, Ys):
 def test_scenario3_matches_naive_loop(toy):
     X, z, theta, _, prior = toy
     model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=1,
-        options=DiscrepancyOptions(n_phi=5, phi_prior=prior))
+        options=DiscrepancyOptions(n_phi=5, phi_prior=prior, proposal="prior"))
     # weights: −NLML of every pair by the naive oracle, normalised jointly
     for o in range(2):
         lw = np.array([[-naive_gp.nlml(model.log_params[o, j, k], model.Y[j], X, z[:, o])
@@ -156,7 +156,7 @@ def test_scenario3_with_concentrated_prior_approaches_scenario2(toy):
         for o in range(2):
             tight = GaussianPrior(mean=s2.log_params_hat[o], var=np.full(5, 1e-14))
             s3 = infer_discrepancy(toy_simulate, thetas, X, z, scenario=3, seed=4,
-        options=DiscrepancyOptions(n_phi=4, phi_prior=tight))
+        options=DiscrepancyOptions(n_phi=4, phi_prior=tight, proposal="prior"))
             lw = -np.array([naive_gp.nlml(s2.log_params_hat[o], y, X, z[:, o]) for y in s2.Y])
             np.testing.assert_allclose(s3.weights[o].sum(axis=1), np.exp(lw - logsumexp(lw)),
                                        rtol=1e-5)
@@ -171,7 +171,7 @@ def test_pruning_matches_unpruned_and_reports_mass(toy):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=5,
-        options=DiscrepancyOptions(n_phi=400, phi_prior=wide))
+        options=DiscrepancyOptions(n_phi=400, phi_prior=wide, proposal="prior"))
     assert np.all(model.skipped_mass > 0)                       # something was pruned
     assert np.all(model.skipped_mass <= 1e-12 * model.weights[0].size)
     assert np.all(model.n_components < model.weights[0].size)
@@ -222,7 +222,7 @@ def test_prior_draws_not_kept_are_drawn_again_bit_for_bit(toy, monkeypatch, seed
         if state is not None:
             seed.bit_generator.state = state
         return infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=seed,
-        options=DiscrepancyOptions(n_phi=7, phi_prior=prior))
+        options=DiscrepancyOptions(n_phi=7, phi_prior=prior, proposal="prior"))
 
     kept = run()
     monkeypatch.setattr(discrepancy, "KEEP_DRAWS_BYTES", 0)
@@ -240,9 +240,9 @@ def test_prior_draws_not_kept_are_drawn_again_bit_for_bit(toy, monkeypatch, seed
 def test_low_ess_warns_with_a_suggestion(toy):
     X, z, theta, _, _ = toy
     far = GaussianPrior(mean=[3.0, 3.0, 3.0, 3.0, -6.0], var=[9.0] * 5)
-    with pytest.warns(LowESSWarning, match="Increase n_phi"):
+    with pytest.warns(LowESSWarning, match="Increase n_phi or N_s or use proposal='adaptive'"):
         infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=0,
-        options=DiscrepancyOptions(n_phi=20, phi_prior=far))
+        options=DiscrepancyOptions(n_phi=20, phi_prior=far, proposal="prior"))
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -322,12 +322,12 @@ def test_adaptive_proposal_agrees_with_a_long_prior_run_and_keeps_more_samples(r
     Xs = np.linspace(0, 1, 5)[:, None]
     ref_model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3,
                       seed=1,
-        options=DiscrepancyOptions(n_phi=40_000, phi_prior=wide))
+        options=DiscrepancyOptions(n_phi=40_000, phi_prior=wide, proposal="prior"))
     ref = ref_model.predict(Xs)
     ada = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=2,
         options=DiscrepancyOptions(n_phi=800, phi_prior=wide, proposal="adaptive"))
     plain = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=2,
-        options=DiscrepancyOptions(n_phi=800, phi_prior=wide))
+        options=DiscrepancyOptions(n_phi=800, phi_prior=wide, proposal="prior"))
     assert ada.proposal == "adaptive" and plain.proposal == "prior"
     assert ada.log_params.shape == (2, 3, 800, 5)
     np.testing.assert_allclose(logsumexp(ada.log_weights.reshape(2, -1), axis=1), 0.0,

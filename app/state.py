@@ -202,9 +202,9 @@ class ExplorerState(param.Parameterized):
                                    "10–50 s on the NumPy backend), by machine.")
     proposal = param.Selector(objects=["adaptive", "prior"], default=_INTERACTIVE.proposal,
                               label="φ proposal (scenario 3)",
-                              doc="adaptive: importance sampling that adapts a Student-t to the "
-                                  "weights (reliable at small N_φ); prior: the paper's prior "
-                                  "draws.")
+                              doc="adaptive (default, as on the command line): importance "
+                                  "sampling that adapts a Student-t to the weights (reliable "
+                                  "weights at any N_φ); prior: the paper's prior draws.")
     band = param.Selector(objects=[2, 3], default=3, label="Band (± k σ)")
     seed = param.Integer(default=0, bounds=(0, None), label="Seed")
     slice_x2 = param.Number(default=0.025, label="Slice at x₂",

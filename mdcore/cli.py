@@ -369,9 +369,9 @@ def _add_method_options(p) -> None:
                    help=f"KOH chain length (default: paper's {N_ITER:,})")
     p.add_argument("--burn-in", type=int, default=BURN_IN,
                    help=f"KOH burn-in (default: paper's {BURN_IN:,})")
-    p.add_argument("--proposal", choices=["prior", "adaptive"], default="prior",
-                   help="scenario 3's φ proposal: the paper's prior draws, or adaptive "
-                   "importance sampling (same budget)")
+    p.add_argument("--proposal", choices=["adaptive", "prior"], default=Settings.proposal,
+                   help="scenario 3's φ proposal: adaptive importance sampling (default; "
+                   "reliable weights) or the paper's prior draws (same budget)")
     p.add_argument("--backend", choices=list(compiled.BACKENDS), default="auto",
                    help="GP kernels of scenarios 1–3: numba (compiled, fast) or numpy (the "
                    "reference); auto = numba when installed. Same numbers to ~1e-12")
@@ -471,14 +471,14 @@ EXAMPLES = {
                      "--convergence-ratio 0.1 --max-waves 8",
     "reproduce": "examples:\n  python -m mdcore reproduce beam-1d            "
                  "# the paper's Table 1 (about a minute)\n"
-                 "  python -m mdcore reproduce beam-2d --methods 1 3 --proposal adaptive\n"
+                 "  python -m mdcore reproduce beam-2d --methods 1 3 --proposal prior\n"
                  "  python -m mdcore reproduce shear-5 --n-s 200 --n-phi 100 --json out.json "
                  "--csv results/ --out report.html",
     "run": "examples:\n  python -m mdcore run examples/beam_lab/beam_lab.toml\n"
            "  python -m mdcore run my_case.toml --methods 1 2 --v-m 0.02 --out report.html\n"
            "  python -m mdcore run my_case.toml --dask tcp://scheduler:8786",
     "study": "examples:\n  python -m mdcore study beam-1d --seeds 0-9\n"
-             "  python -m mdcore study beam-2d --seeds 0,3,5 --methods 3 --proposal adaptive "
+             "  python -m mdcore study beam-2d --seeds 0,3,5 --methods 3 --proposal prior "
              "--json study.json",
 }
 

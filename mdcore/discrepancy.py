@@ -98,9 +98,9 @@ class DiscrepancyOptions:
         Prior of the log hyperparameters (P = 2 + n_out + d_x). Scenario 3 samples from it
         (default :func:`default_phi_prior`); scenarios 1–2 use it as the hyperprior of the
         φ̂ fit (default none: plain empirical Bayes, Eq. 8).
-    proposal : {"prior", "adaptive"}, default="prior"
-        Scenario 3's N_φ draws of φ per θ: the paper's prior draws, or in adaptive stages
-        (reliable weights, :func:`mdcore.importance.adaptive_importance_sampling`).
+    proposal : {"adaptive", "prior"}, default="adaptive"
+        Scenario 3's N_φ draws of φ per θ: in adaptive stages (reliable weights,
+        :func:`mdcore.importance.adaptive_importance_sampling`), or the paper's prior draws.
     prune : float, default=1e-12
         See :attr:`DiscrepancyModel.prune`.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
@@ -114,7 +114,7 @@ class DiscrepancyOptions:
 
     n_phi: int = 500
     phi_prior: GaussianPrior | None = None
-    proposal: str = "prior"
+    proposal: str = "adaptive"
     prune: float = PRUNE
     backend: str = "auto"
     fit: FitOptions = FitOptions()

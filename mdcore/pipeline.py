@@ -141,10 +141,10 @@ class Settings:
     n_iter, burn_in : int, default=150,000 and 50,000
         The KOH chain (SPEC §7).
     prune : float, default=1e-12
-        Scenario 3 skips components whose weight is below ``prune × max`` when predicting
-        (the skipped mass is reported in :class:`ImportanceDiagnostics`).
-    proposal : {"prior", "adaptive"}, default="prior"
-        Scenario 3's φ proposal (:func:`mdcore.discrepancy.infer_discrepancy`).
+        Scenario 3 with the prior proposal skips components whose weight is below
+        ``prune × max`` when predicting (the skipped mass is in :class:`ImportanceDiagnostics`).
+    proposal : {"adaptive", "prior"}, default="adaptive"
+        Scenario 3's φ proposal: adaptive (reliable weights) or the paper's prior draws.
     fit_iterations : int, default=120
         Swarm steps of the QPSO behind φ̂ (scenario 1's fit, Eq. 8, also scenario 2's when
         it is not given φ̂), before its L-BFGS-B polish
@@ -167,7 +167,7 @@ class Settings:
     n_iter: int = N_ITER
     burn_in: int = BURN_IN
     prune: float = PRUNE
-    proposal: str = "prior"
+    proposal: str = "adaptive"
     backend: str = "auto"
     fit_iterations: int = QPSO_ITERATIONS
 
@@ -204,14 +204,13 @@ class Settings:
 
     @classmethod
     def interactive(cls) -> Settings:
-        """Small sizes for the app: N_s = 100, N_φ = 50, the 20,000-step KOH chain, the
-        adaptive φ proposal (docs/scenario3.md: it keeps the weights reliable at small N_φ)
-        and a 30-step swarm for φ̂: with the L-BFGS-B polish after it, it reached the
+        """Small sizes for the app: N_s = 100, N_φ = 50, the 20,000-step KOH chain and a
+        30-step swarm for φ̂: with the L-BFGS-B polish after it, it reached the
         120-step optimum in 124 fits on the three cases (θ_MAP and three posterior θ,
         every output, 3–8 seeds; NLML + prior within 1.2e-6), at a quarter of the cost
         (beam-2d: 0.51 → 0.14 s)."""
         return cls(n_s=100, n_phi=50, n_iter=FAST["n_iter"], burn_in=FAST["burn_in"],
-                   proposal="adaptive", fit_iterations=INTERACTIVE_FIT_ITERATIONS)
+                   fit_iterations=INTERACTIVE_FIT_ITERATIONS)
 
     def key(self, method) -> MethodKey:
         """The fields ``method``'s result depends on; the others are None."""

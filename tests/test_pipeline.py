@@ -54,7 +54,7 @@ def test_settings_validate_and_key_only_what_matters():
     s = Settings(n_s=10, n_phi=5, n_iter=100, burn_in=10)
     assert s.key(1) == MethodKey(Method.S1, None, None, None, None, None, None, 120)
     assert s.key("2") == MethodKey(Method.S2, 10, None, None, None, None, None, 120)
-    assert s.key(3) == MethodKey(Method.S3, 10, 5, None, None, 1e-12, "prior", None)
+    assert s.key(3) == MethodKey(Method.S3, 10, 5, None, None, 1e-12, "adaptive", None)
     assert s.key("koh") == MethodKey(Method.KOH, None, None, 100, 10, None, None, None)
     other = Settings(n_s=99, n_phi=5, n_iter=100, burn_in=10)
     assert s.key(1) == other.key(1) and s.key("koh") == other.key("koh")

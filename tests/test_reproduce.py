@@ -22,7 +22,8 @@ def small_run(backend):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         return reproduce("beam-1d", settings=Settings(n_s=100, n_phi=50, n_iter=6000,
-                                                      burn_in=2000, backend=backend), seed=0)
+                                                      burn_in=2000, proposal="prior",
+                                                      backend=backend), seed=0)
 
 
 @pytest.fixture(scope="module")

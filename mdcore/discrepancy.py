@@ -50,7 +50,7 @@ from .validation import as_float_array, as_int, as_outputs, choose
 __all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions",
            "DiscrepancyPrediction", "default_phi_prior", "LowESSWarning", "SCENARIOS",
            "PROPOSALS", "LOW_ESS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "PREDICT_DRAWS",
-           "check_executor"]
+           "PREDICT_WORK", "check_executor"]
 
 SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
@@ -58,10 +58,11 @@ PROPOSALS = ("prior", "adaptive")
 LOW_ESS = 30.0
 #: Components below ``PRUNE × max`` weight are skipped by the prediction (reported).
 PRUNE = 1e-12
-#: Pairs drawn by weight for the adaptive proposal's prediction: the error of its mean has
-#: an sd of at most ``1 / √PREDICT_DRAWS`` (2.2 %) of the predictive sd, whatever the ESS
-#: (:func:`mdcore.importance.resample`; docs/scenario3.md).
-PREDICT_DRAWS = 2_000
+#: The adaptive proposal predicts at M inputs from ``PREDICT_WORK // M`` pairs drawn by
+#: weight (pair × input evaluations), at least PREDICT_DRAWS and at most ten times that,
+#: or every pair if fewer: its mean's error has an sd of at most ``1 / √PREDICT_DRAWS``
+#: (2.2 %) of the predictive sd, whatever the ESS (docs/scenario3.md).
+PREDICT_DRAWS, PREDICT_WORK = 2_000, 800_000
 #: Largest N_s, N_φ and pairs accepted: beyond them the work would not fit in memory.
 MAX_N_S = 100_000
 MAX_N_PHI = 100_000
@@ -317,9 +318,9 @@ class DiscrepancyModel:
         Components below ``prune × max`` weight are skipped in :meth:`predict`.
     k_hat : ndarray of shape (n_out,) or None
         Scenario 3: Pareto shape of each output's raw weights (above 0.7: unreliable).
-    resampled : tuple of (ndarray, ndarray) or None
-        Adaptive proposal: per output, the pairs (flat indices) that :meth:`predict` uses,
-        drawn :data:`PREDICT_DRAWS` times by weight, and their counts.
+    draw_seed : int or None
+        Adaptive proposal: seeds the pairs :meth:`predict` draws by weight
+        (:data:`PREDICT_DRAWS`).
     """
 
     scenario: int
@@ -339,7 +340,7 @@ class DiscrepancyModel:
     k_hat: np.ndarray | None = None
     backend: str = "numpy"
     phi_draws: PriorDraws | None = field(default=None, repr=False)
-    resampled: tuple | None = field(default=None, repr=False)
+    draw_seed: int | None = None
 
     @property
     def n_out(self) -> int:
@@ -374,19 +375,20 @@ class DiscrepancyModel:
         """Effective sample size ``1 / Σ w²`` per output, shape (n_out,)."""
         return np.exp(-logsumexp(2.0 * self.log_weights.reshape(self.n_out, -1), axis=1))
 
-    def _kept(self, prune: float | None = None):
+    def _kept(self, prune: float | None = None, m: int = PREDICT_WORK // PREDICT_DRAWS):
         """Per output: flat indices, weights (sum 1) and skipped mass of the components
-        :meth:`predict` evaluates; ``prune`` None: :attr:`resampled` if any, else
-        :attr:`prune`."""
+        :meth:`predict` evaluates at ``m`` inputs; ``prune`` None: draws by weight if
+        :attr:`draw_seed`, else :attr:`prune`."""
+        n = min(max(PREDICT_DRAWS, PREDICT_WORK // m), 10 * PREDICT_DRAWS)
+        rng, p = np.random.default_rng(self.draw_seed), self.prune if prune is None else prune
         out = []
         for o in range(self.n_out):
-            if prune is None and self.resampled is not None:
-                idx, counts = self.resampled[o]
-                out.append((idx, counts / counts.sum(), 0.0))
-                continue
             lw = self.log_weights[o].ravel()
-            prune = self.prune if prune is None else prune
-            cut = lw.max() + np.log(prune) if prune > 0 else -np.inf
+            if prune is None and self.draw_seed is not None and n < lw.size:
+                idx, counts = resample(lw, n, rng)
+                out.append((idx, counts / n, 0.0))
+                continue
+            cut = lw.max() + np.log(p) if p > 0 else -np.inf
             keep = np.isfinite(lw) & (lw >= cut)
             skipped = float(np.exp(logsumexp(lw[~keep]))) if np.any(~keep) else 0.0
             idx = np.flatnonzero(keep)
@@ -396,7 +398,8 @@ class DiscrepancyModel:
 
     @property
     def skipped_mass(self) -> np.ndarray:
-        """Normalised weight mass that :meth:`predict` skips, (n_out,)."""
+        """Normalised weight mass that :meth:`predict` skips, (n_out,); for this and
+        :attr:`n_components` at ``PREDICT_WORK // PREDICT_DRAWS`` inputs or more."""
         return np.array([s for *_, s in self._kept()])
 
     @property
@@ -409,9 +412,9 @@ class DiscrepancyModel:
                 executor: Executor | None = None) -> DiscrepancyPrediction:
         """Bias-corrected prediction and discrepancy at ``X_star`` (N*, d_x) (Eq. 13/15).
 
-        Over :attr:`resampled` if set, else above :attr:`prune`; a ``prune`` given asks for
-        every component above it (0: all). ``progress`` gets the fraction done and may raise
-        to cancel; ``executor`` runs the blocks.
+        Over pairs drawn by weight if :attr:`draw_seed`, else above :attr:`prune`; a
+        ``prune`` given asks for every component above it (0: all). ``progress`` gets the
+        fraction done and may raise to cancel; ``executor`` runs the blocks.
         """
         X_star = as_float_array(X_star, "X_star", ndim=2)
         if X_star.shape[1] != self.X.shape[1]:
@@ -430,7 +433,7 @@ class DiscrepancyModel:
             block = max(MIN_FUSED_BLOCK, -(-self.log_weights[0].size // 20))
         else:           # pairs per NumPy chunk, in BLOCK_BYTES of temporaries
             block = max(1, int(BLOCK_BYTES // (8 * (M * (d_y + 6) + N * (d_y + 2) + P))))
-        kept = self._kept(prune)
+        kept = self._kept(prune, M)
         total = sum(max(1, -(-idx.size // block)) for idx, *_ in kept)
         done = 0
         jitter = JitterLog()
@@ -663,7 +666,7 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
                          f"{S:,} × {options.n_phi:,}. Lower N_s or n_phi.")
     Y = _simulate(simulate, X, theta, n_out)
 
-    hat, nlml_hat, prior, draws, k_hat, resampled = None, None, None, None, None, None
+    hat, nlml_hat, prior, draws, k_hat, draw_seed = None, None, None, None, None, None
     if scenario in (1, 2):
         # Without θ_MAP (scenario 2 given φ̂) the first θ sample stands in for nlml_hat.
         Y_map = Y[0] if scenario == 1 or theta_map is None else \
@@ -684,15 +687,14 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         k_hat = np.array([p.k_hat for p in smoothed])
         if options.proposal == "adaptive":  # Pareto-smoothed weights (Vehtari et al. 2024)
             log_weights = np.stack([p.log_weights.reshape(S, -1) for p in smoothed])
-            # The prediction's pairs: its cost does not grow with the ESS (docs/scenario3.md).
-            resampled = tuple(resample(p.log_weights, PREDICT_DRAWS, rng) for p in smoothed)
+            draw_seed = int(rng.integers(2**63))      # predict draws pairs by weight
     model = DiscrepancyModel(
         scenario=scenario, simulate=simulate, theta=theta, Y=Y, X=X, z=z,
         _log_params=log_params, log_weights=log_weights, log_params_hat=hat,
         nlml_hat=nlml_hat, prune=options.prune, phi_prior=prior,
         seconds=time.perf_counter() - start, k_hat=k_hat, backend=options.backend,
         proposal=options.proposal if scenario == 3 else None, phi_draws=draws,
-        resampled=resampled)
+        draw_seed=draw_seed)
     if scenario == 3:
         switch = " or use proposal='adaptive'" if options.proposal == "prior" else ""
         for o, (e, k) in enumerate(zip(model.ess, np.asarray(k_hat))):

@@ -58,9 +58,8 @@ PROPOSALS = ("prior", "adaptive")
 LOW_ESS = 30.0
 #: Components below ``PRUNE × max`` weight are skipped by the prediction (reported).
 PRUNE = 1e-12
-#: The adaptive proposal predicts at M inputs from ``PREDICT_WORK // M`` pairs drawn by
-#: weight (pair × input evaluations), at least PREDICT_DRAWS and at most ten times that,
-#: or every pair if fewer: its mean's error has an sd of at most ``1 / √PREDICT_DRAWS``
+#: The adaptive proposal predicts at M inputs from PREDICT_WORK // M pairs drawn by weight,
+#: 1 to 10 × PREDICT_DRAWS (all if fewer): its mean's error has an sd ≤ 1 / √PREDICT_DRAWS
 #: (2.2 %) of the predictive sd, whatever the ESS (docs/scenario3.md).
 PREDICT_DRAWS, PREDICT_WORK = 2_000, 800_000
 #: Largest N_s, N_φ and pairs accepted: beyond them the work would not fit in memory.
@@ -398,13 +397,12 @@ class DiscrepancyModel:
 
     @property
     def skipped_mass(self) -> np.ndarray:
-        """Normalised weight mass that :meth:`predict` skips, (n_out,); for this and
-        :attr:`n_components` at ``PREDICT_WORK // PREDICT_DRAWS`` inputs or more."""
+        """Normalised weight mass that :meth:`predict` skips, (n_out,)."""
         return np.array([s for *_, s in self._kept()])
 
     @property
     def n_components(self) -> np.ndarray:
-        """Components :meth:`predict` evaluates per output, (n_out,)."""
+        """Components :meth:`predict` evaluates per output at 400 inputs or more, (n_out,)."""
         return np.array([idx.size for idx, *_ in self._kept()])
 
     def predict(self, X_star, *, prune: float | None = None,

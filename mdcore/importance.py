@@ -209,9 +209,6 @@ class StudentT:
         return self.mean + (g @ self._chol.T) / np.sqrt(chi / self.df)[:, None]
 
 
-
-
-
 def stage_sizes(n: int, n_stages: int = N_STAGES) -> list[int]:
     """Split a per-group budget ``n`` into stages: a tenth from the prior, the rest evenly.
 
@@ -265,8 +262,7 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     S = as_int(n_groups, "n_groups", 1)
     sizes = stage_sizes(n, n_stages)
     rng = np.random.default_rng(seed)
-    var = np.asarray(prior.var, dtype=np.float64)
-    P = var.size
+    P = int(np.size(prior.var))
     n_total = sum(sizes)
     x = np.empty((S, n_total, P))
     loglik = np.empty((S, n_total))
@@ -275,7 +271,7 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     # and all proposals to its new ones, so each q_s is evaluated once per draw.
     log_mass = np.empty((S, n_total))
     proposals: list = []
-    floor = FLOOR * np.sqrt(var)
+    floor = FLOOR * np.sqrt(np.asarray(prior.var, dtype=np.float64))
     col = 0
     for t, n_t in enumerate(sizes):
         if t == 0:
@@ -334,8 +330,6 @@ def _laplace(log_likelihood_grad, prior, x, log_post, df, inflate, floor):
     H = np.array([objective(mode + h * e)[1] - objective(mode - h * e)[1]
                   for e in np.eye(mode.size)]) / (2.0 * h)
     lam, U = np.linalg.eigh(0.5 * (H + H.T))
-    if not np.all(np.isfinite(lam)):
-        return None
     cov = (U / np.maximum(lam, 1.0 / np.max(prior.var))) @ U.T + np.diag(floor ** 2)
     return StudentT(mode, cov * (inflate * (df - 2.0) / df), df)
 

@@ -205,10 +205,8 @@ class Settings:
     @classmethod
     def interactive(cls) -> Settings:
         """Small sizes for the app: N_s = 100, N_φ = 50, the 20,000-step KOH chain and a
-        30-step swarm for φ̂: with the L-BFGS-B polish after it, it reached the
-        120-step optimum in 124 fits on the three cases (θ_MAP and three posterior θ,
-        every output, 3–8 seeds; NLML + prior within 1.2e-6), at a quarter of the cost
-        (beam-2d: 0.51 → 0.14 s)."""
+        30-step swarm for φ̂ (with its L-BFGS-B polish it reached the 120-step optimum in
+        124 fits on the three cases, NLML + prior within 1.2e-6, at a quarter of the cost)."""
         return cls(n_s=100, n_phi=50, n_iter=FAST["n_iter"], burn_in=FAST["burn_in"],
                    fit_iterations=INTERACTIVE_FIT_ITERATIONS)
 

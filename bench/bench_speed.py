@@ -82,6 +82,12 @@ def library(case, theta, n_phi, backend):
     return model, pred, t1 - t0, t2 - t1, c2 - c0
 
 
+def evaluated(model, X) -> list:
+    """Per output, the flat indices of the pairs ``model.predict(X)`` evaluates (the prior
+    proposal: above ``prune``; the adaptive one: its draws by weight for X's inputs)."""
+    return [idx for idx, *_ in model._kept(None, len(np.unique(X, axis=0)))]
+
+
 def kept_log_weight_gap(model, ref) -> float:
     """Largest |Δ log w| over the pairs the prediction keeps (the reference's pruning)."""
     gap = 0.0
@@ -127,8 +133,7 @@ def sklearn_seconds(case, theta, model, n_sample, rng):
         for flat in idx:
             fitted(o, flat)
         total += (time.perf_counter() - t) / idx.size * pairs
-        lw = model.log_weights[o].ravel()
-        kept = np.flatnonzero(lw >= lw.max() + np.log(model.prune))
+        kept = evaluated(model, case.X_test)[o]
         regs = [r for r in (fitted(o, f) for f in rng.choice(kept, min(n_sample, kept.size),
                                                               replace=False)) if r]
         t = time.perf_counter()
@@ -146,10 +151,12 @@ def s3_row(name, sizes, args, rng):
     compiled.warm_up()
     library(case, theta[:2], 2, "numpy")                # first-call costs out of the way
     model_n, pred_n, inf_n, pre_n, cpu_n = library(case, theta, n_phi, "numba")
-    kept, pairs = int(np.sum(model_n.n_components)), case.z_train.shape[1] * n_s * n_phi
+    kept = sum(i.size for i in evaluated(model_n, case.X_test))
+    pairs = case.z_train.shape[1] * n_s * n_phi
     sub = max(1, n_s // 10) if args.quick and n_s > 100 else n_s
     model_r, pred_r, inf_r, pre_r, _ = library(case, theta[:sub], n_phi, "numpy")
-    numpy_s = inf_r * n_s / sub + pre_r * kept / max(1, int(np.sum(model_r.n_components)))
+    numpy_s = inf_r * n_s / sub + pre_r * kept / max(1, sum(i.size for i in
+                                                        evaluated(model_r, case.X_test)))
     sk = sklearn_seconds(case, theta, model_n, args.sklearn_pairs, rng) \
         if args.sklearn_pairs else np.nan
     if sub < n_s:                  # compare on the subset the NumPy path ran on

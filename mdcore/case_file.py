@@ -67,11 +67,26 @@ from .cases import Case, MeasurementsError, parse_measurements, read_measurement
 from .discrepancy import default_phi_prior
 from .priors import ThetaPrior
 
-__all__ = ["load_case_file", "CaseFileError", "TEST_COLUMN", "measurements_template",
-           "with_measurements"]
+__all__ = ["load_case_file", "CaseFileError", "MAX_TRAINING_ROWS", "TEST_COLUMN",
+           "measurements_template", "with_measurements"]
 
 #: The column of an uploaded measurements file that marks test rows (1) and training rows (0).
 TEST_COLUMN = "test"
+#: Most training rows of a case's measurements (case files and uploads; every file also has
+#: at most :data:`mdcore.cases.MAX_ROWS` rows in all). Every discrepancy GP factorises an
+#: N × N matrix of the training rows, per output and per (θ, φ) pair: the work grows as
+#: N³. At 300 training rows and 700 test rows, all distinct, the app's defaults (waves to
+#: convergence, then scenarios 1–3) peak at 0.46 GB and take up to 2 minutes (shear-5's
+#: five outputs): ``python bench/bench_upload_limits.py``.
+MAX_TRAINING_ROWS = 300
+
+
+def _check_training_rows(source, n_train: int) -> str | None:
+    """The problem with ``n_train`` training rows, or None."""
+    if n_train <= MAX_TRAINING_ROWS:
+        return None
+    return (f"{source}: {n_train:,} training rows; at most {MAX_TRAINING_ROWS:,} are taken "
+            f"(mark more rows as test rows, keep a subset, or average replicate readings).")
 
 
 class CaseFileError(ValueError):
@@ -238,6 +253,9 @@ def load_case_file(path, *, seed=0) -> Case:
         raise CaseFileError(f"{csv_path}: column {test_column!r} must mark at least one "
                             f"training row (0) and one test row (1); found {int((~test).sum())} "
                             f"and {int(test.sum())}.")
+    too_many = _check_training_rows(csv_path, int((~test).sum()))
+    if too_many:
+        raise CaseFileError(too_many)
     n_out = len(outputs)
     x_units = data.texts("input_units", len(inputs), default=["-"] * len(inputs))
     out_units = data.texts("output_units", n_out, default=["-"] * n_out)
@@ -403,6 +421,9 @@ def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
     if not problems and n_train < 3:
         problems.append(f"{source}: {n_train} training row(s); at least 3 are needed to fit "
                         "a discrepancy GP.")
+    too_many = _check_training_rows(source, n_train)
+    if not problems and too_many:
+        problems.append(too_many)
     if problems:
         raise MeasurementsError(problems)
     _, counts = np.unique(X[~test], axis=0, return_counts=True)

@@ -26,8 +26,8 @@ from .priors import GaussianPrior, ThetaPrior
 from .simulators import natural_frequencies, tip_deflection
 from .validation import as_float_array, as_seed_int, choose
 
-__all__ = ["Case", "Measurements", "MeasurementsError", "load", "names", "parse_measurements",
-           "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
+__all__ = ["Case", "MAX_ROWS", "Measurements", "MeasurementsError", "load", "names",
+           "parse_measurements", "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
 
 #: The shipped synthetic shear-5 measurements, package data (a ``Traversable``; regenerate
 #: in a checkout with ``python assets/make_shear5_data.py``).
@@ -321,6 +321,12 @@ class Measurements(NamedTuple):
 
 #: Problems listed before a measurements file is given up on (the rest are counted).
 MAX_PROBLEMS = 5
+#: Most data rows a measurements file may have (every reader: uploads, case files,
+#: :func:`read_measurements`); reading stops at the first row beyond. Test rows cost
+#: predictions only; the training rows, which every GP factorises, have their own, lower
+#: limit (:data:`mdcore.case_file.MAX_TRAINING_ROWS`). The built-in cases' templates have
+#: at most 464 rows (beam-2d: 64 training, 400 test).
+MAX_ROWS = 1_000
 
 
 class MeasurementsError(ValueError):
@@ -395,7 +401,8 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     ------
     MeasurementsError (a ValueError)
         Listing up to :data:`MAX_PROBLEMS` problems (missing columns, ragged rows,
-        cells that are not finite numbers), each naming the line and the column.
+        cells that are not finite numbers), each naming the line and the column; or for
+        more than :data:`MAX_ROWS` data rows.
     """
     lines = text.removeprefix("\ufeff").splitlines()   # a BOM (Excel's UTF-8 CSV)
     comments, header_line = [], None
@@ -427,10 +434,16 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
                                  "a distinct name."])
     cols = [header.index(c) for c in inputs + outputs]
     rows, problems = [], []
+    n_rows = 0
     for lineno in range(header_line + 1, len(lines) + 1):
         line = lines[lineno - 1]
         if not line.strip() or line.startswith("#"):
             continue
+        n_rows += 1
+        if n_rows > MAX_ROWS:
+            raise MeasurementsError([f"{source} line {lineno}: more than {MAX_ROWS:,} data rows; "
+                                     f"a measurements file may have at most {MAX_ROWS:,} (keep "
+                                     "a subset of the rows, or average replicate readings)."])
         cells = next(csv.reader([line]))
         if len(cells) != len(header):
             problems.append(f"{source} line {lineno}: {len(cells)} field(s), but the header "

@@ -161,3 +161,26 @@ def test_malformed_case_files_name_the_problem(folder, kind, make, match):
     assert isinstance(info.value, ValueError)
     if kind != "missing file":
         assert str(path.parent) in str(info.value) or "data.csv" in str(info.value)
+
+
+def test_a_case_file_has_at_most_the_row_limits(folder):
+    """The measurements of a case file have at most mdcore.cases.MAX_ROWS rows, of which
+    at most MAX_TRAINING_ROWS training rows; at the limits the case loads."""
+    from mdcore.case_file import MAX_TRAINING_ROWS
+    from mdcore.cases import MAX_ROWS
+
+    def rows(n, flag):
+        return "".join(f"{0.3 + 0.4 * i / n:.6f},0.5,{flag}\n" for i in range(n))
+
+    header = CSV.split("\n", 2)[:2]
+    head = "\n".join(header) + "\n"
+    noise = TOML.replace('test_column = "test"', 'test_column = "test"\nnoise_var = [1e-4]')
+    case = load_case_file(write(folder, noise, csv=head + rows(MAX_TRAINING_ROWS, 0)
+                                + rows(MAX_ROWS - MAX_TRAINING_ROWS, 1)))
+    assert case.X_train.shape[0] == MAX_TRAINING_ROWS
+    with pytest.raises(CaseFileError, match=rf"{MAX_TRAINING_ROWS + 1:,} training rows; at "
+                                            rf"most {MAX_TRAINING_ROWS:,}"):
+        load_case_file(write(folder, noise, csv=head + rows(MAX_TRAINING_ROWS + 1, 0)
+                             + rows(10, 1)))
+    with pytest.raises(CaseFileError, match=rf"more than {MAX_ROWS:,} data rows"):
+        load_case_file(write(folder, noise, csv=head + rows(100, 0) + rows(MAX_ROWS, 1)))

@@ -145,3 +145,17 @@ def test_read_measurements_bad_files(tmp_path, text, match):
         cases.read_measurements(p, inputs=["mass_kg"], outputs=outputs)
     with pytest.raises(ValueError, match="does not exist"):
         cases.read_measurements(tmp_path / "nope.csv", inputs=["mass_kg"])
+
+
+def test_a_measurements_file_has_at_most_max_rows_data_rows():
+    """MAX_ROWS data rows are read; one more is refused at its line, before the rest of
+    the file is parsed (comment and blank lines do not count)."""
+    head = "# provenance\nmass_kg,f1\n"
+    rows = "".join(f"{i / 1000},{i}\n\n# a comment\n" for i in range(cases.MAX_ROWS))
+    m = cases.parse_measurements(head + rows, source="m.csv", inputs=["mass_kg"])
+    assert m.X.shape == (cases.MAX_ROWS, 1)
+    too_many = head + rows + "9,x\n" + "not,even,parsed\n" * 10
+    line = 2 + 3 * cases.MAX_ROWS + 1
+    with pytest.raises(cases.MeasurementsError,
+                       match=rf"m.csv line {line}: more than {cases.MAX_ROWS:,} data rows"):
+        cases.parse_measurements(too_many, source="m.csv", inputs=["mass_kg"])

@@ -257,3 +257,37 @@ def test_posterior_samples_are_kept_per_seed_and_equal_a_fresh_draw(beam1d_match
     for s in range(8):                                # the memo stays small
         result.posterior_samples(20, seed=100 + s)
     assert len(result._posterior_memo) <= 4
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_scoring_in_chunks_gives_the_same_waves(monkeypatch, backend):
+    """Candidates are scored (and θ weighted) in chunks of at most CHUNK_VALUES values,
+    so memory does not grow with candidates × observations; chunks of a few rows give
+    the waves, implausibilities and likelihoods of one chunk for all (to rounding: BLAS
+    may sum a product in another order for another number of rows)."""
+    if backend == "numba":
+        pytest.importorskip("numba")
+    import mdcore.history_matching as hm_module
+    case = cases.load("shear-5", seed=0)
+
+    def run():
+        problem = hm_module.case_problem(case, n_candidates=3000, max_waves=2, seed=0,
+                                         convergence_ratio=0.001, backend=backend)
+        waves = (hm_module.next_wave(problem),)
+        waves += (hm_module.next_wave(problem, waves),)
+        result = hm_module.HistoryMatchResult(problem, waves)
+        return problem, waves, result.log_likelihood(waves[-1].nroy[:500])
+
+    monkeypatch.setattr(hm_module, "CHUNK_VALUES", 10**9)
+    problem, whole, ll_whole = run()
+    assert len(problem.chunks(3000)) == 1
+    monkeypatch.setattr(hm_module, "CHUNK_VALUES", 7 * problem.z.size)
+    problem, chunked, ll_chunked = run()
+    assert len(problem.chunks(3000)) == 429                   # 7 rows a chunk
+    for a, b in zip(whole, chunked):
+        np.testing.assert_allclose(a.candidate_implausibility, b.candidate_implausibility,
+                                   rtol=1e-12)
+        np.testing.assert_allclose(a.nroy, b.nroy, rtol=1e-12)
+        np.testing.assert_allclose(a.max_var, b.max_var, rtol=1e-12)
+        assert a.nroy_fraction == b.nroy_fraction and a.status == b.status
+    np.testing.assert_allclose(ll_whole, ll_chunked, rtol=1e-12)

@@ -39,7 +39,7 @@ NOTIFICATION_CSS = """
                   "Helvetica Neue", Arial, sans-serif; font-size: 13px; line-height: 1.35; }
 .notyf__toast { max-width: 380px !important; }
 """
-pn.extension("filedropper", notifications=True, raw_css=[NOTIFICATION_CSS])
+pn.extension(notifications=True, raw_css=[NOTIFICATION_CSS])
 hv.extension("bokeh")
 #: The page's Content-Security-Policy: everything from the page's own origin (its scripts,
 #: style sheets, fonts and the websocket: 'self' covers ws:// of the same host), nothing
@@ -47,14 +47,14 @@ hv.extension("bokeh")
 #: page's own; Bokeh's carries the session's token, so no hash can name it), code compiled
 #: in the browser (BokehJS compiles CustomJS callbacks and Panel's ReactiveHTML scripts,
 #: such as the notifications', with ``new Function``), blob: scripts (es-module-shims
-#: probes ``import()`` with one; only a script already running can make a blob), inline
-#: styles, and data:/blob: images (Bokeh's image glyphs, the "save" tool, FilePond's
-#: previews). ``script-src-attr 'none'`` refuses every inline event handler
-#: (``<img onerror=…>``), so markup that slipped into an HTML pane runs nothing; user text
-#: is escaped everywhere (:mod:`mdcore_app.markup`), which is what keeps it from becoming a
-#: <script> or an iframe's ``srcdoc``. A <meta> element, the first in the page's head:
-#: Panel 1.9 / Bokeh 3.9 offer no public way to add a response header to ``panel serve``'s
-#: page (and a <meta> policy cannot carry frame-ancestors).
+#: fetches and loads the drop areas' module, app/upload.js, as one, and probes ``import()`` with
+#: another; only a script already running can make a blob), inline styles, and data:/blob:
+#: images (Bokeh's image glyphs, the "save" tool). ``script-src-attr 'none'`` refuses
+#: every inline event handler (``<img onerror=…>``), so markup that slipped into an HTML
+#: pane runs nothing; user text is escaped everywhere (:mod:`mdcore_app.markup`), which is
+#: what keeps it from becoming a <script> or an iframe's ``srcdoc``. A <meta> element, the
+#: first in the page's head: Panel 1.9 / Bokeh 3.9 offer no public way to add a response
+#: header to ``panel serve``'s page (and a <meta> policy cannot carry frame-ancestors).
 CONTENT_SECURITY_POLICY = "; ".join((
     "default-src 'self'",
     "script-src 'self' 'unsafe-inline' 'unsafe-eval' blob:",
@@ -62,24 +62,21 @@ CONTENT_SECURITY_POLICY = "; ".join((
     "style-src 'self' 'unsafe-inline'",
     "img-src 'self' data: blob:",
     "font-src 'self' data:",
-    "connect-src 'self'",
+    "connect-src 'self' blob:",
     "object-src 'none'",
     "frame-src 'none'",
     "base-uri 'self'",
     "form-action 'self'"))
-#: Panel's page (a string template extends it) with the policy first in its head, then two
-#: scripts of ours: one before every other script, so that FilePond (the Files tab's drop
-#: areas) paints only while a drop area is shown; one after BokehJS and before the document
-#: is drawn, so that a plot with a legend is laid out and painted once, not twice (see the
-#: files). Inline: no request (offline).
+#: Panel's page (a string template extends it) with the policy first in its head, and a
+#: script of ours after BokehJS and before the document is drawn, so that a plot with a
+#: legend is laid out and painted once, not twice (see the file). Inline: no request
+#: (offline).
 PAGE_TEMPLATE = (
     "{% block inner_head %}<meta http-equiv=\"Content-Security-Policy\" content=\""
     + CONTENT_SECURITY_POLICY + "\">{{ super() }}{% endblock %}"
-    + "".join(
-        "{% block " + block + " %}{{ super() }}<script>{% raw %}"
-        + Path(__file__).with_name(script).read_text() + "{% endraw %}</script>{% endblock %}"
-        for block, script in (("preamble", "filepond_painter.js"),
-                              ("postamble", "legend_resize.js"))))
+    "{% block postamble %}{{ super() }}<script>{% raw %}"
+    + Path(__file__).with_name("legend_resize.js").read_text()
+    + "{% endraw %}</script>{% endblock %}")
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.

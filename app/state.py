@@ -269,8 +269,11 @@ class ExplorerState(param.Parameterized):
     # Case
 
     @param.depends("case_name", watch=True)
-    def _load_case(self):
-        if self.case is not None and self.case_name == self.case.name:
+    def _load_case(self, replace: bool = False):
+        """Load the case ``case_name`` names; ``replace``: it is the current case with new
+        data (an upload or a session file of the same name), whose results are dropped.
+        ``case`` goes from one case to the next, never through None (its watchers draw it)."""
+        if not replace and self.case is not None and self.case_name == self.case.name:
             return                                   # put back after a failed load
         try:
             case = (self._own[self.case_name][0] if self.case_name in self._own
@@ -283,7 +286,7 @@ class ExplorerState(param.Parameterized):
             self.case_name = self.case.name
             return
         self._jobs.drop()                            # drop work for the previous case
-        if self.case is not None:                    # keep its results for switching back
+        if self.case is not None and not replace:    # keep its results for switching back
             self._kept[self.case.name] = ({k: getattr(self, k) for k in HM_CONTROLS},
                                           self._snapshot())
         self._problem, self._problem_key, self._cache = None, None, {}
@@ -702,8 +705,7 @@ class ExplorerState(param.Parameterized):
         names = list(cases.names()) + list(self._own)
         self.param.case_name.objects = names
         if self.case_name == case.name:              # replaced: load the new data
-            self.case = None
-            self._load_case()
+            self._load_case(replace=True)
         else:
             self.case_name = case.name
 
@@ -732,18 +734,46 @@ class ExplorerState(param.Parameterized):
             run=None if run is None else run.to_dict())
         return json.dumps(doc, indent=1, allow_nan=False)
 
+    @staticmethod
+    def _set_controls(state: ExplorerState, controls: dict, filename: str) -> Settings:
+        """Set a session file's ``controls`` on ``state`` in the file's order (a preset
+        first sets what it implies); returns the pipeline settings they make.
+
+        Raises
+        ------
+        SessionError
+            Naming the first control outside its parameter's bounds or choices.
+        """
+        state._restoring = True
+        try:
+            for k, v in controls.items():
+                try:
+                    setattr(state, k, v)
+                except ValueError as exc:                # the parameter's own bounds or choices
+                    raise session.SessionError([
+                        f"{filename}: controls.{k} = {v!r} is not allowed for "
+                        f"{state.param[k].label} ({exc})."]) from None
+        finally:
+            state._restoring = False
+        return state.method_settings()
+
     def open_session(self, data: bytes, filename: str) -> bool:
         """Restore a saved session: its case (with uploaded data), controls, waves and
         methods, recomputed and checked against the saved metrics.
 
         Returns whether the file was accepted; each problem with it is one notification,
-        and the session is unchanged.
+        and the session is unchanged (the file is checked in full, its controls on a
+        scratch state, before anything of this session changes).
         """
         before = {k: getattr(self, k) for k in ("case_name", *session.CONTROLS)}
         try:
             doc = session.parse_session(
                 session.decode_upload(data, filename, kind="session JSON"), filename)
             case = doc["case"]
+            controls = dict(doc["controls"])
+            controls["scenarios"] = [Method.parse(v) for v in controls["scenarios"]]
+            settings = self._set_controls(ExplorerState(), controls, filename)
+            own = None
             if case["measurements_csv"] is not None:
                 base = case["based_on"]
                 if base not in cases.names():
@@ -751,29 +781,17 @@ class ExplorerState(param.Parameterized):
                                                 f"{list(cases.names())}; found {base!r}."])
                 own = with_measurements(cases.load(base, seed=0), case["measurements_csv"],
                                         source=case["measurements_file"] or "measurements.csv")
-                self._add_case(own, base, case["measurements_csv"],
-                               case["measurements_file"])
             elif case["name"] not in self.param.case_name.objects:
                 raise session.SessionError([
                     f"{filename}: the case {case['name']!r} is not in this app (it has "
                     f"{', '.join(self.param.case_name.objects)}); start the app with "
                     f"`--args --case <its case file>.toml` to add it."])
+            if own is not None:
+                self._add_case(own, case["based_on"], case["measurements_csv"],
+                               case["measurements_file"])
             else:
                 self.case_name = case["name"]
-            controls = dict(doc["controls"])
-            controls["scenarios"] = [Method.parse(v) for v in controls["scenarios"]]
-            self._restoring = True
-            try:
-                for k, v in controls.items():
-                    try:
-                        setattr(self, k, v)
-                    except ValueError as exc:        # the parameter's own bounds or choices
-                        raise session.SessionError([
-                            f"{filename}: controls.{k} = {v!r} is not allowed for "
-                            f"{self.param[k].label} ({exc})."]) from None
-            finally:
-                self._restoring = False
-            settings = self.method_settings()
+            settings = self._set_controls(self, controls, filename)
         except ValueError as exc:
             self._restoring = True
             try:

@@ -17,7 +17,8 @@ import pandas as pd
 import panel as pn
 import param
 
-from mdcore.case_file import TEST_COLUMN, measurements_template
+from mdcore.case_file import MAX_TRAINING_ROWS, TEST_COLUMN, measurements_template
+from mdcore.cases import MAX_ROWS
 from mdcore.export import nroy_csv, predictions_csv
 from mdcore.pipeline import Method, MethodResult
 from mdcore.study import PAPER
@@ -30,8 +31,9 @@ from .experiments import EXPERIMENTS
 from .live_figures import alert_box, figure_pane, live_text
 from .markup import html_text, markdown_text
 from .report import report_html
-from .session import MAX_UPLOAD_BYTES
+from .session import MAX_UPLOAD_BYTES, megabytes
 from .state import ExplorerState, method_order
+from .upload import FileUpload
 from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
@@ -415,20 +417,27 @@ class ExplorerView(pn.viewable.Viewer):
     def _slug(self) -> str:
         return re.sub(r"[^A-Za-z0-9_.-]+", "_", self.state.case_name).strip("_")
 
-    def _dropper(self, accept: list[str], handler, css: str):
-        """A file drop area (chunked upload, size cap in the browser) calling
-        ``handler(data, filename)`` once per file."""
-        drop = pn.widgets.FileDropper(accepted_filetypes=accept, multiple=False,
-                                      max_file_size=f"{MAX_UPLOAD_BYTES // 2**20}MB",
-                                      layout="compact", css_classes=[css],
-                                      sizing_mode="stretch_width")
+    def _dropper(self, accept: str, handler, css: str, prompt: str) -> FileUpload:
+        """A drop area calling ``handler(data, filename) -> bool`` once per file (sent in
+        counted chunks, at most MAX_UPLOAD_BYTES); a file it refuses is marked refused
+        with its first problem (every problem is also a notification)."""
+        s = self.state
 
-        def received(event):
-            for filename, data in (event.new or {}).items():
-                handler(data.encode("utf-8") if isinstance(data, str) else data, filename)
+        def take(data: bytes, filename: str) -> str | None:
+            problems: list[str] = []
+            watcher = s.param.watch(lambda _: problems.append(s.error), "n_errors")
+            try:
+                taken = handler(data, filename)
+            finally:
+                s.param.unwatch(watcher)
+            if taken:
+                return None
+            more = f" (and {len(problems) - 1} more: see the messages)" if problems[1:] else ""
+            return (problems[0] if problems else "It was not taken.") + more
 
-        drop.param.watch(received, "value")
-        return drop
+        return FileUpload(take=take, refuse=s.report_error, accept=accept, prompt=prompt,
+                          max_bytes=MAX_UPLOAD_BYTES, css_classes=[css], margin=(5, 10),
+                          sizing_mode="stretch_width")
 
     def _download(self, label: str, css: str, make, filename):
         """A download button whose file is made when pressed; disabled while ``make``
@@ -453,8 +462,10 @@ class ExplorerView(pn.viewable.Viewer):
             f"(now {markdown_text(s.base_case_name())}): a header row with the columns "
             f"{columns} (`{TEST_COLUMN}`: 1 = held-out test row, 0 = training row), one row per "
             "observation, replicates as repeated rows, `#` lines as comments. Start from "
-            f"the template. At most {MAX_UPLOAD_BYTES // 2**20} MB; the file is only read, "
-            "never run. It becomes a new case of this session, named after the file.",
+            f"the template. At most {MAX_ROWS:,} data rows, of which at most "
+            f"{MAX_TRAINING_ROWS:,} training rows, and {megabytes(MAX_UPLOAD_BYTES)}; the "
+            "file is only read, never run. It becomes a new case of this session, named "
+            "after the file.",
             css_classes=["upload-help"])
 
     def files_view(self):
@@ -500,7 +511,8 @@ class ExplorerView(pn.viewable.Viewer):
         refresh()
         return pn.Column(
             self._upload_help,
-            pn.Row(self._dropper([".csv", "text/csv"], s.upload_measurements, "upload-csv"),
+            pn.Row(self._dropper(".csv,text/csv", s.upload_measurements, "upload-csv",
+                                 "Drop your measurements CSV here, or click to choose it."),
                    downloads["template"], sizing_mode="stretch_width"),
             pn.pane.Markdown("#### Results out\nCSV tables (every wave's NROY samples with "
                              "their implausibility; z and δ means and sds per method at the "
@@ -512,7 +524,8 @@ class ExplorerView(pn.viewable.Viewer):
                              "settings, waves and methods are recomputed (every step is "
                              "seeded) and checked against the saved metrics; the status line "
                              "says whether they agree."),
-            self._dropper([".json", "application/json"], s.open_session, "open-session"),
+            self._dropper(".json,application/json", s.open_session, "open-session",
+                          "Drop a session JSON here, or click to choose it."),
             sizing_mode="stretch_width", max_width=900)
 
     def try_view(self):

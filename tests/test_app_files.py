@@ -94,7 +94,7 @@ def test_uploaded_measurements_become_a_case_of_this_session_only():
 
 @pytest.mark.parametrize("data, problem", [
     (b"", "empty"),
-    (b"x" * (session.MAX_UPLOAD_BYTES + 1), "MB limit"),
+    (b"x" * (session.MAX_UPLOAD_BYTES + 1), "more than the 5 MB limit (5,000,000 bytes)"),
     ("crack location,tip deflection,test\n0.2,\xe9,0\n".encode("latin-1"), "not UTF-8"),
     (b"position,deflection\n0.2,0.5\n", "not found in the header"),
     (b"crack location,tip deflection,test\n", "no data rows"),
@@ -104,8 +104,13 @@ def test_uploaded_measurements_become_a_case_of_this_session_only():
     (b"crack location,tip deflection,test\n0.2,0.5,0\n0.3,0.6,1\n", "at least 3"),
     (b"crack location,tip deflection,test\n0.2,__import__('os'),0\n0.3,0.6,1\n",
      "is not a number"),
+    (("crack location,tip deflection,test\n" + "0.3,1.0,1\n" * 1001).encode(),
+     "more than 1,000 data rows"),
+    (("crack location,tip deflection,test\n" + "0.3,1.0,0\n" * 301 + "0.3,1.0,1\n").encode(),
+     "301 training rows; at most 300"),
 ], ids=["empty", "too-big", "latin-1", "wrong-columns", "no-rows", "bad-test-flag",
-        "no-training-rows", "wrong-units", "too-few-rows", "code-is-not-run"])
+        "no-training-rows", "wrong-units", "too-few-rows", "code-is-not-run", "too-many-rows",
+        "too-many-training-rows"])
 def test_a_bad_upload_is_a_notification_and_the_session_keeps_its_case(data, problem):
     s = small_state()
     s.run_to_convergence()
@@ -210,9 +215,11 @@ def edit(path, value):
     (edit(["controls", "v_m"], -0.5), "V_m"),
     (edit(["controls", "n_phi"], 0), "N_φ"),
     (edit(["controls", "rule"], "mean"), "rule"),
+    (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
+    (b'{"schema": ' + b"9" * 5000 + b"}", "more digits than Python reads"),
 ], ids=["not-json", "a-list", "other-schema", "newer-version", "missing-control",
         "wrong-type", "bool-for-int", "negative-waves", "unknown-case", "negative-v_m",
-        "zero-n_phi", "unknown-rule"])
+        "zero-n_phi", "unknown-rule", "deeply-nested", "huge-integer"])
 def test_a_bad_session_file_is_a_notification_and_changes_nothing(data, problem):
     s = small_state(v_m=0.07)
     s.run_to_convergence()
@@ -281,3 +288,53 @@ def test_case_files_given_to_the_server_join_the_case_list(tmp_path):
     cases_, errors = main.own_cases([bad, tmp_path / "missing.toml"])
     assert cases_ == [] and len(errors) == 2
     assert "bad.toml" in errors[0] and "file" in errors[0] and "does not exist" in errors[1]
+
+
+# ---------------------------------------------------------------------------------------
+# The same file again, the session you are on again (issue 40 item 3)
+
+
+def test_the_same_file_again_and_the_open_session_again_keep_the_session_working():
+    """Uploading a file of the same name replaces its case's data, and opening the session
+    you are on reopens it: ``case`` never passes through None, so every view (the whole
+    page is built here, watchers included) keeps drawing, and later actions work."""
+    s = small_state()
+    view = ExplorerView(state=s)
+    view.__panel__()
+    view.files_view()
+    seen = errors_of(s)
+    cases_seen = []
+    s.param.watch(lambda e: cases_seen.append(e.new), "case")
+    assert s.upload_measurements(lab_csv(shift=0.02).encode(), "lab.csv")
+    quiet(run_small, s, [Method.S1])
+    assert s.upload_measurements(lab_csv(shift=0.05).encode(), "lab.csv")   # new data
+    assert s.case_name == "beam-1d · lab.csv" and s.waves == () and s.results == {}
+    np.testing.assert_allclose(s.case.z_train, cases.load("beam-1d").z_train + 0.05,
+                               rtol=0, atol=1e-12)
+    quiet(run_small, s, [Method.S1])
+    saved = s.session_json().encode()
+    for _ in range(2):
+        assert quiet(s.open_session, saved, "lab_session.json")
+        assert "every metric equals the saved one" in s.status
+    assert None not in cases_seen and seen == []
+    assert list(s.param.case_name.objects).count("beam-1d · lab.csv") == 1
+    s.case_name = "beam-2d"                       # and the session goes on
+    s.case_name = "beam-1d · lab.csv"
+    assert s.results and seen == []
+
+
+def test_a_refused_session_leaves_no_case_behind():
+    """A session file on uploaded data whose controls are refused adds no case to the
+    list and changes nothing (before, the case stayed in the list)."""
+    s = small_state()
+    s.run_to_convergence()
+    other = small_state()
+    other.upload_measurements(lab_csv().encode(), "lab.csv")
+    doc = json.loads(other.session_json())
+    doc["controls"]["n_phi"] = 0
+    objects, waves = list(s.param.case_name.objects), s.waves
+    seen = errors_of(s)
+    assert not s.open_session(json.dumps(doc).encode(), "lab_session.json")
+    assert len(seen) == 1 and "N_φ" in seen[0]
+    assert list(s.param.case_name.objects) == objects and s.case_name == "beam-1d"
+    assert s.waves is waves

@@ -1,9 +1,9 @@
 """What a shared file, an upload or a stranger's browser can do to the served app: nothing.
 
 Browser tests in Debian's headless Chromium against ``panel serve`` on a free port. Files
-go in through the Files tab's drop areas as a user's do: FilePond's file input
-(``set_input_files``) or a real drop of a ``DataTransfer`` on the drop area, chunked by
-FilePond and sent over the websocket.
+go in through the Files tab's drop areas as a user's do: the area's file input
+(``set_input_files``) or a real drop of a ``DataTransfer`` on the area, sent by the page in
+chunks over the websocket (app/upload.py).
 
 Skipped when Chromium or Playwright is missing, unless ``MDCORE_REQUIRE_BROWSER=1``
 (set by ``.ci/run``), which turns the skip into a failure.
@@ -68,15 +68,15 @@ def open_app(browser, url):
 
 def choose_file(page, area: str, path: Path) -> None:
     """Give ``path`` to the file input of the drop area of CSS class ``area``."""
-    page.locator(f".{area} input[type=file]").wait_for(state="attached", timeout=30_000)
-    page.locator(f".{area} .filepond--root").wait_for(timeout=30_000)
+    page.locator(f".{area} .mdcore-drop").wait_for(timeout=30_000)
     page.locator(f".{area} input[type=file]").set_input_files(str(path))
 
 
 def drop_file(page, area: str, name: str, data: bytes) -> None:
     """Drop a file called ``name`` holding ``data`` on the drop area of CSS class
     ``area``, as a drag from the desktop does (dragenter, dragover, drop)."""
-    page.locator(f".{area} .filepond--root").wait_for(timeout=30_000)
+    target = page.locator(f".{area} .mdcore-drop")
+    target.wait_for(timeout=30_000)
     transfer = page.evaluate_handle(
         """([name, b64]) => {
             const bytes = Uint8Array.from(atob(b64), c => c.charCodeAt(0));
@@ -85,7 +85,6 @@ def drop_file(page, area: str, name: str, data: bytes) -> None:
             dt.items.add(new File([bytes], name, {type}));
             return dt;
         }""", [name, base64.b64encode(data).decode()])
-    target = page.locator(f".{area} .filepond--drop-label")
     box = target.bounding_box()
     point = {"clientX": box["x"] + box["width"] / 2, "clientY": box["y"] + box["height"] / 2}
     for event in ("dragenter", "dragover", "drop"):
@@ -274,3 +273,86 @@ def test_a_case_file_with_markup_in_its_names_runs_nothing(browser, tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+def status_of(page, area: str, state: str, timeout: float = 60_000) -> str:
+    """The drop area's line once it says ``state`` (accepted, rejected)."""
+    line = page.locator(f".{area} .mdcore-drop-status[data-state={state}]")
+    line.wait_for(timeout=timeout)
+    return line.inner_text()
+
+
+def test_uploads_through_the_page_chunked_again_and_over_the_limits(browser, server,
+                                                                    tmp_path):
+    """Through the Files tab as a user goes: a CSV of three chunks (a drop) is taken whole;
+    the same file chosen again replaces it; after a run, the session saved and opened
+    twice in the same page recomputes the same metrics; files over the row limit and over
+    the byte cap are refused in red with a notification, and the session keeps its case.
+    Nothing fails on the server (its log has no traceback)."""
+    from playwright.sync_api import expect
+
+    from mdcore.cases import MAX_ROWS
+    from mdcore_app.session import MAX_UPLOAD_BYTES
+    from mdcore_app.upload import CHUNK_BYTES
+    url, server_log = server
+    page, log, dialogs = open_app(browser, url)
+    tab(page, "Files")
+    select = page.locator("select").first
+
+    padding = "".join(f"# note {i:06d} " + "." * 90 + "\n" for i in range(6_000))
+    lab = padding + beam_csv()
+    assert 2 * CHUNK_BYTES < len(lab.encode()) < 3 * CHUNK_BYTES         # three chunks
+    drop_file(page, "upload-csv", "lab.csv", lab.encode())
+    assert status_of(page, "upload-csv", "accepted") == "lab.csv: loaded."
+    expect(select).to_have_value("beam-1d · lab.csv", timeout=30_000)
+
+    again = tmp_path / "lab.csv"
+    again.write_text(beam_csv().replace(",0\n", ",0\n", 1), encoding="utf-8")
+    choose_file(page, "upload-csv", again)                  # the same name: new data
+    page.locator(".upload-csv .mdcore-drop-status[data-state=receiving]").wait_for(
+        state="detached", timeout=30_000)
+    assert status_of(page, "upload-csv", "accepted") == "lab.csv: loaded."
+    choose_file(page, "upload-csv", again)                  # the very same file again
+    assert status_of(page, "upload-csv", "accepted") == "lab.csv: loaded."
+    assert select.locator("option").all_inner_texts().count("beam-1d · lab.csv") == 1
+
+    page.get_by_role("button", name="Run discrepancy").click()
+    page.locator(".mdcore-busy").wait_for(timeout=30_000)
+    page.locator(".mdcore-idle").wait_for(timeout=120_000)
+    with page.expect_download() as got:
+        page.locator(".dl-session").get_by_role("button").click()
+    saved = tmp_path / "lab_session.json"
+    got.value.save_as(str(saved))
+    for _ in range(2):                                      # the session you are on, again
+        choose_file(page, "open-session", saved)
+        assert status_of(page, "open-session", "accepted") == "lab_session.json: loaded."
+        tab(page, "History matching")
+        page.locator(".hm-status", has_text="every metric equals the saved one").wait_for(
+            timeout=120_000)
+        page.locator(".mdcore-idle").wait_for(timeout=120_000)
+        tab(page, "Files")
+    expect(select).to_have_value("beam-1d · lab.csv")
+
+    rows = tmp_path / "rows.csv"
+    rows.write_text("crack location,tip deflection,test\n" + "0.3,1.0,1\n" * (MAX_ROWS + 1),
+                    encoding="utf-8")
+    choose_file(page, "upload-csv", rows)
+    text = status_of(page, "upload-csv", "rejected")
+    assert f"more than {MAX_ROWS:,} data rows" in text, text
+    wait_toast(page, f"more than {MAX_ROWS:,} data rows")
+
+    big = tmp_path / "big.csv"
+    big.write_bytes(b"#" * (MAX_UPLOAD_BYTES + 1))
+    choose_file(page, "upload-csv", big)
+    text = status_of(page, "upload-csv", "rejected")
+    assert text == ("big.csv is 5,000,001 bytes, more than the 5 MB limit (5,000,000 bytes); "
+                    "nothing was taken."), text
+    wait_toast(page, "nothing was taken")
+    expect(select).to_have_value("beam-1d · lab.csv")
+    ARTIFACTS.mkdir(exist_ok=True)
+    page.screenshot(path=str(ARTIFACTS / "security-uploads.png"))
+
+    assert page.evaluate("window.__pwned") is None and dialogs == []
+    assert log.errors == [], log.errors
+    assert "Traceback" not in server_log.text(), server_log.text()[-3000:]
+    page.close()

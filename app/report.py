@@ -23,6 +23,7 @@ import html as _html
 from pathlib import Path
 
 import numpy as np
+from bokeh.document import Document
 from bokeh.embed import file_html
 from bokeh.layouts import column, gridplot
 from bokeh.models import ColumnDataSource, Div, FactorRange, Whisker
@@ -226,10 +227,18 @@ class _InlineBokehOnly(Resources):
 
 
 def report_html(run) -> str:
-    """The report of a :class:`mdcore.reproduce.CaseRun` as one self-contained HTML page."""
-    case = run.case
-    return file_html(report_layout(run), resources=_InlineBokehOnly(mode="inline"),
-                     title=f"mdcore report: {case.name}")
+    """The report of a :class:`mdcore.reproduce.CaseRun` as one self-contained HTML page.
+
+    The layout is the one root of a document of its own: ``file_html`` then writes that
+    document. Given bare models, it would make one and copy into it the JS callbacks of
+    Bokeh's global current document, which in a server process can be a session's
+    document already destroyed (an ``AttributeError`` on ``_js_event_callbacks``: the
+    served app's report download failed).
+    """
+    layout = report_layout(run)
+    Document().add_root(layout)
+    return file_html(layout, resources=_InlineBokehOnly(mode="inline"),
+                     title=f"mdcore report: {run.case.name}")
 
 
 def report_layout(run):

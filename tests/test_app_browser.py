@@ -352,6 +352,33 @@ def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_hm, n_
     page.close()
 
 
+def assert_offline_report(browser, path, title: str) -> None:
+    """``path`` is a whole report: its text names ``title``, it loads nothing (no script
+    or style sheet by address), and opened from disk with every request outside the file
+    refused, it draws its plots with no console error."""
+    import re
+    text = path.read_text(encoding="utf-8")
+    assert title in text and "Metrics at the test inputs" in text
+    assert not re.search(r"<script[^>]+src=", text) and not re.search(r"<link[^>]+href=", text)
+    page = browser.new_page(viewport={"width": 1280, "height": 720})
+    log, outside = PageLog(page), []
+
+    def route(r):
+        if r.request.url.startswith(("file:", "data:", "blob:")):
+            r.continue_()
+        else:
+            outside.append(r.request.url)
+            r.abort()
+
+    page.route("**/*", route)
+    page.goto(path.as_uri())
+    page.wait_for_function("window.Bokeh && Object.keys(Bokeh.index).length > 0",
+                           timeout=30_000)
+    assert_drawn(page, "", 6)
+    assert outside == [] and log.errors == [], (outside, log.errors)
+    page.close()
+
+
 def test_own_data_in_and_a_session_out_and_back(browser, tmp_path):
     """Served with ``--args --case`` (an own TOML case), at 1280×720: the case is in the
     list; the Files tab takes uploaded measurements (a new case, run from scratch by "Run
@@ -402,7 +429,12 @@ def test_own_data_in_and_a_session_out_and_back(browser, tmp_path):
             raise
         tab(page, "Files")
         page.locator(".dl-report").get_by_role("button").wait_for(timeout=30_000)
-        assert page.locator(".dl-report").get_by_role("button").is_enabled()
+        with page.expect_download() as got:
+            page.locator(".dl-report").get_by_role("button").click()
+        report = tmp_path / "report.html"
+        got.value.save_as(str(report))
+        assert got.value.suggested_filename == "beam-1d_my_beam.csv_report.html"
+        assert_offline_report(browser, report, "your measurements (my_beam.csv)")
         with page.expect_download() as got:
             page.locator(".dl-session").get_by_role("button").click()
         saved = tmp_path / "session.json"

@@ -81,3 +81,26 @@ def test_report_renders_offline_in_chromium(run, tmp_path):
     # Plots drawn: well below the page top (text), many rows differ from the white page.
     body = img[img.shape[0] // 3:]
     assert np.mean(np.std(body, axis=1) > 10) > 0.3
+
+
+def test_the_report_does_not_depend_on_bokehs_current_document(run):
+    """In a server process Bokeh's global current document can be a session's document
+    that has been destroyed; the served app's report download failed with an
+    AttributeError (``_js_event_callbacks``) there. The report is built in a document of
+    its own."""
+    from bokeh.document import Document
+    from bokeh.io.doc import curdoc, set_curdoc
+    before = curdoc()
+    gone = Document()
+
+    def session(event):                     # a session's change callback, as Bokeh's
+        pass
+
+    gone.on_change(session)
+    gone.destroy(session)                   # what the server does when a session ends
+    set_curdoc(gone)
+    try:
+        html = report_html(run)
+    finally:
+        set_curdoc(before)
+    assert "Cracked cantilever" in html and html.count("<script") >= 2

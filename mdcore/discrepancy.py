@@ -913,7 +913,9 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
             for o in range(n_out):
                 # Eq. 8: empirical Bayes on {y(X, θ_MAP), X, z}
                 options = {"log_prior": phi_prior, **(fit_options or {})}
-                fits.append(fit_hyperparameters(Y_map, X, z[:, o], seed=rng, **options))
+                fits.append(fit_hyperparameters(
+                    Y_map, X, z[:, o], seed=rng, **options, progress=None if progress is None
+                    else (lambda f, o=o: progress((o + f) / n_out))))
                 if progress is not None:
                     progress((o + 1) / n_out)
             log_params_hat_arr = np.array([f.log_params for f in fits])

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import importlib
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -278,11 +279,12 @@ def _kron_nlml_compiled(lp, Tu, Xu, res, diffs, k):
     return f, g
 
 
-def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None):
+def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None, step=None):
     """Fit one output: least-squares linear mean, then empirical Bayes for the GP.
 
     ``kernels`` (:func:`mdcore.compiled.fit_kernels`): evaluate the likelihood with
-    :func:`_kron_nlml_compiled`, the same bits as :func:`_kron_nlml`, faster.
+    :func:`_kron_nlml_compiled`, the same bits as :func:`_kron_nlml`, faster. ``step()``
+    is called after every L-BFGS-B iteration (it may raise to stop the fit).
     """
     F = _design(Xu, Tu)
     beta, *_ = np.linalg.lstsq(F, y.ravel(), rcond=None)
@@ -298,8 +300,9 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None):
     fun, args = ((_kron_nlml, (Tu, Xu, res, diffs)) if kernels is None else
                  (_kron_nlml_compiled, (Tu, Xu, res, diffs, kernels)))
     for x0 in starts:
-        r = scipy.optimize.minimize(fun, x0, args=args, jac=True,
-                                    method="L-BFGS-B", bounds=list(zip(lo, hi)))
+        r = scipy.optimize.minimize(fun, x0, args=args, jac=True, method="L-BFGS-B",
+                                    bounds=list(zip(lo, hi)),
+                                    callback=None if step is None else (lambda *_: step()))
         if best is None or r.fun < best.fun:
             best = r
     if not lbfgs_converged(best, lo, hi):
@@ -614,7 +617,8 @@ class EmulatorAt:
 
 @single_threaded_blas
 def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
-                 backend: str | None = None) -> Emulator:
+                 backend: str | None = None,
+                 progress: Callable[[float], None] | None = None) -> Emulator:
     """Fit one GP emulator per output from full simulator sweeps.
 
     Parameters
@@ -635,6 +639,9 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
         give the NumPy evaluation's exact bits (:func:`_kron_nlml_compiled`), so the
         fitted emulator is identical on both backends, only faster. Default as
         :func:`mdcore.compiled.resolve_backend`.
+    progress : callable, optional
+        ``progress(fraction)`` after every optimiser iteration; if it raises (e.g.
+        :class:`mdcore.Cancelled`), the fit stops.
 
     Returns
     -------
@@ -656,6 +663,8 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
     Xu = _unit(X, x_lo, x_span)
     Tu = _unit(theta, bounds[:, 0], bounds[:, 1] - bounds[:, 0])
     kernels = compiled.fit_kernels() if compiled.resolve_backend(backend) == "numba" else None
-    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o, kernels)
-                for o in range(y.shape[2]))
+    n_out = y.shape[2]
+    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o, kernels,
+                         None if progress is None else (lambda o=o: progress(o / n_out)))
+                for o in range(n_out))
     return Emulator(X, theta, y, bounds, x_lo, x_span, gps)

@@ -249,14 +249,20 @@ class HistoryMatchProblem:
         I = implausibility(self.z, pred.mean, pred.var, V_o=self.V_o, V_m=self.V_m)
         return Score(combine(I, self.rule), pred.var)
 
-    def implausibility(self, theta, emulator: Emulator) -> np.ndarray:
+    def implausibility(self, theta, emulator: Emulator,
+                       progress: Callable[[float], None] | None = None) -> np.ndarray:
         """Combined implausibility (Eq. 16) of ``theta`` (M, p) under ``emulator``, (M,).
 
         Scored in chunks of θ (:data:`CHUNK_VALUES`): memory stays bounded for any M.
+        ``progress(fraction)`` is called before each chunk (it may raise to stop).
         """
         theta = np.atleast_2d(as_float_array(theta, "theta"))
-        return np.concatenate([self.score(theta[rows], emulator).implausibility
-                               for rows in self.chunks(theta.shape[0])] or [np.empty(0)])
+        m, out = theta.shape[0], np.empty(theta.shape[0])
+        for rows in self.chunks(m):
+            if progress is not None:
+                progress(rows.start / m)
+            out[rows] = self.score(theta[rows], emulator).implausibility
+        return out
 
     def chunks(self, m: int) -> list[slice]:
         """Slices of ``m`` θ rows whose emulator predictions at every observed input and
@@ -488,18 +494,21 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                                max_failed_fraction, compiled.resolve_backend(backend))
 
 
-def _in_nroy(problem, waves, theta) -> np.ndarray:
+def _in_nroy(problem, waves, theta, progress=None) -> np.ndarray:
     """Whether each θ (M, p) is inside the box and non-implausible in every wave."""
     b = problem.bounds
     ok = np.all((theta >= b[:, 0]) & (theta <= b[:, 1]), axis=1)
-    for w in waves:
+    for j, w in enumerate(waves):
         idx = np.nonzero(ok)[0]
         if idx.size:
-            ok[idx] = problem.implausibility(theta[idx], w.emulator) <= problem.threshold
+            ok[idx] = problem.implausibility(
+                theta[idx], w.emulator, None if progress is None
+                else (lambda f, j=j: progress((j + f) / len(waves)))) <= problem.threshold
     return ok
 
 
-def _uniform_in_nroy(problem, waves, seeds: np.ndarray, n: int, rng) -> np.ndarray:
+def _uniform_in_nroy(problem, waves, seeds: np.ndarray, n: int, rng,
+                     progress=None) -> np.ndarray:
     """``n`` points uniform in the NROY set of ``waves``, from uniform ``seeds`` (K, p).
 
     Resamples the seeds, then runs ``mcmc_steps`` random-walk Metropolis steps with the
@@ -515,9 +524,11 @@ def _uniform_in_nroy(problem, waves, seeds: np.ndarray, n: int, rng) -> np.ndarr
         cov = np.diag((0.05 * span) ** 2)
     cov = cov + np.diag((1e-6 * span) ** 2)
     chol = np.linalg.cholesky(cov)
-    for _ in range(problem.mcmc_steps):
+    steps = problem.mcmc_steps
+    for k in range(steps):
         prop = theta + rng.standard_normal((n, p)) @ chol.T
-        accept = _in_nroy(problem, waves, prop)
+        accept = _in_nroy(problem, waves, prop, None if progress is None
+                          else (lambda f, k=k: progress((k + f) / steps)))
         theta[accept] = prop[accept]
     return theta
 
@@ -538,12 +549,18 @@ def _maximin(pool: np.ndarray, existing: np.ndarray, n: int, span: np.ndarray, r
 
 
 @single_threaded_blas
-def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
+def next_wave(problem: HistoryMatchProblem, previous: tuple = (),
+              progress: Callable[[float], None] | None = None) -> Wave:
     """Run the wave after ``previous`` (a tuple of :class:`Wave`, possibly empty).
 
     Deterministic given ``problem.seed`` and the wave index, so stepping one wave at a
-    time and running to the end give identical results.
+    time and running to the end give identical results. ``progress(fraction)`` is called
+    between the steps of the emulator fit, of the candidates' random walk and of their
+    scoring; if it raises (e.g. :class:`mdcore.Cancelled`), the wave stops.
     """
+    def stage(lo: float, hi: float):
+        return None if progress is None else (lambda f: progress(lo + (hi - lo) * f))
+
     t0 = time.perf_counter()
     k = len(previous) + 1
     if previous and previous[-1].done:
@@ -575,20 +592,22 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
     new_runs, new_y = new_runs[runs.ok], runs.y
     emulator = fit_emulator(problem.X, np.vstack([old_theta, new_runs]),
                             np.concatenate([old_y, new_y]), problem.bounds, seed=rng,
-                            backend=problem.backend)
+                            backend=problem.backend, progress=stage(0.1, 0.4))
     if k == 1:
         candidates = problem.bounds[:, 0] + span * rng.uniform(size=(problem.n_candidates,
                                                                       problem.p))
         base_fraction = 1.0
     else:
         candidates = _uniform_in_nroy(problem, previous, previous[-1].nroy,
-                                      problem.n_candidates, rng)
+                                      problem.n_candidates, rng, stage(0.4, 0.7))
         base_fraction = previous[-1].nroy_fraction
     # Scored in chunks (bounded memory): each chunk's largest emulator variance at its
     # retained rows, then the largest over the chunks (a maximum: the same values).
     I = np.empty(candidates.shape[0])
     chunk_max = []
     for rows in problem.chunks(candidates.shape[0]):
+        if progress is not None:
+            progress(0.7 + 0.3 * rows.start / candidates.shape[0])
         I[rows], var = problem.score(candidates[rows], emulator)
         kept = I[rows] <= problem.threshold
         if np.any(kept):
@@ -681,11 +700,13 @@ class HistoryMatchResult:
                              f"received {theta.shape}.")
         return _in_nroy(self.problem, self.waves, theta)
 
-    def nroy_samples(self, n: int, seed=None) -> np.ndarray:
+    def nroy_samples(self, n: int, seed=None,
+                     progress: Callable[[float], None] | None = None) -> np.ndarray:
         """``n`` samples of θ, uniform in the final NROY set, shape (n, p).
 
         These are not the posterior draws (see :meth:`posterior_samples`): the NROY set is
-        the support of the posterior, and these samples fill it evenly.
+        the support of the posterior, and these samples fill it evenly. ``progress`` as in
+        :func:`next_wave`.
 
         Raises
         ------
@@ -697,9 +718,10 @@ class HistoryMatchResult:
         if last.nroy.shape[0] == 0:
             raise ValueError(f"no θ samples: {last.message}")
         return _uniform_in_nroy(self.problem, self.waves, last.nroy, n,
-                                np.random.default_rng(seed))
+                                np.random.default_rng(seed), progress)
 
-    def posterior_samples(self, n: int, seed=None) -> np.ndarray:
+    def posterior_samples(self, n: int, seed=None,
+                          progress: Callable[[float], None] | None = None) -> np.ndarray:
         """``n`` samples of θ from the posterior ``p(θ | z)`` restricted to NROY, (n, p).
 
         Sampling-importance-resampling: a pool of ``max(20 n, 20,000)`` uniform NROY
@@ -710,6 +732,7 @@ class HistoryMatchResult:
 
         With an integer ``seed`` the draws are kept (a few, the newest) and a repeated call
         returns a copy of them: scenarios 2 and 3 of one run ask for the same θ^(j).
+        ``progress`` as in :func:`next_wave`.
         """
         n = as_int(n, "n", 1, MAX_CANDIDATES // 20)
         key = (n, int(seed)) if isinstance(seed, (int, np.integer)) \
@@ -718,8 +741,10 @@ class HistoryMatchResult:
         if key is not None and key in memo:
             return memo[key].copy()
         rng = np.random.default_rng(seed)
-        pool = self.nroy_samples(max(20 * n, 20_000), seed=rng)
-        ll = self.log_likelihood(pool)
+        pool = self.nroy_samples(max(20 * n, 20_000), seed=rng, progress=None if progress
+                                 is None else (lambda f: progress(0.8 * f)))
+        ll = self.log_likelihood(pool, None if progress is None
+                                 else (lambda f: progress(0.8 + 0.2 * f)))
         w = np.exp(ll - scipy.special.logsumexp(ll))
         draws = pool[rng.choice(pool.shape[0], size=n, p=w / w.sum())]
         if key is not None:
@@ -733,16 +758,19 @@ class HistoryMatchResult:
         """(n, seed) -> the draws of :meth:`posterior_samples` (the newest few)."""
         return {}
 
-    def log_likelihood(self, theta) -> np.ndarray:
+    def log_likelihood(self, theta,
+                       progress: Callable[[float], None] | None = None) -> np.ndarray:
         """Gaussian log-likelihood behind the implausibility measure, shape (M,).
 
         ``log p(z | θ) = −½ Σ_i [(z_i − E[y_i(θ)])² / s_i² + log 2π s_i²]``,
         ``s_i² = V_o,i + V_m,i + V[y_i(θ)]``, with the final wave's emulator: the model that
-        Eq. 16 standardises by. θ (M, p) -> (M,).
+        Eq. 16 standardises by. θ (M, p) -> (M,). ``progress`` as in :func:`next_wave`.
         """
         theta = np.atleast_2d(as_float_array(theta, "theta"))
         out = np.empty(theta.shape[0])
         for rows in self.problem.chunks(theta.shape[0]):      # bounded memory
+            if progress is not None:
+                progress(rows.start / theta.shape[0])
             # NumPy on every backend: theta_map's Nelder–Mead turns 1e-16 changes of this
             # into ~1e-7 changes of θ_MAP, and θ_MAP must not depend on the backend.
             pred = self.waves[-1].emulator.predict(self.problem.X, theta[rows],
@@ -762,8 +790,21 @@ class HistoryMatchResult:
         non-implausible. (The mode of the NROY samples' density would not do: the samples
         are uniform on NROY, so their density has no informative mode.)
         """
-        theta = self.nroy_samples(2000, seed=[self.problem.seed, 10_000])
-        ll = self.log_likelihood(theta)
+        return self._find_theta_map()
+
+    def compute_theta_map(self, progress: Callable[[float], None] | None = None) -> np.ndarray:
+        """:attr:`theta_map`, found now unless it was already; ``progress`` as in
+        :func:`next_wave` (if it raises, nothing is kept)."""
+        if "theta_map" not in self.__dict__:                  # the cached_property's slot
+            self.__dict__["theta_map"] = self._find_theta_map(progress)
+        return self.theta_map
+
+    def _find_theta_map(self, progress=None) -> np.ndarray:
+        def stage(lo, hi):
+            return None if progress is None else (lambda f: progress(lo + (hi - lo) * f))
+
+        theta = self.nroy_samples(2000, seed=[self.problem.seed, 10_000], progress=stage(0, 0.4))
+        ll = self.log_likelihood(theta, stage(0.4, 0.5))
         start = theta[int(np.argmax(ll))]
         b = self.problem.bounds
         span = b[:, 1] - b[:, 0]
@@ -773,7 +814,9 @@ class HistoryMatchResult:
 
         res = scipy.optimize.minimize(objective, (start - b[:, 0]) / span, method="Nelder-Mead",
                                       bounds=[(0.0, 1.0)] * self.problem.p,
-                                      options=dict(xatol=1e-6, fatol=1e-9))
+                                      options=dict(xatol=1e-6, fatol=1e-9),
+                                      callback=None if progress is None
+                                      else (lambda *_: progress(0.5)))
         best = b[:, 0] + span * res.x
         if -res.fun > ll.max() and self.contains(best)[0]:
             return best

@@ -124,14 +124,18 @@ def lbfgs_advice(res: scipy.optimize.OptimizeResult, iterations: str | None = No
 
 
 def _qpso(objective: Callable, lo: np.ndarray, hi: np.ndarray, rng, n_particles: int,
-          n_iterations: int):
-    """Quantum-behaved PSO (Sun et al. 2004, SPEC §3); returns (best x, best f, evals)."""
+          n_iterations: int, step: Callable[[float], None] | None = None):
+    """Quantum-behaved PSO (Sun et al. 2004, SPEC §3); returns (best x, best f, evals).
+
+    ``step(fraction)`` is called before every iteration (it may raise to stop)."""
     P = lo.size
     x = lo + (hi - lo) * rng.uniform(size=(n_particles, P))
     f = objective(x)
     pbest, pf = x.copy(), f.copy()
     g = int(np.argmin(pf))
     for t in range(n_iterations):
+        if step is not None:
+            step(t / n_iterations)
         beta = 1.0 - 0.5 * t / max(n_iterations - 1, 1)  # contraction 1.0 -> 0.5
         mbest = pbest.mean(axis=0)
         phi = rng.uniform(size=(n_particles, P))
@@ -150,7 +154,8 @@ def _qpso(objective: Callable, lo: np.ndarray, hi: np.ndarray, rng, n_particles:
 def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, bounds=None,
                         method: str = "qpso", seed=None, n_particles: int = 40,
                         n_iterations: int = QPSO_ITERATIONS, n_starts: int = 8,
-                        polish: bool = True, maxiter: int = 15_000) -> HyperFit:
+                        polish: bool = True, maxiter: int = 15_000,
+                        progress: Callable[[float], None] | None = None) -> HyperFit:
     """Empirical Bayes (Eq. 8): minimise the NLML over the log hyperparameters.
 
     With ``log_prior`` the objective is ``NLML − log p(φ)`` (MAP) instead.
@@ -173,6 +178,9 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
         Same seed, same result.
     maxiter : int, default=15000
         Iterations allowed to each L-BFGS-B run (SciPy's default).
+    progress : callable, optional
+        ``progress(fraction)`` before every swarm iteration and after every L-BFGS-B
+        iteration; if it raises (e.g. :class:`mdcore.Cancelled`), the fit stops.
 
     Returns
     -------
@@ -223,14 +231,18 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
 
     evals, converged, message = 0, False, "no gradient polish (polish=False)"
     if method == "qpso":
-        best, best_f, evals = _qpso(batch_objective, lo, hi, rng, n_particles, n_iterations)
+        best, best_f, evals = _qpso(batch_objective, lo, hi, rng, n_particles, n_iterations,
+                                    None if progress is None else (lambda f: progress(f / 2)))
         starts = [best] if polish else []
     else:
         starts = list(lo + (hi - lo) * rng.uniform(size=(max(int(n_starts), 1), P)))
         best, best_f = starts[0], np.inf
     for i, x0 in enumerate(starts):
+        step = None if progress is None else \
+            (lambda *_, i=i: progress(0.5 + 0.5 * i / len(starts)))
         res = scipy.optimize.minimize(objective_and_grad, x0, jac=True, method="L-BFGS-B",
-                                      bounds=list(zip(lo, hi)), options={"maxiter": maxiter})
+                                      bounds=list(zip(lo, hi)), options={"maxiter": maxiter},
+                                      callback=step)
         evals += int(res.nfev)
         if i == 0 or res.fun < best_f:          # the run that gave (or kept) the result
             converged = lbfgs_converged(res, lo, hi)

@@ -302,9 +302,10 @@ def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
                     np.random.default_rng(seed))
 
 
-def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
+def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
     """:func:`fit_phi` from the emulator moments at the prior draws, which stay fixed
-    during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N, N)."""
+    during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N, N). ``progress(f)``
+    after every L-BFGS-B iteration (it may raise to stop the fit)."""
     N, d_x = X.shape
     n_out = z.shape[1]
     P = 2 + d_x
@@ -317,9 +318,10 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
     starts[0] = np.clip(np.tile(phi_prior.mean, n_out), lo, hi) if phi_prior is not None \
         else 0.5 * (lo + hi)
     best = None
-    for x0 in starts:
+    for k, x0 in enumerate(starts):
+        step = None if progress is None else (lambda *_, k=k: progress(k / n_starts))
         res = scipy.optimize.minimize(objective, x0, jac=True, method="L-BFGS-B",
-                                      bounds=list(zip(lo, hi)))
+                                      bounds=list(zip(lo, hi)), callback=step)
         if best is None or res.fun < best.fun:
             best = res
     log.warn("KOH empirical Bayes")
@@ -549,7 +551,9 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
     draws = prior.sample_in(bounds, n_theta_eb, seed=rng)
     mean, cov = at.moments_at(at.theta_terms(draws))     # for φ̂ and the starting point
     if log_phi is None:
-        log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng)
+        log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng,
+                                         None if progress is None
+                                         else (lambda f: progress(0.05 * f)))
     else:
         log_phi, log_evidence = _log_phi(log_phi, n_out, d_x), None
     seconds_phi = time.perf_counter() - start

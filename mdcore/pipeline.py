@@ -577,11 +577,12 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
                           burn_in=settings.burn_in, seed=seed, backend=settings.backend,
                           progress=stage(0.0, 0.9, "KOH: φ̂ and the θ chain"))
     else:
-        theta = hm.posterior_samples(settings.n_s, seed=seed) if method is not Method.S1 \
-            else None
+        theta_map = hm.compute_theta_map(stage(0.0, 0.0, f"{method.label}: θ_MAP"))
+        theta = hm.posterior_samples(settings.n_s, seed=seed, progress=stage(
+            0.0, 0.0, f"{method.label}: θ draws")) if method is not Method.S1 else None
         model = infer_discrepancy(
             case.simulate, theta, case.X_train, case.z_train, scenario=method.scenario,
-            theta_map=hm.theta_map, n_phi=settings.n_phi, phi_prior=case.phi_prior, seed=seed,
+            theta_map=theta_map, n_phi=settings.n_phi, phi_prior=case.phi_prior, seed=seed,
             log_params_hat=log_params_hat if method is Method.S2 else None,
             fit_options={"n_iterations": settings.fit_iterations},
             prune=settings.prune, proposal=settings.proposal, backend=settings.backend,

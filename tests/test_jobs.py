@@ -325,11 +325,11 @@ def test_state_runtime_error_in_a_later_wave_restores_waves_and_status(monkeypat
     before, n = _fields(s), s.n_errors
     real, calls = state_module.next_wave, []
 
-    def failing(problem, waves):
+    def failing(problem, waves, progress=None):
         calls.append(len(waves))
         if len(calls) == 2:
             raise RuntimeError("simulator crashed")
-        return real(problem, waves)
+        return real(problem, waves, progress)
 
     monkeypatch.setattr(state_module, "next_wave", failing)
     s.run_to_convergence()                             # wave 2 is applied, wave 3 fails

@@ -123,7 +123,10 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
         _local_style_sheets(doc)
         doc.template = PAGE_TEMPLATE
         # A closed tab stops its running job: nobody will see the result, and the CPU is
-        # shared by every session of the server.
+        # shared by every session of the server. The page's websocket closing says so at
+        # once (Bokeh ends the session itself only after its unused lifetime, 15-32 s by
+        # default); the session stays for a reconnect, idle.
+        doc.on_event("connection_lost", lambda _event: state.cancel())
         doc.on_session_destroyed(lambda _context: state.jobs.close())
         if session_pool.install():                # the server's first session
             context = doc.session_context         # build the next visitor's page ahead

@@ -420,14 +420,21 @@ class ExplorerState(param.Parameterized):
         ``stop(wave)`` says when to end after ``wave`` (converged waves always end).
         """
         total = max(problem.max_waves - len(waves), 1)
-        report(0.0, f"wave {len(waves) + 1}")
+        first = len(waves)
+        report(0.0, f"wave {first + 1}")
         while True:
-            wave = next_wave(problem, waves)
+            k = len(waves)            # the wave's steps report (and check Cancel) as it runs
+            wave = next_wave(problem, waves, progress=lambda f, k=k: report(
+                min(1.0, (k - first + f) / total), f"wave {k + 1}"))
             if wave.status == "ruled_out":
                 raise ValueError(wave.message + " The previous waves are kept.")
             waves = waves + (wave,)
+            # θ_MAP here, where Cancel reaches it, not when the views first draw it on the
+            # session's thread (seconds for a large upload).
+            self._history_match_of(problem, waves).compute_theta_map(
+                lambda f, k=k: report(min(1.0, (k - first + 1) / total), f"wave {k + 1}: θ_MAP"))
             maps = self._implausibility_map(problem, wave)
-            report(min(1.0, len(waves) / total), f"wave {wave.index} done")
+            report(min(1.0, (len(waves) - first) / total), f"wave {wave.index} done")
             yield "wave", (problem, key, waves, wave.index, maps)
             if wave.done or stop(wave):
                 return

@@ -38,7 +38,8 @@ from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
 #: A job's progress bar and Cancel button appear once it has run this long (seconds), so
-#: that runs at the default sizes (a fraction of a second) do not flash them.
+#: that runs at the default sizes (a fraction of a second) do not flash them; then they
+#: stay until it ends, whether or not it reports progress (a long wave may not).
 SHOW_PROGRESS_AFTER = 0.5
 #: Height of the busy line (two lines of text), fixed so that a new message never
 #: changes the page's layout.
@@ -299,6 +300,9 @@ class ExplorerView(pn.viewable.Viewer):
                 since[0] = None
             elif since[0] is None:
                 since[0] = time.monotonic()
+                doc = pn.state.curdoc            # look again then, progress or not
+                if doc is not None and doc.session_context is not None:
+                    doc.add_timeout_callback(update, int(1000 * SHOW_PROGRESS_AFTER) + 20)
             show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
             text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
             styles = dict(SHOWN if show else HIDDEN)

@@ -10,6 +10,7 @@ its results back to the session's event loop.
 
 import argparse
 import gc
+import logging
 import sys
 from functools import partial
 from pathlib import Path
@@ -20,10 +21,12 @@ from bokeh.core.property.validation import validate
 from bokeh.settings import settings
 from panel.io.resources import LOCAL_DIST
 from panel.io.state import set_curdoc
+from tornado.ioloop import IOLoop
 
 from mdcore import compiled, threads
 from mdcore.case_file import load_case_file
-from mdcore_app import session_pool
+from mdcore_app import network, session_pool
+from mdcore_app.markup import markdown_text
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 
@@ -77,18 +80,43 @@ PAGE_TEMPLATE = (
     "{% block postamble %}{{ super() }}<script>{% raw %}"
     + Path(__file__).with_name("legend_resize.js").read_text()
     + "{% endraw %}</script>{% endblock %}")
+log = logging.getLogger("mdcore_app")
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.
 compiled.warm_up_in_background()
 
 
-def case_files(argv: list[str]) -> list[Path]:
-    """The ``--case`` files given after ``panel serve app/main.py --args``."""
+def app_args(argv: list[str]) -> argparse.Namespace:
+    """The options given after ``panel serve app/main.py --args``."""
     parser = argparse.ArgumentParser(prog="panel serve app/main.py --args")
     parser.add_argument("--case", action="append", default=[], type=Path,
                         help="a TOML case file to add to the case list (repeatable)")
-    return parser.parse_args(argv).case
+    parser.add_argument(network.OPT_IN, action="store_true",
+                        help="serve other machines too (with panel serve --address 0.0.0.0); "
+                             "by default the app refuses any but this one")
+    return parser.parse_args(argv)
+
+
+def refusal(doc, allow_remote: bool) -> str | None:
+    """Why this session's request is refused (:mod:`mdcore_app.network`), or None. The
+    first session of a server also checks where the server listens; a server that
+    answers beyond this machine stops (its log says why), unless ``allow_remote``."""
+    if allow_remote:
+        return None
+    request = doc.session_context.request
+    why = network.request_refusal(request)
+    if why is None:
+        if "mdcore-binding" not in pn.state.cache:
+            pn.state.cache["mdcore-binding"] = network.binding_refusal(network.port_of(request))
+        why = pn.state.cache["mdcore-binding"]
+        if why is not None:                      # stop once the page shows why
+            loop = IOLoop.current()
+            doc.on_event("document_ready", lambda _event: loop.call_later(0.5, loop.stop))
+            loop.call_later(10.0, loop.stop)
+    if why is not None:
+        log.error("mdcore: %s", why)
+    return why
 
 
 def own_cases(paths: list[Path]):
@@ -115,7 +143,13 @@ def own_cases(paths: list[Path]):
 def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
     """Build one session's page (state + view) for the current Bokeh document."""
     doc = pn.state.curdoc
-    cases, errors = own_cases(case_files(sys.argv[1:] if argv is None else argv))
+    args = app_args(sys.argv[1:] if argv is None else argv)
+    if doc is not None and doc.session_context is not None:
+        why = refusal(doc, args.allow_remote)
+        if why is not None:
+            return pn.pane.Alert(markdown_text(why), alert_type="danger",
+                                 css_classes=["mdcore-refused"], sizing_mode="stretch_width")
+    cases, errors = own_cases(args.case)
     state = ExplorerState(background=doc is not None and doc.session_context is not None,
                           schedule=_scheduler(doc), own_cases=tuple(cases))
     view = ExplorerView(state=state)

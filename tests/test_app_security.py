@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from browser import PageLog, chromium, require_browser, serve_app, tab
+from browser import CHROMIUM, FLAGS, PageLog, chromium, require_browser, serve_app, tab
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 #: Markup that runs script wherever it is rendered as HTML: a handler on a broken image.
@@ -356,3 +356,129 @@ def test_uploads_through_the_page_chunked_again_and_over_the_limits(browser, ser
     assert log.errors == [], log.errors
     assert "Traceback" not in server_log.text(), server_log.text()[-3000:]
     page.close()
+
+
+# --------------------------------------------------------------------------------------
+# Who may use the app (app/network.py)
+
+
+def websocket_handshake(port: int, origin: str) -> int:
+    """The HTTP status of a websocket handshake with the app at ``port`` sent with
+    ``origin`` (101: switched to the websocket)."""
+    import os
+    import socket
+
+    from bokeh.util.token import generate_jwt_token, generate_session_id
+    token = generate_jwt_token(generate_session_id())
+    request = (f"GET /main/ws HTTP/1.1\r\nHost: 127.0.0.1:{port}\r\nUpgrade: websocket\r\n"
+               "Connection: Upgrade\r\nSec-WebSocket-Version: 13\r\n"
+               f"Sec-WebSocket-Key: {base64.b64encode(os.urandom(16)).decode()}\r\n"
+               f"Sec-WebSocket-Protocol: bokeh, {token}\r\nOrigin: {origin}\r\n\r\n")
+    with socket.create_connection(("127.0.0.1", port), timeout=30) as s:
+        s.sendall(request.encode())
+        return int(s.recv(4096).split(b"\r\n", 1)[0].split()[1])
+
+
+def test_a_forged_websocket_origin_is_refused(server):
+    """A websocket whose Origin is another site (a page elsewhere that talks to the app)
+    gets 403; the app's own page origin is accepted."""
+    from urllib.parse import urlparse
+    url, _log = server
+    port = urlparse(url).port
+    for origin in (f"http://evil.example:{port}", "http://evil.example",
+                   f"http://localhost.evil.example:{port}", "null"):
+        assert websocket_handshake(port, origin) == 403, origin
+    assert websocket_handshake(port, f"http://127.0.0.1:{port}") == 101
+
+
+def test_a_page_for_another_host_name_gets_no_app(browser, tmp_path):
+    """DNS rebinding: a page at http://evil.example:PORT whose name resolves to this
+    machine. Even when the websocket origin is let through (a careless
+    --allow-websocket-origin), the app refuses the session: the page shows the refusal,
+    not the app."""
+    proc, url, log = serve_app(options=(
+        "--address", "127.0.0.1", "--allow-websocket-origin", "127.0.0.1:{port}",
+        "--allow-websocket-origin", "evil.example:{port}"))
+    try:
+        evil = url.replace("127.0.0.1", "evil.example")
+        chrome = browser.browser_type.launch(executable_path=CHROMIUM, args=[
+            *FLAGS, "--host-resolver-rules=MAP evil.example 127.0.0.1"])
+        try:
+            page = chrome.new_page(viewport={"width": 1280, "height": 720})
+            page.goto(evil)
+            refused = page.locator(".mdcore-refused")
+            refused.wait_for(timeout=60_000)
+            text = refused.locator("p").inner_text()
+            assert "Refused a request for the host 'evil.example'" in text, text
+            assert "--address 127.0.0.1" in text and "--allow-remote" in text
+            assert page.locator(".data-plot").count() == 0
+        finally:
+            chrome.close()
+        assert "Refused a request for the host 'evil.example'" in log.text()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def test_a_server_listening_beyond_this_machine_refuses_and_stops(browser):
+    """panel serve without --address listens on every interface: the first page shows
+    why the app refuses and how to restart (or opt in), the log says the same, and the
+    server stops. With ``--args --allow-remote`` it serves."""
+    from mdcore_app.network import own_addresses
+    if not own_addresses():
+        pytest.skip("this machine has no network address beyond loopback")
+    proc, url, log = serve_app(options=("--allow-websocket-origin", "127.0.0.1:{port}"))
+    try:
+        page = browser.new_page(viewport={"width": 1280, "height": 720})
+        page.goto(url)
+        refused = page.locator(".mdcore-refused")
+        refused.wait_for(timeout=60_000)
+        text = refused.locator("p").inner_text()
+        assert "This server listens beyond this machine" in text, text
+        assert "--address 127.0.0.1" in text and "--allow-remote" in text
+        page.close()
+        proc.wait(timeout=30)                                 # it stopped by itself
+        log.closed.wait(timeout=10)
+        assert "This server listens beyond this machine" in log.text(), log.text()
+    finally:
+        if proc.poll() is None:
+            proc.terminate()
+            proc.wait(timeout=10)
+    proc, url, log = serve_app(args=("--allow-remote",),
+                               options=("--allow-websocket-origin", "127.0.0.1:{port}"))
+    try:
+        page = browser.new_page(viewport={"width": 1280, "height": 720})
+        page.goto(url)
+        page.wait_for_selector(".data-plot canvas", timeout=60_000)
+        assert page.locator(".mdcore-refused").count() == 0 and proc.poll() is None
+        page.close()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+class _Request:
+    def __init__(self, remote_ip="127.0.0.1", **headers):
+        self.remote_ip, self.headers = remote_ip, {k.replace("_", "-"): v
+                                                   for k, v in headers.items()}
+
+
+@pytest.mark.parametrize("request_, refused", [
+    (_Request(Host="127.0.0.1:5006"), None),
+    (_Request(Host="localhost:5006", Origin="http://localhost:5006"), None),
+    (_Request(remote_ip="::1", Host="[::1]:5006", Origin="http://[::1]:5006"), None),
+    (_Request(remote_ip="192.168.1.7", Host="127.0.0.1:5006"), "another machine"),
+    (_Request(Host="evil.example:5006"), "for the host 'evil.example'"),
+    (_Request(Host="127.0.0.1.evil.example:5006"), "which is not this machine"),
+    (_Request(), "for the host '(none)'"),
+    (_Request(Host="127.0.0.1:5006", Origin="http://evil.example:5006"), "another site"),
+    (_Request(Host="127.0.0.1:5006", Origin="http://127.0.0.1:6000"), "another site"),
+], ids=["loopback", "localhost", "ipv6", "remote", "rebinding", "lookalike", "no-host",
+        "cross-site", "other-port"])
+def test_which_requests_the_app_refuses(request_, refused):
+    from mdcore_app.network import request_refusal
+    why = request_refusal(request_)
+    if refused is None:
+        assert why is None, why
+    else:
+        assert refused in why and "--address 127.0.0.1" in why and "--allow-remote" in why

@@ -28,16 +28,12 @@ from mdcore import cases, koh
 from mdcore.case_file import with_measurements
 from mdcore.cases import Case
 from mdcore.history_matching import (
-    MAX_CANDIDATES,
-    MAX_RUNS,
     RULES,
     HistoryMatchResult,
     case_problem,
     next_wave,
 )
 from mdcore.pipeline import (
-    MAX_N_PHI,
-    MAX_N_S,
     PAPER_SIZES,
     Method,
     MethodKey,
@@ -66,8 +62,58 @@ GRID_2D = 20
 #: The columns of the Discrepancy tab, in order: decoupled scenarios 1–3 and the KOH
 #: baseline. The keys are the labels of the scenario buttons.
 METHODS = {"1": Method.S1, "2": Method.S2, "3": Method.S3, "koh": Method.KOH}
-#: KOH chain settings: the app's short chain and the paper's (SPEC §7).
+#: KOH chain settings: the app's short chain and the paper's (SPEC §7); the app runs no
+#: longer chain (the library takes up to mdcore.mcmc.MAX_CHAIN = 10⁸ steps).
 KOH_CHAINS = {"fast": dict(koh.FAST), "paper": {"n_iter": koh.N_ITER, "burn_in": koh.BURN_IN}}
+
+# The app's own limits, tighter than the library's (which only refuse what cannot fit in
+# memory): each keeps one click of one session within about a minute and well under 1 GB on
+# the built-in cases, and the command line (python -m mdcore reproduce / run) takes more.
+#: Candidates per wave (library: 10⁷). A wave scores each at every observed input, in
+#: chunks (memory does not grow), and later waves walk them through the earlier waves.
+APP_MAX_CANDIDATES = 1_000_000
+#: Simulator runs per wave (library: 10⁴). The emulator factorises runs × runs over all
+#: waves so far.
+APP_MAX_RUNS = 100
+#: θ samples and φ per θ (library: 10⁵ each and 10⁸ pairs): at most 10⁶ (θ, φ) pairs, the
+#: paper's largest (beam-2d: 1000 × 1000).
+APP_MAX_N_S = APP_MAX_N_PHI = 1_000
+#: Work of one run of scenario 3 and of KOH, in units of (θ, φ) pairs or chain steps ×
+#: outputs × training rows³ (each pair or step factorises an N × N covariance per output):
+#: beam-2d at the paper's sizes (10⁶ pairs × 64³ = 2.6 × 10¹¹, the paper chain
+#: 150,000 × 64³ = 3.9 × 10¹⁰) is the most a built-in case asks for; an upload with many
+#: training rows reaches these with smaller N_s × N_φ or the fast chain.
+MAX_S3_WORK, MAX_KOH_WORK = 1e12, 4e10
+#: What the app says when a value is beyond one of its limits.
+APP_LIMITS = {
+    "n_candidates": f"The app scores at most {APP_MAX_CANDIDATES:,} candidates per wave "
+                    "(a wave then takes seconds); the command line takes up to 10,000,000.",
+    "n_runs": f"The app runs at most {APP_MAX_RUNS} simulator runs per wave (its emulator "
+              "factorises all runs × all runs); the command line takes up to 10,000.",
+    "n_s": f"The app takes at most {APP_MAX_N_S:,} θ samples and {APP_MAX_N_PHI:,} φ per θ "
+           "(10⁶ pairs, the paper's largest; a minute or so); the command line takes more.",
+}
+APP_LIMITS["n_phi"] = APP_LIMITS["n_s"]
+
+
+def work_problem(case, settings: Settings, methods) -> str | None:
+    """Why the app will not run ``methods`` on ``case`` with ``settings`` (scenario 3 or
+    KOH beyond :data:`MAX_S3_WORK` / :data:`MAX_KOH_WORK`), or None."""
+    n = case.X_train.shape[0]
+    per = case.n_out * float(n) ** 3
+    if Method.S3 in methods and settings.n_s * settings.n_phi * per > MAX_S3_WORK:
+        most = int(MAX_S3_WORK / per)
+        return (f"Scenario 3 with N_s × N_φ = {settings.n_s * settings.n_phi:,} pairs on "
+                f"{n} training rows × {case.n_out} output(s) is more than the app runs in "
+                f"one go (minutes to hours): every pair factorises a {n} × {n} covariance. "
+                f"Lower N_s × N_φ to at most {most:,}, or run it from the command line.")
+    if Method.KOH in methods and settings.n_iter * per > MAX_KOH_WORK:
+        return (f"KOH with a {settings.n_iter:,}-step chain on {n} training rows × "
+                f"{case.n_out} output(s) is more than the app runs in one go (minutes to "
+                f"hours): every step factorises a {n} × {n} covariance. Choose the fast "
+                "chain, fewer training rows, or run it from the command line "
+                "(python -m mdcore run … --methods koh).")
+    return None
 
 
 def method_order(method: Method) -> int:
@@ -178,8 +224,8 @@ class ExplorerState(param.Parameterized):
     threshold = param.Number(default=3.0, bounds=(0.0, 1e6), inclusive_bounds=(False, True),
                              softbounds=(1.0, 5.0), label="Threshold T")
     rule = param.Selector(objects=list(RULES), default="max", label="Implausibility rule")
-    n_runs = param.Integer(default=10, bounds=(1, MAX_RUNS), label="Runs per wave")
-    n_candidates = param.Integer(default=50_000, bounds=(100, MAX_CANDIDATES),
+    n_runs = param.Integer(default=10, bounds=(1, APP_MAX_RUNS), label="Runs per wave")
+    n_candidates = param.Integer(default=50_000, bounds=(100, APP_MAX_CANDIDATES),
                                  label="Candidates per wave")
     max_waves = param.Integer(default=5, bounds=(1, 20), label="Max waves")
     convergence_ratio = param.Number(
@@ -189,8 +235,9 @@ class ExplorerState(param.Parameterized):
     selected_wave = param.Integer(default=0, bounds=(0, None), label="Wave shown")
 
     # --- discrepancy controls ----------------------------------------------------------
-    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, MAX_N_S), label="N_s (θ samples)")
-    n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, MAX_N_PHI), label="N_φ (φ per θ)")
+    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, APP_MAX_N_S), label="N_s (θ samples)")
+    n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, APP_MAX_N_PHI),
+                          label="N_φ (φ per θ)")
     paper_sizes = param.Boolean(default=False, label="Paper sizes")
     scenarios = param.ListSelector(default=[Method.S1, Method.S2, Method.S3],
                                    objects=METHODS, label="Scenarios",
@@ -296,7 +343,7 @@ class ExplorerState(param.Parameterized):
             self.grid = plotting_grid(case)
             self.v_m = float(case.V_m[0])
             self._apply_preset()
-            self.n_candidates = 50_000 * case.p
+            self.n_candidates = min(50_000 * case.p, APP_MAX_CANDIDATES)
             if case.d_x == 2:
                 self.param.slice_x2.bounds = (float(case.X_train[:, 1].min()),
                                               float(case.X_train[:, 1].max()))
@@ -380,10 +427,16 @@ class ExplorerState(param.Parameterized):
                           results=snap.results)
 
     def reject(self, name: str, value, reason: Exception) -> None:
-        """Report a typed value the parameter ``name`` refused (the field reverts)."""
+        """Report a typed value the parameter ``name`` refused (the field reverts); for the
+        app's own limits (:data:`APP_LIMITS`), the range and why."""
         p = self.param[name]
-        self.report_error(f"{p.label}: {value!r} is not allowed ({reason}). The field keeps "
-                           f"{getattr(self, name)!r}.")
+        if name in APP_LIMITS and isinstance(value, int) and not isinstance(value, bool) \
+                and value > p.bounds[1]:
+            why = (f"{p.label}: {value:,} is not allowed (at most {p.bounds[1]:,}: "
+                   f"{APP_LIMITS[name].rstrip('.')}).")
+        else:
+            why = f"{p.label}: {value!r} is not allowed ({reason})."
+        self.report_error(f"{why} The field keeps {getattr(self, name)!r}.")
 
     def report_error(self, message: str) -> None:
         """Show ``message`` as one error notification."""
@@ -613,8 +666,12 @@ class ExplorerState(param.Parameterized):
             waves = waves[:n_waves]              # each wave depends only on the earlier ones
         target = n_waves if n_waves is not None else (len(waves) or None)
 
+        too_much = work_problem(case, settings, chosen)
+
         def compute(report, cancel):
             nonlocal waves
+            if too_much is not None:
+                raise ValueError(too_much)
             if target is None:
                 yield "note", ("No history match for these settings yet: running the waves "
                                "until convergence, then the discrepancy methods.")
@@ -757,9 +814,10 @@ class ExplorerState(param.Parameterized):
                 try:
                     setattr(state, k, v)
                 except ValueError as exc:                # the parameter's own bounds or choices
+                    why = f" {APP_LIMITS[k]}" if k in APP_LIMITS else ""
                     raise session.SessionError([
                         f"{filename}: controls.{k} = {v!r} is not allowed for "
-                        f"{state.param[k].label} ({exc})."]) from None
+                        f"{state.param[k].label} ({exc}).{why}"]) from None
         finally:
             state._restoring = False
         return state.method_settings()

@@ -338,3 +338,70 @@ def test_a_refused_session_leaves_no_case_behind():
     assert len(seen) == 1 and "N_φ" in seen[0]
     assert list(s.param.case_name.objects) == objects and s.case_name == "beam-1d"
     assert s.waves is waves
+
+
+# ---------------------------------------------------------------------------------------
+# The app's own limits, tighter than the library's (issue 40 item 11)
+
+
+@pytest.mark.parametrize("name, value, words", [
+    ("n_candidates", 1_000_001, "at most 1,000,000 candidates per wave"),
+    ("n_candidates", 10_000_000, "the command line takes up to 10,000,000"),
+    ("n_runs", 101, "at most 100 simulator runs per wave"),
+    ("n_s", 1_001, "at most 1,000 θ samples and 1,000 φ per θ"),
+    ("n_phi", 100_000, "10⁶ pairs"),
+])
+def test_the_app_refuses_more_work_than_its_limits_and_says_why(name, value, words):
+    """The fields refuse values beyond the app's limits (the library takes 10⁷ candidates,
+    10⁴ runs, 10⁵ × 10⁵ pairs) with a notification that says the limit and why; the
+    session keeps its value. The limits themselves are accepted."""
+    from mdcore_app.state import APP_MAX_CANDIDATES, APP_MAX_N_PHI, APP_MAX_N_S, KOH_CHAINS
+    s = ExplorerState()
+    view = ExplorerView(state=s)
+    fields = {w.label: w for w in view._controls().select(pn.widgets.Widget)
+              if hasattr(w, "label")}
+    field = fields[s.param[name].label]
+    before = getattr(s, name)
+    seen = errors_of(s)
+    field.value = value
+    assert getattr(s, name) == before and field.value == before
+    assert len(seen) == 1 and words in seen[0] and f"{value:,} is not allowed" in seen[0]
+    s.param.update(n_candidates=APP_MAX_CANDIDATES, n_s=APP_MAX_N_S, n_phi=APP_MAX_N_PHI)
+    assert max(c["n_iter"] for c in KOH_CHAINS.values()) <= 150_000 < 10**8
+
+
+def test_a_session_file_beyond_the_app_limits_is_refused():
+    doc = good_doc()
+    doc["controls"]["n_candidates"] = 10_000_000         # the library's limit
+    s = small_state()
+    seen = errors_of(s)
+    assert not s.open_session(json.dumps(doc).encode(), "big.json")
+    assert len(seen) == 1 and "at most 1,000,000 candidates per wave" in seen[0]
+
+
+def test_scenario_3_and_koh_on_many_training_rows_are_refused_before_they_run():
+    """Each (θ, φ) pair of scenario 3 and each step of the KOH chain factorises an N × N
+    covariance per output: on 300 training rows, the app refuses what would take it
+    minutes to hours, at once and with what to change; the built-in cases run at the
+    paper's sizes and chain."""
+    from mdcore_app.state import work_problem
+    lines = ["crack location,tip deflection,test"]
+    rng = np.random.default_rng(0)
+    lines += [f"{x:.6f},{1.0 + 0.01 * rng.standard_normal():.6f},0"
+              for x in np.linspace(0.1, 0.5, 300)]
+    lines += ["0.3,1.0,1"]
+    s = small_state()
+    assert s.upload_measurements(("\n".join(lines) + "\n").encode(), "many.csv")
+    seen = errors_of(s)
+    s.scenarios, s.koh_chain = [Method.KOH], "paper"
+    s.run_discrepancy()
+    assert len(seen) == 1 and "KOH with a 150,000-step chain on 300 training rows" in seen[0]
+    assert "fast chain" in seen[0] and s.results == {} and not s.busy
+    s.param.update(scenarios=[Method.S3], n_s=1000, n_phi=1000)
+    s.run_discrepancy()
+    assert len(seen) == 2 and "Lower N_s × N_φ to at most 37,037" in seen[1]
+    for name in cases.names():
+        case = cases.load(name)
+        for chain in ("fast", "paper"):
+            big = ExplorerState(case_name=name, koh_chain=chain, paper_sizes=True)
+            assert work_problem(case, big.method_settings(), [Method.S3, Method.KOH]) is None

@@ -376,7 +376,7 @@ def test_state_cancel_stops_a_running_discrepancy_run():
     s.run_to_convergence()
     drain(inbox, timeout=TIMEOUT, until=lambda: len(s.waves) >= 1 and not s.busy)
     s.scenarios = [Method.S3]
-    s.param.update(n_s=200, n_phi=2000)                 # long enough to be cancelled
+    s.param.update(n_s=400, n_phi=1000)                 # long enough to be cancelled
     s.run_discrepancy()
     job = s.jobs.job
     drain(inbox, timeout=TIMEOUT, until=lambda: s.progress > 0 or not s.busy)

@@ -154,7 +154,8 @@ class FileUpload(JSComponent):
             return
         why = self._take(data, name)
         if why:
-            self.param.update(state="rejected", message=f"{name}: not loaded. {why}")
+            said = why if why.startswith(name) else f"{name}: {why}"  # the name once
+            self.param.update(state="rejected", message=f"Not loaded: {said}")
         else:
             self.param.update(state="accepted", message=f"{name}: loaded.")
 

@@ -282,15 +282,17 @@ class ExplorerView(pn.viewable.Viewer):
         change of a size, a visibility or a CSS class re-lays-out the whole page, which
         redraws every plot (0.5–0.8 s each time on 2 cores, several times per run). So the
         line has a fixed height and says busy or idle with a class *inside* its text, and
-        the bar and the Cancel button keep their place, hidden by ``visibility``.
+        the bar and the Cancel button keep their place, hidden by ``visibility``: of their
+        row (Panel's Progress copies its own styles to its bar once, when drawn, so a bar
+        drawn hidden stayed hidden).
         """
         text = pn.pane.HTML(_status_html(False, ""), height=STATUS_HEIGHT,
                             sizing_mode="stretch_width",
                             styles={"overflow": "hidden", "font-size": "0.9em"})
-        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width",
-                                     styles=dict(HIDDEN))
-        cancel = pn.widgets.Button(label="Cancel", color="warning", styles=dict(HIDDEN),
-                                   css_classes=["cancel-job"])
+        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width")
+        cancel = pn.widgets.Button(label="Cancel", color="warning", css_classes=["cancel-job"])
+        row = pn.Row(bar, cancel, sizing_mode="stretch_width", styles=dict(HIDDEN),
+                     css_classes=["job-progress"])
         cancel.on_click(lambda _: self.state.cancel())
         since: list[float | None] = [None]          # when the current job started
 
@@ -306,15 +308,13 @@ class ExplorerView(pn.viewable.Viewer):
             show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
             text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
             styles = dict(SHOWN if show else HIDDEN)
-            if bar.styles != styles:
-                bar.styles = styles
-                cancel.styles = styles
+            if row.styles != styles:
+                row.styles = styles
             bar.value = int(100 * s.progress)
 
         self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
         update()
-        return pn.Column(text, pn.Row(bar, cancel, sizing_mode="stretch_width"),
-                         sizing_mode="stretch_width")
+        return pn.Column(text, row, sizing_mode="stretch_width")
 
     # --- tabs --------------------------------------------------------------------------
     @property

@@ -123,9 +123,9 @@ def large_upload(tmp_path: Path) -> Path:
 
 
 def test_cancel_stops_a_long_wave_and_its_button_shows_during_it(browser, server, tmp_path):
-    """A wave of the largest upload with a million candidates runs for many seconds and
-    reports no progress for long stretches: the Cancel button shows anyway, and pressing
-    it stops the wave's emulator fit, random walk or scoring within 2 s."""
+    """A wave of the largest upload with a million candidates runs for many seconds: the
+    Cancel button and the progress bar show (the bar was drawn hidden and stayed so), and
+    Cancel stops the wave's emulator fit, random walk or scoring within 2 s."""
     proc, url, _log = server
     page, log = open_page(browser, url)
     tab(page, "Files")
@@ -141,6 +141,7 @@ def test_cancel_stops_a_long_wave_and_its_button_shows_during_it(browser, server
     cancel.wait_for(state="visible", timeout=30_000)
     page.wait_for_timeout(1_000)
     assert cancel.is_visible()
+    assert page.locator(".job-progress progress").is_visible()     # the bar too
     busy_then(proc.pid, cancel.click, "a long wave, Cancel")
     wait_idle(page)
     assert log.errors == [], log.errors

@@ -53,7 +53,7 @@ def test_a_file_refused_by_its_taker_says_why():
     upload, taken, _ = area(verdict="line 2: 'x' is not a number.")
     send(upload, b"x,y\n1,x\n")
     assert upload.state == "rejected"
-    assert upload.message == "a.csv: not loaded. line 2: 'x' is not a number."
+    assert upload.message == "Not loaded: a.csv: line 2: 'x' is not a number."
 
 
 def test_a_file_announced_over_the_cap_is_refused_before_any_chunk():

@@ -144,18 +144,18 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
     """Build one session's page (state + view) for the current Bokeh document."""
     doc = pn.state.curdoc
     args = app_args(sys.argv[1:] if argv is None else argv)
-    if doc is not None and doc.session_context is not None:
+    served = doc is not None and doc.session_context is not None
+    if served:
+        _local_style_sheets(doc)
+        doc.template = PAGE_TEMPLATE
         why = refusal(doc, args.allow_remote)
         if why is not None:
             return pn.pane.Alert(markdown_text(why), alert_type="danger",
                                  css_classes=["mdcore-refused"], sizing_mode="stretch_width")
     cases, errors = own_cases(args.case)
-    state = ExplorerState(background=doc is not None and doc.session_context is not None,
-                          schedule=_scheduler(doc), own_cases=tuple(cases))
+    state = ExplorerState(background=served, schedule=_scheduler(doc), own_cases=tuple(cases))
     view = ExplorerView(state=state)
-    if state.background:
-        _local_style_sheets(doc)
-        doc.template = PAGE_TEMPLATE
+    if served:
         # A closed tab stops its running job: nobody will see the result, and the CPU is
         # shared by every session of the server. The page's websocket closing says so at
         # once (Bokeh ends the session itself only after its unused lifetime, 15-32 s by

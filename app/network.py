@@ -110,15 +110,17 @@ def _headers(request) -> dict:
 def request_refusal(request) -> str | None:
     """Why the app refuses the page or websocket ``request`` (a Bokeh session context's
     request: ``remote_ip``, ``headers``), or None: from another machine, for a host that
-    is not this machine (a DNS-rebinding page), or a websocket from another site."""
+    is not this machine (a DNS-rebinding page), or a websocket from another site. A
+    request without a ``Host`` header (not a browser's; and a session built ahead has
+    none) is judged by where it comes from alone."""
     headers = _headers(request)
     host, port = _host_and_port(str(headers.get("host", "")))
     remote = getattr(request, "remote_ip", None)
     if remote and not is_loopback(remote):
         return f"Refused a request from {remote}, another machine. {how_to_restart(port)}"
-    if not is_loopback(host):
-        return (f"Refused a request for the host {host or '(none)'!r}, which is not this "
-                f"machine (127.0.0.1 or localhost). {how_to_restart(port)}")
+    if host and not is_loopback(host):          # a browser always names the host
+        return (f"Refused a request for the host {host!r}, which is not this machine "
+                f"(127.0.0.1 or localhost). {how_to_restart(port)}")
     origin = headers.get("origin")
     if origin and _host_and_port(urlsplit(str(origin)).netloc) != (host, port):
         return (f"Refused a websocket from the page of another site ({origin}). "

@@ -405,6 +405,7 @@ def test_a_page_for_another_host_name_gets_no_app(browser, tmp_path):
             *FLAGS, "--host-resolver-rules=MAP evil.example 127.0.0.1"])
         try:
             page = chrome.new_page(viewport={"width": 1280, "height": 720})
+            page_log = PageLog(page)
             page.goto(evil)
             refused = page.locator(".mdcore-refused")
             refused.wait_for(timeout=60_000)
@@ -412,6 +413,9 @@ def test_a_page_for_another_host_name_gets_no_app(browser, tmp_path):
             assert "Refused a request for the host 'evil.example'" in text, text
             assert "--address 127.0.0.1" in text and "--allow-remote" in text
             assert page.locator(".data-plot").count() == 0
+            page.wait_for_timeout(500)                  # the refusal loads nothing else
+            assert page_log.errors == [] and page_log.hosts == {"evil.example"}, \
+                (page_log.errors, page_log.hosts)
         finally:
             chrome.close()
         assert "Refused a request for the host 'evil.example'" in log.text()
@@ -470,7 +474,7 @@ class _Request:
     (_Request(remote_ip="192.168.1.7", Host="127.0.0.1:5006"), "another machine"),
     (_Request(Host="evil.example:5006"), "for the host 'evil.example'"),
     (_Request(Host="127.0.0.1.evil.example:5006"), "which is not this machine"),
-    (_Request(), "for the host '(none)'"),
+    (_Request(), None),                        # no Host: not a browser, judged by its IP
     (_Request(Host="127.0.0.1:5006", Origin="http://evil.example:5006"), "another site"),
     (_Request(Host="127.0.0.1:5006", Origin="http://127.0.0.1:6000"), "another site"),
 ], ids=["loopback", "localhost", "ipv6", "remote", "rebinding", "lookalike", "no-host",

@@ -19,8 +19,10 @@ import binascii
 from collections.abc import Callable
 from pathlib import Path
 
+import panel as pn
 import param
 from panel.custom import JSComponent
+from panel.io.state import set_curdoc
 
 from .session import megabytes
 
@@ -86,12 +88,31 @@ class FileUpload(JSComponent):
         self._name: str | None = None           # the file being received
         self._size = 0                          # its announced size
         self._buffer = bytearray()
-        self.on_msg(self._received)
+        self.on_msg(self._on_msg)
 
     # --- the browser's messages ---------------------------------------------------------
-    def _received(self, event) -> None:
-        # Panel hands ``on_msg`` callbacks the event (its ``data`` is what the browser sent)
+    def _on_msg(self, event) -> None:
+        # Panel hands ``on_msg`` callbacks the event (its ``data`` is what the browser
+        # sent) outside the Bokeh document's lock; ``take`` changes the app's Bokeh models,
+        # which needs it (Bokeh refused the change otherwise, "we should have the lock when
+        # the document changes", and the session broke). So the message is handled in a
+        # next-tick callback of the document, which holds the lock, in the order the
+        # messages came, and held (as the app's jobs hand back their results: main.py),
+        # so that changes to Panel objects and to Bokeh models reach the page together.
         msg = getattr(event, "data", event)
+        doc = pn.state.curdoc
+        if doc is None or doc.session_context is None:
+            self._received(msg)
+            return
+
+        def handle() -> None:
+            with set_curdoc(doc), pn.io.hold(doc):
+                self._received(msg)
+
+        doc.add_next_tick_callback(handle)
+
+    def _received(self, msg) -> None:
+        """Handle one message of the browser (``upload.js``)."""
         if not isinstance(msg, dict):
             return
         if "start" in msg:

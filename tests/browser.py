@@ -139,3 +139,19 @@ class PageLog:
         url = urlparse(request.url)
         if url.scheme not in ("data", "blob", "about"):
             self.hosts.add(url.hostname)
+
+
+def files_only(page) -> list[str]:
+    """Refuse every request of ``page`` but file:, data: and blob: (a file opened from
+    disk, offline); returns the list the refused addresses are added to."""
+    outside: list[str] = []
+
+    def route(r):
+        if r.request.url.startswith(("file:", "data:", "blob:")):
+            r.continue_()
+        else:
+            outside.append(r.request.url)
+            r.abort()
+
+    page.route("**/*", route)
+    return outside

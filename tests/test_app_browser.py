@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from browser import PageLog, ServerLog, chromium, require_browser, serve_app, tab
+from browser import PageLog, ServerLog, chromium, files_only, require_browser, serve_app, tab
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 ROOT = Path(__file__).resolve().parent.parent
@@ -361,16 +361,7 @@ def assert_offline_report(browser, path, title: str) -> None:
     assert title in text and "Metrics at the test inputs" in text
     assert not re.search(r"<script[^>]+src=", text) and not re.search(r"<link[^>]+href=", text)
     page = browser.new_page(viewport={"width": 1280, "height": 720})
-    log, outside = PageLog(page), []
-
-    def route(r):
-        if r.request.url.startswith(("file:", "data:", "blob:")):
-            r.continue_()
-        else:
-            outside.append(r.request.url)
-            r.abort()
-
-    page.route("**/*", route)
+    log, outside = PageLog(page), files_only(page)
     page.goto(path.as_uri())
     page.wait_for_function("window.Bokeh && Object.keys(Bokeh.index).length > 0",
                            timeout=30_000)

@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("bokeh")
 from bokeh.models import Div, GlyphRenderer, Plot  # noqa: E402
-from browser import CHROMIUM, FLAGS, require_browser  # noqa: E402
+from browser import CHROMIUM, FLAGS, files_only, require_browser  # noqa: E402
 
 from mdcore import cases  # noqa: E402
 from mdcore.pipeline import Settings  # noqa: E402
@@ -54,19 +54,10 @@ def test_report_renders_offline_in_chromium(run, tmp_path):
     require_browser()
     from playwright.sync_api import sync_playwright
     path = write_report(run, tmp_path / "report.html")
-    outside = []
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
         page = browser.new_page(viewport={"width": 1280, "height": 720})
-
-        def route(r):
-            if r.request.url.startswith(("file:", "data:", "blob:")):
-                r.continue_()
-            else:
-                outside.append(r.request.url)
-                r.abort()
-
-        page.route("**/*", route)
+        outside = files_only(page)
         page.goto(path.as_uri())
         page.wait_for_function("window.Bokeh && Object.keys(Bokeh.index).length > 0",
                                timeout=30_000)

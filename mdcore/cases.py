@@ -134,6 +134,13 @@ class Case:
         """Number of calibration parameters."""
         return self.theta_bounds.shape[0]
 
+    def scaled_v_m(self, v_m_1: float) -> np.ndarray:
+        """V_m per output (n_out,) from ``v_m_1`` for output 1: the others scale by
+        ``(z̄_i / z̄_1)²``, so one number sets a discrepancy of the same relative size on every
+        output (the rule of shear-5's default, docs/method.md §5)."""
+        zbar = np.abs(self.z_train.mean(axis=0))
+        return v_m_1 * (zbar / zbar[0]) ** 2
+
     @property
     def d_x(self) -> int:
         """Number of input dimensions."""

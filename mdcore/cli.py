@@ -22,7 +22,7 @@ from .exceptions import LowESSWarning
 from .export import write_tables
 from .history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
 from .koh import BURN_IN, N_ITER
-from .pipeline import Method, Settings
+from .pipeline import Method, Settings, metric_text, metrics_table
 from .reproduce import CaseRun, default_methods, parse_methods, run_methods
 from .study import PAPER, study
 from .validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
@@ -44,9 +44,8 @@ def _v_m(case, values):
     if values is None:
         return None
     v = np.asarray(values, dtype=np.float64)
-    if v.size == 1 and case.n_out > 1:
-        zbar = np.abs(case.z_train.mean(axis=0))
-        return v[0] * (zbar / zbar[0]) ** 2
+    if v.size == 1:
+        return case.scaled_v_m(v[0])
     if v.size != case.n_out:
         raise ValueError(f"--v-m takes 1 value or one per output ({case.n_out} for "
                          f"{case.name}: {', '.join(case.output_names)}); received {v.size}.")
@@ -245,24 +244,12 @@ def _print_run(run, args) -> int:
           f"{100 * hm.nroy_fraction[-1]:.2f} %, θ_MAP: {theta}, truth in NROY: "
           f"{run.truth_in_nroy}\nN_s = {settings.n_s}, N_φ = {settings.n_phi}, seed "
           f"{run.seed}\n")
-    header = ["method", "output", "NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cov z 3σ",
-              "cov δ 3σ", "ESS pairs", "ESS φ", "k̂", "seconds"]
-    rows = []
-    for r in run.results:
-        m, imp = r.metrics, r.importance
-        for o, name in enumerate(case.output_names):
-            def pick(values, spec, o=o):
-                return "—" if values is None else spec.format(values[o])
-            low = imp is not None and imp.low[o]
-            rows.append([r.method.value + ("!" if low else ""), name,
-                         pick(m.nmse_z, "{:.3f}"), pick(m.nmse_delta, "{:.3f}"),
-                         pick(m.rmse_delta, "{:.3g}"), pick(m.mmd, "{:.4f}"),
-                         pick(m.lpl, "{:.1f}"), pick(m.coverage_z_3sd, "{:.2f}"),
-                         pick(m.coverage_delta_3sd, "{:.2f}"),
-                         pick(None if imp is None else imp.ess, "{:,.1f}"),
-                         pick(None if imp is None else imp.ess_phi, "{:.1f}"),
-                         pick(None if imp is None else imp.k_hat, "{:.2f}"),
-                         f"{r.seconds:.2f}"])
+    shown = ("NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cover z ±3σ", "cover δ ±3σ",
+             "ESS pairs", "ESS φ", "k̂", "seconds")
+    header = ["method", "output", *shown]
+    rows = [[row["method"].value + ("!" if row["unreliable"] else ""), row["output"],
+             *(metric_text(c, row[c]) for c in shown)]
+            for row in metrics_table(run.results, case.output_names)]
     print(_table(header, rows))
     for r in run.results:
         if r.chain is not None:
@@ -286,9 +273,19 @@ def _print_run(run, args) -> int:
         for path in write_tables(run, args.csv):
             print(f"wrote {path}")
     if args.out:
-        from mdcore_app.report import write_report  # plotting lives in the app package
-        print(f"wrote {write_report(run, args.out)} (self-contained; opens offline)")
+        print(f"wrote {_report_writer()(run, args.out)} (self-contained; opens offline)")
     return 0
+
+
+def _report_writer():
+    """The HTML report's writer, ``write(run, path) -> path``: plotting is not the core's,
+    so a package registers it under the ``mdcore.report`` entry point (the app does)."""
+    from importlib.metadata import entry_points
+    found = entry_points(group="mdcore.report", name="html")
+    if not found:
+        raise ValueError("--out needs the HTML report of the app package, which is not "
+                         "installed: pip install mdcore (with its app), or leave out --out.")
+    return next(iter(found)).load()
 
 
 def _cmd_study(args) -> int:

@@ -57,7 +57,8 @@ from .validation import as_float_array, as_int, as_seed_int, choose
 
 __all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics",
            "ChainDiagnostics", "MethodResult", "PAPER_SIZES", "MAX_N_S", "MAX_N_PHI",
-           "MAX_PAIRS", "MAX_N_ITER", "MAX_FIT_ITERATIONS", "run_method", "scores", "koh_phi_prior"]
+           "MAX_PAIRS", "MAX_N_ITER", "MAX_FIT_ITERATIONS", "METRIC_COLUMNS", "run_method",
+           "scores", "koh_phi_prior", "metrics_table", "metric_text"]
 
 #: The paper's (N_s, N_φ) per case study (SPEC §6).
 PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
@@ -350,6 +351,52 @@ class MethodResult:
     chain: ChainDiagnostics | None
     warnings: tuple
     seconds: float
+
+
+#: The metrics table's columns after "method" and "output": heading -> how text shows it.
+#: Metrics (docs/method.md §8), then scenario 3's weight diagnostics, then KOH's chain's.
+METRIC_COLUMNS = {
+    "NMSE z %": "{:.3f}", "NMSE δ %": "{:.3f}", "RMSE δ": "{:.3g}", "MMD": "{:.4f}",
+    "LPL": "{:.1f}", "cover z ±2σ": "{:.2f}", "cover z ±3σ": "{:.2f}", "cover δ ±2σ": "{:.2f}",
+    "cover δ ±3σ": "{:.2f}", "ESS pairs": "{:,.1f}", "ESS φ": "{:.1f}", "k̂": "{:.2f}",
+    "acceptance": "{:.3f}", "IAT (max)": "{:.1f}", "chain ESS (min)": "{:,.0f}",
+    "seconds": "{:.2f}"}
+
+
+def metrics_table(results, output_names) -> list[dict]:
+    """The metrics table of the command line, the app and the report: one row per (method,
+    output) of ``results`` (MethodResult, in the order given).
+
+    Each row maps "method" (the :class:`Method`), "output" (its name), "unreliable" (whether its
+    importance weights are, see :attr:`ImportanceDiagnostics.low`) and every
+    :data:`METRIC_COLUMNS` heading to a float, or to None where the number does not apply
+    (δ metrics without a known δ, scenario 3's diagnostics elsewhere, KOH's chain's).
+    """
+    rows = []
+    for r in results:
+        m, imp, chain = r.metrics, r.importance, r.chain
+
+        def at(values, o):
+            return None if values is None else float(values[o])
+
+        for o, name in enumerate(output_names):
+            cells = (m.nmse_z, m.nmse_delta, m.rmse_delta, m.mmd, m.lpl, m.coverage_z_2sd,
+                     m.coverage_z_3sd, m.coverage_delta_2sd, m.coverage_delta_3sd,
+                     *((None,) * 3 if imp is None else (imp.ess, imp.ess_phi, imp.k_hat)))
+            whole = (None,) * 3 if chain is None else (
+                chain.acceptance_rate, max(chain.iat), min(chain.ess))
+            values = [at(v, o) for v in cells] + [None if v is None else float(v)
+                                                  for v in whole] + [float(r.seconds)]
+            rows.append({"method": r.method, "output": name,
+                         "unreliable": imp is not None and imp.low[o],
+                         **dict(zip(METRIC_COLUMNS, values, strict=True))})
+    return rows
+
+
+def metric_text(heading: str, value) -> str:
+    """A :func:`metrics_table` cell as text: its column's format, "—" where it does not
+    apply."""
+    return "—" if value is None else METRIC_COLUMNS[heading].format(value)
 
 
 def scores(case: Case, prediction: DiscrepancyPrediction) -> Metrics:

@@ -1,7 +1,9 @@
 """Entry point of the Model Discrepancy Explorer: ``panel serve app/main.py``.
 
-Your own cases join the built-in ones with ``panel serve app/main.py --args --case
-my_case.toml [--case other.toml ...]`` (TOML case files, see :mod:`mdcore.case_file`).
+Your own cases join the built-in ones with ``panel serve app/main.py --address 127.0.0.1
+--warm --args --case my_case.toml [--case other.toml ...]`` (TOML case files, see
+:mod:`mdcore.case_file`); ``--warm`` loads them when the server starts, not for its first
+visitor.
 
 Each browser session runs this module and gets its own :class:`ExplorerState`, so two
 sessions never see each other's results. Long work runs on a background thread and hands
@@ -12,6 +14,7 @@ import argparse
 import gc
 import logging
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 
@@ -106,9 +109,10 @@ def refusal(doc, allow_remote: bool) -> str | None:
         return None
     request = doc.session_context.request
     why = network.request_refusal(request)
-    if why is None:
+    port = network.port_of(request)          # None for --warm's session: no request yet
+    if why is None and port is not None:
         if "mdcore-binding" not in pn.state.cache:
-            pn.state.cache["mdcore-binding"] = network.binding_refusal(network.port_of(request))
+            pn.state.cache["mdcore-binding"] = network.binding_refusal(port)
         why = pn.state.cache["mdcore-binding"]
         if why is not None:                      # stop once the page shows why
             loop = IOLoop.current()
@@ -119,25 +123,34 @@ def refusal(doc, allow_remote: bool) -> str | None:
     return why
 
 
+#: Seconds one run of a ``--case`` file's simulator may take when the file sets no
+#: ``[simulator] timeout``. It also bounds loading the file (the simulator's import and a
+#: first run), so a simulator that hangs cannot hold up the server.
+CASE_TIMEOUT = 60.0
+
+
 def own_cases(paths: list[Path]):
-    """Load the case files once per server (cached across sessions by path and mtime).
+    """Load the case files once per server (cached by path and mtime), in parallel, each
+    within its simulator's timeout (:data:`CASE_TIMEOUT` by default).
 
     Returns the cases and one error message per file that could not be loaded.
     """
-    loaded, errors = [], []
-    for path in paths:
+    def load(path: Path):
         try:
             key = ("mdcore-case-file", str(path.resolve()), path.stat().st_mtime_ns)
         except OSError:
-            errors.append(f"--case {path}: the file does not exist.")
-            continue
-        try:
-            if key not in pn.state.cache:
-                pn.state.cache[key] = load_case_file(path)
-            loaded.append(pn.state.cache[key])
-        except ValueError as exc:
-            errors.append(f"--case {path}: {exc}")
-    return loaded, errors
+            return f"--case {path}: the file does not exist."
+        if key not in pn.state.cache:             # a refused file is not retried either
+            try:
+                pn.state.cache[key] = load_case_file(path, default_timeout=CASE_TIMEOUT)
+            except ValueError as exc:
+                pn.state.cache[key] = f"--case {path}: {exc}"
+        return pn.state.cache[key]
+
+    with ThreadPoolExecutor(max_workers=max(len(paths), 1)) as pool:
+        loaded = list(pool.map(load, paths))
+    return ([c for c in loaded if not isinstance(c, str)],
+            [c for c in loaded if isinstance(c, str)])
 
 
 def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
@@ -162,8 +175,9 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
         # default); the session stays for a reconnect, idle.
         doc.on_event("connection_lost", lambda _event: state.cancel())
         doc.on_session_destroyed(lambda _context: state.jobs.close())
-        if session_pool.install():                # the server's first session
-            context = doc.session_context         # build the next visitor's page ahead
+        context = doc.session_context             # (--warm's has no server yet)
+        if session_pool.install() and context.server_context is not None:
+            # the server's first session: build the next visitor's page ahead
             session_pool.POOL.refill_later(context.server_context.application_context,
                                            context.request)
     for message in errors:                        # shown once the page is there

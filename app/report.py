@@ -241,6 +241,14 @@ def report_html(run) -> str:
                      title=f"mdcore report: {run.case.name}")
 
 
+def _failures(case, hm) -> str:
+    """The failed simulator runs of every wave (θ and what went wrong), or nothing."""
+    rows = [[w.index, ", ".join(f"{n} = {v:.6g}" for n, v in zip(case.theta_names, f.theta)),
+             f.message] for w in hm.waves for f in w.failures]            # _table escapes
+    return "<h3>Failed simulator runs</h3>" + _table(["wave", "θ", "message"], rows) \
+        if rows else ""
+
+
 def report_layout(run):
     """The report's Bokeh layout: text, tables, and the figures (see :func:`report_html`)."""
     case, hm, s = run.case, run.hm, run.settings
@@ -260,6 +268,7 @@ def report_layout(run):
                  ["wave", "NROY % of box", "runs", "failed runs", "status"],
                  [[w.index, f"{100 * w.nroy_fraction:.3g}", len(w.runs_theta), len(w.failures),
                    w.status] for w in hm.waves])
+             + _failures(case, hm)
              + f"<p>{_esc(hm.message)}</p><p>θ_MAP: {_esc(theta_map)}; truth in NROY: "
                f"{_esc(run.truth_in_nroy)}</p>")
     rows = []

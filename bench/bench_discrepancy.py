@@ -19,7 +19,7 @@ import warnings
 import numpy as np
 
 from mdcore import cases
-from mdcore.discrepancy import infer_discrepancy
+from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
 from mdcore.history_matching import history_match_case
 from mdcore.reproduce import PAPER_SIZES
 
@@ -60,8 +60,9 @@ def main():
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=3,
-                          n_phi=n_phi, phi_prior=case.phi_prior, seed=0)
+            model = infer_discrepancy(
+                case.simulate, theta, case.X_train, case.z_train, scenario=3, seed=0,
+                options=DiscrepancyOptions(n_phi=n_phi, phi_prior=case.phi_prior))
             t1 = time.perf_counter()
             model.predict(case.X_test)
         t2 = time.perf_counter()

@@ -16,7 +16,7 @@ import numpy as np
 
 from mdcore import cases
 from mdcore.history_matching import history_match_case
-from mdcore.koh import gaussian_log_likelihood, infer_koh, noise_cov
+from mdcore.koh import KOHOptions, gaussian_log_likelihood, infer_koh, noise_cov
 from mdcore.linalg import JitterLog
 from mdcore.pipeline import koh_phi_prior
 
@@ -32,8 +32,8 @@ def main():
     em = history_match_case(case, seed=0).waves[-1].emulator
     t0 = time.perf_counter()
     model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
-                  bounds=case.theta_bounds, phi_prior=koh_phi_prior(case),
-                  n_iter=args.n_iter, burn_in=args.burn_in, seed=0)
+                  bounds=case.theta_bounds, seed=0,
+        options=KOHOptions(phi_prior=koh_phi_prior(case), n_iter=args.n_iter, burn_in=args.burn_in))
     t1 = time.perf_counter()
     model.predict(case.X_test)
     t2 = time.perf_counter()

@@ -27,7 +27,9 @@ what was found)::
 
     [simulator]
     function = "my_simulator:deflection" # module:function
-    path = "."                           # optional folder put on sys.path to import it
+    path = "."                           # optional folder to import it from
+    timeout = 60.0                       # optional: seconds one run (one θ) may take;
+                                         # a longer run is stopped and counts as failed
 
     [[parameters]]                       # one table per calibration parameter θ
     name = "E"
@@ -41,6 +43,11 @@ what was found)::
     [history_matching]
     V_m = [0.05]                         # model-discrepancy variance per output (units²)
     initial_design = 20                  # optional: Latin-hypercube runs of wave 1
+    V_m_length = [0.1]                   # optional: correlation length of V_m over the
+                                         # inputs per output, inputs' units (default 0:
+                                         # independent; used by the multivariate rule)
+    V_m_corr = [[1.0]]                   # optional: the outputs' discrepancy correlation
+                                         # matrix, one row per output (default identity)
 
 Examples
 --------
@@ -53,9 +60,8 @@ Examples
 from __future__ import annotations
 
 import dataclasses
-import importlib
+import difflib
 import re
-import sys
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -66,12 +72,16 @@ import scipy.stats
 from .cases import Case, MeasurementsError, parse_measurements, read_measurements
 from .discrepancy import default_phi_prior
 from .priors import ThetaPrior
+from .runs import SimulatorError, SimulatorProcess
+from .validation import as_seed_int, short
 
 __all__ = ["load_case_file", "CaseFileError", "MAX_TRAINING_ROWS", "TEST_COLUMN",
            "measurements_template", "with_measurements"]
 
 #: The column of an uploaded measurements file that marks test rows (1) and training rows (0).
 TEST_COLUMN = "test"
+#: Largest case file read (a case file is a few hundred bytes; its data live in the CSV).
+MAX_CASE_FILE_BYTES = 1_000_000
 #: Most training rows of a case's measurements (case files and uploads; every file also has
 #: at most :data:`mdcore.cases.MAX_ROWS` rows in all). Every discrepancy GP factorises an
 #: N × N matrix of the training rows, per output and per (θ, φ) pair: the work grows as
@@ -79,14 +89,6 @@ TEST_COLUMN = "test"
 #: convergence, then scenarios 1–3) peak at 0.46 GB and take up to 2 minutes (shear-5's
 #: five outputs): ``python bench/bench_upload_limits.py``.
 MAX_TRAINING_ROWS = 300
-
-
-def _check_training_rows(source, n_train: int) -> str | None:
-    """The problem with ``n_train`` training rows, or None."""
-    if n_train <= MAX_TRAINING_ROWS:
-        return None
-    return (f"{source}: {n_train:,} training rows; at most {MAX_TRAINING_ROWS:,} are taken "
-            f"(mark more rows as test rows, keep a subset, or average replicate readings).")
 
 
 class CaseFileError(ValueError):
@@ -101,7 +103,8 @@ class _Reader:
 
     def _fail(self, key: str, expected: str, found: Any) -> CaseFileError:
         key_name = f"[{self.where}] {key}" if self.where else key
-        return CaseFileError(f"{self.path}: {key_name} must be {expected}; found {found!r}.")
+        return CaseFileError(f"{self.path}: {key_name} must be {expected}; found "
+                             f"{short(found)}.")
 
     def has(self, key: str) -> bool:
         return key in self.table
@@ -138,11 +141,17 @@ class _Reader:
         return value
 
     def only(self, *keys: str) -> None:
-        """Refuse keys the format does not know (a misspelt optional key is not ignored)."""
-        unknown = sorted(k for k in self.table if k not in keys)
+        """Refuse keys the format does not know, each with the nearest allowed key."""
+        unknown = [k for k in self.table if k not in keys]
+        if unknown and not self.where and len(unknown) == len(self.table):
+            raise CaseFileError(f"{self.path}: not a case file: none of its top-level keys is "
+                                f"one of {list(keys)} (see examples/beam_lab/beam_lab.toml).")
         if unknown:
             where = f"[{self.where}]" if self.where else "the top level"
-            raise CaseFileError(f"{self.path}: {where} has unknown key(s) {unknown}; the keys "
+            named = "; ".join(short(k) + "".join(
+                f" (did you mean {near!r}?)" for near in difflib.get_close_matches(k, keys, 1))
+                for k in unknown[:5])
+            raise CaseFileError(f"{self.path}: {where} has unknown key(s) {named}; the keys "
                                 f"allowed there are {list(keys)}. Check the spelling.")
 
     def texts(self, key: str, n: int | None = None, default=None) -> tuple[str, ...]:
@@ -167,28 +176,44 @@ class _Reader:
         return np.asarray(value, dtype=np.float64)
 
 
-def _import_simulator(path: Path, spec: str, folder: Path | None):
-    """The function named ``module:function``, importing from ``folder`` if given."""
+def _simulator(path: Path, sim: _Reader) -> SimulatorProcess:
+    """The ``[simulator]`` table's function, to run in a process of its own."""
+    spec = sim.text("function")
     m = re.fullmatch(r"([A-Za-z_][\w.]*):([A-Za-z_]\w*)", spec)
     if m is None:
-        raise CaseFileError(f"{path}: [simulator] function must look like "
-                            f"'package.module:function'; found {spec!r}.")
-    if folder is not None:
-        if not folder.is_dir():
-            raise CaseFileError(f"{path}: [simulator] path {str(folder)!r} is not a folder.")
-        if str(folder) not in sys.path:
-            sys.path.insert(0, str(folder))
-    try:
-        module = importlib.import_module(m.group(1))
-    except Exception as exc:
-        raise CaseFileError(f"{path}: [simulator] function: cannot import module "
-                            f"{m.group(1)!r} ({type(exc).__name__}: {exc}); set [simulator] "
-                            "path to the folder that contains it.") from None
-    fn = getattr(module, m.group(2), None)
-    if not callable(fn):
-        raise CaseFileError(f"{path}: [simulator] function: module {m.group(1)!r} has no "
-                            f"function {m.group(2)!r}.")
-    return fn
+        raise sim._fail("function", "'package.module:function'", spec)
+    folder = (path.parent / sim.text("path")).resolve() if sim.has("path") else None
+    if folder is not None and not folder.is_dir():
+        raise CaseFileError(f"{path}: [simulator] path {str(folder)!r} is not a folder.")
+    return SimulatorProcess(m.group(1), m.group(2), folder)
+
+
+def _split(m, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """X, z and the test-row mask of measurements whose last input column marks test rows:
+    0/1 flags, 3 to :data:`MAX_TRAINING_ROWS` training rows (to fit a GP) and 2 test rows
+    whose outputs differ (the NMSE divides by their variance). Raises MeasurementsError."""
+    flag, column = m.X[:, -1], m.input_names[-1]
+    if not np.all(np.isin(flag, (0.0, 1.0))):
+        bad = flag[~np.isin(flag, (0.0, 1.0))][0]
+        raise MeasurementsError([f"{source}: column {column!r} must be 0 (training row) or 1 "
+                                 f"(test row) in every row; found {float(bad)!r}."])
+    X, z, test = m.X[:, :-1], m.z, flag == 1.0
+    n_train, n_test = int((~test).sum()), int(test.sum())
+    if n_train > MAX_TRAINING_ROWS:
+        raise MeasurementsError([f"{source}: {n_train:,} training rows; at most "
+                                 f"{MAX_TRAINING_ROWS:,} are taken (mark more rows as test "
+                                 "rows, keep a subset, or average replicate readings)."])
+    if n_train < 3 or n_test < 2:
+        raise MeasurementsError([f"{source}: column {column!r} marks {n_train} training row(s) "
+                                 f"(0) and {n_test} test row(s) (1); at least 3 training rows "
+                                 "are needed to fit the discrepancy GP and 2 test rows to score "
+                                 "it. Mark more rows."])
+    flat = [name for name, values in zip(m.output_names, z[test].T) if np.ptp(values) == 0]
+    if flat:
+        raise MeasurementsError([f"{source}: every test row (column {column!r} = 1) has the "
+                                 f"same {flat[0]!r}; the NMSE divides by its variance over "
+                                 f"the test rows, so mark test rows whose {flat[0]} differ."])
+    return X, z, test
 
 
 def _pooled_replicate_var(X: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -199,7 +224,7 @@ def _pooled_replicate_var(X: np.ndarray, z: np.ndarray) -> np.ndarray:
     return np.sum(np.where(dof > 0, var * dof, 0.0), axis=0) / np.sum(dof)
 
 
-def load_case_file(path, *, seed=0) -> Case:
+def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Case:
     """Build a :class:`~mdcore.cases.Case` from a TOML case file (format in the module doc).
 
     Parameters
@@ -208,31 +233,55 @@ def load_case_file(path, *, seed=0) -> Case:
         The case file.
     seed : int or Generator, default=0
         Seeds the Latin-hypercube initial design (the data are read, not drawn).
+    default_timeout : float, optional
+        :attr:`Case.timeout <mdcore.cases.Case>` when the file sets no ``[simulator]
+        timeout`` (None: no limit). It also bounds the trial run at load.
 
     Returns
     -------
     Case
-        ``true_delta`` is unknown (None) for a case read from files.
+        ``true_delta`` is unknown (None) for a case read from files. Its simulator runs in
+        a process of its own (:class:`mdcore.runs.SimulatorProcess`), started here: the
+        simulator's module is imported there, never in this process.
 
     Raises
     ------
     CaseFileError (a ValueError)
         For a missing or malformed file, key, CSV column or value, or a simulator that
-        cannot be imported or returns the wrong shape; the message names the file and key.
+        cannot be imported, fails, times out or returns the wrong shape at the centre of
+        the parameter box; the message names the file and key, and quotes no line of a
+        file that is not a case file or measurements CSV.
     """
     path = Path(path)
+    seed = as_seed_int(seed)
+    if path.is_dir():
+        found = sorted(p.name for p in path.glob("*.toml"))[:5]
+        raise CaseFileError(f"case file {str(path)!r} is a folder; give the TOML case file "
+                            "itself" + (f", e.g. one of {found}." if found else "."))
     if not path.is_file():
         raise CaseFileError(f"case file {str(path)!r} does not exist.")
+    if path.stat().st_size > MAX_CASE_FILE_BYTES:
+        raise CaseFileError(f"{path}: {path.stat().st_size:,} bytes is not a case file (at most "
+                            f"{MAX_CASE_FILE_BYTES:,}); the measurements go in [data] file.")
     try:
         doc = tomllib.loads(path.read_text(encoding="utf-8"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise CaseFileError(f"{path}: not valid TOML ({exc}).") from None
+    except RecursionError:
+        raise CaseFileError(f"{path}: not a case file: its arrays or tables are nested too "
+                            "deeply to read (a case file nests two levels).") from None
     top = _Reader(path, doc)
+    # Unknown keys first: a misspelt key (noise_variance, fiel) is named as such, with the
+    # nearest allowed one, instead of being ignored or reported as a missing key.
+    top.only("name", "title", "description", "data", "simulator", "parameters",
+             "history_matching")
     name = top.text("name", pattern=r"[A-Za-z0-9_-]+")
     title = top.text("title", default=name)
     description = top.text("description", default=f"Measurements from {path.name}.")
 
     data = top.sub("data")
+    data.only("file", "inputs", "outputs", "input_units", "output_units", "test_column",
+              "noise_var")
     csv_path = (path.parent / data.text("file")).resolve()
     inputs, outputs = data.texts("inputs"), data.texts("outputs")
     test_column = data.text("test_column")
@@ -241,21 +290,9 @@ def load_case_file(path, *, seed=0) -> Case:
                             "an output column.")
     try:
         m = read_measurements(csv_path, inputs=inputs + (test_column,), outputs=outputs)
+        X, z, test = _split(m, str(csv_path))
     except ValueError as exc:                     # names the CSV, the line and the column
         raise CaseFileError(f"{path}: [data] file: {exc}") from None
-    flag = m.X[:, -1]
-    if not np.all(np.isin(flag, (0.0, 1.0))):
-        bad = flag[~np.isin(flag, (0.0, 1.0))][0]
-        raise CaseFileError(f"{csv_path}: column {test_column!r} must be 0 (training row) or 1 "
-                            f"(test row) in every row; found {float(bad)!r}.")
-    X, z, test = m.X[:, :-1], m.z, flag == 1.0
-    if not np.any(~test) or not np.any(test):
-        raise CaseFileError(f"{csv_path}: column {test_column!r} must mark at least one "
-                            f"training row (0) and one test row (1); found {int((~test).sum())} "
-                            f"and {int(test.sum())}.")
-    too_many = _check_training_rows(csv_path, int((~test).sum()))
-    if too_many:
-        raise CaseFileError(too_many)
     n_out = len(outputs)
     x_units = data.texts("input_units", len(inputs), default=["-"] * len(inputs))
     out_units = data.texts("output_units", n_out, default=["-"] * n_out)
@@ -267,17 +304,19 @@ def load_case_file(path, *, seed=0) -> Case:
                             "observation noise variance per output.")
 
     sim = top.sub("simulator")
-    folder = (path.parent / sim.text("path")).resolve() if sim.has("path") else None
-    simulate = _import_simulator(path, sim.text("function"), folder)
+    sim.only("function", "path", "timeout")
+    simulate = _simulator(path, sim)
+    timeout = sim.number("timeout", positive=True) if sim.has("timeout") else default_timeout
 
     params = doc.get("parameters")
     if not isinstance(params, list) or not params or not all(isinstance(p, dict)
                                                              for p in params):
         raise CaseFileError(f"{path}: [[parameters]] must be one or more tables, one per "
-                            f"calibration parameter; found {params!r}.")
+                            f"calibration parameter; found {short(params)}.")
     names, units, bounds, mean, var, true = [], [], [], [], [], []
     for i, table in enumerate(params):
         r = _Reader(path, table, f"parameters {i + 1}")
+        r.only("name", "unit", "lower", "upper", "prior_mean", "prior_var", "true")
         names.append(r.text("name"))
         units.append(r.text("unit", default="-"))
         lo, hi = r.number("lower"), r.number("upper")
@@ -296,41 +335,57 @@ def load_case_file(path, *, seed=0) -> Case:
     box = np.array(bounds)
 
     hm = top.sub("history_matching")
-    # Unknown keys, once the required ones are known to be there: a misspelt optional key
-    # (noise_variance, initial_desing) is an error, not silently ignored.
-    top.only("name", "title", "description", "data", "simulator", "parameters",
-             "history_matching")
-    data.only("file", "inputs", "outputs", "input_units", "output_units", "test_column",
-              "noise_var")
-    sim.only("function", "path")
-    for i, table in enumerate(params):
-        _Reader(path, table, f"parameters {i + 1}").only(
-            "name", "unit", "lower", "upper", "prior_mean", "prior_var", "true")
-    hm.only("V_m", "initial_design")
+    hm.only("V_m", "initial_design", "V_m_length", "V_m_corr")
     V_m = hm.numbers("V_m", n_out, positive=True)
+    length = hm.numbers("V_m_length", n_out) if hm.has("V_m_length") else np.zeros(n_out)
+    if np.any(length < 0):
+        raise hm._fail("V_m_length", f"a list of {n_out} numbers ≥ 0 (one per output, in the "
+                       "inputs' units; 0: independent)", hm.table["V_m_length"])
+    corr = hm.table.get("V_m_corr")
+    if corr is not None:
+        if not (isinstance(corr, list) and len(corr) == n_out and all(
+                isinstance(row, list) and len(row) == n_out and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in row)
+                for row in corr)):
+            raise hm._fail("V_m_corr", f"a list of {n_out} rows of {n_out} numbers (the "
+                           "outputs' correlation matrix)", corr)
+        from .history_matching import check_correlation
+        try:
+            corr = check_correlation(length, corr, 0.995, n_out)[1]
+        except ValueError as exc:
+            raise CaseFileError(f"{path}: [history_matching] {exc}") from None
     from .history_matching import MAX_RUNS
     n_design = hm.integer("initial_design", 2, MAX_RUNS) if hm.has("initial_design") \
         else max(10 * p, 10)
     lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng(seed))
     design = scipy.stats.qmc.scale(lhs.random(n_design), box[:, 0], box[:, 1])
 
-    # The simulator must run and return (n_theta, N, n_out) at the box centre.
+    # The simulator must run and return (n_theta, N, n_out) at the box centre, within the
+    # timeout (its import included): a simulator that hangs there cannot hang the caller.
     centre = box.mean(axis=1)[None]
+    n_train = int((~test).sum())
+    where = f"{path}: [simulator] function {simulate.module}:{simulate.function}"
     try:
-        y0 = np.asarray(simulate(X[~test][:2], centre), dtype=np.float64)
-    except Exception as exc:
-        raise CaseFileError(f"{path}: [simulator] function failed at the centre of the "
-                            f"parameter box {centre[0].tolist()}: {type(exc).__name__}: "
-                            f"{exc}") from None
-    if y0.shape != (1, min(2, int((~test).sum())), n_out):
-        raise CaseFileError(f"{path}: [simulator] function must return shape (n_theta, N, "
-                            f"n_out) = (1, {min(2, int((~test).sum()))}, {n_out}) for one θ at "
-                            f"two inputs; it returned {y0.shape}.")
-    Y0 = np.asarray(simulate(X[~test], centre), dtype=np.float64)[0]
-    if not (np.all(np.isfinite(y0)) and np.all(np.isfinite(Y0))):
-        raise CaseFileError(f"{path}: [simulator] function returned NaN or inf at the centre of "
-                            f"the parameter box {centre[0].tolist()}; it must return finite "
-                            "outputs inside the box (check its units and the bounds).")
+        Y0 = simulate(X[~test], centre, timeout=timeout)
+    except TimeoutError:
+        raise CaseFileError(f"{where} did not answer within the timeout of {timeout:g} s at "
+                            f"the centre of the parameter box {centre[0].tolist()} (its import "
+                            "included); raise [simulator] timeout (or --timeout) if one run "
+                            "takes longer.") from None
+    except ImportError as exc:
+        raise CaseFileError(f"{path}: [simulator] function: {exc}.") from None
+    except SimulatorError as exc:
+        raise CaseFileError(f"{where} failed at the centre of the parameter box "
+                            f"{centre[0].tolist()}: {exc}") from None
+    if Y0.shape != (1, n_train, n_out):
+        raise CaseFileError(f"{where} must return shape (n_theta, N, n_out) = (1, {n_train}, "
+                            f"{n_out}) for one θ at the {n_train} training inputs; it returned "
+                            f"{Y0.shape}.")
+    Y0 = Y0[0]
+    if not np.all(np.isfinite(Y0)):
+        raise CaseFileError(f"{where} returned NaN or inf at the centre of the parameter box "
+                            f"{centre[0].tolist()}; it must return finite outputs inside the "
+                            "box (check its units and the bounds).")
     phi_prior = default_phi_prior(Y0, X[~test], z[~test][:, 0])
 
     return Case(
@@ -340,27 +395,25 @@ def load_case_file(path, *, seed=0) -> Case:
         x_names=inputs, x_units=x_units, output_names=outputs, output_units=out_units,
         X_train=X[~test], z_train=z[~test], X_test=X[test], z_test=z[test],
         noise_var=noise if noise is not None else _pooled_replicate_var(X[~test], z[~test]),
-        V_m=V_m,
+        V_m=V_m, V_m_length=length, V_m_corr=corr,
         phi_prior=phi_prior, theta_prior=ThetaPrior(np.array(mean), np.array(var)),
-        initial_design=design, seed=0, _simulator=simulate, _true_delta=None)
+        initial_design=design, seed=0, _simulator=simulate, _true_delta=None,
+        timeout=timeout)
 
 
 def measurements_template(case: Case) -> str:
     """The CSV layout :func:`with_measurements` reads, filled with ``case``'s own data.
 
     Columns: the case's inputs, its outputs, then :data:`TEST_COLUMN` (0 = training row,
-    1 = test row); one row per observation, replicates as repeated rows.
+    1 = test row); one row per observation, replicates as repeated rows. Plain CSV (no
+    comment lines), written like :mod:`mdcore.export`'s tables.
     """
+    from .export import csv_table
     head = list(case.x_names) + list(case.output_names) + [TEST_COLUMN]
-    units = ", ".join(f"{n} [{u}]" for n, u in zip(case.x_names + case.output_names,
-                                                   case.x_units + case.output_units))
-    lines = [f"# {case.title}: measurements for the simulator of {case.name}",
-             f"# units: {units}; {TEST_COLUMN}: 1 = held-out test row, 0 = training row",
-             ",".join(f'"{h}"' if "," in h else h for h in head)]
-    for X, z, flag in ((case.X_train, case.z_train, 0), (case.X_test, case.z_test, 1)):
-        for x_row, z_row in zip(X, z):
-            lines.append(",".join([repr(float(v)) for v in (*x_row, *z_row)] + [str(flag)]))
-    return "\n".join(lines) + "\n"
+    rows = [[*x_row, *z_row, flag] for X, z, flag in ((case.X_train, case.z_train, 0),
+                                                      (case.X_test, case.z_test, 1))
+            for x_row, z_row in zip(X, z)]
+    return csv_table(head, rows)
 
 
 def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
@@ -396,17 +449,7 @@ def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
                                  f"{type(text).__name__}."])
     inputs = tuple(base.x_names) + (TEST_COLUMN,)
     m = parse_measurements(text, source=source, inputs=inputs, outputs=base.output_names)
-    flag = m.X[:, -1]
-    problems = []
-    if not np.all(np.isin(flag, (0.0, 1.0))):
-        bad = flag[~np.isin(flag, (0.0, 1.0))][0]
-        problems.append(f"{source}: column {TEST_COLUMN!r} must be 0 (training row) or 1 "
-                        f"(test row) in every row; found {float(bad)!r}.")
-    X, z, test = m.X[:, :-1], m.z, flag == 1.0
-    if not problems and (not np.any(~test) or not np.any(test)):
-        problems.append(f"{source}: column {TEST_COLUMN!r} must mark at least one training "
-                        f"row (0) and one test row (1); found {int((~test).sum())} and "
-                        f"{int(test.sum())}.")
+    X = m.X[:, :-1]
     lo, hi = base.X_train.min(axis=0), base.X_train.max(axis=0)
     span = np.where(hi > lo, hi - lo, 1.0)
     outside = np.any((X < lo - 0.5 * span) | (X > hi + 0.5 * span), axis=1)
@@ -414,18 +457,11 @@ def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
         row = X[np.argmax(outside)]
         ranges = ", ".join(f"{n} {a:g}–{b:g} {u}"
                            for n, a, b, u in zip(base.x_names, lo, hi, base.x_units))
-        problems.append(f"{source}: {int(outside.sum())} row(s) have inputs far outside the "
-                        f"{base.name} range ({ranges}), for example {row.tolist()}; check "
-                        "the columns' units.")
+        raise MeasurementsError([f"{source}: {int(outside.sum())} row(s) have inputs far "
+                                 f"outside the {base.name} range ({ranges}), for example "
+                                 f"{row.tolist()}; check the columns' units."])
+    X, z, test = _split(m, source)
     n_train = int((~test).sum())
-    if not problems and n_train < 3:
-        problems.append(f"{source}: {n_train} training row(s); at least 3 are needed to fit "
-                        "a discrepancy GP.")
-    too_many = _check_training_rows(source, n_train)
-    if not problems and too_many:
-        problems.append(too_many)
-    if problems:
-        raise MeasurementsError(problems)
     _, counts = np.unique(X[~test], axis=0, return_counts=True)
     noise = (_pooled_replicate_var(X[~test], z[~test]) if np.all(counts >= 2)
              else np.array(base.noise_var, dtype=np.float64))

@@ -23,8 +23,16 @@ from typing import NamedTuple
 import numpy as np
 
 from .priors import GaussianPrior, ThetaPrior
+from .runs import SimulatorProcess, call_with_timeout
 from .simulators import natural_frequencies, tip_deflection
-from .validation import as_float_array, as_seed_int, choose
+from .validation import (
+    MAX_MAGNITUDE,
+    as_float_array,
+    as_positive_float,
+    as_seed_int,
+    choose,
+    short,
+)
 
 __all__ = ["Case", "MAX_ROWS", "Measurements", "MeasurementsError", "load", "names",
            "parse_measurements", "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
@@ -71,6 +79,21 @@ class Case:
         Parameter values of the first emulator's simulator runs.
     seed : int
         Seed the noise was drawn with.
+    timeout : float or None, default=None
+        Seconds one simulator run (one θ) may take; a call with n θ may take n × timeout.
+        A run past it raises ``TimeoutError``: history matching counts it as a failed run
+        (:func:`~mdcore.history_matching.case_problem` then sends one θ per call) and the
+        scenarios stop with the error. A case file's simulator runs in a process that the
+        timeout kills (:class:`mdcore.runs.SimulatorProcess`); any other simulator runs on
+        a thread that it abandons (a thread cannot be stopped). Set it on a loaded case
+        with ``dataclasses.replace(case, timeout=30.0)``; None: no limit.
+    V_m_length : ndarray of shape (n_out,), default 0
+        Default correlation length ℓ_m of V_m over x per output, in ``x_units`` (0:
+        independent); only the multivariate rule uses it (:mod:`mdcore.multivariate`). The
+        built-in cases keep 0: on them any ℓ_m > 0 weakened the rule
+        (docs/multivariate_history_matching.md).
+    V_m_corr : ndarray of shape (n_out, n_out) or None, default None
+        Default correlation of the outputs' discrepancies (None: independent).
     """
 
     name: str
@@ -97,11 +120,26 @@ class Case:
     seed: int
     _simulator: Callable = field(repr=False)
     _true_delta: Callable | None = field(repr=False, default=None)
+    timeout: float | None = None
+    V_m_length: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    V_m_corr: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.timeout is not None:
+            object.__setattr__(self, "timeout", as_positive_float(
+                self.timeout, "timeout", "It is in seconds per simulator run; None: no limit."))
 
     @property
     def p(self) -> int:
         """Number of calibration parameters."""
         return self.theta_bounds.shape[0]
+
+    def scaled_v_m(self, v_m_1: float) -> np.ndarray:
+        """V_m per output (n_out,) from ``v_m_1`` for output 1: the others scale by
+        ``(z̄_i / z̄_1)²``, so one number sets a discrepancy of the same relative size on every
+        output (the rule of shear-5's default, docs/method.md §5)."""
+        zbar = np.abs(self.z_train.mean(axis=0))
+        return v_m_1 * (zbar / zbar[0]) ** 2
 
     @property
     def d_x(self) -> int:
@@ -137,7 +175,12 @@ class Case:
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (n_theta, {self.p}) for {self.name} "
                              f"({', '.join(self.theta_names)}); received {theta.shape}.")
-        return self._simulator(X, theta)
+        limit = None if self.timeout is None else self.timeout * len(theta)  # per θ
+        if isinstance(self._simulator, SimulatorProcess):
+            return self._simulator(X, theta, timeout=limit)
+        if limit is None:
+            return self._simulator(X, theta)
+        return call_with_timeout(self._simulator, X, theta, limit)
 
     def true_delta(self, X) -> np.ndarray | None:
         """Noise-free true discrepancy at ``X`` (N, d_x) -> (N, n_out), or None if unknown."""
@@ -415,15 +458,29 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     if header_line is None:
         raise MeasurementsError([f"{source}: no header row found; the first non-comment line "
                                  "must name the columns."])
-    header = [h.strip() for h in next(csv.reader([lines[header_line - 1]]))]
+    # A name that mdcore.export wrote with a leading "'" (it would start a formula) reads
+    # back as the name.
+    header = [h[1:] if h[:1] == "'" and h[1:2] in ("=", "+", "-", "@") else h
+              for h in (c.strip() for c in next(csv.reader([lines[header_line - 1]])))]
     inputs = tuple(inputs)
     if outputs is None:
         outputs = tuple(h for h in header if h not in inputs and h not in ignore)
     outputs = tuple(outputs)
     missing = [c for c in inputs + outputs if c not in header]
+    for sep, word in ((";", "semicolons"), ("\t", "tabs")):
+        if missing and set(inputs + outputs) <= {h.strip() for h in
+                                                 lines[header_line - 1].split(sep)}:
+            raise MeasurementsError([f"{source} line {header_line}: the columns are separated "
+                                     f"by {word}; save the file as CSV with commas (the "
+                                     f"columns {list(inputs + outputs)} are there)."])
     if missing:
+        # The header is quoted only when it names a wanted column: this is then the
+        # measurements file with a column misnamed, not some other file's first line.
+        found = ("the header " + ", ".join(short(h, 30) for h in header[:20])
+                 if set(header) & set(inputs + outputs) else
+                 "a header with none of them (is this the measurements file?)")
         raise MeasurementsError([f"{source} line {header_line}: column(s) {missing} not found "
-                                 f"in the header {header}; the file needs the columns "
+                                 f"in {found}; the file needs the columns "
                                  f"{list(inputs + outputs)}."])
     if not outputs:
         raise MeasurementsError([f"{source}: no output columns; name them with outputs=."])
@@ -452,15 +509,19 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
         row = []
         for c in cols:
             text_c = cells[c].strip()
+            where = f"{source} line {lineno}, column {header[c]!r}: {short(text_c, 30)}"
             try:
                 v = float(text_c)
             except ValueError:
-                problems.append(f"{source} line {lineno}, column {header[c]!r}: {text_c!r} is "
-                                "not a number.")
+                problems.append(f"{where} is not a number.")
                 continue
             if not np.isfinite(v):
-                problems.append(f"{source} line {lineno}, column {header[c]!r}: {text_c!r} is "
-                                "not finite; remove the row or fill in the value.")
+                problems.append(f"{where} is not finite; remove the row or fill in the value.")
+                continue
+            if abs(v) > MAX_MAGNITUDE:
+                problems.append(f"{where} is larger in magnitude than {MAX_MAGNITUDE:g}, "
+                                "whose square (a variance) overflows; express the column in "
+                                "other units.")
                 continue
             row.append(v)
         rows.append(row)

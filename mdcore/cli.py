@@ -1,13 +1,15 @@
 """Command line: ``python -m mdcore {cases,history-match,reproduce,run,study} ...``.
 
-Exit codes: 0 done, 2 bad input (the message says what to fix), 1 a failure (a file that
-cannot be written, a simulator or cluster that fails).
+Exit codes: 0 done, 2 bad input (the message says what to fix; a history match that rules
+out every θ too), 1 a failure (a file that cannot be written, a simulator or cluster that
+fails).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
 import sys
 import warnings
@@ -18,12 +20,12 @@ import numpy as np
 from . import cases, compiled, threads
 from .exceptions import LowESSWarning
 from .export import write_tables
-from .history_matching import HistoryMatchResult, case_problem, iter_waves
+from .history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
 from .koh import BURN_IN, N_ITER
-from .pipeline import Method, Settings
+from .pipeline import Method, Settings, metric_text, metrics_table
 from .reproduce import CaseRun, default_methods, parse_methods, run_methods
 from .study import PAPER, study
-from .validation import as_int, as_seed_int
+from .validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
 
 
 def _cmd_cases(args) -> int:
@@ -42,23 +44,40 @@ def _v_m(case, values):
     if values is None:
         return None
     v = np.asarray(values, dtype=np.float64)
-    if v.size == 1 and case.n_out > 1:
-        zbar = np.abs(case.z_train.mean(axis=0))
-        return v[0] * (zbar / zbar[0]) ** 2
+    if v.size == 1:
+        return case.scaled_v_m(v[0])
     if v.size != case.n_out:
         raise ValueError(f"--v-m takes 1 value or one per output ({case.n_out} for "
                          f"{case.name}: {', '.join(case.output_names)}); received {v.size}.")
     return v
 
 
+def _v_m_corr(case, values):
+    """The outputs' correlation matrix from ``--v-m-corr``: one ρ for every pair of outputs,
+    or the n_out² entries row by row; None keeps the case's."""
+    if values is None:
+        return None
+    v, n = np.asarray(values, dtype=np.float64), case.n_out
+    if v.size == 1:
+        return np.full((n, n), v[0]) + (1.0 - v[0]) * np.eye(n)
+    if v.size != n * n:
+        raise ValueError(f"--v-m-corr takes 1 value (ρ for every pair of outputs) or the "
+                         f"{n} × {n} = {n * n} entries of the outputs' correlation matrix row "
+                         f"by row ({case.name} has {n} output(s)); received {v.size}.")
+    return v.reshape(n, n)
+
+
 def _history_options(args, case) -> dict:
     """The history-matching options given on the command line (others: the case's)."""
     opts = {k: getattr(args, k) for k in ("threshold", "rule", "max_waves", "n_runs",
-                                          "n_candidates", "convergence_ratio")
-            if getattr(args, k) is not None}
-    v_m = _v_m(case, args.v_m)
-    if v_m is not None:
-        opts["V_m"] = v_m
+                                          "n_candidates", "convergence_ratio",
+                                          "chi2_probability")
+            if getattr(args, k, None) is not None}
+    for key, value in (("V_m", _v_m(case, args.v_m)),
+                       ("V_m_length", args.v_m_length),
+                       ("V_m_corr", _v_m_corr(case, args.v_m_corr))):
+        if value is not None:
+            opts[key] = value
     return opts
 
 
@@ -82,12 +101,18 @@ def _print_waves(case, result) -> None:
     print(_table(["wave", "NROY %", "runs", "failed", "max var / (V_o+V_m)", "seconds"], rows))
     failed = [f for w in result.waves for f in w.failures]
     if failed:
-        print(f"{len(failed)} simulator run(s) failed and were dropped; the first: {failed[0]}")
+        print(f"{len(failed)} simulator run(s) failed and were dropped; the first at θ = "
+              f"{np.array2string(failed[0].theta, precision=4)}: {failed[0].message}")
     print(result.message)
 
 
+def _with_timeout(case, args):
+    """The case with ``--timeout`` as its simulator timeout, when given."""
+    return case if args.timeout is None else dataclasses.replace(case, timeout=args.timeout)
+
+
 def _cmd_history_match(args) -> int:
-    case = cases.load(args.case, seed=args.seed)
+    case = _with_timeout(cases.load(args.case, seed=args.seed), args)
     with _executor(args) as executor:
         result = _history_match(case, args, executor)
     _print_waves(case, result)
@@ -95,7 +120,7 @@ def _cmd_history_match(args) -> int:
         names = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
                           zip(case.theta_names, result.theta_map, case.theta_units))
         print(f"θ_MAP: {names}")
-    return 0 if result.status != "ruled_out" else 1
+    return 0 if result.status != "ruled_out" else 2      # bad input: raise V_m or T
 
 
 def _table(header: list[str], rows: list[list[str]]) -> str:
@@ -199,13 +224,14 @@ def _run(case, args, methods, settings_name: str) -> int:
 
 
 def _cmd_reproduce(args) -> int:
-    case = cases.load(args.case, seed=args.seed)
+    case = _with_timeout(cases.load(args.case, seed=args.seed), args)
     return _run(case, args, args.scenarios or default_methods(args.case), args.case)
 
 
 def _cmd_run(args) -> int:
     from .case_file import load_case_file
-    case = load_case_file(args.case_file, seed=args.seed)
+    case = _with_timeout(load_case_file(args.case_file, seed=args.seed,
+                                        default_timeout=args.timeout), args)
     return _run(case, args, args.scenarios or ("1", "2", "3"), case.name)
 
 
@@ -218,24 +244,12 @@ def _print_run(run, args) -> int:
           f"{100 * hm.nroy_fraction[-1]:.2f} %, θ_MAP: {theta}, truth in NROY: "
           f"{run.truth_in_nroy}\nN_s = {settings.n_s}, N_φ = {settings.n_phi}, seed "
           f"{run.seed}\n")
-    header = ["method", "output", "NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cov z 3σ",
-              "cov δ 3σ", "ESS pairs", "ESS φ", "k̂", "seconds"]
-    rows = []
-    for r in run.results:
-        m, imp = r.metrics, r.importance
-        for o, name in enumerate(case.output_names):
-            def pick(values, spec, o=o):
-                return "—" if values is None else spec.format(values[o])
-            low = imp is not None and imp.low[o]
-            rows.append([r.method.value + ("!" if low else ""), name,
-                         pick(m.nmse_z, "{:.3f}"), pick(m.nmse_delta, "{:.3f}"),
-                         pick(m.rmse_delta, "{:.3g}"), pick(m.mmd, "{:.4f}"),
-                         pick(m.lpl, "{:.1f}"), pick(m.coverage_z_3sd, "{:.2f}"),
-                         pick(m.coverage_delta_3sd, "{:.2f}"),
-                         pick(None if imp is None else imp.ess, "{:,.1f}"),
-                         pick(None if imp is None else imp.ess_phi, "{:.1f}"),
-                         pick(None if imp is None else imp.k_hat, "{:.2f}"),
-                         f"{r.seconds:.2f}"])
+    shown = ("NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cover z ±3σ", "cover δ ±3σ",
+             "ESS pairs", "ESS φ", "k̂", "seconds")
+    header = ["method", "output", *shown]
+    rows = [[row["method"].value + ("!" if row["unreliable"] else ""), row["output"],
+             *(metric_text(c, row[c]) for c in shown)]
+            for row in metrics_table(run.results, case.output_names)]
     print(_table(header, rows))
     for r in run.results:
         if r.chain is not None:
@@ -259,29 +273,50 @@ def _print_run(run, args) -> int:
         for path in write_tables(run, args.csv):
             print(f"wrote {path}")
     if args.out:
-        from mdcore_app.report import write_report  # plotting lives in the app package
-        print(f"wrote {write_report(run, args.out)} (self-contained; opens offline)")
+        print(f"wrote {_report_writer()(run, args.out)} (self-contained; opens offline)")
     return 0
 
 
+def _report_writer():
+    """The HTML report's writer, ``write(run, path) -> path``: plotting is not the core's,
+    so a package registers it under the ``mdcore.report`` entry point (the app does)."""
+    from importlib.metadata import entry_points
+    found = entry_points(group="mdcore.report", name="html")
+    if not found:
+        raise ValueError("--out needs the HTML report of the app package, which is not "
+                         "installed: pip install mdcore (with its app), or leave out --out.")
+    return next(iter(found)).load()
+
+
 def _cmd_study(args) -> int:
+    import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     settings = _settings(args, args.case)
     workers = as_int(args.workers, "--workers", 1, 1024)
+    history = _history_options(args, cases.load(args.case))
     if args.dask is not None:
         with _executor(args) as executor:
             result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                           executor=executor)
+                           executor=executor, timeout=args.timeout, history=history)
     elif workers == 1:
-        result = study(args.case, args.seeds, methods=args.scenarios, settings=settings)
+        result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
+                       timeout=args.timeout, history=history)
     else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        # Fresh interpreters, not forks: a fork copies the locks that this process's
+        # threads (the kernels' background warm-up, BLAS) hold, and its children hang.
+        with ProcessPoolExecutor(max_workers=workers,
+                                 mp_context=multiprocessing.get_context("spawn")) as pool:
             result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                           executor=pool)
-    summary, paper = result.summary(), PAPER.get(args.case, {})
+                           executor=pool, timeout=args.timeout, history=history)
+    summary, paper, hm = result.summary(), PAPER.get(args.case, {}), result.history()
     print(f"{args.case}: seeds {', '.join(map(str, result.seeds))}; N_s = {settings.n_s}, "
           f"N_φ = {settings.n_phi}; mean ± sd over seeds (paper in brackets)\n")
+    error = "" if hm["theta_map_error"] is None else ", θ_MAP mean |error| " + ", ".join(
+        f"{e:.4g}" for e in hm["theta_map_error"])
+    print(f"history matching ({hm['rule']} rule): final NROY {100 * hm['nroy_mean']:.2f} ± "
+          f"{100 * hm['nroy_sd']:.2f} % of the box, truth in NROY {hm['truth_in']}/{hm['n']}"
+          f"{error}\n")
     shown = ("nmse_z", "nmse_delta", "rmse_delta", "coverage_delta_2sd", "sd_delta", "lpl")
     print(f"{'method':>6} {'output':>6} " + " ".join(f"{m:>24}" for m in shown))
     for method, entry in summary.items():
@@ -340,25 +375,66 @@ def _add_method_options(p) -> None:
     p.add_argument("--json", default=None, metavar="PATH", help="also write the numbers here")
 
 
+def _seed(text: str) -> int:
+    """``--seed``: an integer from 0 to 2**63 − 1 (argparse type)."""
+    try:
+        if len(text) > 25:                    # int() of 5,000 digits is slow, then refused
+            raise ValueError(text)
+        return as_seed_int(int(text))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be a whole number from 0 to {MAX_SEED} (2**63 − 1); received "
+            f"{short(text)}. Each seed gives its own reproducible run, e.g. --seed 0."
+        ) from None
+
+
+def _timeout(text: str) -> float:
+    """``--timeout``: seconds > 0 (argparse type)."""
+    try:
+        return as_positive_float(text, "")
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"must be a positive number of seconds per simulator run; received "
+            f"{short(text)}. For example --timeout 60.") from None
+
+
 def _add_output_options(p) -> None:
     """The seed and the files a single run writes (reproduce and run)."""
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=_seed, default=0,
+                   help="seeds every random step (default 0): the same seed, the same numbers")
     p.add_argument("--csv", default=None, metavar="DIR",
                    help="also write nroy.csv and predictions.csv into this folder")
     p.add_argument("--out", default=None, metavar="REPORT.html",
                    help="also write a self-contained HTML report")
 
 
-def _add_history_options(p) -> None:
-    """History-matching options (history-match, reproduce and run); default: the case's."""
-    g = p.add_argument_group("history matching (default: the case's settings)")
+def _add_rule_options(g) -> None:
+    """How implausibility is measured (history-match, reproduce, run and study)."""
     g.add_argument("--v-m", type=float, nargs="+", default=None, metavar="V",
                    help="model-discrepancy variance (output units²): one per output, or one "
                    "for output 1 that the others scale by (z̄_i / z̄_1)², as in the app")
     g.add_argument("--threshold", type=float, default=None, metavar="T",
-                   help="implausibility threshold T (default 3)")
-    g.add_argument("--rule", default=None, choices=["max", "2nd max", "3rd max"],
-                   help="how the outputs' implausibilities combine (default max)")
+                   help="implausibility threshold T of the max rules (default 3)")
+    g.add_argument("--rule", default=None, choices=list(RULE_NAMES),
+                   help="how the targets' implausibilities combine (default max); "
+                   "multivariate: I_M² over all targets with the full covariance, against a "
+                   "χ² quantile")
+    g.add_argument("--v-m-length", type=float, nargs="+", default=None, metavar="L",
+                   help="correlation length ℓ_m of V_m over the inputs (inputs' units), one "
+                   "or one per output; 0: independent. Used by the multivariate rule "
+                   "(default: the case's)")
+    g.add_argument("--v-m-corr", type=float, nargs="+", default=None, metavar="RHO",
+                   help="correlation of the outputs' discrepancies: one ρ for every pair, or "
+                   "the n_out × n_out matrix row by row (multivariate rule; default none)")
+    g.add_argument("--chi2-probability", type=float, default=None, metavar="P",
+                   help="the multivariate rule's cut-off is the χ² quantile at P (default "
+                   "0.995)")
+
+
+def _add_history_options(p) -> None:
+    """History-matching options (history-match, reproduce and run); default: the case's."""
+    g = p.add_argument_group("history matching (default: the case's settings)")
+    _add_rule_options(g)
     g.add_argument("--max-waves", type=int, default=None, help="at most this many waves")
     g.add_argument("--n-runs", type=int, default=None,
                    help="simulator runs added per wave (default max(10, 5 p))")
@@ -366,6 +442,9 @@ def _add_history_options(p) -> None:
                    help="candidate θ scored per wave (default 50,000 p)")
     g.add_argument("--convergence-ratio", type=float, default=None, metavar="R",
                    help="stop when the emulator variance < R (V_o + V_m) (default 1)")
+    g.add_argument("--timeout", type=_timeout, default=None, metavar="SECONDS",
+                   help="seconds one simulator run may take; a longer run is stopped and "
+                   "counts as failed (default: the case file's [simulator] timeout, or none)")
     d = p.add_argument_group("simulator runs on a cluster (default: in this process)")
     d.add_argument("--dask", default=None, metavar="ADDRESS",
                    help="run simulator batches on the Dask scheduler at ADDRESS, e.g. "
@@ -378,8 +457,9 @@ def _add_history_options(p) -> None:
 _SHOWN: set[str] = set()
 
 EXIT_CODES = ("exit codes: 0 done; 2 bad input (the message names the option or file and "
-              "what to fix); 1 a failure (a file that cannot be written, a simulator or "
-              "cluster that fails). Progress bars appear on a terminal only.")
+              "what to fix, as for a history match that rules out every θ: raise V_m or T); "
+              "1 a failure (a file that cannot be written, a simulator or cluster that "
+              "fails). Progress bars appear on a terminal only.")
 EXAMPLES = {
     "cases": "example:\n  python -m mdcore cases",
     "history-match": "examples:\n  python -m mdcore history-match beam-1d\n"
@@ -445,7 +525,8 @@ def main(argv=None) -> int:
     hm = command("history-match", "run Bayesian history matching on a case (waves until "
                  "converged) and print each wave's NROY share and θ_MAP")
     hm.add_argument("case", choices=cases.names())
-    hm.add_argument("--seed", type=int, default=0)
+    hm.add_argument("--seed", type=_seed, default=0,
+                    help="seeds every random step (default 0): the same seed, the same numbers")
     _add_history_options(hm)
     rp = command("reproduce", "history matching + discrepancy scenarios + metrics (the "
                  "paper's Tables 1–3)")
@@ -468,6 +549,10 @@ def main(argv=None) -> int:
                     help="processes running seeds in parallel (default 2; 1 runs in this one)")
     st.add_argument("--dask", default=None, metavar="ADDRESS",
                     help="run the seeds on the Dask scheduler at ADDRESS instead")
+    st.add_argument("--timeout", type=_timeout, default=None, metavar="SECONDS",
+                    help="seconds one simulator run may take (default: no limit)")
+    _add_rule_options(st.add_argument_group("history matching (default: the case's "
+                                            "settings)"))
     args = parser.parse_args(argv)
     if args.command in ("reproduce", "run", "study"):
         # Load (or compile) the numba kernels while history matching runs.

@@ -1,26 +1,14 @@
-"""GP emulator of a simulator over the joint input (x, θ) (SPEC §4).
+"""GP emulator of a simulator over the joint input (x, θ), for history matching and KOH.
 
-One emulator per output: a linear mean ``m = β₀ + βᵀ[x, θ]`` fitted by least squares,
-plus a zero-mean GP on the residuals with the core's separable Matérn 3/2 kernel
-(:func:`mdcore.kernels.matern32` on each block; ARD lengthscales in θ and in x)::
-
-    k((θ, x), (θ', x')) = σ_f² m32(r_θ) m32(r_x) + σ_n² δ
-
-Inputs are scaled to [0, 1] internally. This is the core's kernel with the simulator
-parameters θ in the "y" slot, not a Matérn over the joint distance (SPEC §4 says
-"Matérn 3/2 ARD over the joint input"); the product form is what makes the design
-below solvable exactly and fast.
-
-Simulator runs come as full sweeps: every run θ_r is evaluated at every training input
-x_i, so the training covariance is ``σ_f² K_θ ⊗ K_x + σ_n² I``. With the eigenpairs
-``K_θ = Q_θ Λ Q_θᵀ`` and ``K_x = Q_x M Q_xᵀ`` the marginal likelihood and predictions are
-exact at O(R³ + N³ + R N (R + N)) instead of O(R³ N³), and scoring 100,000 candidate θ at
-every training input costs two small matrix products.
+One emulator per output: a linear mean ``β₀ + βᵀ[x, θ]`` by least squares plus a zero-mean
+GP on the residuals with kernel ``σ_f² m32(r_θ) m32(r_x) + σ_n² δ`` (inputs scaled to
+[0, 1]). Every run is evaluated at every training input, so the training covariance is
+``σ_f² K_θ ⊗ K_x + σ_n² I``: with the eigenpairs ``K_θ = Q_θ Λ Q_θᵀ``, ``K_x = Q_x M Q_xᵀ``
+the likelihood and predictions cost O(R³ + N³ + R N (R + N)) instead of O(R³ N³).
 """
 
 from __future__ import annotations
 
-import importlib
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -29,11 +17,11 @@ from typing import NamedTuple
 import numpy as np
 import scipy.optimize
 
-from . import compiled
 from .exceptions import ConvergenceWarning
 from .gp import LOG_2PI
 from .hyperfit import lbfgs_advice, lbfgs_converged
-from .kernels import SQRT3, matern32, scaled_sq_dist
+from .kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
+from .linalg import chunks, for_each_chunk
 from .threads import single_threaded_blas
 from .validation import as_float_array, check_bounds
 
@@ -42,74 +30,35 @@ __all__ = ["Emulator", "EmulatorArrays", "EmulatorAt", "EmulatorPrediction", "Kr
 
 
 class EmulatorArrays(NamedTuple):
-    """The fixed pieces of :class:`EmulatorAt`'s algebra as stacked float64 arrays, for
-    compiled kernels (:meth:`EmulatorAt.arrays`). Shapes: R training θ, p parameters,
-    N inputs, N_t training inputs of the emulator, n_out outputs.
+    """:class:`EmulatorAt`'s fixed pieces at N inputs, stacked over outputs; R training θ
+    of p parameters, N_t training inputs."""
 
-    Attributes
-    ----------
-    t_lo, t_span : ndarray of shape (p,)
-        θ's unit box: ``unit = (θ − t_lo) / t_span``.
-    T_train : ndarray of shape (R, p)
-        Training θ in the unit box.
-    inv_ell : ndarray of shape (n_out, p)
-        ``1 / ℓ_θ``.
-    Q_t : ndarray of shape (n_out, R, R)
-    W : ndarray of shape (n_out, R, N_t)
-    lin : ndarray of shape (n_out, N)
-        ``β₀ + β_xᵀ x``.
-    beta_t : ndarray of shape (n_out, p)
-    AK : ndarray of shape (n_out, R, N)
-    V : ndarray of shape (n_out, N, N_t)
-    sf4 : ndarray of shape (n_out,)
-    prior : ndarray of shape (n_out, N, N)
-        ``σ_f² m32(X, X)``.
-    sf2 : ndarray of shape (n_out,)
-        ``σ_f²``.
-    G : ndarray of shape (n_out, R, N)
-        ``W (V ⊙ V)ᵀ``: the predictive variance at ``x_n`` is
-        ``σ_f² − σ_f⁴ Σ_a (k_θ Q_θ)_a² G[a, n]``.
-    """
-
-    t_lo: np.ndarray
-    t_span: np.ndarray
-    T_train: np.ndarray
-    inv_ell: np.ndarray
-    Q_t: np.ndarray
-    W: np.ndarray
-    lin: np.ndarray
-    beta_t: np.ndarray
-    AK: np.ndarray
-    V: np.ndarray
-    sf4: np.ndarray
-    prior: np.ndarray
-    sf2: np.ndarray
-    G: np.ndarray
+    t_lo: np.ndarray     # (p,) θ's box: unit θ = (θ − t_lo) / t_span
+    t_span: np.ndarray   # (p,)
+    T_train: np.ndarray  # (R, p) training θ, unit box
+    inv_ell: np.ndarray  # (n_out, p) 1 / ℓ_θ
+    Q_t: np.ndarray      # (n_out, R, R) eigenvectors of K_θ
+    W: np.ndarray        # (n_out, R, N_t) 1 / (σ_f² λ_a μ_b + σ_n²)
+    lin: np.ndarray      # (n_out, N) β₀ + β_xᵀ x
+    beta_t: np.ndarray   # (n_out, p)
+    AK: np.ndarray       # (n_out, R, N) A m32(X, X_train)ᵀ
+    V: np.ndarray        # (n_out, N, N_t) m32(X, X_train) Q_x
+    sf4: np.ndarray      # (n_out,) σ_f⁴
+    prior: np.ndarray    # (n_out, N, N) σ_f² m32(X, X)
+    sf2: np.ndarray      # (n_out,) σ_f²
+    G: np.ndarray        # (n_out, R, N) W (V ⊙ V)ᵀ: V[y(θ, x_n)] = σ_f² − σ_f⁴ (k_θ Q_θ)² G
 
 
 class ThetaTerms(NamedTuple):
-    """The θ-dependent pieces of the emulator's posterior (:meth:`EmulatorAt.theta_terms`).
-
-    Attributes
-    ----------
-    unit : ndarray of shape (M, p)
-        θ scaled to the unit box.
-    per_output : tuple of (ndarray (M, R), ndarray (M, N_train))
-        Per output, ``k_θ = m32(θ, Θ_train)`` and ``d(θ) = (k_θ Q_θ)² W``.
-    """
+    """The θ-dependent pieces (:meth:`EmulatorAt.theta_terms`): ``unit`` θ (M, p) and, per
+    output, ``(k_θ = m32(θ, Θ_train) (M, R), d(θ) = (k_θ Q_θ)² W (M, N_t))``."""
 
     unit: np.ndarray
     per_output: tuple
 
 
 class EmulatorPrediction(NamedTuple):
-    """Emulator moments.
-
-    Attributes
-    ----------
-    mean, var : ndarray of shape (n_theta, N, n_out)
-        Predictive mean ``E[y]`` and latent variance ``V[y]`` (simulator units).
-    """
+    """Predictive ``mean`` ``E[y]`` and latent ``var`` ``V[y]``, (n_theta, N, n_out)."""
 
     mean: np.ndarray
     var: np.ndarray
@@ -127,7 +76,6 @@ class KronGP(NamedTuple):
 
 
 def _unit(A, lo, span):
-    """Scale inputs to the unit box: (A − lo) / span."""
     return (A - lo) / span
 
 
@@ -136,79 +84,18 @@ def _eig(K):
     return np.maximum(lam, 0.0), Q
 
 
-def _numpy_eigh_kernel():
-    """The kernel np.linalg.eigh calls for a real matrix (UPLO="L"), or None if NumPy
-    moved it (then :func:`_eigh` calls np.linalg.eigh)."""
-    try:
-        return importlib.import_module("numpy.linalg._umath_linalg").eigh_lo
-    except (ImportError, AttributeError):                # pragma: no cover
-        return None
-
-
-_eigh_lo = _numpy_eigh_kernel()
-
-
-def _eigh(K):
-    """``np.linalg.eigh(K)`` of a float64 matrix, bit for bit, without the ~4 µs of its
-    checks and wrapping (the fit calls it ~1,000 times): NumPy's own LAPACK kernel. When
-    that gives NaN (NaN in ``K``, or no convergence), the answer is np.linalg.eigh's own:
-    its NaN, or its ``LinAlgError``."""
-    if _eigh_lo is None:
-        return np.linalg.eigh(K)
-    with np.errstate(invalid="ignore"):
-        lam, Q = _eigh_lo(K, signature="d->dd")
-    if lam.size and np.isnan(lam[0]):
-        return np.linalg.eigh(K)
-    return lam, Q
-
-
 def _design(Xu, Tu):
     """Rows [1, x, θ] for every (run, input) pair in run-major order: (R·N, 1 + d_x + p)."""
     R, N = Tu.shape[0], Xu.shape[0]
     return np.column_stack([np.ones(R * N), np.tile(Xu, (R, 1)), np.repeat(Tu, N, axis=0)])
 
 
-def _sq_diffs(A) -> np.ndarray:
-    """Squared differences of the rows of ``A`` (n, d) per column, shape (d, n, n)."""
-    A = np.asarray(A, dtype=np.float64)
-    return np.ascontiguousarray(((A[:, None, :] - A[None, :, :]) ** 2).transpose(2, 0, 1))
-
-
-def _m32_and_dlog_ell(A, ell, diffs):
-    """:func:`mdcore.kernels.matern32_and_dlog_ell` of ``A`` (n, d) at lengthscales ``ell``,
-    given ``diffs = _sq_diffs(A)`` (fixed during a fit).
-
-    The same floating-point operations in the same order (``scaled_sq_dist``, one
-    exponential shared by ``m32`` and its derivative), so the results are bit-identical
-    (``test_emulator`` checks), with about half the NumPy calls: the emulator fit is
-    dominated by per-call overhead on these small matrices, and its result must not move
-    (L-BFGS-B turns a 1-ulp change of the NLML into ~1e-5 in the hyperparameters).
-    """
-    n, d = A.shape
-    inv = 1.0 / ell
-    r2 = np.zeros((n, n))
-    for k in range(d):
-        a = A[:, k] * inv[k]
-        diff = a[:, None] - a[None, :]
-        r2 += diff * diff
-    r = np.sqrt(r2)                            # r2 ≥ +0: what matern32's max(r2, 0) gives
-    e = np.exp(-SQRT3 * r)
-    ell2 = np.array([ell[k] ** 2 for k in range(d)])    # a scalar ** 2 is pow(), not x * x
-    D = (3.0 * e) * diffs / ell2[:, None, None]
-    return (1.0 + SQRT3 * r) * e, D
-
-
-def _kron_solve(lp, Tu, Xu, res, diffs=None):
-    """Eigen-solve of ``K = σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N).
-
-    Returns the factors, their log-ℓ derivatives, the eigenpairs, ``σ_f² λ_a μ_b``,
-    ``S_ab = σ_f² λ_a μ_b + σ_n²`` and ``α`` in the eigenbasis, ``(Q_θᵀ Res Q_x) / S``;
-    shared by the likelihood and the fit. ``diffs``: ``(_sq_diffs(Tu), _sq_diffs(Xu))``.
-    """
+def _kron_solve(lp, Tu, Xu, res):
+    """Eigen-solve of ``σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N): the factors,
+    their log-ℓ derivatives, eigenpairs, ``σ_f² λ_a μ_b``, ``S`` and ``(Q_θᵀ Res Q_x) / S``."""
     p = Tu.shape[1]
-    dt2, dx2 = (_sq_diffs(Tu), _sq_diffs(Xu)) if diffs is None else diffs
-    Kt, Dt = _m32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]), dt2)
-    Kx, Dx = _m32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]), dx2)
+    Kt, Dt = matern32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]))
+    Kx, Dx = matern32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
     lam, Qt = _eig(Kt)
     mu, Qx = _eig(Kx)
     SO = np.exp(2 * lp[0]) * (lam[:, None] * mu[None, :])
@@ -216,7 +103,7 @@ def _kron_solve(lp, Tu, Xu, res, diffs=None):
     return Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, (Qt.T @ res @ Qx) / S
 
 
-def _kron_nlml(lp, Tu, Xu, res, diffs=None):
+def _kron_nlml(lp, Tu, Xu, res):
     """NLML of the Kronecker GP and its analytic gradient; ``res`` (R, N) residuals.
 
     With ``S_ab = σ_f² λ_a μ_b + σ_n²`` and ``P = Q_θᵀ Res Q_x``::
@@ -224,12 +111,10 @@ def _kron_nlml(lp, Tu, Xu, res, diffs=None):
         NLML = ½ Σ P²/S + ½ Σ log S + (RN/2) log 2π
         ∂NLML/∂φ = ½ tr(K⁻¹ ∂K) − ½ αᵀ ∂K α,   α = vec(Q_θ (P/S) Q_xᵀ)
 
-    ``diffs`` as in :func:`_kron_solve` (precomputed once per fit).
-    :func:`_kron_nlml_compiled` gives the same bits, faster.
     """
     p = Tu.shape[1]
     sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
-    Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, Pa = _kron_solve(lp, Tu, Xu, res, diffs)
+    Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, Pa = _kron_solve(lp, Tu, Xu, res)
     PP = Pa * Pa
     f = 0.5 * (PP * S).sum() + 0.5 * np.log(S).sum() + 0.5 * res.size * LOG_2PI
     A0 = Qt @ Pa @ Qx.T
@@ -248,44 +133,9 @@ def _kron_nlml(lp, Tu, Xu, res, diffs=None):
     return f, g
 
 
-def _kron_nlml_compiled(lp, Tu, Xu, res, diffs, k):
-    """:func:`_kron_nlml` to the last bit, with its elementwise arithmetic and sums in the
-    compiled kernels ``k`` (:func:`mdcore.compiled.fit_kernels`): about 30 calls per
-    evaluation instead of about 100 (the fit is dominated by per-call overhead on these
-    small matrices). ``exp``, ``log``, ``pow``, ``eigh`` (:func:`_eigh`) and the matrix
-    products stay the NumPy/BLAS calls of :func:`_kron_nlml`, on the same operands."""
-    p = Tu.shape[1]
-    sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
-    (dt2, dx2), R, N = diffs, Tu.shape[0], Xu.shape[0]
-    ell_t, ell_x = np.exp(lp[1:1 + p]), np.exp(lp[1 + p:-1])
-    rt, tt, rx, tx = np.empty((R, R)), np.empty((R, R)), np.empty((N, N)), np.empty((N, N))
-    k.fit_factors(Tu, ell_t, rt, tt, Xu, ell_x, rx, tx)
-    Kt, Dt = np.empty((R, R)), np.empty((p, R, R))
-    Kx, Dx = np.empty((N, N)), np.empty((Xu.shape[1], N, N))
-    k.fit_kernels(rt, np.exp(tt), dt2, np.array([v ** 2 for v in ell_t]), Kt, Dt,
-                  rx, np.exp(tx), dx2, np.array([v ** 2 for v in ell_x]), Kx, Dx)
-    lam, Qt = _eigh(Kt)
-    mu, Qx = _eigh(Kx)
-    SO, S, Pa = np.empty((R, N)), np.empty((R, N)), np.empty((R, N))
-    k.fit_spectrum(lam, mu, sf2, sn2, SO, S)
-    s_f, s_log, s_0, s_n = k.fit_terms(Qt.T @ res @ Qx, S, SO, np.log(S), Pa)
-    f = 0.5 * s_f + 0.5 * s_log + 0.5 * res.size * LOG_2PI
-    A0 = Qt @ Pa @ Qx.T
-    g = np.empty_like(lp)
-    g[0] = s_0
-    g[-1] = sn2 * s_n
-    # the products of every dimension at once: a stack's matmul is each slice's, bit for bit
-    k.fit_gradient(sf2, Qt, Dt, mu, Qx, Dx, lam, S, A0, Dt @ A0 @ Kx, Kt @ A0 @ Dx, g)
-    return f, g
-
-
-def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None, step=None):
-    """Fit one output: least-squares linear mean, then empirical Bayes for the GP.
-
-    ``kernels`` (:func:`mdcore.compiled.fit_kernels`): evaluate the likelihood with
-    :func:`_kron_nlml_compiled`, the same bits as :func:`_kron_nlml`, faster. ``step()``
-    is called after every L-BFGS-B iteration (it may raise to stop the fit).
-    """
+def _fit_one(Tu, Xu, y, rng, n_starts, output=0, step=None):
+    """Fit one output: least-squares linear mean, then empirical Bayes for the GP;
+    ``step()`` after every L-BFGS-B iteration (it may raise to stop the fit)."""
     F = _design(Xu, Tu)
     beta, *_ = np.linalg.lstsq(F, y.ravel(), rcond=None)
     res = (y.ravel() - F @ beta).reshape(y.shape)
@@ -296,12 +146,9 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None, step=None):
     best = None
     starts = lo + (hi - lo) * rng.uniform(size=(n_starts, lo.size))
     starts[0] = np.r_[np.log(sd), np.full(p + d_x, np.log(0.5)), np.log(sd * 1e-3)]
-    diffs = (_sq_diffs(Tu), _sq_diffs(Xu))
-    fun, args = ((_kron_nlml, (Tu, Xu, res, diffs)) if kernels is None else
-                 (_kron_nlml_compiled, (Tu, Xu, res, diffs, kernels)))
     for x0 in starts:
-        r = scipy.optimize.minimize(fun, x0, args=args, jac=True, method="L-BFGS-B",
-                                    bounds=list(zip(lo, hi)),
+        r = scipy.optimize.minimize(_kron_nlml, x0, args=(Tu, Xu, res), jac=True,
+                                    method="L-BFGS-B", bounds=list(zip(lo, hi)),
                                     callback=None if step is None else (lambda *_: step()))
         if best is None or r.fun < best.fun:
             best = r
@@ -311,26 +158,14 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0, kernels=None, step=None):
                       "predictions may be off. Add simulator runs (n_runs) or raise n_starts.",
                       ConvergenceWarning, stacklevel=3)
     lp = best.x
-    *_, Qt, _, Qx, _, S, Pa = _kron_solve(lp, Tu, Xu, res, diffs)
+    *_, Qt, _, Qx, _, S, Pa = _kron_solve(lp, Tu, Xu, res)
     return KronGP(lp, beta, Qt, Qx, np.exp(2 * lp[0]) * Qt @ Pa @ Qx.T, 1.0 / S)
 
 
 @dataclass(frozen=True, eq=False)
 class Emulator:
-    """Fitted GP emulators (one per output) of ``simulate(X, θ)``.
-
-    Build with :func:`fit_emulator`; call :meth:`predict`.
-
-    Attributes
-    ----------
-    X_train : ndarray of shape (N, d_x)
-        Training inputs (original units).
-    theta_train : ndarray of shape (R, p)
-        Simulator runs (original units).
-    y_train : ndarray of shape (R, N, n_out)
-    bounds : ndarray of shape (p, 2)
-        Box the θ inputs are scaled with.
-    """
+    """GP emulators of ``simulate(X, θ)`` (:func:`fit_emulator`): ``X_train`` (N, d_x),
+    ``theta_train`` (R, p), ``y_train`` (R, N, n_out) and the θ ``bounds`` (p, 2)."""
 
     X_train: np.ndarray
     theta_train: np.ndarray
@@ -369,29 +204,10 @@ class Emulator:
         return X, theta
 
     @single_threaded_blas
-    def predict(self, X, theta, *, backend: str | None = None) -> EmulatorPrediction:
-        """Emulator mean and variance for every (θ, x) pair.
-
-        Parameters
-        ----------
-        X : ndarray of shape (N, d_x)
-        theta : ndarray of shape (n_theta, p)
-        backend : {"auto", "numpy", "numba"}, optional
-            ``"numpy"`` is the reference below; ``"numba"`` the compiled kernel
-            (:func:`mdcore.compiled.emulator_moments`). Default ``MDCORE_BACKEND``, else
-            numba when installed (:func:`mdcore.compiled.resolve_backend`). The two agree
-            to rounding: the variance to ~1e-15 σ_f²; the mean to ~1e-11 of its magnitude,
-            because with a tiny nugget it is a sum of terms ``k_θ A k_x`` up to ~1e5 times
-            larger than itself, so either path carries that rounding.
-
-        Returns
-        -------
-        EmulatorPrediction
-            ``mean`` and ``var`` of shape (n_theta, N, n_out).
-        """
+    def predict(self, X, theta) -> EmulatorPrediction:
+        """Emulator mean and variance at every (θ, x) pair: ``X`` (N, d_x), ``theta``
+        (n_theta, p) -> ``mean``, ``var`` (n_theta, N, n_out)."""
         X, theta = self._inputs(X, theta)
-        if compiled.resolve_backend(backend) == "numba":
-            return EmulatorPrediction(*compiled.emulator_moments(self.at(X).arrays(), theta))
         d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
         t_lo, t_span = self.bounds[:, 0], self.bounds[:, 1] - self.bounds[:, 0]
         Xu, Xtr = _unit(X, self._x_lo, self._x_span), _unit(self.X_train, self._x_lo, self._x_span)
@@ -410,33 +226,24 @@ class Emulator:
         return EmulatorPrediction(mean, var)
 
     @single_threaded_blas
-    def implausibility(self, X, theta, z, V, *, rank: int = 1,
-                       backend: str | None = None) -> tuple[np.ndarray, np.ndarray]:
-        """Combined implausibility of every θ (SPEC §5, Eq. 16) and the emulator variance.
+    def implausibility(self, X, theta, z, V, *, rank: int = 1) -> tuple[np.ndarray, np.ndarray]:
+        """Combined implausibility (Eq. 16) of every θ and the emulator variance.
 
-        ``I(θ)`` is the ``rank``-th largest over the targets (n, o) of
-        ``|z[n, o] − E[y]| / sqrt(V[n, o] + V[y])`` at ``(θ, X[n])``, output ``o``: with
-        ``V = V_o + V_m`` what :func:`mdcore.history_matching.implausibility` and
-        :func:`~mdcore.history_matching.combine` give on :meth:`predict`. The compiled path
-        fuses the three and never stores the mean.
+        ``I(θ)`` is the ``rank``-th largest over the targets (n, o) of ``|z[n, o] − E[y]| /
+        √(V[n, o] + V[y])`` at ``(θ, X[n])``, with :meth:`predict`'s moments.
 
         Parameters
         ----------
         X : ndarray of shape (N, d_x)
         theta : ndarray of shape (M, p)
         z, V : ndarray of shape (N, n_out)
-            Observations and the variance ``V_o + V_m`` added to the emulator's.
+            Observations and ``V_o + V_m``.
         rank : {1, 2, 3}, default=1
-            The max, 2nd max or 3rd max rule.
-        backend : {"auto", "numpy", "numba"}, optional
-            As in :meth:`predict`; on the same backend, ``var`` equals :meth:`predict`'s
-            and ``I`` is the formula above on its moments, to the last bit.
 
         Returns
         -------
         implausibility : ndarray of shape (M,)
         var : ndarray of shape (M, N, n_out)
-            ``V[y]``, as :meth:`predict`'s.
         """
         X, theta = self._inputs(X, theta)
         shape = (X.shape[0], self.n_out)
@@ -451,34 +258,15 @@ class Emulator:
                              f"received {rank!r}.")
         if z.size < rank:
             raise ValueError(f"rank {rank} needs at least {rank} targets; received {z.size}.")
-        if compiled.resolve_backend(backend) == "numba":
-            I, var, n_bad = compiled.emulator_scores(self.at(X).arrays(), theta, z, V,
-                                                     int(rank))
-            total = None
-        else:
-            mean, var = self.predict(X, theta, backend="numpy")
-            total = V + var
-            n_bad = int(np.count_nonzero(total <= 0))
+        I, var, n_bad = _implausibility(self.at(X).arrays(), theta, z, V, rank)
         if n_bad:
             raise ValueError("V_o + V_m + var must be positive for every target; received a "
                              "zero. Give V_m > 0 or a positive observation variance.")
-        if total is not None:                   # the NumPy reference
-            I = np.abs(z - mean) / np.sqrt(total)
-            I = -np.partition(-I.reshape(len(I), z.size), rank - 1, axis=-1)[:, rank - 1]
         return I, var
 
     def at(self, X) -> EmulatorAt:
-        """The emulator's joint Gaussian at fixed inputs ``X`` as a function of θ.
-
-        Everything that does not depend on θ is computed here, once, so that
-        :meth:`EmulatorAt.moments` costs O(R² + R N + N² N_train) per θ (the Kennedy–
-        O'Hagan likelihood evaluates it at every MCMC step).
-
-        Parameters
-        ----------
-        X : ndarray of shape (N, d_x)
-            Inputs (original units); repeated rows are allowed.
-        """
+        """The emulator's joint Gaussian at fixed inputs ``X`` (N, d_x) as a function of θ,
+        with what does not depend on θ computed once (the KOH likelihood's per-step cost)."""
         X = as_float_array(X, "X", ndim=2)
         d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
         if X.shape[1] != d_x:
@@ -495,26 +283,55 @@ class Emulator:
         return EmulatorAt(self, X, Xu, np.stack(lin), np.stack(AK), np.stack(V), np.stack(prior))
 
 
+def _implausibility(a: EmulatorArrays, theta: np.ndarray, z: np.ndarray, vt: np.ndarray,
+                    rank: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Eq. 16 by chunks of candidates: ``E = lin + θᵀβ_θ + k_θ AK``, ``V = max(σ_f² −
+    σ_f⁴ (k_θ Q_θ)² G, 0)``. Returns ``I`` (M,), ``var`` (M, N, n_out) and the count of
+    targets with ``V_o + V_m + var ≤ 0``."""
+    M, (N, n_out), (R, p) = theta.shape[0], z.shape, a.T_train.shape
+    imp, var = np.empty(M), np.empty((M, N, n_out))
+    bad = []
+    s2 = 3.0 * a.inv_ell ** 2                                   # (√3 / ℓ)², (n_out, p)
+    # (√3 r)² = |u|² − 2 u·t + |t|² in the s2 metric, as one product [u, 1, |u|²] @ T
+    T = [np.vstack([-2.0 * (a.T_train * s2[o]).T, a.T_train ** 2 @ s2[o], np.ones(R)])
+         for o in range(n_out)]
+    QA = [np.hstack([a.Q_t[o], a.AK[o]]) for o in range(n_out)]     # k_θ Q_θ and k_θ AK
+
+    def work(sl, multi, n):
+        Tu = _unit(theta[sl], a.t_lo, a.t_span)
+        U = np.empty((n, p + 2))
+        U[:, :p], U[:, p] = Tu, 1.0
+        I = np.empty((n, N, n_out))
+        for o in range(n_out):
+            U[:, p + 1] = Tu ** 2 @ s2[o]
+            r = U @ T[o]
+            np.sqrt(np.maximum(r, 0.0, out=r), out=r)
+            kq = separable_matern(0.0, r) @ QA[o]                       # (n, R + N)
+            mean = kq[:, R:] + (a.lin[o] + (Tu @ a.beta_t[o])[:, None])
+            q = kq[:, :R]
+            v = var[sl, :, o] = np.maximum(a.sf2[o] - a.sf2[o] ** 2 * ((q * q) @ a.G[o]), 0.0)
+            total = vt[:, o] + v
+            bad.append(np.count_nonzero(total <= 0))
+            I[..., o] = np.abs(z[:, o] - mean) / np.sqrt(total)
+        I = I.reshape(n, -1)
+        imp[sl] = -np.partition(-I, rank - 1, axis=1)[:, rank - 1]
+
+    for_each_chunk(work, chunks((M,), 8.0 * (6 * N * n_out + 6 * a.T_train.shape[0])))
+    return imp, var, int(sum(bad))
+
+
 @dataclass(frozen=True, eq=False)
 class EmulatorAt:
-    """Emulator moments at fixed inputs ``X``, for any θ; build with :meth:`Emulator.at`.
+    """Emulator moments at fixed inputs ``X`` (N, d_x), for any θ (:meth:`Emulator.at`).
 
-    For output ``o`` with Kronecker GP ``σ_f² K_θ ⊗ K_x + σ_n² I`` (eigenpairs
-    ``Q_θ Λ Q_θᵀ``, ``Q_x M Q_xᵀ``, ``W = 1 / (σ_f² λ_a μ_b + σ_n²)``) the posterior of
-    the emulated simulator at ``(θ, X_A)`` and ``(θ, X_B)`` is, with
-    ``k_θ = m32(θ, Θ_train)``, ``V_A = m32(X_A, X_train) Q_x`` and
-    ``d(θ) = (k_θ Q_θ)² W`` (a length-N_train vector)::
+    For output ``o`` (eigenpairs ``Q_θ Λ Q_θᵀ``, ``Q_x M Q_xᵀ``, ``W = 1 / (σ_f² λ_a μ_b +
+    σ_n²)``), with ``k_θ = m32(θ, Θ_train)``, ``V_A = m32(X_A, X_train) Q_x`` and
+    ``d(θ) = (k_θ Q_θ)² W``::
 
         m_η(X_A, θ)       = β₀ + βᵀ[x, θ] + k_θ A m32(X_A, X_train)ᵀ
         Σ_η(X_A, X_B; θ)  = σ_f² m32(X_A, X_B) − σ_f⁴ V_A diag(d(θ)) V_Bᵀ
 
-    Only ``k_θ`` and ``d(θ)`` depend on θ. The diagonal of Σ_η equals
-    :meth:`Emulator.predict`'s ``var``.
-
-    Attributes
-    ----------
-    emulator : Emulator
-    X : ndarray of shape (N, d_x)
+    Only ``k_θ`` and ``d(θ)`` depend on θ.
     """
 
     emulator: Emulator
@@ -526,12 +343,8 @@ class EmulatorAt:
     _prior: np.ndarray   # (n_out, N, N) σ_f² m32(X, X)
 
     def theta_terms(self, theta, *, check: bool = True) -> ThetaTerms:
-        """The θ-dependent pieces at ``theta`` (M, p), shared by every input set.
-
-        One evaluation serves :meth:`moments_at` and :meth:`cross_cov_at` of every
-        :class:`EmulatorAt` of the same emulator (an MCMC step, a prediction block).
-        ``check=False`` skips validating ``theta`` (hot loops that built it themselves).
-        """
+        """The θ-dependent pieces at ``theta`` (M, p), shared by every :class:`EmulatorAt` of
+        the emulator."""
         em = self.emulator
         p = em.theta_train.shape[1]
         if check:
@@ -547,33 +360,22 @@ class EmulatorAt:
         return ThetaTerms(Tu, tuple(terms))
 
     def arrays(self) -> EmulatorArrays:
-        """The fixed pieces of the algebra above, stacked over outputs (for compiled code)."""
+        """The fixed pieces, stacked over outputs (for compiled code)."""
         em = self.emulator
         p, d_x = em.theta_train.shape[1], self.X.shape[1]
         t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
         gps = em.gps
         return EmulatorArrays(
-            t_lo, t_span, _unit(em.theta_train, t_lo, t_span),
-            np.stack([np.exp(-g.log_params[1:1 + p]) for g in gps]),
-            np.stack([g.Q_t for g in gps]), np.stack([g.W for g in gps]), self._lin,
-            np.stack([g.beta[1 + d_x:] for g in gps]), self._AK, self._V,
-            np.array([np.exp(4 * g.log_params[0]) for g in gps]), self._prior,
-            np.array([np.exp(2 * g.log_params[0]) for g in gps]),
-            np.stack([g.W @ (V * V).T for g, V in zip(gps, self._V)]))
+            t_lo=t_lo, t_span=t_span, T_train=_unit(em.theta_train, t_lo, t_span),
+            inv_ell=np.stack([np.exp(-g.log_params[1:1 + p]) for g in gps]),
+            Q_t=np.stack([g.Q_t for g in gps]), W=np.stack([g.W for g in gps]),
+            lin=self._lin, beta_t=np.stack([g.beta[1 + d_x:] for g in gps]), AK=self._AK,
+            V=self._V, sf4=np.array([np.exp(4 * g.log_params[0]) for g in gps]),
+            prior=self._prior, sf2=np.array([np.exp(2 * g.log_params[0]) for g in gps]),
+            G=np.stack([g.W @ (V * V).T for g, V in zip(gps, self._V)]))
 
     def moments(self, theta):
-        """Mean and covariance of the emulated simulator at ``X`` for each θ.
-
-        Parameters
-        ----------
-        theta : ndarray of shape (M, p) or (p,)
-
-        Returns
-        -------
-        mean : ndarray of shape (M, n_out, N)
-        cov : ndarray of shape (M, n_out, N, N)
-            ``Σ_η(X, X; θ)`` (output units squared).
-        """
+        """``m_η`` (M, n_out, N) and ``Σ_η(X, X; θ)`` (M, n_out, N, N) for ``theta`` (M, p)."""
         return self.moments_at(self.theta_terms(theta))
 
     def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
@@ -596,8 +398,7 @@ class EmulatorAt:
         return self.cross_cov_at(self.theta_terms(theta), other)
 
     def cross_cov_at(self, terms: ThetaTerms, other: EmulatorAt):
-        """:meth:`cross_cov` from :meth:`theta_terms`. The θ-terms belong to the emulator,
-        so one evaluation serves every input set."""
+        """:meth:`cross_cov` from :meth:`theta_terms`."""
         if other.emulator is not self.emulator:
             raise ValueError("other must come from the same emulator (Emulator.at).")
         per_output = terms.per_output
@@ -617,36 +418,11 @@ class EmulatorAt:
 
 @single_threaded_blas
 def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
-                 backend: str | None = None,
                  progress: Callable[[float], None] | None = None) -> Emulator:
-    """Fit one GP emulator per output from full simulator sweeps.
-
-    Parameters
-    ----------
-    X : ndarray of shape (N, d_x)
-        Distinct training inputs (replicates removed).
-    theta : ndarray of shape (R, p)
-        Simulator runs.
-    y : ndarray of shape (R, N, n_out)
-        ``simulate(X, theta)``.
-    bounds : ndarray of shape (p, 2)
-        Parameter box used to scale θ to [0, 1].
-    n_starts : int, default=2
-        L-BFGS-B starts per output for the hyperparameters (empirical Bayes).
-    seed : int or Generator, optional
-    backend : {"auto", "numpy", "numba"}, optional
-        ``"numba"`` evaluates the likelihood and its gradient with compiled kernels that
-        give the NumPy evaluation's exact bits (:func:`_kron_nlml_compiled`), so the
-        fitted emulator is identical on both backends, only faster. Default as
-        :func:`mdcore.compiled.resolve_backend`.
-    progress : callable, optional
-        ``progress(fraction)`` after every optimiser iteration; if it raises (e.g.
-        :class:`mdcore.Cancelled`), the fit stops.
-
-    Returns
-    -------
-    Emulator
-    """
+    """Fit one GP emulator per output to ``y = simulate(X, theta)`` (R, N, n_out): inputs
+    ``X`` (N, d_x), runs ``theta`` (R, p) in ``bounds`` (p, 2); ``n_starts`` L-BFGS-B starts.
+    ``progress(fraction)`` after every optimiser iteration; if it raises (e.g.
+    :class:`mdcore.Cancelled`), the fit stops."""
     X = as_float_array(X, "X", ndim=2)
     theta = as_float_array(theta, "theta", ndim=2)
     y = as_float_array(y, "y", ndim=3)
@@ -662,9 +438,8 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
     x_span = np.where(np.ptp(X, axis=0) > 0, np.ptp(X, axis=0), 1.0)
     Xu = _unit(X, x_lo, x_span)
     Tu = _unit(theta, bounds[:, 0], bounds[:, 1] - bounds[:, 0])
-    kernels = compiled.fit_kernels() if compiled.resolve_backend(backend) == "numba" else None
     n_out = y.shape[2]
-    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o, kernels,
+    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o,
                          None if progress is None else (lambda o=o: progress(o / n_out)))
                 for o in range(n_out))
     return Emulator(X, theta, y, bounds, x_lo, x_span, gps)

@@ -1,8 +1,12 @@
 """Results out as plain files: CSV tables of the history match and of the predictions.
 
 No pickle anywhere: the JSON of a run is :meth:`mdcore.reproduce.CaseRun.to_dict` (a
-versioned schema), and the tables here are CSV text with a header row and ``#`` comment
-lines that say where they come from.
+versioned schema). The tables are plain CSV that ``pandas.read_csv`` and a spreadsheet read
+as they are: a header row, then one row per record, written by :mod:`csv`. Where a table
+comes from (the case, T and the rule, each wave's NROY share, the seed) is a JSON sidecar
+beside it (``nroy.json``, ``predictions.json``). A text cell that a spreadsheet would run
+as a formula (starting with ``= + - @``, a tab or a carriage return) is written with a
+leading ``'``; numbers are written as numbers, negative ones included.
 
 Examples
 --------
@@ -11,7 +15,7 @@ Examples
 >>> from mdcore.pipeline import Settings
 >>> run = run_case(cases.load("beam-1d"), methods=[1], settings=Settings(n_s=10),
 ...                n_candidates=5000)
->>> nroy_csv(run.hm, run.case.theta_names, run.case.theta_units).splitlines()[1]
+>>> nroy_csv(run.hm, run.case.theta_names, run.case.theta_units).splitlines()[0]
 'wave,l_cr [mm],E [GPa],implausibility'
 """
 
@@ -19,6 +23,8 @@ from __future__ import annotations
 
 import csv
 import io
+import json
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -26,15 +32,40 @@ import numpy as np
 from .history_matching import HistoryMatchResult
 from .reproduce import CaseRun
 
-__all__ = ["nroy_csv", "predictions_csv", "write_tables"]
+__all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "csv_table", "nroy_csv", "predictions_csv",
+           "write_tables"]
+
+#: Most NROY samples written per wave. A wave keeps up to 50,000 p candidates, and the
+#: teaching preset runs 5 waves: all of them were 22 MB for beam-1d. The candidates are
+#: independent draws, uniform in the wave's NROY set, so the first ones retained are a
+#: uniform sample of it too (:meth:`HistoryMatchResult.nroy_samples` draws more).
+NROY_ROWS_PER_WAVE = 10_000
+#: The start of a text cell that a spreadsheet runs (formula injection, OWASP).
+_FORMULA = ("=", "+", "-", "@", "\t", "\r")
 
 
-def _table(comment: str, header: list, rows) -> str:
+def csv_cell(value, number: Callable[[float], str] = repr):
+    """One CSV cell: text that a spreadsheet would run gets a leading ``'``; a number
+    (int, float, NumPy scalar) is written with ``number`` and never escaped.
+
+    Examples
+    --------
+    >>> csv_cell("=1+2"), csv_cell("-x"), csv_cell(-1.5), csv_cell("ω1")
+    ("'=1+2", "'-x", '-1.5', 'ω1')
+    """
+    if isinstance(value, str):
+        return "'" + value if value.startswith(_FORMULA) else value
+    if isinstance(value, (bool, int, np.integer)):
+        return str(int(value))
+    return number(float(value))
+
+
+def csv_table(header: list, rows: Iterable, number: Callable[[float], str] = repr) -> str:
+    """CSV text of a header and rows, every cell through :func:`csv_cell`."""
     out = io.StringIO()
-    out.write(f"# {comment}\n")
     writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(header)
-    writer.writerows(rows)
+    writer.writerow([csv_cell(h) for h in header])
+    writer.writerows([csv_cell(c, number) for c in row] for row in rows)
     return out.getvalue()
 
 
@@ -55,6 +86,17 @@ def _check_run(run) -> None:
                          f"received {type(run).__name__}.")
 
 
+def _check_hm(hm) -> None:
+    if not isinstance(hm, HistoryMatchResult):
+        raise ValueError(f"hm must be a HistoryMatchResult (history_match or "
+                         f"history_match_case); received {type(hm).__name__}.")
+
+
+def _kept(wave, threshold: float) -> np.ndarray:
+    """Indices of the wave's retained candidates that the table holds (the first ones)."""
+    return np.flatnonzero(wave.candidate_implausibility <= threshold)[:NROY_ROWS_PER_WAVE]
+
+
 def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
     """The non-implausible θ of every wave with their implausibility, as CSV text.
 
@@ -67,25 +109,22 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
     Returns
     -------
     str
-        Columns ``wave``, one per θ component, ``implausibility``; one row per retained
-        candidate of each wave (uniform in that wave's NROY set).
+        Columns ``wave``, one per θ component, ``implausibility``; up to
+        :data:`NROY_ROWS_PER_WAVE` rows per wave, uniform in that wave's NROY set, with 7
+        significant digits (the samples are random draws: more digits are noise).
     """
-    if not isinstance(hm, HistoryMatchResult):
-        raise ValueError(f"hm must be a HistoryMatchResult (history_match or "
-                         f"history_match_case); received {type(hm).__name__}.")
+    _check_hm(hm)
     p = hm.problem.p
     names = _labels(names, "names", p) or [f"theta_{i + 1}" for i in range(p)]
     units = _labels(units, "units", p) or [""] * p
     head = ["wave"] + [f"{n} [{u}]" if u else n for n, u in zip(names, units)] \
         + ["implausibility"]
-    rows = []
+    rows: list = []
     for w in hm.waves:
-        keep = w.candidate_implausibility <= hm.problem.threshold
-        for theta, imp in zip(w.candidates[keep], w.candidate_implausibility[keep]):
-            rows.append([w.index] + [repr(float(t)) for t in theta] + [repr(float(imp))])
-    comment = (f"NROY samples per wave (I <= T = {hm.problem.threshold:g}, rule "
-               f"{hm.problem.rule!r}); status {hm.status}: {hm.message}")
-    return _table(comment, head, rows)
+        keep = _kept(w, hm.problem.threshold)
+        rows += ([w.index, *theta, imp] for theta, imp in
+                 zip(w.candidates[keep], w.candidate_implausibility[keep]))
+    return csv_table(head, rows, number=lambda v: f"{v:.7g}")
 
 
 def predictions_csv(run) -> str:
@@ -99,7 +138,8 @@ def predictions_csv(run) -> str:
     -------
     str
         One row per (method, output, test input): the inputs, the observation, the
-        predictive mean and sd of z, of δ, and the true δ where it is known.
+        predictive mean and sd of z (which includes the noise), of δ, and the true δ where
+        it is known (an empty cell otherwise).
     """
     _check_run(run)
     case = run.case
@@ -111,30 +151,47 @@ def predictions_csv(run) -> str:
         p = r.on_test
         for o, name in enumerate(case.output_names):
             for i in range(case.X_test.shape[0]):
-                rows.append([r.method.value, name]
-                            + [repr(float(v)) for v in case.X_test[i]]
-                            + [repr(float(v)) for v in (
-                                case.z_test[i, o], p.z_mean[i, o], np.sqrt(p.z_var[i, o]),
-                                p.delta_mean[i, o], np.sqrt(p.delta_var[i, o]))]
-                            + ["" if truth is None else repr(float(truth[i, o]))])
-    return _table(f"{case.name}: predictions at the test inputs (seed {run.seed}); z_sd "
-                  "includes the noise", head, rows)
+                rows.append([r.method.value, name, *case.X_test[i], case.z_test[i, o],
+                             p.z_mean[i, o], np.sqrt(p.z_var[i, o]), p.delta_mean[i, o],
+                             np.sqrt(p.delta_var[i, o]),
+                             "" if truth is None else truth[i, o]])
+    return csv_table(head, rows)
+
+
+def _nroy_sidecar(run: CaseRun) -> dict:
+    hm = run.hm
+    return {"table": "nroy.csv", "case": run.case.name, "threshold": hm.problem.threshold,
+            "rule": hm.problem.rule, "status": hm.status, "message": hm.message,
+            "waves": [{"wave": w.index, "nroy_fraction": w.nroy_fraction,
+                       "candidates": len(w.candidates), "nroy_candidates": len(w.nroy),
+                       "rows": len(_kept(w, hm.problem.threshold))} for w in hm.waves],
+            "rows_per_wave": f"the first {NROY_ROWS_PER_WAVE:,} non-implausible candidates "
+                             "of each wave, uniform in its NROY set"}
+
+
+def _predictions_sidecar(run: CaseRun) -> dict:
+    return {"table": "predictions.csv", "case": run.case.name, "seed": run.seed,
+            "methods": [r.method.label for r in run.results],
+            "z_sd": "includes the observation noise",
+            "delta_true": "empty where the true discrepancy is unknown"}
 
 
 def write_tables(run, folder) -> list[Path]:
-    """Write ``nroy.csv`` and ``predictions.csv`` of a run into ``folder`` (created).
+    """Write ``nroy.csv`` and ``predictions.csv`` of a run into ``folder`` (created), each
+    with its JSON sidecar (``nroy.json``, ``predictions.json``: where the table comes from).
 
-    Both tables are made before anything is written, so a bad ``run`` leaves no files.
+    Every table is made before anything is written, so a bad ``run`` leaves no files.
     """
     _check_run(run)
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"folder {str(folder)!r} is a file; give a folder for nroy.csv and "
                          "predictions.csv.")
-    texts = [nroy_csv(run.hm, run.case.theta_names, run.case.theta_units),
-             predictions_csv(run)]
+    texts = {"nroy.csv": nroy_csv(run.hm, run.case.theta_names, run.case.theta_units),
+             "nroy.json": json.dumps(_nroy_sidecar(run), indent=1),
+             "predictions.csv": predictions_csv(run),
+             "predictions.json": json.dumps(_predictions_sidecar(run), indent=1)}
     folder.mkdir(parents=True, exist_ok=True)
-    paths = [folder / "nroy.csv", folder / "predictions.csv"]
-    for path, text in zip(paths, texts):
-        path.write_text(text, encoding="utf-8")
-    return paths
+    for name, text in texts.items():
+        (folder / name).write_text(text, encoding="utf-8")
+    return [folder / name for name in texts]

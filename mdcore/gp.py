@@ -1,15 +1,8 @@
-"""Batched Gaussian-process regression (SPEC §2–3, paper Eqs. 2–9).
+"""Batched GP regression of ``z`` on ``{y, x}`` (Eqs. 2–9): the implementation of record.
 
-The discrepancy GP maps simulator outputs and inputs ``{y, x}`` to observations ``z``
-with the separable Matérn 3/2 kernel of :mod:`mdcore.kernels` (Eq. 3). This module holds
-the regression itself: the negative log marginal likelihood (Eq. 9) and its gradient,
-and the posterior predictive moments (Eq. 7). Hyperparameter fitting is in
-:mod:`mdcore.hyperfit`, the batched linear algebra in :mod:`mdcore.linalg`, priors in
-:mod:`mdcore.priors`.
-
-Every function is batched: leading dimensions of ``log_params`` (..., P) and ``Y``
-(..., N, d_y) broadcast against each other, and the work is chunked internally so that
-hundreds of thousands of (hyperparameter, Y) pairs run in bounded memory.
+The NLML (Eq. 9) and its gradient, and the predictive moments (Eq. 7). Leading dimensions
+of ``log_params`` (..., P) and ``Y`` (..., N, d_y) broadcast; the work runs in chunks of
+bounded memory on the compute threads.
 """
 
 from __future__ import annotations
@@ -19,18 +12,8 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 
-from . import compiled
 from .kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
-from .linalg import (
-    JITTER_LADDER,
-    JitterLog,
-    cholesky,
-    cholesky_steps,
-    chunks,
-    for_each_chunk,
-    gather,
-    solve_lower_inplace,
-)
+from .linalg import JitterLog, cholesky, chunks, for_each_chunk, gather, solve_lower_inplace
 from .threads import single_threaded_blas
 from .validation import as_float_array, as_log_params
 
@@ -41,18 +24,7 @@ LOG_2PI = np.log(2.0 * np.pi)
 
 
 class GPPrediction(NamedTuple):
-    """Predictive moments of the latent GP.
-
-    Attributes
-    ----------
-    mean : ndarray of shape (..., N*)
-        Predictive mean (Eq. 7).
-    var : ndarray of shape (..., N*)
-        Latent predictive variance ``k** − diag(K*f K⁻¹ Kf*)``; add ``noise_var``
-        for the variance of a new observation.
-    noise_var : ndarray of shape (...)
-        ``σ_n²`` of each batch element.
-    """
+    """Latent ``mean`` and ``var`` (Eq. 7), (..., N*), and ``noise_var`` σ_n² (...)."""
 
     mean: np.ndarray
     var: np.ndarray
@@ -96,50 +68,27 @@ def check_problem(log_params, Y, X, z) -> Problem:
 
 
 @single_threaded_blas
-def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "numpy",
-                                jitter_log: JitterLog | None = None,
-                                stop: float | None = None) -> np.ndarray:
-    """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``.
-
-    ``NLML = ½ zᵀ K⁻¹ z + Σ log L_ii + (N/2) log 2π`` with ``K = K_ff + σ_n² I``,
-    ``L = chol(K)``.
+def neg_log_marginal_likelihood(log_params, Y, X, z, *,
+                                jitter_log: JitterLog | None = None) -> np.ndarray:
+    """Negative log marginal likelihood (Eq. 9), batched over hyperparameters and ``Y``:
+    ``½ zᵀ K⁻¹ z + Σ log L_ii + (N/2) log 2π``, ``K = K_ff + σ_n² I = L Lᵀ``.
 
     Parameters
     ----------
     log_params : ndarray of shape (..., P)
-        ``P = 2 + d_y + d_x``, SPEC §2 layout.
+        ``[log σ_f, log ℓ_y (d_y), log ℓ_x (d_x), log σ_n]``.
     Y : ndarray of shape (..., N, d_y)
-        Simulator outputs used as GP inputs; leading dims broadcast with ``log_params``.
+        Simulator outputs, the GP's inputs; leading dims broadcast with ``log_params``.
     X : ndarray of shape (N, d_x)
-        Inputs.
     z : ndarray of shape (N,)
-        Observations.
-    backend : {"numpy", "numba", "auto"} or None, default="numpy"
-        ``"numpy"`` is this function's reference implementation; ``"numba"`` the fused
-        kernels of :mod:`mdcore.compiled` (same ladder, warnings and results to ~1e-12);
-        ``"auto"`` is numba when installed; ``None`` reads ``MDCORE_BACKEND``
-        (:func:`mdcore.compiled.resolve_backend`). The scenario-3 paths of
-        :mod:`mdcore.discrepancy` choose the compiled one by default.
     jitter_log : JitterLog, optional
-        Receives the counts of jittered and failed matrices instead of a warning (for
-        callers that report them once, or not at all: an optimiser's trial points).
-        Warnings filters are process-wide, so silencing them with ``catch_warnings``
-        from several threads at once is not safe; this is.
-    stop : float, optional
-        An NLML beyond which the value is not wanted (a weight too small to matter):
-        elements whose NLML exceeds ``stop`` get ``+inf`` and count neither as jittered nor
-        as failed, nor do those whose NLML a bound from σ_f, σ_n and zᵀz alone puts
-        above ``stop`` (the compiled backend skips their entries: half of shear-5's
-        pairs). The compiled backend stops factorising such a matrix at the first
-        row where a lower bound of its NLML passes ``stop`` (every later row adds at
-        least ``log σ_n``), from N = 24 training points (below, the checks cost more
-        than they save). Scenario 3's weights use it (:data:`mdcore.discrepancy.ABANDON_MASS`).
+        Receives the jitter counts instead of a warning (``catch_warnings`` is not
+        thread-safe).
 
     Returns
     -------
     ndarray of shape (...)
-        The NLML of every broadcast batch element. A matrix that stays non-positive-definite
-        after the jitter ladder gets ``+inf`` and a :class:`NumericalWarning`.
+        ``+inf`` (and a :class:`NumericalWarning`) where no jitter step factorises.
 
     Examples
     --------
@@ -150,10 +99,6 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     """
     prob = check_problem(log_params, Y, X, z)
     _check_jitter_log(jitter_log)
-    stop = _check_stop(stop)
-    if compiled.resolve_backend(backend) == "numba":
-        return compiled.nlml(prob.log_params, prob.Y, prob.X, prob.z, jitter_log=jitter_log,
-                             stop=stop)
     N = prob.X.shape[0]
     out = np.empty(int(np.prod(prob.batch_shape, dtype=np.int64)))
     log = JitterLog() if jitter_log is None else jitter_log
@@ -162,15 +107,11 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     def work(sl, multi, n):
         theta = gather(prob.log_params, 1, prob.batch_shape, multi)
         Yc = gather(prob.Y, 2, prob.batch_shape, multi)
-        L, ok, step = cholesky_steps(train_cov(theta, Yc, prob.X, border=prob.z), n_cov=N)
+        L, ok = cholesky(train_cov(theta, Yc, prob.X, border=prob.z), log, n_cov=N)
         w = L[:, N, :N]                                   # L⁻¹ z from the bordered factor
         logdet = np.sum(np.log(np.diagonal(L, axis1=-2, axis2=-1)[:, :N]), axis=-1)
         val = 0.5 * np.sum(w * w, axis=-1) + logdet + 0.5 * N * LOG_2PI  # Eq. 9
-        floor = _nlml_floor(theta, prob.z, N) > stop      # gone before any entry
-        gone = floor | (ok & (val > stop))                # not wanted: not jittered either
-        step[gone] = 0.0
-        log.record_steps(step, ~ok & ~floor)
-        out[sl] = np.where(ok & ~gone, val, np.inf)
+        out[sl] = np.where(ok, val, np.inf)
 
     for_each_chunk(work, chunks(prob.batch_shape, per_item))
     if jitter_log is None:
@@ -178,42 +119,11 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *, backend: str | None = "n
     return out.reshape(prob.batch_shape)
 
 
-def _nlml_floor(theta: np.ndarray, z: np.ndarray, N: int) -> np.ndarray:
-    """A lower bound of the NLML (Eq. 9) from σ_f, σ_n and zᵀz alone, for theta (b, P).
-
-    ``½ zᵀz / λ_max + N log σ_n + (N/2) log 2π``: every eigenvalue of K is at least σ_n²,
-    and ``λ_max ≤ N σ_f² + σ_n²`` (no entry of K_ff exceeds σ_f²) plus the jitter ladder's
-    largest step times the mean diagonal. The compiled kernel checks the same bound
-    before it computes a pair's entries, so both backends leave out these pairs alike.
-    """
-    sf2, sn2 = np.exp(2.0 * theta[:, 0]), np.exp(2.0 * theta[:, -1])
-    top = max(JITTER_LADDER, default=0.0)
-    lam = N * sf2 + sn2 + top * (sf2 + sn2)
-    return 0.5 * float(z @ z) / lam + N * theta[:, -1] + 0.5 * N * LOG_2PI
-
-
 @single_threaded_blas
-def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy"
-            ) -> GPPrediction:
-    """Posterior predictive moments of the latent GP (Eq. 7), batched.
-
-    Parameters
-    ----------
-    log_params : ndarray of shape (..., P)
-    Y : ndarray of shape (..., N, d_y)
-        Training simulator outputs.
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N,)
-    Y_star : ndarray of shape (..., N*, d_y)
-        Test simulator outputs; leading dims broadcast with ``Y`` and ``log_params``.
-    X_star : ndarray of shape (N*, d_x)
-    backend : {"auto", "numpy", "numba"}, optional
-        As in :func:`neg_log_marginal_likelihood`.
-
-    Returns
-    -------
-    GPPrediction
-        ``mean`` and latent ``var`` of shape (..., N*), ``noise_var`` of shape (...).
+def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
+    """Predictive moments of the latent GP (Eq. 7), batched: arguments as
+    :func:`neg_log_marginal_likelihood`, ``Y_star`` (..., N*, d_y), ``X_star`` (N*, d_x);
+    NaN (and a warning) where no jitter step factorises.
 
     Examples
     --------
@@ -239,9 +149,6 @@ def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy
     except ValueError:
         raise ValueError(f"the leading dimensions of Y_star {Y_star.shape} do not broadcast "
                          f"with log_params/Y ({prob.batch_shape}).") from None
-    if compiled.resolve_backend(backend) == "numba":
-        return GPPrediction(*compiled.predict(prob.log_params, prob.Y, prob.X, prob.z, Y_star,
-                                              X_star))
     N, M = prob.X.shape[0], X_star.shape[0]
     total = int(np.prod(batch, dtype=np.int64))
     mean = np.empty((total, M))
@@ -271,16 +178,6 @@ def predict(log_params, Y, X, z, Y_star, X_star, *, backend: str | None = "numpy
                         noise.reshape(batch))
 
 
-def _check_stop(stop) -> float:
-    """``stop`` as a float (None: +inf, never); NaN is refused."""
-    if stop is None:
-        return np.inf
-    value = float(as_float_array(stop, "stop", ndim=0, finite=False))
-    if np.isnan(value):
-        raise ValueError("stop must be an NLML level (a number, or inf for none); received NaN.")
-    return value
-
-
 def _check_jitter_log(jitter_log) -> None:
     if jitter_log is not None and not isinstance(jitter_log, JitterLog):
         raise ValueError(f"jitter_log must be a mdcore.linalg.JitterLog or None; received "
@@ -289,26 +186,8 @@ def _check_jitter_log(jitter_log) -> None:
 
 def nlml_and_gradient(log_params, Y, X, z, *, jitter_log: JitterLog | None = None
                       ) -> tuple[float, np.ndarray]:
-    """NLML (Eq. 9) and its analytic gradient for one hyperparameter vector.
-
-    Uses ``∂NLML/∂φ = ½ tr((K⁻¹ − ααᵀ) ∂K/∂φ)``, ``α = K⁻¹ z`` (Rasmussen & Williams
-    Eq. 5.9), with ``∂m32/∂log ℓ_d = 3 exp(−√3 r) Δ_d² / ℓ_d²``.
-
-    Parameters
-    ----------
-    log_params : ndarray of shape (P,)
-    Y : ndarray of shape (N, d_y)
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N,)
-    jitter_log : JitterLog, optional
-        As in :func:`neg_log_marginal_likelihood`: receives the jitter counts instead of
-        a warning.
-
-    Returns
-    -------
-    nlml : float
-    grad : ndarray of shape (P,)
-    """
+    """NLML (Eq. 9) and its gradient ``½ tr((K⁻¹ − ααᵀ) ∂K/∂φ)``, ``α = K⁻¹ z``, (P,), for
+    one ``log_params`` (P,) and ``Y`` (N, d_y) (Rasmussen & Williams Eq. 5.9)."""
     prob = check_problem(log_params, Y, X, z)
     _check_jitter_log(jitter_log)
     if prob.batch_shape != ():

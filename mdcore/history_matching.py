@@ -1,20 +1,18 @@
-"""Bayesian history matching in waves (SPEC §5, paper Eq. 16).
+"""Bayesian history matching in waves (paper Eq. 16).
 
-Implausibility of θ at observed input/output ``i``::
+The implausibility of θ at observed input/output ``i``,
+``I_i(θ) = |z_i − E[y_i(θ)]| / √(V_o,i + V_m,i + V[y_i(θ)])``, is combined over the targets
+by the max (or 2nd / 3rd max); θ is not ruled out yet (NROY) when ``I(θ) ≤ T``.
 
-    I_i(θ) = |z_i − E[y_i(θ)]| / sqrt(V_o,i + V_m,i + V[y_i(θ)])
+Each wave fits an emulator to all runs so far, scores candidates uniform in the previous
+NROY set and keeps those with ``I ≤ T``. Candidates of wave ``k > 1`` are the previous
+survivors moved by a few random-walk Metropolis steps whose target is the uniform density
+on that set; the walk leaves it invariant, so the NROY fraction of the box is estimated
+without bias by ``f_k = f_{k−1} · P(I_k ≤ T | θ ∈ NROY_{k−1})``.
 
-combined over all targets by the max (or 2nd / 3rd max). θ is not ruled out yet (NROY)
-when the combined ``I(θ) ≤ T``.
-
-Each wave fits an emulator to all simulator runs so far, scores candidates that are
-uniform in the previous NROY set, and keeps those with ``I ≤ T``. Candidates of wave
-``k > 1`` come from the previous wave's survivors, which are uniform in the previous NROY
-set, moved by a few random-walk Metropolis steps whose target is the uniform density on
-that set (accept a move iff it stays inside the box and is non-implausible under every
-earlier wave). The walk leaves the uniform distribution invariant, so the NROY fraction
-of the original box is estimated without bias by the chain rule
-``f_k = f_{k−1} · P(I_k ≤ T | θ ∈ NROY_{k−1})``.
+The multivariate rule (Vernon, Goldstein & Bower 2010; :mod:`mdcore.multivariate`)
+scores all targets at once, I_M²(θ) with the full covariance ``V_o + V_m + V_em(θ)``
+(V_m possibly correlated), against a χ² quantile instead of T.
 
 Examples
 --------
@@ -39,7 +37,7 @@ import scipy.optimize
 import scipy.special
 import scipy.stats
 
-from . import compiled
+from . import multivariate
 from .emulator import Emulator, fit_emulator
 from .runs import run_simulator
 from .threads import single_threaded_blas
@@ -52,22 +50,29 @@ from .validation import (
     check_bounds,
     check_positive,
     choose,
+    short,
 )
 
-__all__ = ["RULES", "implausibility", "combine", "Score", "Wave", "HistoryMatchProblem",
-           "HistoryMatchResult", "setup", "next_wave", "iter_waves", "history_match",
-           "history_match_case", "case_problem", "replicate_summary"]
+__all__ = ["RULES", "MULTIVARIATE", "RULE_NAMES", "implausibility", "combine", "Score", "Wave",
+           "HistoryMatchProblem", "HistoryMatchResult", "setup", "next_wave", "iter_waves",
+           "history_match", "history_match_case", "case_problem", "replicate_summary",
+           "check_correlation"]
 
 #: Combiner rules: the k-th largest implausibility over all targets.
 RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
+#: The multivariate rule: I_M² over all targets against a χ² quantile (issue 43).
+MULTIVARIATE = "multivariate"
+#: Every rule :func:`setup` accepts.
+RULE_NAMES = (*RULES, MULTIVARIATE)
 #: Default largest share of a wave's simulator runs that may fail (and be dropped).
 MAX_FAILED_FRACTION = 0.5
 #: Largest sizes accepted up front: candidates scored per wave (and NROY samples drawn at
-#: once), simulator runs per wave (the emulator's θ covariance is runs × runs), and the
-#: Metropolis steps that spread the candidates. Beyond these the work would not fit in
-#: memory, so it is refused before it starts.
+#: once), simulator runs in all waves together (the last emulator's θ covariance is runs ×
+#: runs), waves, and the Metropolis steps that spread the candidates. Beyond these the work
+#: would not fit in memory, so it is refused before it starts.
 MAX_CANDIDATES = 10_000_000
 MAX_RUNS = 10_000
+MAX_WAVES = 100
 MAX_MCMC_STEPS = 1_000
 #: Values (θ rows × observed inputs × outputs) of the emulator's mean and variance held at
 #: once while candidates are scored or weighted: θ go through in chunks of at most this
@@ -79,27 +84,15 @@ CHUNK_VALUES = 2**21
 POSTERIOR_MEMO = 4
 RULED_OUT_HINT = ("nothing is non-implausible: every candidate θ has I > T. Raise V_m (the "
                   "model-discrepancy variance) or the threshold T, or use the 2nd/3rd max rule.")
+RULED_OUT_HINT_MV = ("nothing is non-implausible: every candidate θ has I_M² above the χ² "
+                     "cut-off. Raise V_m, shorten V_m_length (a correlated V_m leaves less "
+                     "room for a discrepancy that varies faster) or raise chi2_probability.")
 
 
 def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
-    """Elementwise implausibility (Eq. 16).
+    """Elementwise implausibility (Eq. 16), ``|z − mean| / √(V_o + V_m + var)``, of arrays
+    that broadcast together (``var``, ``V_o``, ``V_m`` ≥ 0).
 
-    Parameters
-    ----------
-    z : array_like
-        Observations, broadcastable against ``mean``.
-    mean, var : array_like
-        Emulator (or simulator) mean and variance; ``var ≥ 0``.
-    V_o, V_m : array_like
-        Observation and model-discrepancy variances (≥ 0), broadcastable.
-
-    Returns
-    -------
-    ndarray
-        ``|z − mean| / sqrt(V_o + V_m + var)``, broadcast shape.
-
-    Examples
-    --------
     >>> float(implausibility(1.0, 0.0, 0.5, V_o=0.25, V_m=0.25))
     1.0
     """
@@ -116,19 +109,9 @@ def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
 
 
 def combine(I, rule: str = "max") -> np.ndarray:
-    """Combine implausibilities over targets (the last two axes: inputs × outputs).
+    """Combine implausibilities ``I`` (..., N, n_out) over the targets by ``rule``
+    ("max", "2nd max" or "3rd max"): shape (...).
 
-    Parameters
-    ----------
-    I : ndarray of shape (..., N, n_out)
-    rule : {"max", "2nd max", "3rd max"}
-
-    Returns
-    -------
-    ndarray of shape (...)
-
-    Examples
-    --------
     >>> combine(np.array([[[1.0], [9.0], [4.0]]]), "2nd max")
     array([4.])
     """
@@ -190,10 +173,12 @@ class HistoryMatchProblem:
         Seconds after which a batch of simulator runs counts as failed.
     max_failed_fraction : float
         A wave whose share of failed simulator runs exceeds this is an error.
-    backend : {"numpy", "numba"}
-        How waves fit the emulator and score candidates (:meth:`score`): the NumPy
-        reference or the compiled kernels (:func:`mdcore.emulator.fit_emulator`,
-        :meth:`mdcore.emulator.Emulator.implausibility`).
+    V_m_length : ndarray of shape (n_out,)
+        Correlation length ℓ_m of V_m per output, in X's units (0: independent).
+    V_m_corr : ndarray of shape (n_out, n_out) or None
+        Correlation of the outputs' discrepancies (None: independent).
+    chi2_probability : float
+        The multivariate rule's cut-off is the χ² quantile at this probability.
     """
 
     simulate: Callable = field(repr=False)
@@ -215,39 +200,44 @@ class HistoryMatchProblem:
     batch_size: int | None = None
     timeout: float | None = None
     max_failed_fraction: float = MAX_FAILED_FRACTION
-    backend: str = "numpy"
+    V_m_length: np.ndarray = field(default_factory=lambda: np.zeros(1))
+    V_m_corr: np.ndarray | None = None
+    chi2_probability: float = 0.995
 
     @property
     def p(self) -> int:
         """Number of calibration parameters."""
         return self.bounds.shape[0]
 
+    @cached_property
+    def V(self) -> np.ndarray:
+        """``V_o + V_m`` over all targets, (n_out · N_u, n_out · N_u), output-major
+        (:func:`mdcore.multivariate.discrepancy_cov`); its diagonal is ``V_o + V_m``."""
+        return np.diag(self.V_o.T.ravel()) + multivariate.discrepancy_cov(
+            self.X, self.V_m, self.V_m_length, self.V_m_corr)
+
+    @property
+    def cutoff(self) -> float:
+        """The value a combined implausibility is compared with: T for the max rules, the
+        χ² quantile of ``N_u · n_out`` degrees of freedom at :attr:`chi2_probability` for
+        the multivariate rule (whose implausibility is I_M²)."""
+        if self.rule == MULTIVARIATE:
+            return multivariate.chi2_cutoff(self.z.size, self.chi2_probability)
+        return self.threshold
+
     def score(self, theta, emulator: Emulator) -> Score:
-        """Combined implausibility and emulator variance of ``theta`` under ``emulator``.
-
-        Parameters
-        ----------
-        theta : ndarray of shape (M, p)
-            Candidate parameters, in the case's units.
-        emulator : Emulator
-            A wave's emulator (:attr:`Wave.emulator`).
-
-        Returns
-        -------
-        Score
-            ``implausibility`` (M,), combined by :attr:`rule` over every observed input
-            and output (Eq. 16), and the emulator ``var`` (M, N_u, n_out).
-        """
+        """Implausibility (Eq. 16, combined by :attr:`rule`) and emulator variance of
+        candidates ``theta`` (M, p) under a wave's ``emulator``
+        (:meth:`mdcore.emulator.Emulator.implausibility`)."""
         theta = np.atleast_2d(as_float_array(theta, "theta"))
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (M, p) with p = {self.p}; received "
                              f"{theta.shape}.")
-        if self.backend == "numba":       # the fused compiled kernel
-            return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
-                                                  rank=RULES[self.rule], backend="numba"))
-        pred = emulator.predict(self.X, theta, backend="numpy")
-        I = implausibility(self.z, pred.mean, pred.var, V_o=self.V_o, V_m=self.V_m)
-        return Score(combine(I, self.rule), pred.var)
+        if self.rule == MULTIVARIATE:     # I_M² over all targets at once
+            return Score(*multivariate.multivariate_implausibility(emulator, theta, self.z,
+                                                                   self.V))
+        return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
+                                              rank=RULES[self.rule]))
 
     def implausibility(self, theta, emulator: Emulator,
                        progress: Callable[[float], None] | None = None) -> np.ndarray:
@@ -272,15 +262,8 @@ class HistoryMatchProblem:
 
 
 class Score(NamedTuple):
-    """Implausibility of candidate θ under one emulator (:meth:`HistoryMatchProblem.score`).
-
-    Attributes
-    ----------
-    implausibility : ndarray of shape (M,)
-        Combined implausibility ``I(θ)`` (Eq. 16 and the problem's rule).
-    var : ndarray of shape (M, N_u, n_out)
-        Emulator variance ``V[y(θ)]`` at each observed input and output.
-    """
+    """:meth:`HistoryMatchProblem.score`: the combined ``implausibility`` (M,) and the
+    emulator ``var`` (M, N_u, n_out) at each observed input and output."""
 
     implausibility: np.ndarray
     var: np.ndarray
@@ -310,7 +293,8 @@ class Wave:
         Largest emulator variance at the retained points (NaN if none is retained).
     var_threshold : ndarray of shape (n_out,)
         Smallest ``V_o + V_m`` over the observed inputs (× ``convergence_ratio``);
-        converged when ``max_var`` is below it for every output.
+        converged when ``max_var`` is below it for every output (the multivariate rule
+        asks ``V_em(θ) ≼ convergence_ratio · (V_o + V_m)`` instead, see :func:`setup`).
     status : str
         ``"running"``, ``"converged"``, ``"max_waves"`` or ``"ruled_out"``.
     message : str
@@ -348,7 +332,8 @@ class Wave:
         Returns
         -------
         ndarray of shape (M,)
-            θ with a value ≤ the problem's threshold is non-implausible in this wave.
+            θ with a value ≤ the problem's :attr:`~HistoryMatchProblem.cutoff` is
+            non-implausible in this wave.
         """
         return self.problem.implausibility(theta, self.emulator)
 
@@ -359,8 +344,8 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
           mcmc_steps: int = 4, convergence_ratio: float = 1.0,
           executor: Executor | None = None, batch_size: int | None = None,
           timeout: float | None = None,
-          max_failed_fraction: float = MAX_FAILED_FRACTION,
-          backend: str | None = None) -> HistoryMatchProblem:
+          max_failed_fraction: float = MAX_FAILED_FRACTION, V_m_length=0.0,
+          V_m_corr=None, chi2_probability: float = 0.995) -> HistoryMatchProblem:
     """Validate and assemble a history-matching problem.
 
     Parameters
@@ -377,10 +362,14 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Model-discrepancy variance, > 0.
     V_o : float or ndarray, optional
         Observation variance. Inputs with replicates use the replicate sample variance
-        (SPEC §5); ``V_o`` is required for inputs without replicates.
+        (``V_o`` is required for inputs without replicates).
     threshold : float, default=3
         Implausibility cut-off T > 0 (Pukelsheim's 3σ rule).
-    rule : {"max", "2nd max", "3rd max"}, default="max"
+    rule : {"max", "2nd max", "3rd max", "multivariate"}, default="max"
+        The k-th largest I_i(θ) against T, or the multivariate I_M²(θ) against a χ²
+        quantile (:mod:`mdcore.multivariate`); θ_MAP and the posterior samples then use
+        its multivariate Gaussian likelihood, and a wave converges when
+        ``V_em(θ) ≼ convergence_ratio · (V_o + V_m)`` at the retained θ.
     n_runs : int, optional
         Simulator runs added per wave (default ``max(10, 5 p)``).
     n_candidates : int, optional
@@ -395,7 +384,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Uniform-target Metropolis steps that spread candidates through the NROY set.
     convergence_ratio : float, default=1
         Converged when the emulator variance at every retained point is below
-        ``convergence_ratio × (V_o + V_m)`` (SPEC §5 uses 1); smaller values keep refining.
+        ``convergence_ratio × (V_o + V_m)``; smaller values keep refining.
     executor : concurrent.futures.Executor, optional
         Runs the simulator runs of each wave (for example a ``ProcessPoolExecutor`` or a
         Dask ``Client(...).get_executor()``); the results equal the serial run's.
@@ -407,12 +396,16 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         Failed runs (raised, timed out, NaN/inf) are dropped and reported on the wave; when
         more than this share of a wave's runs fail (or all do), the wave is an error that
         names the first failure.
-    backend : {"auto", "numpy", "numba"}, optional
-        How each wave fits its emulator and scores its candidates: ``"numpy"`` (the
-        reference) or ``"numba"`` (compiled: a fit with the same bits, and scoring fused
-        with the implausibility; the same NROY sets). Default ``MDCORE_BACKEND``, else numba
-        when installed (:func:`mdcore.compiled.resolve_backend`).
-        :meth:`HistoryMatchResult.log_likelihood` (and so θ_MAP) always uses NumPy.
+    V_m_length : float or ndarray of shape (n_out,), default=0
+        Correlation length ℓ_m of the model discrepancy over x, per output, in X's units:
+        ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps today's independent V_m. Only
+        the multivariate rule sees the correlation (the max rules use the diagonal).
+    V_m_corr : ndarray of shape (n_out, n_out), optional
+        Correlation matrix of the outputs' discrepancies (symmetric, unit diagonal,
+        positive definite); default independent. Multivariate rule only.
+    chi2_probability : float, default=0.995
+        The multivariate rule rules out θ with I_M² above the χ² quantile of
+        ``N_u · n_out`` degrees of freedom at this probability (Vernon et al. 2010).
     """
     if not callable(simulate):
         raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
@@ -429,7 +422,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         raise ValueError(f"threshold T must be a positive number; received {threshold!r}. "
                          "T = 3 is the usual choice.")
     threshold = T
-    choose(rule, "rule", RULES)
+    choose(rule, "rule", RULE_NAMES)
     Xu, zm, zv, counts = replicate_summary(X, z)
     n_out = z.shape[1]
     V_m = check_positive(as_float_array(V_m, "V_m"), "V_m")
@@ -452,11 +445,11 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                              "replicate variance is available. Pass the noise variance as V_o.")
         V_o = zv
     else:
-        V_o = np.where(has_rep[:, None], zv, V_o)     # SPEC §5: replicate variance wins
+        V_o = np.where(has_rep[:, None], zv, V_o)     # the replicate variance wins
     n_runs = as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1, MAX_RUNS)
     n_candidates = as_int(50_000 * p if n_candidates is None else n_candidates,
                            "n_candidates", 10, MAX_CANDIDATES)
-    max_waves = as_int(max_waves, "max_waves", 1)
+    max_waves = as_int(max_waves, "max_waves", 1, MAX_WAVES)
     seed = as_seed_int(seed)
     if initial_design is None:
         lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng([seed, 0]))
@@ -466,11 +459,15 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     if initial_design.shape[1] != p:
         raise ValueError(f"initial_design must have shape (R0, {p}); received "
                          f"{initial_design.shape}.")
-    if initial_design.shape[0] > MAX_RUNS:
-        raise ValueError(f"initial_design must have at most {MAX_RUNS:,} rows (simulator runs "
-                         f"of wave 1); received {initial_design.shape[0]:,}.")
+    total = initial_design.shape[0] + n_runs * (max_waves - 1)
+    if total > MAX_RUNS:
+        raise ValueError(f"the simulator runs of all waves, initial_design's rows + n_runs × "
+                         f"(max_waves − 1), must be at most {MAX_RUNS:,} (the emulator's "
+                         f"covariance is runs × runs); received {initial_design.shape[0]:,} + "
+                         f"{n_runs:,} × {max_waves - 1} = {total:,}. Lower n_runs or "
+                         "max_waves.")
     convergence_ratio = as_positive_float(convergence_ratio, "convergence_ratio",
-                                          "1 is SPEC §5's rule.")
+                                          "1 is the paper's rule.")
     try:
         failed = float(max_failed_fraction)
     except (TypeError, ValueError):
@@ -479,6 +476,11 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
         raise ValueError(f"max_failed_fraction must be in [0, 1); received "
                          f"{max_failed_fraction!r}.")
     max_failed_fraction = failed
+    V_m_length, V_m_corr, chi2_probability = check_correlation(
+        V_m_length, V_m_corr, chi2_probability, n_out)
+    if V_m_corr is not None or np.any(V_m_length > 0):
+        _check_total_cov(np.diag(V_o.T.ravel()) + multivariate.discrepancy_cov(
+            Xu, V_m, V_m_length, V_m_corr))
     if executor is not None and not callable(getattr(executor, "submit", None)):
         raise ValueError(f"executor must be a concurrent.futures.Executor (with submit); "
                          f"received {type(executor).__name__}.")
@@ -491,7 +493,51 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                                as_int(mcmc_steps, "mcmc_steps", 0, MAX_MCMC_STEPS),
                                convergence_ratio,
                                executor, batch_size, None if timeout is None else float(timeout),
-                               max_failed_fraction, compiled.resolve_backend(backend))
+                               max_failed_fraction, V_m_length, V_m_corr, chi2_probability)
+
+
+def check_correlation(length, corr, probability, n_out: int):
+    """Validated ``V_m_length`` (n_out,), ``V_m_corr`` (n_out, n_out) or None, and the χ²
+    probability of :func:`setup` (also used by :mod:`mdcore.case_file`)."""
+    length = as_float_array(length, "V_m_length")
+    if length.size not in (1, n_out) or length.ndim > 1 or np.any(length < 0):
+        raise ValueError(f"V_m_length must be one length ≥ 0 or one per output ({n_out}), in "
+                         f"the inputs' units (0: independent); received {short(length)}.")
+    length = np.broadcast_to(length.ravel(), (n_out,)).copy()
+    try:
+        prob = float(probability)
+    except (TypeError, ValueError):
+        prob = float("nan")
+    if not 0.0 < prob < 1.0:
+        raise ValueError(f"chi2_probability must be in (0, 1); received {probability!r}. "
+                         "0.995 is Vernon et al.'s choice.")
+    if corr is None:
+        return length, None, prob
+    R = as_float_array(corr, "V_m_corr")
+    if R.shape != (n_out, n_out) or not np.allclose(R, R.T, rtol=0, atol=1e-12) \
+            or not np.allclose(np.diag(R), 1.0, rtol=0, atol=1e-12):
+        raise ValueError(f"V_m_corr must be a symmetric ({n_out}, {n_out}) correlation matrix "
+                         f"with ones on its diagonal, one row per output; received "
+                         f"{short(R.tolist())}.")
+    lam = np.linalg.eigvalsh(R)[0]
+    if lam <= 1e-10:
+        raise ValueError(f"V_m_corr is not positive definite: its smallest eigenvalue is "
+                         f"{lam:.3g}, so some combination of the outputs' discrepancies would "
+                         "have zero or negative variance. Lower the off-diagonal "
+                         "correlations (with one value ρ for every pair of outputs, ρ must "
+                         f"be above −1/(n_out − 1) and below 1).")
+    return length, (R + R.T) / 2, prob
+
+
+def _check_total_cov(V: np.ndarray) -> None:
+    """Refuse a ``V_o + V_m`` that no Cholesky factor can be trusted with."""
+    lam = np.linalg.eigvalsh(V)
+    if lam[0] <= 1e-12 * lam[-1]:
+        raise ValueError(f"V_o + V_m over the observed inputs is not positive definite "
+                         f"(eigenvalues from {lam[0]:.3g} to {lam[-1]:.3g}): a correlation "
+                         "length V_m_length much longer than the spacing of the inputs "
+                         "makes V_m nearly singular, and the observation variance V_o is too "
+                         "small to make up for it. Shorten V_m_length or give a positive V_o.")
 
 
 def _in_nroy(problem, waves, theta, progress=None) -> np.ndarray:
@@ -503,7 +549,7 @@ def _in_nroy(problem, waves, theta, progress=None) -> np.ndarray:
         if idx.size:
             ok[idx] = problem.implausibility(
                 theta[idx], w.emulator, None if progress is None
-                else (lambda f, j=j: progress((j + f) / len(waves)))) <= problem.threshold
+                else (lambda f, j=j: progress((j + f) / len(waves)))) <= problem.cutoff
     return ok
 
 
@@ -592,7 +638,7 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = (),
     new_runs, new_y = new_runs[runs.ok], runs.y
     emulator = fit_emulator(problem.X, np.vstack([old_theta, new_runs]),
                             np.concatenate([old_y, new_y]), problem.bounds, seed=rng,
-                            backend=problem.backend, progress=stage(0.1, 0.4))
+                            progress=stage(0.1, 0.4))
     if k == 1:
         candidates = problem.bounds[:, 0] + span * rng.uniform(size=(problem.n_candidates,
                                                                       problem.p))
@@ -609,27 +655,32 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = (),
         if progress is not None:
             progress(0.7 + 0.3 * rows.start / candidates.shape[0])
         I[rows], var = problem.score(candidates[rows], emulator)
-        kept = I[rows] <= problem.threshold
+        kept = I[rows] <= problem.cutoff
         if np.any(kept):
             # the kept rows of (m, N·n_out), then the max over N: half the time of
             # np.max(var[kept], axis=(0, 1)) on shear-5's (10⁵, 3, 5), the same values
             chunk_max.append(var.reshape(len(var), -1)[kept].max(axis=0)
                              .reshape(var.shape[1:]).max(axis=0))
-    keep = I <= problem.threshold
+    keep = I <= problem.cutoff
     nroy = candidates[keep]
     fraction = base_fraction * float(np.mean(keep))       # chain rule, module docstring
     threshold_var = problem.convergence_ratio * np.min(problem.V_o + problem.V_m, axis=0)
     if nroy.shape[0]:
         max_var = np.max(chunk_max, axis=0)
         converged = bool(np.all(max_var < threshold_var))
+        if problem.rule == MULTIVARIATE:  # issue 43: V_em(θ) ≼ ratio · (V_o + V_m) at NROY
+            converged = multivariate.cov_ratio(emulator, nroy, problem.V) \
+                < problem.convergence_ratio
     else:
         max_var = np.full(problem.z.shape[1], np.nan)
         converged = False
     if not nroy.shape[0]:
-        status, message = "ruled_out", f"wave {k}: " + RULED_OUT_HINT
+        status, message = "ruled_out", f"wave {k}: " + (
+            RULED_OUT_HINT_MV if problem.rule == MULTIVARIATE else RULED_OUT_HINT)
     elif converged:
         status = "converged"
-        message = (f"wave {k}: converged — the emulator variance is below V_o + V_m at every "
+        what = "covariance" if problem.rule == MULTIVARIATE else "variance"
+        message = (f"wave {k}: converged — the emulator {what} is below V_o + V_m at every "
                    f"retained point; NROY is {100 * fraction:.3g}% of the box.")
     elif k >= problem.max_waves:
         status = "max_waves"
@@ -727,7 +778,7 @@ class HistoryMatchResult:
         Sampling-importance-resampling: a pool of ``max(20 n, 20,000)`` uniform NROY
         samples (the prior is uniform on the box) is resampled with replacement in
         proportion to :meth:`log_likelihood` (normalised in log space). These are the
-        θ^(j) of the discrepancy scenarios (SPEC §1: θ^(j) ~ p(θ | z)); repeats are
+        θ^(j) ~ p(θ | z) of the discrepancy scenarios; repeats are
         possible when the likelihood is concentrated.
 
         With an integer ``seed`` the draws are kept (a few, the newest) and a repeated call
@@ -764,17 +815,19 @@ class HistoryMatchResult:
 
         ``log p(z | θ) = −½ Σ_i [(z_i − E[y_i(θ)])² / s_i² + log 2π s_i²]``,
         ``s_i² = V_o,i + V_m,i + V[y_i(θ)]``, with the final wave's emulator: the model that
-        Eq. 16 standardises by. θ (M, p) -> (M,). ``progress`` as in :func:`next_wave`.
+        Eq. 16 standardises by. θ (M, p) -> (M,). In chunks of θ (bounded memory);
+        ``progress`` as in :func:`next_wave`.
         """
         theta = np.atleast_2d(as_float_array(theta, "theta"))
         out = np.empty(theta.shape[0])
-        for rows in self.problem.chunks(theta.shape[0]):      # bounded memory
+        for rows in self.problem.chunks(theta.shape[0]):
             if progress is not None:
                 progress(rows.start / theta.shape[0])
-            # NumPy on every backend: theta_map's Nelder–Mead turns 1e-16 changes of this
-            # into ~1e-7 changes of θ_MAP, and θ_MAP must not depend on the backend.
-            pred = self.waves[-1].emulator.predict(self.problem.X, theta[rows],
-                                                   backend="numpy")
+            if self.problem.rule == MULTIVARIATE:   # the full Gaussian of I_M²
+                out[rows] = multivariate.log_likelihood(self.waves[-1].emulator, theta[rows],
+                                                        self.problem.z, self.problem.V)
+                continue
+            pred = self.waves[-1].emulator.predict(self.problem.X, theta[rows])
             s2 = self.problem.V_o + self.problem.V_m + pred.var
             r2 = (self.problem.z - pred.mean) ** 2 / s2
             out[rows] = -0.5 * np.sum(r2 + np.log(2.0 * np.pi * s2), axis=(1, 2))
@@ -838,10 +891,14 @@ def case_problem(case, **overrides) -> HistoryMatchProblem:
     """A :class:`HistoryMatchProblem` for a :class:`~mdcore.cases.Case` with its defaults.
 
     ``V_o`` defaults to the case's noise variance (replicates use their sample variance),
-    ``V_m`` to ``case.V_m`` and the initial design to ``case.initial_design``.
+    ``V_m`` to ``case.V_m`` (its correlation to ``case.V_m_length`` and ``case.V_m_corr``)
+    and the initial design to ``case.initial_design``. With a
+    ``case.timeout``, each θ is a call of its own (``batch_size=1``), so a run that times
+    out fails alone.
     """
     options = dict(V_o=case.noise_var, V_m=case.V_m, initial_design=case.initial_design,
-                   seed=case.seed)
+                   seed=case.seed, batch_size=None if case.timeout is None else 1,
+                   V_m_length=case.V_m_length, V_m_corr=case.V_m_corr)
     options.update(overrides)
     return setup(case.simulate, case.X_train, case.z_train, case.theta_bounds, **options)
 

@@ -1,16 +1,16 @@
-"""Hyperparameter fitting of the discrepancy GP: empirical Bayes and MAP (SPEC §3, Eq. 8).
+"""Hyperparameter fitting of the discrepancy GP: empirical Bayes and MAP (Eq. 8).
 
 :func:`fit_hyperparameters` minimises the NLML (Eq. 9), or NLML − log p(φ), over the log
-vector of SPEC §2: the paper's quantum-behaved particle swarm (QPSO, Sun et al. 2004,
-batched over the particles) polished by L-BFGS-B with the analytic gradient, or multi-start
-L-BFGS-B. An optimiser that does not converge says so with a
-:class:`mdcore.exceptions.ConvergenceWarning`.
+hyperparameters: the paper's quantum-behaved particle swarm (QPSO, Sun et al. 2004, batched
+over the particles) polished by L-BFGS-B with the analytic gradient, or multi-start
+L-BFGS-B; a fit that does not converge says so (:class:`~mdcore.exceptions.ConvergenceWarning`).
 """
 
 from __future__ import annotations
 
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
@@ -21,38 +21,22 @@ from .gp import check_problem, neg_log_marginal_likelihood, nlml_and_gradient
 from .linalg import JitterLog
 from .priors import GaussianPrior
 from .threads import single_threaded_blas
-from .validation import as_float_array, choose
+from .validation import as_float_array, as_int, choose
 
-__all__ = ["HyperFit", "PROJECTED_GRADIENT_TOL", "QPSO_ITERATIONS", "default_bounds",
-           "fit_hyperparameters", "lbfgs_converged"]
+__all__ = ["FitOptions", "HyperFit", "PROJECTED_GRADIENT_TOL", "QPSO_ITERATIONS",
+           "default_bounds", "fit_hyperparameters", "lbfgs_converged"]
 
-#: An L-BFGS-B run that stopped in its line search counts as converged when its projected
-#: gradient is below this, per log hyperparameter: from there a 1 % change of any
-#: hyperparameter moves the objective by less than 1e-4 (see :func:`lbfgs_converged`).
+#: Projected gradient per log hyperparameter below which a stalled L-BFGS-B run counts as
+#: converged: a 1 % change of any hyperparameter then moves the objective by < 1e-4.
 PROJECTED_GRADIENT_TOL = 1e-2
 #: Swarm steps of the QPSO (the default of :func:`fit_hyperparameters`).
 QPSO_ITERATIONS = 120
 
 
 class HyperFit(NamedTuple):
-    """Result of :func:`fit_hyperparameters`.
-
-    Attributes
-    ----------
-    log_params : ndarray of shape (P,)
-        The optimum, in the SPEC §2 layout.
-    nlml : float
-        Negative log marginal likelihood (Eq. 9) at the optimum.
-    objective : float
-        The minimised value: ``nlml`` for empirical Bayes, ``nlml − log prior`` for MAP.
-    method : str
-        ``"qpso"`` or ``"lbfgs"``.
-    n_evaluations : int
-        Objective evaluations used (a batch of particles counts each particle).
-    converged : bool
-        Whether the L-BFGS-B run behind the result reached an optimum of the box
-        (:func:`lbfgs_converged`); False without a gradient polish.
-    """
+    """The optimum ``log_params`` (P,), its ``nlml`` (Eq. 9), the minimised ``objective``
+    (``nlml − log prior`` for MAP), the evaluations used, and whether the L-BFGS-B run
+    behind it ``converged`` (False without a polish)."""
 
     log_params: np.ndarray
     nlml: float
@@ -63,11 +47,9 @@ class HyperFit(NamedTuple):
 
 
 def default_bounds(Y, X, z) -> np.ndarray:
-    """Search box for the log hyperparameters, shape (P, 2), derived from the data scales.
-
-    σ_f ∈ [1e-2, 1e2] × s_z with ``s_z = sqrt(mean z²)`` (zero-mean GP);
-    each ℓ ∈ [1e-2, 1e2] × the input's range; σ_n ∈ [1e-6, 1] × s_z.
-    """
+    """Search box (P, 2) of the log hyperparameters from the data scales: σ_f ∈
+    [1e-2, 1e2] s_z (``s_z = √mean z²``), each ℓ ∈ [1e-2, 1e2] × its input's range, σ_n ∈
+    [1e-6, 1] s_z."""
     Y = as_float_array(Y, "Y", ndim=2, allow_empty=True)
     X = as_float_array(X, "X", ndim=2, allow_empty=True)
     z = as_float_array(z, "z", ndim=1)
@@ -86,23 +68,10 @@ def default_bounds(Y, X, z) -> np.ndarray:
 
 def lbfgs_converged(res: scipy.optimize.OptimizeResult, lo: np.ndarray,
                     hi: np.ndarray) -> bool:
-    """Whether an L-BFGS-B result (``jac=True``) is at a local optimum of its box.
-
-    SciPy reports ``success`` only when a tolerance was met. A run can also stop because
-    its line search found no step that lowers the objective beyond rounding noise
-    (``status == 2``, "ABNORMAL"), typically next to a bound in an ill-conditioned problem
-    (shear-5: lengthscales at 100× the input range over 3 distinct inputs, cond(K) ≈ 1e9).
-    That is an optimum when the projected gradient, the gradient without the components
-    that push against a bound the point sits on (within 1e-6 of the box width), is below
-    :data:`PROJECTED_GRADIENT_TOL`. Running out of iterations (``status == 1``) never is.
-
-    Parameters
-    ----------
-    res : scipy.optimize.OptimizeResult
-        From ``minimize(..., jac=True, method="L-BFGS-B")``; ``res.jac`` is the gradient.
-    lo, hi : ndarray of shape (P,)
-        The box.
-    """
+    """Whether an L-BFGS-B result is at a local optimum of its box ``lo``, ``hi`` (P,):
+    SciPy's ``success``, or a line search that found no descent beyond rounding (typical
+    at a bound of an ill-conditioned problem) with the projected gradient below
+    :data:`PROJECTED_GRADIENT_TOL`."""
     if res.success:
         return True
     if res.status != 2 or not np.isfinite(res.fun) or res.fun >= 1e300:
@@ -115,8 +84,7 @@ def lbfgs_converged(res: scipy.optimize.OptimizeResult, lo: np.ndarray,
 
 
 def lbfgs_advice(res: scipy.optimize.OptimizeResult, iterations: str | None = None) -> str:
-    """Why a run :func:`lbfgs_converged` rejects stopped: out of iterations (then raise the
-    option named ``iterations``, if any) or no descent found (a better-posed problem)."""
+    """Why a run :func:`lbfgs_converged` rejects stopped, and what to change."""
     if res.status == 1:
         return "it ran out of iterations" + (f": raise {iterations}" if iterations else "")
     return ("its line search found no descent (the objective or its gradient is inaccurate "
@@ -125,9 +93,8 @@ def lbfgs_advice(res: scipy.optimize.OptimizeResult, iterations: str | None = No
 
 def _qpso(objective: Callable, lo: np.ndarray, hi: np.ndarray, rng, n_particles: int,
           n_iterations: int, step: Callable[[float], None] | None = None):
-    """Quantum-behaved PSO (Sun et al. 2004, SPEC §3); returns (best x, best f, evals).
-
-    ``step(fraction)`` is called before every iteration (it may raise to stop)."""
+    """Quantum-behaved PSO (Sun et al. 2004); returns (best x, best f, evals).
+    ``step(fraction)`` before every iteration (it may raise to stop)."""
     P = lo.size
     x = lo + (hi - lo) * rng.uniform(size=(n_particles, P))
     f = objective(x)
@@ -150,15 +117,39 @@ def _qpso(objective: Callable, lo: np.ndarray, hi: np.ndarray, rng, n_particles:
     return pbest[g].copy(), float(pf[g]), n_particles * (n_iterations + 1)
 
 
+@dataclass(frozen=True)
+class FitOptions:
+    """How :func:`fit_hyperparameters` searches, validated on construction.
+
+    Parameters
+    ----------
+    method : {"qpso", "lbfgs"}, default="qpso"
+        ``"qpso"``: the paper's particle swarm of ``n_particles`` for ``n_iterations``
+        steps, then (``polish``) L-BFGS-B from its best. ``"lbfgs"``: L-BFGS-B from
+        ``n_starts`` uniform starts.
+    maxiter : int, default=15000
+        Iterations of each L-BFGS-B run (SciPy's default).
+    """
+
+    method: str = "qpso"
+    n_particles: int = 40
+    n_iterations: int = QPSO_ITERATIONS
+    n_starts: int = 8
+    polish: bool = True
+    maxiter: int = 15_000
+
+    def __post_init__(self):
+        choose(self.method, "method", {"qpso", "lbfgs"})
+        for name in ("n_particles", "n_iterations", "n_starts", "maxiter"):
+            object.__setattr__(self, name, as_int(getattr(self, name), name, 1))
+
+
 @single_threaded_blas
 def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, bounds=None,
-                        method: str = "qpso", seed=None, n_particles: int = 40,
-                        n_iterations: int = QPSO_ITERATIONS, n_starts: int = 8,
-                        polish: bool = True, maxiter: int = 15_000,
+                        seed=None, options: FitOptions = FitOptions(),
                         progress: Callable[[float], None] | None = None) -> HyperFit:
-    """Empirical Bayes (Eq. 8): minimise the NLML over the log hyperparameters.
-
-    With ``log_prior`` the objective is ``NLML − log p(φ)`` (MAP) instead.
+    """Empirical Bayes (Eq. 8): minimise the NLML over the log hyperparameters, or
+    ``NLML − log p(φ)`` (MAP) with ``log_prior``.
 
     Parameters
     ----------
@@ -166,18 +157,12 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
     X : ndarray of shape (N, d_x)
     z : ndarray of shape (N,)
     log_prior : GaussianPrior, optional
-        Prior over the log vector; turns empirical Bayes into MAP.
+        Prior over the log vector (MAP).
     bounds : ndarray of shape (P, 2), optional
         Box in log space; default :func:`default_bounds`.
-    method : {"qpso", "lbfgs"}, default="qpso"
-        ``"qpso"``: the paper's quantum-behaved particle swarm (batched over particles),
-        then, with ``polish``, one L-BFGS-B run with the analytic gradient from the swarm's
-        best. ``"lbfgs"``: multi-start L-BFGS-B with the analytic gradient from
-        ``n_starts`` uniform starting points.
     seed : int or numpy.random.Generator, optional
         Same seed, same result.
-    maxiter : int, default=15000
-        Iterations allowed to each L-BFGS-B run (SciPy's default).
+    options : FitOptions, optional
     progress : callable, optional
         ``progress(fraction)`` before every swarm iteration and after every L-BFGS-B
         iteration; if it raises (e.g. :class:`mdcore.Cancelled`), the fit stops.
@@ -186,19 +171,15 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
     -------
     HyperFit
 
-    Warns
-    -----
-    ConvergenceWarning
-        When the L-BFGS-B run behind the result did not report convergence.
-
     Examples
     --------
     >>> X = np.linspace(0, 1, 8)[:, None]; Y = np.sin(3 * X); z = (Y + X)[:, 0]
-    >>> fit = fit_hyperparameters(Y, X, z, method="lbfgs", n_starts=2, seed=0)
+    >>> fit = fit_hyperparameters(Y, X, z, options=FitOptions("lbfgs", n_starts=2), seed=0)
     >>> fit.log_params.shape
     (4,)
     """
-    choose(method, "method", {"qpso", "lbfgs"})
+    if not isinstance(options, FitOptions):
+        raise ValueError(f"options must be a FitOptions; received {type(options).__name__}.")
     prob = check_problem(np.zeros(2 + np.shape(Y)[-1] + np.shape(X)[-1]), Y, X, z)
     if prob.Y.ndim != 2:
         raise ValueError(f"Y must have shape (N, d_y) for fitting; received {prob.Y.shape}.")
@@ -230,19 +211,20 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
         return f, g
 
     evals, converged, message = 0, False, "no gradient polish (polish=False)"
-    if method == "qpso":
-        best, best_f, evals = _qpso(batch_objective, lo, hi, rng, n_particles, n_iterations,
-                                    None if progress is None else (lambda f: progress(f / 2)))
-        starts = [best] if polish else []
+    if options.method == "qpso":
+        best, best_f, evals = _qpso(batch_objective, lo, hi, rng, options.n_particles,
+                                    options.n_iterations, None if progress is None
+                                    else (lambda f: progress(f / 2)))
+        starts = [best] if options.polish else []
     else:
-        starts = list(lo + (hi - lo) * rng.uniform(size=(max(int(n_starts), 1), P)))
+        starts = list(lo + (hi - lo) * rng.uniform(size=(options.n_starts, P)))
         best, best_f = starts[0], np.inf
     for i, x0 in enumerate(starts):
         step = None if progress is None else \
             (lambda *_, i=i: progress(0.5 + 0.5 * i / len(starts)))
         res = scipy.optimize.minimize(objective_and_grad, x0, jac=True, method="L-BFGS-B",
-                                      bounds=list(zip(lo, hi)), options={"maxiter": maxiter},
-                                      callback=step)
+                                      bounds=list(zip(lo, hi)),
+                                      options={"maxiter": options.maxiter}, callback=step)
         evals += int(res.nfev)
         if i == 0 or res.fun < best_f:          # the run that gave (or kept) the result
             converged = lbfgs_converged(res, lo, hi)
@@ -256,6 +238,6 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
                       stacklevel=2)
     nlml = float(batch_objective(best[None])[0]) if log_prior is None else \
         float(neg_log_marginal_likelihood(best, Y, X, z))
-    return HyperFit(np.asarray(best, dtype=np.float64), nlml, float(best_f), method, evals,
-                    converged)
+    return HyperFit(np.asarray(best, dtype=np.float64), nlml, float(best_f), options.method,
+                    evals, converged)
 

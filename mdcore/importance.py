@@ -1,28 +1,14 @@
-"""Importance-sampling tools for scenario 3: ESS, Pareto smoothing (k̂) and Student-t proposals.
+"""Importance sampling for scenario 3 (Eq. 15): ESS, Pareto smoothing and Student-t proposals.
 
-Scenario 3 (SPEC §6, paper Eq. 15) weights (θ, φ) pairs by the GP marginal likelihood.
-Whether such weights can be trusted is judged by two numbers:
+The (θ, φ) weights are judged by the ESS ``1 / Σ w²`` and the Pareto shape ``k̂`` of their
+right tail (Vehtari et al., "Pareto smoothed importance sampling", JMLR 2024): above 0.7 the
+estimate is unreliable whatever the ESS. PSIS replaces the largest weights by the expected
+order statistics of a generalised Pareto fitted to them (Zhang & Stephens 2009). The
+adaptive proposal draws φ from Student-t fits to the weighted draws (AMIS, Cornuet et al.
+2012).
 
-- the effective sample size ``ESS = 1 / Σ w²`` of the normalised weights, and
-- the Pareto shape ``k̂`` of the weights' right tail (Vehtari, Simpson, Gelman, Yao & Gabry,
-  "Pareto smoothed importance sampling", JMLR 2024, Algorithm 1): below 0.7 the
-  importance-sampling estimate is reliable; above it, it is not, whatever the ESS says.
-
-Pareto smoothing (PSIS) replaces the largest ``M = min(0.2 S, 3 √(S / r_eff))`` weights by the
-expected order statistics of a generalised Pareto distribution fitted to them (with the
-Zhang & Stephens 2009 estimator and the weakly informative prior on k of Vehtari et al.),
-truncated at the largest raw weight.
-
-The adaptive proposal of scenario 3 draws φ from heavy-tailed multivariate Student-t
-distributions fitted to the weighted samples (:class:`StudentT`), in the spirit of
-population Monte Carlo / AMIS (Cornuet, Marin, Mira & Robert 2012).
-
-Examples
---------
->>> import numpy as np
 >>> rng = np.random.default_rng(0)
->>> lw = rng.standard_normal(4000)              # light-tailed weights: reliable
->>> result = psis(lw)
+>>> result = psis(rng.standard_normal(4000))        # light-tailed weights: reliable
 >>> bool(result.k_hat < 0.5), round(float(np.exp(result.log_weights).sum()), 12)
 (True, 1.0)
 """
@@ -48,38 +34,17 @@ K_HAT_THRESHOLD = 0.7
 
 
 class PSIS(NamedTuple):
-    """Pareto-smoothed importance weights.
-
-    Attributes
-    ----------
-    log_weights : ndarray of shape (S,)
-        Smoothed, normalised log weights (``logsumexp`` is 0).
-    k_hat : float
-        Estimated Pareto shape of the raw weights' right tail (``inf`` when the tail has
-        five or fewer samples).
-    """
+    """Smoothed, normalised ``log_weights`` (S,) and the Pareto shape ``k_hat`` of the raw
+    weights' right tail (``inf`` for a tail of five samples or fewer)."""
 
     log_weights: np.ndarray
     k_hat: float
 
 
 def effective_sample_size(log_weights, axis=None) -> np.ndarray:
-    """Kish's effective sample size ``(Σ w)² / Σ w²`` from unnormalised log weights.
+    """Kish's effective sample size ``(Σ w)² / Σ w²`` (between 1 and the count) from
+    unnormalised log weights (``-inf``: zero weight), summed over ``axis`` (default all).
 
-    Parameters
-    ----------
-    log_weights : ndarray
-        Log weights (``-inf`` for zero weight).
-    axis : int or tuple of int, optional
-        Axes summed over (default all).
-
-    Returns
-    -------
-    ndarray or float
-        Between 1 and the number of weights.
-
-    Examples
-    --------
     >>> round(float(effective_sample_size(np.zeros(10))), 12)
     10.0
     """
@@ -90,22 +55,10 @@ def effective_sample_size(log_weights, axis=None) -> np.ndarray:
 
 
 def generalized_pareto_fit(x) -> tuple[float, float]:
-    """Shape ``k`` and scale ``σ`` of a generalised Pareto distribution fitted to ``x``.
-
-    The Zhang & Stephens (2009) empirical-Bayes estimator: a posterior mean of
-    ``b = −k/σ`` over a grid of ``m = 30 + ⌊√n⌋`` values under a profile likelihood, then
-    ``k`` from ``b``, shrunk toward 0.5 by the weakly informative prior of Vehtari et al.
-    (a prior sample size of 10).
-
-    Parameters
-    ----------
-    x : ndarray of shape (n,)
-        Exceedances over the threshold, sorted ascending, all > 0; n ≥ 5.
-
-    Returns
-    -------
-    k, sigma : float
-    """
+    """Shape ``k`` and scale ``σ`` of a generalised Pareto fitted to exceedances ``x`` (n ≥ 5,
+    positive, ascending): Zhang & Stephens' (2009) posterior mean of ``b = −k/σ`` over
+    ``30 + ⌊√n⌋`` grid values, then ``k`` shrunk toward 0.5 by Vehtari et al.'s prior (a
+    prior sample size of 10)."""
     x = as_float_array(x, "x", ndim=1)
     n = x.size
     if n < 5 or np.any(x <= 0) or np.any(np.diff(x) < 0):
@@ -137,20 +90,9 @@ def _gp_quantiles(p: np.ndarray, k: float, sigma: float) -> np.ndarray:
 
 
 def psis(log_weights, *, r_eff: float = 1.0) -> PSIS:
-    """Pareto-smoothed importance sampling (Vehtari et al. 2024, Algorithm 1).
-
-    Parameters
-    ----------
-    log_weights : ndarray of shape (S,)
-        Unnormalised log importance weights; ``-inf`` is a zero weight.
-    r_eff : float, default=1
-        Relative efficiency of the draws (1 for independent draws).
-
-    Returns
-    -------
-    PSIS
-        Smoothed normalised log weights and ``k_hat``.
-    """
+    """Pareto-smoothed importance sampling (Vehtari et al. 2024, Algorithm 1) of
+    unnormalised ``log_weights`` (S,) (``-inf``: zero weight); ``r_eff`` is the draws'
+    relative efficiency (1 for independent draws)."""
     lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
     if np.any(np.isnan(lw)) or np.any(lw == np.inf):
         raise ValueError("log_weights must not contain NaN or +inf; a zero weight is -inf.")
@@ -178,16 +120,8 @@ def psis(log_weights, *, r_eff: float = 1.0) -> PSIS:
 
 @dataclass(frozen=True)
 class StudentT:
-    """A multivariate Student-t distribution: location, scale matrix and degrees of freedom.
-
-    Parameters
-    ----------
-    mean : ndarray of shape (P,)
-    scale : ndarray of shape (P, P)
-        Positive-definite scale matrix; the covariance is ``scale · df / (df − 2)``.
-    df : float
-        Degrees of freedom (> 2); small values give heavy tails.
-    """
+    """A multivariate Student-t: ``mean`` (P,), positive-definite ``scale`` (P, P) (the
+    covariance is ``scale · df / (df − 2)``) and ``df`` > 2 degrees of freedom."""
 
     mean: np.ndarray
     scale: np.ndarray
@@ -217,19 +151,8 @@ class StudentT:
     @classmethod
     def fit(cls, samples, log_weights, *, df: float = 5.0, inflate: float = 1.0,
             floor=None) -> StudentT:
-        """Match a weighted sample's mean and covariance (moment fit).
-
-        Parameters
-        ----------
-        samples : ndarray of shape (n, P)
-        log_weights : ndarray of shape (n,)
-            Unnormalised; ``-inf`` is a zero weight.
-        df : float, default=5
-        inflate : float, default=1
-            Multiplies the covariance (> 1 widens the proposal).
-        floor : ndarray of shape (P,), optional
-            Smallest standard deviation per dimension (keeps a collapsed sample usable).
-        """
+        """Match the weighted mean and covariance (× ``inflate``) of ``samples`` (n, P);
+        ``floor`` (P,) is a smallest standard deviation (keeps a collapsed sample usable)."""
         samples = as_float_array(samples, "samples", ndim=2)
         lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
         if lw.size != samples.shape[0] or np.any(np.isnan(lw)):
@@ -278,19 +201,14 @@ class StudentT:
         return self.mean + (g @ self._chol.T) / np.sqrt(chi / self.df)[:, None]
 
 
-#: Adaptive proposal: share of the budget drawn from the prior in the first stage,
-#: number of stages, Student-t degrees of freedom, and covariance inflation. Chosen on the
-#: three cases (N_s = 50–100, N_φ = 200 and 1000): against (0.25, 4 stages) and
-#: (0.1, 6 stages, inflation 2), these gave the largest ESS over φ on every case with
-#: k̂ < 0.4 (beam-2d at N_φ = 200: ESS over φ 102 against 21 and 83).
+#: Adaptive proposal: prior share of the budget in stage 1, stages, Student-t degrees of
+#: freedom and covariance inflation (the largest ESS with k̂ < 0.4 on the three cases).
 FIRST_STAGE, N_STAGES, DF, INFLATE = 0.1, 8, 5.0, 1.5
 
 
 def stage_sizes(n: int, n_stages: int = N_STAGES) -> list[int]:
     """Split a per-group budget ``n`` into stages: a tenth from the prior, the rest evenly.
 
-    Examples
-    --------
     >>> stage_sizes(500), stage_sizes(3), stage_sizes(1)
     ([50, 65, 65, 64, 64, 64, 64, 64], [1, 1, 1], [1])
     """
@@ -304,20 +222,9 @@ def stage_sizes(n: int, n_stages: int = N_STAGES) -> list[int]:
 
 
 class AdaptiveSample(NamedTuple):
-    """Result of :func:`adaptive_importance_sampling`.
-
-    Attributes
-    ----------
-    samples : ndarray of shape (S, n, P)
-        Draws per group (stage by stage along the second axis).
-    log_weights : ndarray of shape (S, n)
-        Deterministic-mixture log weights, normalised jointly over all (group, draw) pairs.
-    log_likelihood : ndarray of shape (S, n)
-        ``log_likelihood(samples)`` as computed once per draw.
-    proposals : tuple of StudentT
-        The fitted proposals of stages 2, 3, … (stage 1 is the prior).
-    stage_sizes : tuple of int
-    """
+    """``samples`` (S, n, P) stage by stage, their deterministic-mixture ``log_weights``
+    (S, n) normalised jointly, ``log_likelihood`` (S, n), the proposals of stages 2, 3, …
+    and the ``stage_sizes``."""
 
     samples: np.ndarray
     log_weights: np.ndarray
@@ -335,37 +242,15 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     """Adaptive multiple importance sampling (AMIS, Cornuet et al. 2012) of ``p(x | group)``.
 
     For each of ``n_groups`` groups (scenario 3: the θ samples) the target is
-    ``log_likelihood(x, group) + log prior(x)``. Stage 1 draws from the prior; each later
-    stage fits a Student-t (:meth:`StudentT.fit`, heavy tails, covariance × ``inflate``) to
-    all weighted draws so far, pooled over the groups, and draws from it. Every draw is
-    then weighted against the mixture of all stages' proposals (deterministic-mixture
-    weights, all in log space)::
+    ``log_likelihood(x, group) + log prior(x)``. Stage 1 draws from the prior, later stages
+    from a Student-t fitted to all weighted draws so far, pooled over groups. Every draw is
+    weighted against the mixture of all proposals, ``log w = log L + log p − log Σ_t (n_t /
+    n) q_t``, normalised jointly over groups and draws.
 
-        log w = log L(x) + log p(x) − log Σ_t (n_t / n) q_t(x)
-
-    and the weights are normalised jointly over groups and draws, so a group's total weight
-    estimates its marginal likelihood ``∫ L p dx`` (up to a common constant). With one
-    stage this is plain importance sampling from the prior.
-
-    Parameters
-    ----------
-    log_likelihood : callable
-        ``log_likelihood(x)`` with ``x`` of shape (S, m, P), row j for group j -> (S, m)
-        log likelihoods (``-inf`` allowed).
-    prior : object with ``sample(n, seed)``, ``logpdf(x)`` and ``var``
-        For example :class:`mdcore.priors.GaussianPrior`.
-    n_groups, n : int
-        Groups and draws per group (the total budget is ``n_groups × n``).
-    seed : int or Generator, optional
-    n_stages : int, default=8
-    df, inflate : float
-        The Student-t's degrees of freedom and covariance inflation.
-    progress : callable, optional
-        Fraction done after each stage; raising from it stops the sampling.
-
-    Returns
-    -------
-    AdaptiveSample
+    ``log_likelihood`` maps ``x`` (S, m, P), row j for group j, to (S, m) (``-inf``
+    allowed); ``prior`` has ``sample(n, seed)``, ``logpdf(x)`` and ``var`` (e.g.
+    :class:`mdcore.priors.GaussianPrior`); ``progress`` gets the fraction done after each
+    stage and may raise to stop.
     """
     S = as_int(n_groups, "n_groups", 1)
     sizes = stage_sizes(n, n_stages)
@@ -375,9 +260,8 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     x = np.empty((S, n_total, P))
     loglik = np.empty((S, n_total))
     log_prior = np.empty((S, n_total))
-    # log Σ_s n_s q_s(x) over the proposals so far, for every draw so far: each stage adds
-    # its proposal to the old draws and all proposals to its new draws, so each q_s is
-    # evaluated once per draw (O(n × stages), not O(n × stages²) as recomputing it would).
+    # log Σ_s n_s q_s(x) of every draw so far: each stage adds its proposal to the old draws
+    # and all proposals to its new ones, so each q_s is evaluated once per draw.
     log_mass = np.empty((S, n_total))
     proposals: list = []
     floor = 0.02 * np.sqrt(np.asarray(prior.var, dtype=np.float64))
@@ -413,17 +297,8 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
 
 
 def _mixture_log_weights(loglik, log_prior, log_mass, n: int) -> np.ndarray:
-    """Deterministic-mixture log weights ``log L + log p − log Σ_t (n_t / n) q_t``.
-
-    Parameters
-    ----------
-    loglik, log_prior : ndarray of shape (S, m)
-        ``log L(x)`` and ``log p(x)`` of the draws.
-    log_mass : ndarray of shape (S, m)
-        ``log Σ_t n_t q_t(x)`` over the stages' proposals (the prior first).
-    n : int
-        ``Σ_t n_t``, the draws per group of those stages.
-    """
+    """Deterministic-mixture log weights ``log L + log p − log Σ_t (n_t / n) q_t`` from
+    ``loglik``, ``log_prior`` and ``log_mass = log Σ_t n_t q_t`` (S, m); ``n = Σ_t n_t``."""
     with np.errstate(invalid="ignore"):
         lw = loglik + log_prior - (log_mass - np.log(n))
     return np.where(np.isnan(lw), -np.inf, lw)

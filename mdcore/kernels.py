@@ -1,28 +1,15 @@
-"""Kernel maths of the discrepancy GP (SPEC §3, paper Eq. 3, corrected).
-
-The separable Matérn 3/2 kernel over simulator outputs ``y`` and inputs ``x``::
+"""The Matérn 3/2 kernel of the GPs in NumPy (Eq. 3, corrected), written once in
+:func:`separable_matern`::
 
     k((y, x), (y', x')) = σ_f² · m32(r_y) · m32(r_x),   m32(r) = (1 + √3 r) exp(−√3 r)
 
-The paper prints ``exp(+√3 r)``; the Matérn 3/2 kernel decays, so ``exp(−√3 r)`` is used.
-Hyperparameters travel as one log vector of length ``P = 2 + d_y + d_x`` (SPEC §2)::
-
-    [log σ_f, log ℓ_y,1 … log ℓ_y,d_y, log ℓ_x,1 … log ℓ_x,d_x, log σ_n]
-
-:func:`kernel` is the plain, broadcasting form; :func:`train_cov` and :func:`cross_cov` are
-the chunk kernels of :mod:`mdcore.gp` (flat batches, lower triangle only, reused buffers);
-:func:`matern32_and_dlog_ell` is the one place the kernel's derivative is written.
-
-Examples
---------
->>> import numpy as np
->>> float(matern32(0.0)), round(float(matern32(1.0)), 6)
-(1.0, 0.483358)
+The paper prints ``exp(+√3 r)``; the Matérn 3/2 kernel decays. Hyperparameters travel as
+one log vector ``[log σ_f, log ℓ_y (d_y), log ℓ_x (d_x), log σ_n]`` of length
+``P = 2 + d_y + d_x``. :func:`kernel` broadcasts; :func:`train_cov` and :func:`cross_cov`
+are :mod:`mdcore.gp`'s chunk kernels.
 """
 
 from __future__ import annotations
-
-import functools
 
 import numpy as np
 
@@ -30,29 +17,43 @@ from .linalg import workspace
 from .validation import as_float_array, as_log_params
 
 __all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "split_log_params",
-           "separable_matern", "kernel", "train_cov", "cross_cov", "distinct_rows"]
+           "separable_matern", "kernel", "train_cov", "cross_cov"]
 
 SQRT3 = np.sqrt(3.0)
 
 
-def matern32(r2) -> np.ndarray:
-    """Matérn 3/2 correlation from squared scaled distance, ``(1 + √3 r) exp(−√3 r)``.
+def separable_matern(log_sf2, ry, rx=None, tmp=None) -> np.ndarray:
+    """``σ_f² m32(r_y) m32(r_x)`` (Eq. 3) from ``a = √3 r_y``, ``b = √3 r_x`` as
+    ``(1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``: one exponential; ``σ_f² m32(r_y)``
+    without ``rx``. Overwrites ``ry`` (full broadcast shape; ``rx`` may broadcast);
+    ``tmp`` is an optional buffer like it."""
+    if rx is None:
+        s = np.subtract(log_sf2, ry, out=tmp)
+        ry += 1.0
+    else:
+        s = np.add(ry, rx, out=tmp)
+        ry *= rx
+        ry += s
+        ry += 1.0
+        np.subtract(log_sf2, s, out=s)
+    np.exp(s, out=s)
+    ry *= s
+    return ry
 
-    Parameters
-    ----------
-    r2 : ndarray
-        Squared scaled distances ``r²`` (any shape); tiny negative round-off is clipped.
+
+def matern32(r2) -> np.ndarray:
+    """``m32(r)`` from squared scaled distances ``r²`` (round-off below 0 is clipped).
+
+    >>> float(matern32(0.0)), round(float(matern32(1.0)), 6)
+    (1.0, 0.483358)
     """
-    r = np.sqrt(np.maximum(r2, 0.0))
-    return (1.0 + SQRT3 * r) * np.exp(-SQRT3 * r)
+    a = SQRT3 * np.sqrt(np.maximum(r2, 0.0))
+    return separable_matern(0.0, a, tmp=np.empty_like(a))
 
 
 def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
-    """Squared distance ``Σ_d (a_d − b_d)² / ℓ_d²`` between all rows of ``A`` and ``B``.
-
-    Shapes: ``A`` (..., Na, d), ``B`` (..., Nb, d), ``lengthscale`` (..., d) ->
-    (..., Na, Nb); leading dimensions broadcast. With ``d = 0`` the result is zeros.
-    """
+    """``Σ_d (a_d − b_d)² / ℓ_d²`` between the rows of ``A`` (..., Na, d) and ``B`` (..., Nb,
+    d), ``lengthscale`` (..., d) -> (..., Na, Nb); leading dimensions broadcast."""
     A = np.asarray(A, dtype=np.float64)
     B = np.asarray(B, dtype=np.float64)
     inv = 1.0 / np.asarray(lengthscale, dtype=np.float64)
@@ -67,24 +68,8 @@ def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
 
 
 def matern32_and_dlog_ell(A, ell) -> tuple[np.ndarray, np.ndarray]:
-    """Matérn 3/2 correlation of the rows of ``A`` and its derivative in each ``log ℓ_d``.
-
-    ``∂m32/∂log ℓ_d = 3 exp(−√3 r) Δ_d² / ℓ_d²`` (with ``m32 = (1 + √3 r) e^{−√3 r}`` and
-    ``∂r/∂log ℓ_d = −Δ_d² / (ℓ_d² r)``). The one place this derivative is written: the
-    GP's analytic gradient (:func:`mdcore.gp.nlml_and_gradient`), the emulator's and the
-    Kennedy–O'Hagan evidence's all use it.
-
-    Parameters
-    ----------
-    A : ndarray of shape (n, d)
-    ell : ndarray of shape (d,)
-        Lengthscales (not logs).
-
-    Returns
-    -------
-    m32 : ndarray of shape (n, n)
-    dm32 : ndarray of shape (d, n, n)
-    """
+    """``m32`` (n, n) between the rows of ``A`` (n, d) for lengthscales ``ell`` (d,), and its
+    derivatives in each ``log ℓ_d``, ``3 exp(−√3 r) Δ_d² / ℓ_d²`` (d, n, n)."""
     A = np.asarray(A, dtype=np.float64)
     ell = np.asarray(ell, dtype=np.float64)
     r2 = scaled_sq_dist(A, A, ell)
@@ -95,31 +80,10 @@ def matern32_and_dlog_ell(A, ell) -> tuple[np.ndarray, np.ndarray]:
 
 
 def split_log_params(log_params, d_y: int, d_x: int):
-    """Split (..., P) log hyperparameters into natural-scale pieces.
-
-    Returns ``(sigma_f, ell_y, ell_x, sigma_n)`` with shapes (...), (..., d_y),
-    (..., d_x), (...).
-    """
+    """``(σ_f (...), ℓ_y (..., d_y), ℓ_x (..., d_x), σ_n (...))`` from (..., P) logs."""
     lp = np.asarray(log_params, dtype=np.float64)
     return (np.exp(lp[..., 0]), np.exp(lp[..., 1:1 + d_y]),
             np.exp(lp[..., 1 + d_y:1 + d_y + d_x]), np.exp(lp[..., -1]))
-
-
-def separable_matern(log_sf2, ry, rx, tmp=None) -> np.ndarray:
-    """``σ_f² m32(r_y) m32(r_x)`` from distances already multiplied by √3 (Eq. 3).
-
-    ``(1 + a)(1 + b) exp(−a − b) = (1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``:
-    one exp. The result overwrites ``ry`` (which must have the full broadcast shape;
-    ``rx`` may broadcast against it); ``tmp``, a buffer like ``ry``, is optional.
-    """
-    s = np.add(ry, rx, out=tmp)
-    ry *= rx
-    ry += s
-    ry += 1.0
-    np.subtract(log_sf2, s, out=s)
-    np.exp(s, out=s)
-    ry *= s
-    return ry
 
 
 def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
@@ -150,16 +114,9 @@ def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
 
 
 def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
-    """Cross-covariance ``σ_f² m32(r_y) m32(r_x)`` (Eq. 3), without the noise term.
-
-    Shapes: ``log_params`` (..., P); ``Ya`` (..., Na, d_y); ``Xa`` (Na, d_x);
-    ``Yb`` (..., Nb, d_y); ``Xb`` (Nb, d_x) -> (..., Na, Nb).
-
-    Raises
-    ------
-    ValueError
-        For shapes that do not fit together (naming the argument), or NaN/inf anywhere.
-    """
+    """Cross-covariance ``σ_f² m32(r_y) m32(r_x)`` (Eq. 3), without the noise term:
+    ``log_params`` (..., P), ``Ya`` (..., Na, d_y), ``Xa`` (Na, d_x), ``Yb`` (..., Nb, d_y),
+    ``Xb`` (Nb, d_x) -> (..., Na, Nb)."""
     log_params, Ya, Xa, Yb, Xb = _check_kernel_args(log_params, Ya, Xa, Yb, Xb)
     d_y, d_x = Ya.shape[-1], Xa.shape[-1]
     sf, ly, lx, _ = split_log_params(log_params, d_y, d_x)
@@ -169,8 +126,7 @@ def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
 
 
 def _scaled_dist(D: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """``scale_b · sqrt(Σ_d D²/ℓ²)``-style distances (b, T) from differences D (b or 1, T, d)
-    and per-dimension factors ``scale`` (b, d) (``√3/ℓ`` here)."""
+    """``√(Σ_d (D_d scale_d)²)`` (b, T) from differences D (b or 1, T, d), scale (b, d)."""
     if D.shape[-1] == 1:                              # no square root needed in 1-D
         return np.abs(D[..., 0]) * scale
     if D.shape[-1] == 0:
@@ -179,109 +135,19 @@ def _scaled_dist(D: np.ndarray, scale: np.ndarray) -> np.ndarray:
     return np.sqrt(np.einsum("btd,bd->bt", D2, scale * scale))
 
 
-def _pair_diffs(Y: np.ndarray, I: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """``Y[:, I, :] − Y[:, J, :]`` (b, T, d_y) for Y (b, N, d_y).
-
-    When every batch element has the same Y (a view broadcast over the batch, as in a
-    hyperparameter fit, whose particles share Y), the differences are taken once and
-    copied out: indexing a broadcast view gathers b copies (1.3 ms of a 1.7 ms call at
-    b = 40, N = 30, d_y = 5). The copy has the memory layout that the indexing gives
-    (batch fastest), so :func:`_scaled_dist` sums in the same order and the numbers are
-    the same bits (``tests/test_kernels.py``).
-    """
-    b = Y.shape[0]
-    if b < 2 or Y.strides[0] != 0:
-        return Y[:, I, :] - Y[:, J, :]
-    once = Y[0, I, :] - Y[0, J, :]                                  # (T, d_y)
-    out = np.empty(once.shape + (b,)).transpose(2, 0, 1)
-    out[...] = once
-    return out
-
-
-def distinct_rows(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The distinct rows of ``A`` (N, d), exactly equal, in order of first appearance, and
-    the index of every row's distinct row, (N,): ``distinct[inverse]`` is ``A``.
-
-    Replicated inputs (shear-5 repeats each mass ten times) have equal kernel entries and
-    equal predictions: :func:`train_cov` and
-    :meth:`mdcore.discrepancy.DiscrepancyModel.predict` compute them once.
-
-    Raises
-    ------
-    ValueError
-        If ``A`` is not 2-D, is empty, or holds NaN or inf.
-
-    Examples
-    --------
-    >>> d, inv = distinct_rows(np.array([[3.0], [1.0], [3.0]]))
-    >>> d.ravel().tolist(), inv.tolist()
-    ([3.0, 1.0], [0, 1, 0])
-    """
-    A = as_float_array(A, "A", ndim=2)
-    _, first, inverse = np.unique(A, axis=0, return_index=True, return_inverse=True)
-    order = np.argsort(first)                    # distinct rows in order of first sight
-    rank = np.empty_like(order)
-    rank[order] = np.arange(order.size)
-    return A[first[order]], rank[inverse.reshape(-1)]
-
-
-#: Whether :func:`train_cov` computes replicated inputs' entries once (tests turn it off
-#: to compare the bits).
-DISTINCT_INPUTS = True
-
-
-@functools.lru_cache(maxsize=32)
-def _distinct_pairs_of(rows: bytes, shape: tuple[int, int]):
-    """:func:`_distinct_pairs` for the (N, d) float64 rows given by their bytes (cached: a
-    hyperparameter fit asks for the same rows hundreds of times)."""
-    distinct, of = distinct_rows(np.frombuffer(rows, dtype=np.float64).reshape(shape))
-    U = distinct.shape[0]
-    if U == shape[0]:
-        return None
-    I, J = np.tril_indices(shape[0])
-    a, b = of[I], of[J]
-    key = np.maximum(a, b) * U + np.minimum(a, b)               # an unordered pair of inputs
-    _, pick, inverse = np.unique(key, return_index=True, return_inverse=True)
-    return I[pick], J[pick], inverse.reshape(-1)
-
-
-def _distinct_pairs(Y: np.ndarray, X: np.ndarray):
-    """``(I, J, inverse)`` for replicated inputs, else None: ``(I[k], J[k])`` is one
-    lower-triangle pair of each distinct pair of distinct rows of the joint input
-    ``[Y[0], X]``, and ``inverse`` gives, for every pair of :func:`numpy.tril_indices`,
-    the k of its distinct pair.
-
-    Replicated observations (shear-5 repeats each mass ten times, with the same simulator
-    output) have equal kernel entries: ``|a − b|`` and ``(a − b)²`` do not depend on the
-    order of a and b, so an entry computed for another pair of the same inputs has the
-    same bits. Only for a Y shared by the batch (a hyperparameter fit's particles).
-    """
-    if not DISTINCT_INPUTS or (Y.shape[0] > 1 and Y.strides[0] != 0) or X.shape[0] < 2:
-        return None
-    A = np.ascontiguousarray(np.concatenate([Y[0], X], axis=1), dtype=np.float64)
-    return _distinct_pairs_of(A.tobytes(), A.shape)
-
-
 def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> np.ndarray:
-    """``K = K_ff + σ_n² I`` for a flat chunk: theta (b, P), Y (b, N, d_y) -> (b, N, N).
-
-    Only the lower triangle is filled (the upper one is zero): the Cholesky factorisation
-    and forward substitution read nothing else, and this halves the kernel work.
-    With ``border = z`` (N,) the result is the bordered (b, N+1, N+1) matrix
-    ``[[K, ·], [zᵀ, c]]`` with ``c = 2 zᵀz / σ_n² + 1 > zᵀ K⁻¹ z``: its Cholesky factor
-    carries ``L⁻¹ z`` in the last row, so the NLML needs no separate triangular solve.
-    """
+    """``K = K_ff + σ_n² I`` for a flat chunk: theta (b, P), Y (b, N, d_y) -> (b, N, N),
+    lower triangle only (all the Cholesky reads). With ``border = z`` (N,): the bordered
+    ``[[K, ·], [zᵀ, c]]``, ``c = 2 zᵀz / σ_n² + 1 > zᵀ K⁻¹ z``, whose factor carries
+    ``L⁻¹ z`` in its last row (the NLML needs no separate solve)."""
     b, N, d_y = Y.shape
     n = N if border is None else N + 1
     d_x = X.shape[1]
     I, J = np.tril_indices(N)
-    distinct = _distinct_pairs(Y, X)            # replicated inputs: their entries once
-    Ic, Jc = (I, J) if distinct is None else distinct[:2]
-    ry = _scaled_dist(_pair_diffs(Y, Ic, Jc), SQRT3 * np.exp(-theta[:, 1:1 + d_y]))
-    rx = _scaled_dist((X[Ic] - X[Jc])[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]))
+    ry = _scaled_dist(Y[:, I, :] - Y[:, J, :], SQRT3 * np.exp(-theta[:, 1:1 + d_y]))
+    rx = _scaled_dist((X[I] - X[J])[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]))
     K = np.zeros((b, n, n))
-    entries = separable_matern(2.0 * theta[:, :1], ry, rx)
-    K[:, I, J] = entries if distinct is None else entries[:, distinct[2]]
+    K[:, I, J] = separable_matern(2.0 * theta[:, :1], ry, rx)
     sn2 = np.exp(2.0 * theta[:, -1:])
     K[:, np.arange(N), np.arange(N)] += sn2
     if border is not None:
@@ -292,13 +158,8 @@ def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> n
 
 def _scaled_cross_dist(A: np.ndarray, B: np.ndarray, scale: np.ndarray, out: np.ndarray,
                        tmp: np.ndarray) -> np.ndarray:
-    """``out[b, n, m] = sqrt(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place.
-
-    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); ``out`` and ``tmp``
-    are (b, Na, Nb) work buffers. The scale is applied to the (b, N, d) inputs, not to the
-    (b, Na, Nb) differences, and writing into buffers avoids a fresh allocation per
-    element-wise step, which at these sizes costs more than the arithmetic.
-    """
+    """``out[b, n, m] = √(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place, for
+    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); buffers (b, Na, Nb)."""
     d = A.shape[-1]
     if d == 0:
         out[...] = 0.0

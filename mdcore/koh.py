@@ -1,42 +1,24 @@
-"""Kennedy–O'Hagan hierarchical Bayesian baseline: θ and δ(x) inferred jointly (SPEC §7).
+"""Kennedy–O'Hagan hierarchical Bayesian baseline: θ and δ(x) inferred jointly.
 
 For each output the observations at the N inputs X are modelled, given θ, as
 
     z | θ, φ ~ N( m_η(X, θ),  Σ_η(X, X; θ) + K_δ(X, X; φ) + σ_n² I )
 
-with ``m_η`` and ``Σ_η`` the emulator's posterior mean and (full) covariance (SPEC §4) and
-``K_δ`` a zero-mean Matérn 3/2 GP over x with ``φ = [log σ_f, log ℓ_x,1 … log ℓ_x,d_x,
-log σ_n]`` (the SPEC §2 layout with no ``ℓ_y``). Outputs are independent given θ.
+with ``m_η``, ``Σ_η`` the emulator's posterior mean and full covariance and ``K_δ`` a
+Matérn 3/2 GP over x, ``φ = [log σ_f, log ℓ_x…, log σ_n]``; outputs independent given θ.
 
-1. φ by empirical Bayes on the prior-averaged marginal likelihood (SPEC §7)::
+φ̂ maximises the prior-averaged marginal likelihood ``log (1/M) Σ_m p(z | θ_m, φ)`` (θ_m
+from the truncated prior); θ | z, φ̂ is sampled by adaptive Metropolis; predictions average
+the Gaussian conditionals of δ* and z* over the kept θ with equal weights.
 
-       φ̂ = argmax_φ log (1/M) Σ_m p(z | θ_m, φ),   θ_m ~ p(θ) truncated to the bounds
-
-   (optionally times a hyperprior ``p(φ)``, i.e. type-II MAP, as scenarios 1–2 do).
-2. θ | z, φ̂ by adaptive Metropolis (:func:`mdcore.mcmc.adaptive_metropolis`) on the
-   Gaussian prior truncated to the box the emulator was built on.
-3. Per kept θ sample, the Gaussian conditional of ``δ*`` and ``z*`` given z::
-
-       δ*: mean K_δ(X*, X) C⁻¹ r,   var σ_f² − diag(K_δ(X*, X) C⁻¹ K_δ(X, X*))
-       z*: mean m_η(X*) + G C⁻¹ r,  var V_η(X*) + σ_f² + σ_n² − diag(G C⁻¹ Gᵀ)
-
-   with ``r = z − m_η(X, θ)``, ``C`` the covariance above and ``G = Σ_η(X*, X; θ) +
-   K_δ(X*, X)``; combined with equal weights (laws of total expectation and variance).
-
-Nothing that is fixed during sampling is recomputed per step: the emulator's x-parts come
-from :meth:`mdcore.emulator.Emulator.at` and ``K_δ + σ_n² I`` is built once.
-
-Examples
---------
->>> import numpy as np
 >>> from mdcore import cases
 >>> from mdcore.emulator import fit_emulator
->>> from mdcore.koh import infer_koh
 >>> case = cases.load("beam-1d")
 >>> y = case.simulate(case.X_train, case.initial_design)
 >>> em = fit_emulator(case.X_train, case.initial_design, y, case.theta_bounds, seed=0)
 >>> model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
-...               bounds=case.theta_bounds, n_iter=3000, burn_in=1000, seed=0)
+...                   bounds=case.theta_bounds, seed=0,
+...                   options=KOHOptions(n_iter=3000, burn_in=1000))
 >>> model.predict(case.X_test).delta_mean.shape
 (200, 1)
 """
@@ -60,51 +42,35 @@ from .emulator import Emulator, EmulatorAt, ThetaTerms
 from .exceptions import ConvergenceWarning, NumericalWarning
 from .hyperfit import default_bounds, lbfgs_advice, lbfgs_converged
 from .kernels import kernel, matern32_and_dlog_ell
-from .linalg import JitterLog, cholesky, solve_lower_inplace
-from .mcmc import MAX_CHAIN, Chain, adaptive_metropolis
+from .linalg import JITTER_LADDER, JitterLog, cholesky, solve_lower_inplace
+from .mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_setup
 from .priors import GaussianPrior, ThetaPrior
 from .validation import as_float_array, as_int, as_outputs, check_bounds
 
-__all__ = ["KOHModel", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
+__all__ = ["KOHModel", "KOHOptions", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
            "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST", "MAX_CHAIN"]
 
-#: The paper's chain: 150,000 iterations of which the first 50,000 are burn-in (SPEC §7).
+#: The paper's chain (150,000 steps, 50,000 burn-in), a short one for the app, the prior θ
+#: draws of the empirical-Bayes objective and the θ samples of a prediction.
 N_ITER, BURN_IN = 150_000, 50_000
-#: A short chain for interactive use (the app).
 FAST = {"n_iter": 20_000, "burn_in": 5_000}
-#: Prior θ draws averaged over in the empirical-Bayes objective.
 N_THETA_EB = 200
-#: θ samples (evenly spaced over the kept chain) used for predictions by default.
 N_PREDICT = 1000
 LOG_2PI = float(np.log(2 * np.pi))
 
 
-# ---------------------------------------------------------------------------------------
-# The simulator side: emulator (mean + covariance) or an exact simulator (covariance 0)
-
 class SimulatorAt:
-    """A cheap exact simulator at fixed inputs ``X``, with the protocol of
-    :class:`mdcore.emulator.EmulatorAt` (``theta_terms``, ``moments_at``, ``cross_cov_at``)
-    and no emulator covariance.
-
-    Parameters
-    ----------
-    simulate : callable
-        ``simulate(X, theta) -> (n_theta, N, n_out)``.
-    X : ndarray of shape (N, d_x)
-    n_out : int
-    """
+    """An exact ``simulate(X, theta)`` at fixed ``X`` (N, d_x), with
+    :class:`mdcore.emulator.EmulatorAt`'s protocol and zero covariance."""
 
     def __init__(self, simulate: Callable, X: np.ndarray, n_out: int):
         self.simulate, self.X, self.n_out = simulate, X, n_out
 
     def theta_terms(self, theta, *, check: bool = True) -> ThetaTerms:
-        """θ itself: an exact simulator has nothing to precompute."""
         theta = np.atleast_2d(as_float_array(theta, "theta")) if check else theta
         return ThetaTerms(theta, ())
 
     def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
-        """``simulate`` at ``X`` for each θ, (M, n_out, N), and a zero covariance."""
         theta = terms.unit
         y = np.asarray(self.simulate(self.X, theta), dtype=np.float64)
         want = (theta.shape[0], self.X.shape[0], self.n_out)
@@ -116,7 +82,6 @@ class SimulatorAt:
         return mean, cov
 
     def cross_cov_at(self, terms: ThetaTerms, other: SimulatorAt):
-        """Zero cross-covariance (M, n_out, N_other, N) and variance (M, n_out, N_other)."""
         M, N_o = terms.unit.shape[0], other.X.shape[0]
         return (np.zeros((M, self.n_out, N_o, self.X.shape[0])),
                 np.zeros((M, self.n_out, N_o)))
@@ -129,10 +94,7 @@ def _at(model, X: np.ndarray, n_out: int):
 
 
 def _k_delta(log_phi: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
-    """Discrepancy covariance ``σ_f² m32(r_x)`` per output: (n_out, Na, Nb).
-
-    The core's kernel with no ``y`` inputs (``d_y = 0`` gives exactly the KOH layout).
-    """
+    """``K_δ = σ_f² m32(r_x)`` per output, (n_out, Na, Nb): the kernel with no y inputs."""
     n_out = log_phi.shape[0]
     return kernel(log_phi, np.empty((n_out, Xa.shape[0], 0)), Xa,
                      np.empty((n_out, Xb.shape[0], 0)), Xb)
@@ -144,18 +106,14 @@ def noise_cov(log_phi: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 
 def _chol(C: np.ndarray, log: JitterLog) -> np.ndarray:
-    """Batched lower Cholesky with the core's jitter ladder (NaN rows where it fails)."""
+    """Batched lower Cholesky with the jitter ladder (NaN where it fails)."""
     shape = C.shape
     L, _ = cholesky(C.reshape((-1,) + shape[-2:]), log)
     return L.reshape(shape)
 
 
 def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``L⁻¹ B`` for (b, N, N) lower factors and (b, N, k) right-hand sides (B is overwritten).
-
-    A few matrices (one MCMC step): LAPACK per matrix; many: the core's row sweep, which
-    is vectorised over the batch.
-    """
+    """``L⁻¹ B`` for (b, N, N) factors and (b, N, k) right-hand sides, B overwritten."""
     if L.shape[0] > 8:
         return solve_lower_inplace(L, B)
     for i in range(L.shape[0]):
@@ -174,11 +132,8 @@ def gaussian_log_likelihood(mean, cov, B, zT, log) -> np.ndarray:
     return np.where(np.isfinite(ll), ll, -np.inf)
 
 
-# ---------------------------------------------------------------------------------------
-# Inputs
-
 def _theta_prior(theta_prior, bounds: np.ndarray) -> ThetaPrior:
-    """The θ prior as a :class:`~mdcore.priors.ThetaPrior` of size p (from a pair too)."""
+    """The θ prior as a :class:`~mdcore.priors.ThetaPrior` of size p."""
     if not isinstance(theta_prior, ThetaPrior):
         try:
             mean, var = theta_prior
@@ -202,18 +157,10 @@ def _log_phi(log_phi, n_out: int, d_x: int) -> np.ndarray:
     return np.array(np.broadcast_to(lp, (n_out, 2 + d_x)))
 
 
-# ---------------------------------------------------------------------------------------
-# Empirical Bayes for φ
-
 class _EvidenceObjective:
-    """``−log (1/M) Σ_m p(z | θ_m, φ) − log p(φ)`` and its analytic gradient in φ.
-
-    With ``C_mo = Σ_η,m,o + K_δ,o + σ_n,o² I``, ``α = C⁻¹ r`` and the normalised weights
-    ``w_m ∝ p(z | θ_m, φ)``, the gradient of the log evidence in one of output o's
-    hyperparameters is ``½ Σ_m w_m tr((α αᵀ − C⁻¹) ∂K_δ,o)`` (the usual GP identity,
-    averaged with the weights), with ``∂/∂log σ_f = 2 K_δ``, ``∂/∂log σ_n = 2 σ_n² I``
-    and ``∂/∂log ℓ_d = σ_f² · 3 exp(−√3 r) Δ_d² / ℓ_d²``.
-    """
+    """``−log (1/M) Σ_m p(z | θ_m, φ) − log p(φ)`` and its gradient in φ: with
+    ``C = Σ_η + K_δ + σ_n² I``, ``α = C⁻¹ r`` and weights ``w_m ∝ p(z | θ_m, φ)``, the log
+    evidence's derivative is ``½ Σ_m w_m tr((α αᵀ − C⁻¹) ∂K_δ)``."""
 
     def __init__(self, mean, cov, X, zT, n_out, phi_prior, log):
         self.cov, self.r = cov, zT - mean                          # (M, n_out, N[, N])
@@ -266,29 +213,10 @@ class _EvidenceObjective:
 
 def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
             n_starts: int = 4, seed=None):
-    """φ̂ maximising the prior-averaged marginal likelihood (SPEC §7).
-
-    Parameters
-    ----------
-    at : EmulatorAt
-        The emulator at ``X`` (:meth:`mdcore.emulator.Emulator.at`), or the exact-simulator
-        equivalent used by :func:`infer`.
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N, n_out)
-    theta_draws : ndarray of shape (M, p)
-        Draws from the θ prior; the objective averages the likelihood over them.
-    phi_prior : GaussianPrior of size 2 + d_x, optional
-        Hyperprior on each output's φ (MAP instead of plain empirical Bayes).
-    n_starts : int, default=4
-        L-BFGS-B starts (the first at the hyperprior mean or the box centre).
-    seed : int or Generator, optional
-
-    Returns
-    -------
-    log_phi : ndarray of shape (n_out, 2 + d_x)
-    log_evidence : float
-        ``log (1/M) Σ_m p(z | θ_m, φ̂)``.
-    """
+    """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` over the θ prior's
+    ``theta_draws`` (M, p), and that log evidence: ``at`` is the simulator's side at ``X``
+    (N, d_x), ``z`` (N, n_out); ``phi_prior`` makes it MAP; ``n_starts`` L-BFGS-B starts
+    (the first at the hyperprior mean or the box centre)."""
     X = as_float_array(X, "X", ndim=2)
     z = as_float_array(z, "z", ndim=2)
     if z.shape[0] != X.shape[0] or at.X.shape != X.shape:
@@ -332,35 +260,19 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
     return best.x.reshape(n_out, P), objective.log_evidence(best.x)
 
 
-# ---------------------------------------------------------------------------------------
-# The fitted model
-
 @dataclass(frozen=True, eq=False)
 class KOHModel:
-    """A Kennedy–O'Hagan posterior; call :meth:`predict` for z* and δ*.
+    """A Kennedy–O'Hagan posterior (``scenario`` is ``"koh"``); :meth:`predict` gives z*, δ*.
 
     Attributes
     ----------
-    scenario : str
-        ``"koh"`` (so the app and the CLI can treat it as a fourth column).
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N, n_out)
-    bounds : ndarray of shape (p, 2)
-        Box the θ prior is truncated to.
-    theta_prior : ThetaPrior
-        Gaussian prior of θ (mean and variance in parameter units).
     log_phi : ndarray of shape (n_out, 2 + d_x)
-        Discrepancy hyperparameters ``[log σ_f, log ℓ_x…, log σ_n]`` per output.
-    log_evidence : float or None
-        Prior-averaged log marginal likelihood at ``log_phi`` (None when ``log_phi`` was
-        given).
+        ``[log σ_f, log ℓ_x…, log σ_n]`` per output; ``log_evidence`` the prior-averaged
+        log marginal likelihood there (None when ``log_phi`` was given).
     chain : Chain
-        Adaptive-Metropolis output in parameter units: ``samples`` (n_kept, p), acceptance
-        rate, final proposal covariance, integrated autocorrelation times.
+        The adaptive-Metropolis output in parameter units.
     n_predict : int
         θ samples (evenly spaced over the kept chain) used by :meth:`predict`.
-    seconds_phi, seconds : float
-        Time spent fitting φ and in :func:`infer` in total.
     """
 
     scenario: str
@@ -392,31 +304,21 @@ class KOHModel:
 
     @property
     def iat(self) -> np.ndarray:
-        """Integrated autocorrelation time per parameter, (p,)."""
         return self.chain.iat
 
     @property
     def ess(self) -> np.ndarray:
-        """MCMC effective sample size per parameter, (p,)."""
         return self.chain.ess
 
     def predict(self, X_star, *, n_samples: int | None = None,
                 progress: Callable[[float], None] | None = None) -> DiscrepancyPrediction:
-        """Bias-corrected prediction and discrepancy at ``X_star`` (SPEC §7).
+        """Bias-corrected prediction and discrepancy at ``X_star`` (N*, d_x) from
+        ``n_samples`` θ over the kept chain (default :attr:`n_predict`).
 
-        Parameters
-        ----------
-        X_star : ndarray of shape (N*, d_x)
-        n_samples : int, optional
-            θ samples, evenly spaced over the kept chain (default :attr:`n_predict`;
-            capped at the chain length).
-        progress : callable, optional
-            Called with the fraction done after each block; raising cancels.
-
-        Returns
-        -------
-        DiscrepancyPrediction
-            Each field (N*, n_out); the z variance includes σ_n².
+        Per θ, with ``r = z − m_η(X, θ)``, ``C = Σ_η + K_δ + σ_n² I`` and ``G = Σ_η(X*, X; θ)
+        + K_δ(X*, X)``: δ* has mean ``K_δ(X*, X) C⁻¹ r`` and variance ``σ_f² − diag(K_δ(X*,
+        X) C⁻¹ K_δ(X, X*))``; z* has mean ``m_η(X*) + G C⁻¹ r`` and variance ``V_η(X*) + σ_f²
+        + σ_n² − diag(G C⁻¹ Gᵀ)``.
         """
         X_star = as_float_array(X_star, "X_star", ndim=2)
         if X_star.shape[1] != self.X.shape[1]:
@@ -473,51 +375,71 @@ class KOHModel:
         return DiscrepancyPrediction(z_mean.T, z_var.T, d_mean.T, d_var.T)
 
 
-def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
-          phi_prior: GaussianPrior | None = None, n_iter: int = N_ITER,
-          burn_in: int = BURN_IN, n_theta_eb: int = N_THETA_EB, n_predict: int = N_PREDICT,
-          seed=None, backend: str | None = None,
-          progress: Callable[[float], None] | None = None) -> KOHModel:
+@dataclass(frozen=True, eq=False)
+class KOHOptions:
+    """Settings of :func:`infer_koh`.
+
+    Parameters
+    ----------
+    n_iter, burn_in : int
+        Chain length and burn-in (the paper's 150,000 and 50,000; :data:`FAST` for the app).
+    n_theta_eb, n_predict : int
+        Prior θ draws of the empirical-Bayes objective; θ samples of the prediction.
+    log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
+        Fixed discrepancy hyperparameters instead of :func:`fit_phi`'s.
+    phi_prior : GaussianPrior of size 2 + d_x, optional
+        Hyperprior of :func:`fit_phi` (MAP); None is plain empirical Bayes.
+    backend : {"auto", "numpy", "numba"} or None, default="auto"
+        The chain with an emulator: :func:`mdcore.compiled.koh_chain` or the Python loop
+        of :func:`mdcore.mcmc.adaptive_metropolis`; None reads ``MDCORE_BACKEND``.
+    """
+
+    n_iter: int = N_ITER
+    burn_in: int = BURN_IN
+    n_theta_eb: int = N_THETA_EB
+    n_predict: int = N_PREDICT
+    log_phi: np.ndarray | None = None
+    phi_prior: GaussianPrior | None = None
+    backend: str = "auto"
+
+    def __post_init__(self):
+        n_iter = as_int(self.n_iter, "n_iter", 2, MAX_CHAIN)
+        burn_in = as_int(self.burn_in, "burn_in", 0, MAX_CHAIN)
+        if burn_in >= n_iter - 1:          # checked before φ̂, not after it
+            raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so "
+                             f"that at least two samples are kept; received burn_in={burn_in}."
+                             " The paper: n_iter = 150,000 with burn_in = 50,000.")
+        object.__setattr__(self, "n_iter", n_iter)
+        object.__setattr__(self, "burn_in", burn_in)
+        object.__setattr__(self, "n_theta_eb",
+                           as_int(self.n_theta_eb, "n_theta_eb", 1, 1_000_000))
+        object.__setattr__(self, "n_predict", as_int(self.n_predict, "n_predict", 1, MAX_CHAIN))
+        object.__setattr__(self, "backend", compiled.resolve_backend(self.backend))
+
+
+def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = None,
+              seed=None, progress: Callable[[float], None] | None = None) -> KOHModel:
     """Kennedy–O'Hagan calibration: φ̂ by empirical Bayes, then θ by adaptive Metropolis.
 
     Parameters
     ----------
     model : Emulator or callable
-        The emulator of SPEC §4 (its mean and covariance enter the likelihood), or an
-        exact ``simulate(X, theta) -> (n_theta, N, n_out)`` (no emulator variance).
+        The history-matching emulator (its mean and covariance enter the likelihood), or
+        an exact ``simulate(X, theta) -> (n_theta, N, n_out)``.
     X : ndarray of shape (N, d_x)
-        Observed inputs (repeated rows are replicates).
     z : ndarray of shape (N, n_out) or (N,)
-        Observations.
     theta_prior : ThetaPrior or (mean, var)
-        Gaussian prior of θ; ``var`` is a variance per parameter (beam-1d: l_cr ~ N(35, 10)
-        mm, E ~ N(70, 36) GPa). Truncated to ``bounds``.
-    bounds : ndarray of shape (p, 2)
-        Box of θ (the emulator is only trusted inside it).
-    log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
-        Fixed discrepancy hyperparameters; default: :func:`fit_phi`.
-    phi_prior : GaussianPrior of size 2 + d_x, optional
-        Hyperprior for :func:`fit_phi` (MAP); None is plain empirical Bayes.
-    n_iter, burn_in : int
-        Chain length and burn-in (the paper's 150,000 and 50,000; :data:`FAST` for the app).
-    n_theta_eb : int, default=200
-        Prior θ draws averaged over in the empirical-Bayes objective.
-    n_predict : int, default=1000
-        θ samples used by :meth:`KOHModel.predict`.
+        Gaussian prior of θ, truncated to ``bounds`` (p, 2).
+    options : KOHOptions, optional
+        Default: the paper's chain.
     seed : int or Generator, optional
-    backend : {"auto", "numpy", "numba"}, optional
-        The chain's likelihood step with an emulator: ``"numba"`` evaluates it in one
-        compiled call (:func:`mdcore.compiled.koh_log_likelihood`), ``"numpy"`` with the
-        reference code below; the same numbers to ~1e-12. Default ``MDCORE_BACKEND``, else
-        numba when installed (:func:`mdcore.compiled.resolve_backend`).
     progress : callable, optional
-        Fraction done (0–1); if it raises, inference stops (use this to cancel).
-
-    Returns
-    -------
-    KOHModel
+        Fraction done (0–1); raising from it cancels.
     """
     start = time.perf_counter()
+    options = KOHOptions() if options is None else options
+    if not isinstance(options, KOHOptions):
+        raise ValueError(f"options must be a KOHOptions; received {type(options).__name__}.")
     bounds = check_bounds(bounds)
     p = bounds.shape[0]
     prior = _theta_prior(theta_prior, bounds)
@@ -533,29 +455,21 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
     elif not callable(model):
         raise ValueError("model must be an Emulator or a callable simulate(X, theta); "
                          f"received {type(model).__name__}.")
+    phi_prior = options.phi_prior
     if phi_prior is not None and phi_prior.size != 2 + d_x:
         raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
                          f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
-    n_iter = as_int(n_iter, "n_iter", 2, MAX_CHAIN)
-    burn_in = as_int(burn_in, "burn_in", 0, MAX_CHAIN)
-    if burn_in >= n_iter - 1:          # checked before φ̂, not after it (mcmc checks again)
-        raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so that at "
-                         f"least two samples are kept; received burn_in={burn_in}. The "
-                         "paper: n_iter = 150,000 with burn_in = 50,000.")
-    n_theta_eb = as_int(n_theta_eb, "n_theta_eb", 1, 1_000_000)
-    n_predict = as_int(n_predict, "n_predict", 1, MAX_CHAIN)
-    backend = compiled.resolve_backend(backend)
     rng = np.random.default_rng(seed)
     at = _at(model, X, n_out)
 
-    draws = prior.sample_in(bounds, n_theta_eb, seed=rng)
+    draws = prior.sample_in(bounds, options.n_theta_eb, seed=rng)
     mean, cov = at.moments_at(at.theta_terms(draws))     # for φ̂ and the starting point
-    if log_phi is None:
+    if options.log_phi is None:
         log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng,
                                          None if progress is None
                                          else (lambda f: progress(0.05 * f)))
     else:
-        log_phi, log_evidence = _log_phi(log_phi, n_out, d_x), None
+        log_phi, log_evidence = _log_phi(options.log_phi, n_out, d_x), None
     seconds_phi = time.perf_counter() - start
     if progress is not None:
         progress(0.05)
@@ -566,6 +480,7 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
     log = JitterLog()
     mu, sd = prior.mean, np.sqrt(prior.var)
     lo_u, hi_u = (bounds[:, 0] - mu) / sd, (bounds[:, 1] - mu) / sd
+
     def log_target(u):
         """log p(z | θ, φ̂) + log p(θ) in standardised coordinates u = (θ − μ) / sd."""
         if np.any(u < lo_u) or np.any(u > hi_u):
@@ -574,18 +489,24 @@ def infer_koh(model, X, z, *, theta_prior, bounds, log_phi=None,
         mean, cov = at.moments_at(at.theta_terms(theta, check=False))
         return float(gaussian_log_likelihood(mean, cov, B, zT, log)[0]) - 0.5 * float(u @ u)
 
-    if backend == "numba" and isinstance(at, EmulatorAt):   # the same target, compiled
-        arrays = at.arrays()
-        log_target = compiled.KOHTarget(arrays, arrays.prior + B, zT, log, mu, sd, lo_u, hi_u)
-
     # Start at the most probable of the prior draws (φ̂ is fixed now).
     lp0 = gaussian_log_likelihood(mean, cov, B, zT, log) + prior.logpdf(draws)
     u0 = (draws[int(np.argmax(lp0))] - mu) / sd
     report = None if progress is None else (lambda f: progress(0.05 + 0.95 * f))
-    chain = adaptive_metropolis(log_target, u0, n_iter=n_iter, burn_in=burn_in,
-                                seed=rng, progress=report)
+    chain_options = dict(n_iter=options.n_iter, burn_in=options.burn_in)
+    if options.backend == "numba" and isinstance(at, EmulatorAt):
+        arrays = at.arrays()
+        koh = compiled.KOHData(arrays.prior + B, zT, mu, sd, lo_u, hi_u,
+                               np.asarray(JITTER_LADDER, dtype=np.float64))
+        chain = compiled.koh_chain(arrays, koh, chain_setup(log_target, u0, **chain_options),
+                                   rng, report, log)
+    else:
+        chain = adaptive_metropolis(log_target, u0, seed=rng, progress=report,
+                                    **chain_options)
     log.warn("KOH likelihood")
     chain = dataclasses.replace(chain, samples=mu + sd * chain.samples,
                                 proposal_cov=chain.proposal_cov * np.outer(sd, sd))
-    return KOHModel("koh", X, z, bounds, prior, log_phi, log_evidence, chain, n_predict,
-                    seconds_phi, time.perf_counter() - start, model, at)
+    return KOHModel(scenario="koh", X=X, z=z, bounds=bounds, theta_prior=prior,
+                    log_phi=log_phi, log_evidence=log_evidence, chain=chain,
+                    n_predict=options.n_predict, seconds_phi=seconds_phi,
+                    seconds=time.perf_counter() - start, _model=model, _at=at)

@@ -1,53 +1,33 @@
-"""Batched linear algebra and the chunk engine of the GP core (SPEC §3 numerics).
+"""Batched linear algebra and the chunk engine of the GP core.
 
-- :func:`cholesky`: lower Cholesky factors of a batch of matrices with the SPEC §3 jitter
-  ladder per matrix (growing steps × mean diagonal), and :class:`JitterLog`, which counts
-  what needed jitter or failed so a public call warns once (never a silent NaN).
-- :func:`solve_lower_inplace`: forward substitution over a batch without temporaries.
-- The chunk engine: :func:`chunks` splits a broadcast batch into pieces of bounded memory,
-  :func:`gather` picks a chunk's rows without materialising the broadcast, and
-  :func:`for_each_chunk` runs chunks on the machine's cores; :func:`workspace` hands each
-  thread reusable buffers.
-
-Examples
---------
->>> import numpy as np
->>> K = np.stack([np.eye(2), [[1.0, 2.0], [2.0, 1.0]]])     # the second is not PD
->>> L, ok = cholesky(K, JitterLog())
->>> ok.tolist(), bool(np.isnan(L[1]).all())
-([True, False], True)
+:func:`cholesky` factors a batch with a jitter ladder per matrix; :class:`JitterLog`
+counts what needed jitter or failed, so a public call warns once. :func:`chunks` splits a
+broadcast batch into pieces of bounded memory, run by :func:`for_each_chunk`.
 """
 
 from __future__ import annotations
 
-import os
 import threading
 import warnings
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 from .exceptions import NumericalWarning
+from .threads import run_pieces
 
-__all__ = ["JITTER_LADDER", "CHUNK_BYTES", "N_WORKERS", "JitterLog", "cholesky",
-           "solve_lower_inplace", "workspace", "gather", "chunks", "for_each_chunk"]
+__all__ = ["JITTER_LADDER", "CHUNK_BYTES", "JitterLog", "cholesky", "solve_lower_inplace",
+           "workspace", "gather", "chunks", "for_each_chunk"]
 
-#: Relative jitter steps (× mean diagonal) tried when a Cholesky fails (SPEC §3).
+#: Relative jitter steps (× mean diagonal) tried when a Cholesky fails.
 JITTER_LADDER = (1e-10, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4)
 #: Working-memory budget of one chunk, in bytes.
 CHUNK_BYTES = 4 * 2**20
-#: Threads used over chunks (the core is otherwise single-threaded NumPy).
-N_WORKERS = max(1, min(os.cpu_count() or 1, 8))
 
 
 def _raw_cholesky(K: np.ndarray) -> np.ndarray:
-    """Lower factors of (B, n, n) matrices; NaN for the ones that are not positive definite.
-
-    One batched :func:`numpy.linalg.cholesky` call; when it raises, the batch is halved
-    until the failing matrices are found, so a few failures cost O(failures × log B)
-    batched calls, and the factors of the others are exactly NumPy's.
-    """
+    """Lower factors of (B, n, n) matrices, NaN for those not positive definite: one
+    batched call, halving the batch when it raises (O(failures × log B) calls)."""
     try:
         return np.linalg.cholesky(K)
     except np.linalg.LinAlgError:
@@ -74,13 +54,12 @@ class JitterLog:
             self.max_jitter = max(self.max_jitter, max_jitter)
 
     def record_steps(self, step: np.ndarray, failed: np.ndarray):
-        """Record a batch by outcome: ``step`` (B,) the ladder step each matrix used (0 for
-        none), ``failed`` (B,) bool those that failed every step."""
+        """Record a batch: ``step`` (B,) the ladder step each matrix used (0 for none),
+        ``failed`` (B,) bool those that failed every step."""
         jittered = (step > 0.0) & ~failed
-        n_failed = int(np.count_nonzero(failed))
-        n_jittered = int(np.count_nonzero(jittered))
-        if n_failed or n_jittered:
-            self.record(n_jittered, n_failed, float(np.max(step[jittered], initial=0.0)))
+        if np.any(failed) or np.any(jittered):
+            self.record(int(np.count_nonzero(jittered)), int(np.count_nonzero(failed)),
+                        float(np.max(step[jittered], initial=0.0)))
 
     def warn(self, what: str):
         if self.jittered:
@@ -92,50 +71,37 @@ class JitterLog:
             warnings.warn(
                 f"{what}: {self.failed} covariance matrix(es) stayed non-positive-definite "
                 f"after jitter up to {max(JITTER_LADDER, default=0.0):.0e} × mean diagonal; "
-                "their NLML is "
-                "+inf (zero weight) and their predictions are NaN.",
+                "their NLML is +inf (zero weight) and their predictions are NaN.",
                 NumericalWarning, stacklevel=3)
 
 
 def cholesky(K: np.ndarray, log: JitterLog, n_cov: int | None = None):
     """Lower Cholesky factors of (B, n, n) matrices with a per-matrix jitter ladder.
 
-    The jitter (SPEC §3: growing steps × mean diagonal) is scaled by, and added to, the
+    The jitter (:data:`JITTER_LADDER` × mean diagonal) is scaled by, and added to, the
     first ``n_cov`` diagonal entries only (default all), so a bordered matrix
-    ``[[K, z], [zᵀ, c]]`` jitters just its covariance block. ``log`` records the matrices
-    that needed jitter or failed.
+    ``[[K, z], [zᵀ, c]]`` jitters just its covariance block; ``log`` records the outcome.
 
-    Returns ``(L, ok)``; rows with ``ok == False`` failed every jitter step and hold NaN.
+    Returns ``(L, ok)``; rows with ``ok == False`` failed every step and hold NaN.
     """
-    L, ok, step = cholesky_steps(K, n_cov)
-    log.record_steps(step, ~ok)
-    return L, ok
-
-
-def cholesky_steps(K: np.ndarray, n_cov: int | None = None):
-    """:func:`cholesky` without the record: ``(L, ok, step)``, ``step`` (B,) the ladder
-    step each matrix used (0 without jitter; for a failed one the last step tried)."""
     n_cov = K.shape[-1] if n_cov is None else n_cov
     L = _raw_cholesky(K)
-    bad = np.isnan(L[:, -1, -1])
     step = np.zeros(K.shape[0])
-    if not np.any(bad):
-        return L, ~bad, step
-    idx = np.nonzero(bad)[0]
-    diag = np.arange(n_cov)
-    scale = np.mean(K[idx][:, diag, diag], axis=-1)
-    used = np.zeros(len(idx))
-    for jit in JITTER_LADDER:
-        todo = np.isnan(L[idx, -1, -1])
-        if not np.any(todo):
-            break
-        sel = idx[todo]
-        Kj = K[sel]
-        Kj[:, diag, diag] += (jit * scale[todo])[:, None]
-        L[sel] = _raw_cholesky(Kj)
-        used[todo] = jit
-    step[idx] = used
-    return L, ~np.isnan(L[:, -1, -1]), step
+    idx = np.flatnonzero(np.isnan(L[:, -1, -1]))
+    if idx.size:
+        diag = np.arange(n_cov)
+        scale = np.mean(K[idx][:, diag, diag], axis=-1)
+        for jit in JITTER_LADDER:
+            todo = np.isnan(L[idx, -1, -1])
+            if not np.any(todo):
+                break
+            Kj = K[idx[todo]]
+            Kj[:, diag, diag] += (jit * scale[todo])[:, None]
+            L[idx[todo]] = _raw_cholesky(Kj)
+            step[idx[todo]] = jit
+    ok = ~np.isnan(L[:, -1, -1])
+    log.record_steps(step, ~ok)
+    return L, ok
 
 
 def solve_lower_inplace(L: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -151,11 +117,8 @@ _local = threading.local()
 
 
 def workspace(name: str, shape: tuple) -> np.ndarray:
-    """A per-thread reusable float64 buffer of ``shape`` (contents undefined).
-
-    Fresh multi-megabyte arrays come from the OS page by page, and at GP-chunk sizes the
-    page faults cost more than the arithmetic; reusing one buffer per thread avoids them.
-    """
+    """A per-thread reusable float64 buffer of ``shape`` (contents undefined): at GP-chunk
+    sizes the page faults of fresh arrays cost more than the arithmetic."""
     cache = _local.__dict__.setdefault("buffers", {})
     size = int(np.prod(shape))
     buf = cache.get(name)
@@ -165,17 +128,14 @@ def workspace(name: str, shape: tuple) -> np.ndarray:
 
 
 def gather(arr: np.ndarray, core_ndim: int, batch_shape: tuple, multi: tuple) -> np.ndarray:
-    """Rows of ``arr`` (batch..., core...) for flat batch indices unravelled in ``multi``.
-
-    Indexes only the needed rows, so broadcasting never materialises the full batch.
-    """
+    """Rows of ``arr`` (batch..., core...) for the flat batch indices unravelled in
+    ``multi``, without materialising the broadcast batch."""
     own = arr.shape[:arr.ndim - core_ndim]
     offset = len(batch_shape) - len(own)
     index = tuple(multi[offset + i] if n != 1 else np.zeros_like(multi[0])
                   for i, n in enumerate(own))
-    n = len(multi[0]) if multi else 1
     if not index:
-        return np.broadcast_to(arr, (n,) + arr.shape)
+        return np.broadcast_to(arr, (len(multi[0]) if multi else 1,) + arr.shape)
     return arr[index]
 
 
@@ -191,39 +151,7 @@ def chunks(batch_shape: tuple, bytes_per_item: float):
     return out
 
 
-_POOL: list[ThreadPoolExecutor] = []       # the process's chunk pool, made on first use
-_POOL_LOCK = threading.Lock()
-
-
-def _forget_pool_after_fork() -> None:
-    """In a forked child the pool's threads are gone: start a new pool on first use."""
-    _POOL.clear()
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool_after_fork)
-
-
-def _chunk_pool() -> ThreadPoolExecutor:
-    with _POOL_LOCK:
-        if not _POOL:
-            _POOL.append(ThreadPoolExecutor(max_workers=N_WORKERS,
-                                            thread_name_prefix="mdcore-chunks"))
-        return _POOL[0]
-
-
 def for_each_chunk(work: Callable, pieces: list) -> None:
-    """Run ``work(slice, multi, n)`` on every chunk, on all cores.
-
-    NumPy's element-wise loops and LAPACK release the GIL, so threads over independent
-    chunks scale on the machine's cores; each chunk writes a disjoint output slice. The
-    threads are one process-wide pool: a pool per call started and joined two threads
-    every time, a third of a small call (the 120 swarm steps of a hyperparameter fit).
-    ``work`` must not call this function (the pool's threads would wait on themselves).
-    """
-    if min(N_WORKERS, len(pieces)) <= 1:
-        for c in pieces:
-            work(*c)
-        return
-    for f in [_chunk_pool().submit(work, *c) for c in pieces]:
-        f.result()
+    """Run ``work(slice, multi, n)`` on every chunk, on the compute threads (NumPy's loops
+    and LAPACK release the GIL); each chunk writes a disjoint output slice."""
+    run_pieces(work, pieces)

@@ -5,13 +5,11 @@ The sampler is a random-walk Metropolis whose Gaussian proposal covariance is, a
     C_t = C_0                                   for t ≤ t_0
     C_t = s_d Cov(x_0, …, x_{t−1}) + s_d ε I     for t > t_0,      s_d = 2.4² / d
 
-(Haario et al. 2001, Eq. 2.1). The chain covariance is updated at every step with
-Welford's recursion, so the adaptation is the paper's, not a batched approximation.
+(Haario et al. 2001, Eq. 2.1), updated every step by Welford's recursion.
+:func:`chain_setup`, :func:`draw_blocks` and :func:`finish_chain` are shared with the
+compiled chain (:func:`mdcore.compiled.koh_chain`), so both draw the same random numbers.
 
-Examples
---------
 >>> import numpy as np
->>> from mdcore.mcmc import adaptive_metropolis
 >>> chain = adaptive_metropolis(lambda x: -0.5 * float(x @ x), np.zeros(2), n_iter=5000,
 ...                             burn_in=1000, seed=0)
 >>> chain.samples.shape, 0.1 < chain.acceptance_rate < 0.9
@@ -22,45 +20,32 @@ from __future__ import annotations
 
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
 from .exceptions import ConvergenceWarning
 from .validation import as_float_array, as_int
 
-__all__ = ["Chain", "MAX_CHAIN", "RELIABLE_TAUS", "adaptive_metropolis",
-           "integrated_autocorr_time"]
+__all__ = ["Chain", "ChainSetup", "MAX_CHAIN", "RELIABLE_TAUS", "adaptive_metropolis",
+           "chain_setup", "draw_blocks", "finish_chain", "integrated_autocorr_time"]
 
 #: A chain is long enough to trust its IAT when it spans this many autocorrelation times
 #: (Foreman-Mackey et al., emcee: "more than 50 τ").
 RELIABLE_TAUS = 50
 #: Longest chain accepted (the kept steps are stored): longer is refused up front.
 MAX_CHAIN = 100_000_000
+#: Steps whose random numbers are drawn at once.
+DRAW_BLOCK = 4096
 
 
 @dataclass(frozen=True, eq=False)
 class Chain:
-    """The kept part of an adaptive-Metropolis run.
-
-    Attributes
-    ----------
-    samples : ndarray of shape (n_iter − burn_in, d)
-        States after burn-in (every state, repeats included).
-    log_target : ndarray of shape (n_iter − burn_in,)
-        Log target density at each kept state.
-    acceptance_rate : float
-        Fraction of accepted proposals after burn-in.
-    acceptance_rate_burn_in : float
-        The same during burn-in.
-    proposal_cov : ndarray of shape (d, d)
-        The proposal covariance ``C_t`` at the last step.
-    iat : ndarray of shape (d,)
-        Integrated autocorrelation time of each coordinate of :attr:`samples`.
-    n_iter, burn_in, adapt_start : int
-    seconds : float
-    """
+    """The kept part of an adaptive-Metropolis run: ``samples`` (n_iter − burn_in, d) and
+    their ``log_target``, acceptance rates after and during burn-in, the last proposal
+    covariance ``C_t`` (d, d) and the integrated autocorrelation time ``iat`` (d,)."""
 
     samples: np.ndarray
     log_target: np.ndarray
@@ -75,8 +60,7 @@ class Chain:
 
     @property
     def reliable(self) -> bool:
-        """Whether the kept chain is longer than 50 autocorrelation times in every
-        coordinate (emcee's check): otherwise the IAT, and the ESS, are themselves unsure."""
+        """Whether the kept chain spans 50 autocorrelation times in every coordinate."""
         return bool(np.all(self.samples.shape[0] > RELIABLE_TAUS * self.iat))
 
     @property
@@ -86,25 +70,9 @@ class Chain:
 
 
 def integrated_autocorr_time(x, *, c: float = 5.0) -> np.ndarray:
-    """Integrated autocorrelation time per coordinate, with Sokal's automatic window.
-
-    ``τ = 1 + 2 Σ_{k=1}^{M} ρ(k)`` where ``ρ`` is the FFT estimate of the normalised
-    autocorrelation and ``M`` is the smallest window with ``M ≥ c τ(M)`` (Sokal 1997; the
-    estimator of ``emcee``). For an AR(1) chain with coefficient a, ``τ = (1 + a)/(1 − a)``.
-
-    Parameters
-    ----------
-    x : ndarray of shape (n,) or (n, d)
-        A chain (rows are successive states), n ≥ 2.
-    c : float, default=5
-        Window constant.
-
-    Returns
-    -------
-    ndarray of shape (d,)
-        τ ≥ 1 per coordinate in samples; ``n / τ`` is the effective sample size. A
-        constant coordinate (a chain that never moved) gets τ = n.
-    """
+    """Integrated autocorrelation time ``τ = 1 + 2 Σ_{k≤M} ρ(k)`` (d,) per coordinate of a
+    chain ``x`` (n ≥ 2,) or (n, d), ``ρ`` by FFT and ``M`` the smallest window with
+    ``M ≥ c τ(M)`` (Sokal 1997, as emcee); 1 ≤ τ ≤ n (n for a chain that never moved)."""
     x = as_float_array(x, "x")
     if x.ndim == 1:
         x = x[:, None]
@@ -126,43 +94,23 @@ def integrated_autocorr_time(x, *, c: float = 5.0) -> np.ndarray:
     return tau
 
 
-def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int,
-                        burn_in: int, initial_cov=None, adapt_start: int | None = None,
-                        epsilon: float = 1e-8, seed=None,
-                        progress: Callable[[float], None] | None = None) -> Chain:
-    """Sample ``exp(log_target)`` by adaptive Metropolis (Haario et al. 2001).
+class ChainSetup(NamedTuple):
+    """A validated adaptive-Metropolis run (:func:`chain_setup`)."""
 
-    Parameters
-    ----------
-    log_target : callable
-        ``log_target(x)`` for x of shape (d,): the log density up to a constant; ``-inf``
-        outside the support. A target with an ``advance`` method (as
-        :class:`mdcore.compiled.KOHTarget`) takes runs of steps itself:
-        ``advance(t, stop, x, lp, mean, m2, L, burn_in, t0, s_d, reg, steps, log_u,
-        samples, log_p, accepted)`` does steps ``t ≤ s < stop`` of the loop below on the
-        state in place and returns the log target of the state.
-    x0 : ndarray of shape (d,)
-        Starting state; ``log_target(x0)`` must be finite.
-    n_iter : int
-        Total iterations, burn-in included.
-    burn_in : int
-        Leading iterations dropped from :attr:`Chain.samples` (0 ≤ burn_in < n_iter).
-    initial_cov : ndarray of shape (d, d), optional
-        ``C_0``, used up to ``adapt_start``. Default ``(0.1)² I``.
-    adapt_start : int, optional
-        ``t_0``: adaptation starts after this many iterations (default
-        ``min(1000, n_iter // 10)``, at least 2 d).
-    epsilon : float, default=1e-8
-        ``ε`` of the regularising term ``s_d ε I`` (in the units of x squared).
-    seed : int or numpy.random.Generator, optional
-    progress : callable, optional
-        Called with the fraction done (0–1) about every 1 % of the run; if it raises,
-        sampling stops and the exception propagates (use this to cancel).
+    x0: np.ndarray       # (d,) starting state
+    lp0: float           # log target at x0
+    L0: np.ndarray       # (d, d) lower factor of C_0
+    n_iter: int
+    burn_in: int
+    t0: int              # adaptation starts after this many steps
+    s_d: float           # 2.4² / d
+    reg: np.ndarray      # (d, d) s_d ε I
 
-    Returns
-    -------
-    Chain
-    """
+
+def chain_setup(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int, burn_in: int,
+                initial_cov=None, adapt_start: int | None = None,
+                epsilon: float = 1e-8) -> ChainSetup:
+    """Validate the arguments of :func:`adaptive_metropolis` (which documents them)."""
     x = as_float_array(x0, "x0", ndim=1).copy()
     d = x.size
     n_iter = as_int(n_iter, "n_iter", 2, MAX_CHAIN)
@@ -187,33 +135,80 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
     if not np.isfinite(lp):
         raise ValueError(f"log_target(x0) must be finite; it is {lp} at x0 = {x.tolist()}. "
                          "Start the chain inside the support (e.g. at the prior mean).")
-    rng = np.random.default_rng(seed)
     s_d = 2.4**2 / d
-    reg = s_d * epsilon * np.eye(d)
-    kept = n_iter - burn_in
-    samples = np.empty((kept, d))
-    log_p = np.empty(kept)
-    accepted = np.zeros(2, dtype=np.int64)               # [burn-in, kept]
-    mean, m2 = x.copy(), np.zeros((d, d))                # Welford: states x_0 … x_{t−1}
+    return ChainSetup(x, lp, L, n_iter, burn_in, t0, s_d, s_d * epsilon * np.eye(d))
+
+
+def draw_blocks(setup: ChainSetup, seed, progress: Callable[[float], None] | None = None
+                ) -> Iterator[tuple[int, np.ndarray, np.ndarray]]:
+    """The chain's random numbers in blocks ``(t, steps (b, d), log_u (b,))`` for steps
+    ``t … t + b − 1``; ``progress(t / n_iter)`` runs between blocks every 1 % of the run
+    (raising stops sampling)."""
+    rng = np.random.default_rng(seed)
+    n_iter, d = setup.n_iter, setup.x0.size
     every = max(1, n_iter // 100)
-    block = 4096
+    for start in range(1, n_iter + 1, DRAW_BLOCK):
+        steps = rng.standard_normal((min(DRAW_BLOCK, n_iter - start + 1), d))
+        log_u = np.log(rng.uniform(size=steps.shape[0]))
+        t = start
+        while t < start + steps.shape[0]:
+            last = min(start + steps.shape[0] - 1, -(-t // every) * every)
+            yield t, steps[t - start:last + 1 - start], log_u[t - start:last + 1 - start]
+            if progress is not None and last % every == 0:
+                progress(last / n_iter)
+            t = last + 1
+
+
+def finish_chain(setup: ChainSetup, samples: np.ndarray, log_p: np.ndarray,
+                 accepted: np.ndarray, L: np.ndarray, seconds: float) -> Chain:
+    """The :class:`Chain` of a finished run; warns when it is too short to trust its IAT."""
+    kept, burn_in = samples.shape[0], setup.burn_in
+    chain = Chain(samples=samples, log_target=log_p,
+                  acceptance_rate=float(accepted[1] / kept),
+                  acceptance_rate_burn_in=float(accepted[0] / burn_in) if burn_in else np.nan,
+                  proposal_cov=L @ L.T, iat=integrated_autocorr_time(samples),
+                  n_iter=setup.n_iter, burn_in=burn_in, adapt_start=setup.t0, seconds=seconds)
+    if not chain.reliable:
+        tau = float(np.max(chain.iat))
+        warnings.warn(f"adaptive Metropolis: the {kept:,} kept steps are fewer than 50 "
+                      f"autocorrelation times (τ up to {tau:.1f}), so the IAT and ESS are "
+                      f"unreliable; raise n_iter to at least "
+                      f"{int(np.ceil(RELIABLE_TAUS * tau)) + burn_in:,}.",
+                      ConvergenceWarning, stacklevel=3)
+    return chain
+
+
+def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int,
+                        burn_in: int, initial_cov=None, adapt_start: int | None = None,
+                        epsilon: float = 1e-8, seed=None,
+                        progress: Callable[[float], None] | None = None) -> Chain:
+    """Sample ``exp(log_target)`` by adaptive Metropolis (Haario et al. 2001).
+
+    Parameters
+    ----------
+    log_target : callable
+        ``log_target(x)``, x (d,): the log density up to a constant, ``-inf`` outside.
+    x0 : ndarray of shape (d,)
+        Starting state; ``log_target(x0)`` must be finite.
+    n_iter, burn_in : int
+        Iterations, and the leading ones dropped (0 ≤ burn_in < n_iter − 1).
+    initial_cov : ndarray of shape (d, d), optional
+        ``C_0`` (default ``(0.1)² I``), used up to ``adapt_start`` (default
+        ``min(1000, n_iter // 10)``, at least 2 d); ``epsilon`` is the ε of ``s_d ε I``.
+    progress : callable, optional
+        Fraction done (0–1) about every 1 %; raising from it cancels.
+    """
+    setup = chain_setup(log_target, x0, n_iter=n_iter, burn_in=burn_in,
+                        initial_cov=initial_cov, adapt_start=adapt_start, epsilon=epsilon)
     start = time.perf_counter()
-    advance = getattr(log_target, "advance", None)
-    t = 1
-    while t <= n_iter:
-        if (t - 1) % block == 0:
-            steps = rng.standard_normal((min(block, n_iter - t + 1), d))
-            log_u = np.log(rng.uniform(size=steps.shape[0]))
-        i = (t - 1) % block
-        if advance is not None:
-            # A compiled target takes the steps t … last in one call (the same steps: see
-            # its advance), last the end of these draws, the next progress call or the end.
-            last = min(t - i + steps.shape[0] - 1, -(-t // every) * every, n_iter)
-            lp = advance(t, last + 1, x, lp, mean, m2, L, burn_in, t0, s_d, reg,
-                         steps[i:i + last + 1 - t], log_u[i:i + last + 1 - t], samples,
-                         log_p, accepted)
-            t = last
-        else:
+    x, lp, L = setup.x0.copy(), setup.lp0, setup.L0
+    burn_in, s_d, reg, t0 = setup.burn_in, setup.s_d, setup.reg, setup.t0
+    samples = np.empty((n_iter - burn_in, x.size))
+    log_p = np.empty(n_iter - burn_in)
+    accepted = np.zeros(2, dtype=np.int64)               # [burn-in, kept]
+    mean, m2 = x.copy(), np.zeros((x.size, x.size))      # Welford: states x_0 … x_{t−1}
+    for first, steps, log_u in draw_blocks(setup, seed, progress):
+        for i, t in enumerate(range(first, first + len(steps))):
             y = x + L @ steps[i]
             lq = float(log_target(y))
             if lq - lp > log_u[i]:                       # NaN and -inf are rejected
@@ -231,18 +226,4 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
                     L = np.linalg.cholesky(s_d * m2 / t + reg)   # Eq. 2.1: s_d Cov + s_d ε I
                 except np.linalg.LinAlgError:
                     pass                                 # keep the previous proposal
-        if progress is not None and t % every == 0:
-            progress(t / n_iter)
-        t += 1
-    chain = Chain(samples, log_p, float(accepted[1] / kept),
-                  float(accepted[0] / burn_in) if burn_in else float("nan"), L @ L.T,
-                  integrated_autocorr_time(samples), n_iter, burn_in, t0,
-                  time.perf_counter() - start)
-    if not chain.reliable:
-        tau = float(np.max(chain.iat))
-        warnings.warn(f"adaptive Metropolis: the {kept:,} kept steps are fewer than 50 "
-                      f"autocorrelation times (τ up to {tau:.1f}), so the IAT and ESS are "
-                      f"unreliable; raise n_iter to at least "
-                      f"{int(np.ceil(RELIABLE_TAUS * tau)) + burn_in:,}.",
-                      ConvergenceWarning, stacklevel=2)
-    return chain
+    return finish_chain(setup, samples, log_p, accepted, L, time.perf_counter() - start)

@@ -35,35 +35,36 @@ from . import compiled
 from .cases import Case
 from .discrepancy import (
     LOW_ESS,
+    MAX_N_PHI,
+    MAX_N_S,
+    MAX_PAIRS,
     PROPOSALS,
     PRUNE,
     DiscrepancyModel,
+    DiscrepancyOptions,
     DiscrepancyPrediction,
     check_executor,
     infer_discrepancy,
 )
 from .exceptions import Cancelled
 from .history_matching import HistoryMatchResult
-from .hyperfit import QPSO_ITERATIONS
+from .hyperfit import QPSO_ITERATIONS, FitOptions
 from .importance import K_HAT_THRESHOLD
-from .koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, infer_koh
+from .koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
 from .metrics import coverage, lpl, mmd, nmse
 from .priors import GaussianPrior
 from .validation import as_float_array, as_int, as_seed_int, choose
 
 __all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics",
            "ChainDiagnostics", "MethodResult", "PAPER_SIZES", "MAX_N_S", "MAX_N_PHI",
-           "MAX_PAIRS", "MAX_N_ITER", "MAX_FIT_ITERATIONS", "run_method", "scores", "koh_phi_prior"]
+           "MAX_PAIRS", "MAX_N_ITER", "MAX_FIT_ITERATIONS", "METRIC_COLUMNS", "run_method",
+           "scores", "koh_phi_prior", "metrics_table", "metric_text"]
 
 #: The paper's (N_s, N_φ) per case study (SPEC §6).
 PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
 
-#: Largest sizes :class:`Settings` accepts (the paper's are N_s = 1000, N_φ = 500–1000 and a
-#: 150,000-step chain): θ samples, φ samples per θ, (θ, φ) pairs of scenario 3, and KOH
-#: chain steps. Anything larger would run out of memory, so it is refused up front.
-MAX_N_S = 100_000
-MAX_N_PHI = 100_000
-MAX_PAIRS = 100_000_000
+#: Longest KOH chain :class:`Settings` accepts (the sizes of scenarios 2–3 are limited by
+#: :data:`mdcore.discrepancy.MAX_N_S`, ``MAX_N_PHI`` and ``MAX_PAIRS``).
 MAX_N_ITER = MAX_CHAIN
 #: Most swarm steps of the φ̂ fit (10× the default; more only costs time).
 MAX_FIT_ITERATIONS = 10 * QPSO_ITERATIONS
@@ -267,9 +268,6 @@ class ImportanceDiagnostics:
         ``Σ_j w_j / Σ_k (w_jk / w_j)²``, ``w_j = Σ_k w_jk``; out of ``n_phi``.
     skipped_mass : tuple of float
         Weight the prediction skipped (below ``prune × max``).
-    abandoned_mass : tuple of float
-        A bound on the weight of the pairs the weighing left out as provably negligible
-        (:data:`mdcore.discrepancy.ABANDON_MASS`); 0 with the adaptive proposal.
     k_hat : tuple of float
         Pareto shape of the raw weights' tail (Vehtari et al.); above 0.7 unreliable.
     n_pairs, n_phi : int
@@ -280,7 +278,6 @@ class ImportanceDiagnostics:
     ess: tuple
     ess_phi: tuple
     skipped_mass: tuple
-    abandoned_mass: tuple
     k_hat: tuple
     n_pairs: int
     n_phi: int
@@ -356,6 +353,52 @@ class MethodResult:
     seconds: float
 
 
+#: The metrics table's columns after "method" and "output": heading -> how text shows it.
+#: Metrics (docs/method.md §8), then scenario 3's weight diagnostics, then KOH's chain's.
+METRIC_COLUMNS = {
+    "NMSE z %": "{:.3f}", "NMSE δ %": "{:.3f}", "RMSE δ": "{:.3g}", "MMD": "{:.4f}",
+    "LPL": "{:.1f}", "cover z ±2σ": "{:.2f}", "cover z ±3σ": "{:.2f}", "cover δ ±2σ": "{:.2f}",
+    "cover δ ±3σ": "{:.2f}", "ESS pairs": "{:,.1f}", "ESS φ": "{:.1f}", "k̂": "{:.2f}",
+    "acceptance": "{:.3f}", "IAT (max)": "{:.1f}", "chain ESS (min)": "{:,.0f}",
+    "seconds": "{:.2f}"}
+
+
+def metrics_table(results, output_names) -> list[dict]:
+    """The metrics table of the command line, the app and the report: one row per (method,
+    output) of ``results`` (MethodResult, in the order given).
+
+    Each row maps "method" (the :class:`Method`), "output" (its name), "unreliable" (whether its
+    importance weights are, see :attr:`ImportanceDiagnostics.low`) and every
+    :data:`METRIC_COLUMNS` heading to a float, or to None where the number does not apply
+    (δ metrics without a known δ, scenario 3's diagnostics elsewhere, KOH's chain's).
+    """
+    rows = []
+    for r in results:
+        m, imp, chain = r.metrics, r.importance, r.chain
+
+        def at(values, o):
+            return None if values is None else float(values[o])
+
+        for o, name in enumerate(output_names):
+            cells = (m.nmse_z, m.nmse_delta, m.rmse_delta, m.mmd, m.lpl, m.coverage_z_2sd,
+                     m.coverage_z_3sd, m.coverage_delta_2sd, m.coverage_delta_3sd,
+                     *((None,) * 3 if imp is None else (imp.ess, imp.ess_phi, imp.k_hat)))
+            whole = (None,) * 3 if chain is None else (
+                chain.acceptance_rate, max(chain.iat), min(chain.ess))
+            values = [at(v, o) for v in cells] + [None if v is None else float(v)
+                                                  for v in whole] + [float(r.seconds)]
+            rows.append({"method": r.method, "output": name,
+                         "unreliable": imp is not None and imp.low[o],
+                         **dict(zip(METRIC_COLUMNS, values, strict=True))})
+    return rows
+
+
+def metric_text(heading: str, value) -> str:
+    """A :func:`metrics_table` cell as text: its column's format, "—" where it does not
+    apply."""
+    return "—" if value is None else METRIC_COLUMNS[heading].format(value)
+
+
 def scores(case: Case, prediction: DiscrepancyPrediction) -> Metrics:
     """SPEC §8 metrics of a prediction at ``case.X_test``, per output.
 
@@ -427,9 +470,6 @@ def importance_diagnostics(model: DiscrepancyModel) -> ImportanceDiagnostics:
     return ImportanceDiagnostics(tuple(float(e) for e in model.ess),
                                  tuple(float(e) for e in ess_phi),
                                  tuple(float(m) for m in model.skipped_mass),
-                                 tuple(float(m) for m in np.broadcast_to(
-                                     0.0 if model.abandoned_mass is None
-                                     else model.abandoned_mass, n_out)),
                                  tuple(float(k) for k in np.broadcast_to(
                                      np.nan if model.k_hat is None else model.k_hat, n_out)),
                                  S * K, K,
@@ -571,21 +611,24 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     stage(0.0, 0.0, "starting")(0.0)
     model: DiscrepancyModel | KOHModel
     if method is Method.KOH:
+        koh_options = KOHOptions(n_iter=settings.n_iter, burn_in=settings.burn_in,
+                                 phi_prior=koh_phi_prior(case), backend=settings.backend)
         model = infer_koh(hm.waves[-1].emulator, case.X_train, case.z_train,
                           theta_prior=case.theta_prior, bounds=case.theta_bounds,
-                          phi_prior=koh_phi_prior(case), n_iter=settings.n_iter,
-                          burn_in=settings.burn_in, seed=seed, backend=settings.backend,
+                          options=koh_options, seed=seed,
                           progress=stage(0.0, 0.9, "KOH: φ̂ and the θ chain"))
     else:
         theta_map = hm.compute_theta_map(stage(0.0, 0.0, f"{method.label}: θ_MAP"))
         theta = hm.posterior_samples(settings.n_s, seed=seed, progress=stage(
             0.0, 0.0, f"{method.label}: θ draws")) if method is not Method.S1 else None
+        options = DiscrepancyOptions(
+            n_phi=settings.n_phi, phi_prior=case.phi_prior, proposal=settings.proposal,
+            prune=settings.prune, backend=settings.backend,
+            fit=FitOptions(n_iterations=settings.fit_iterations),
+            log_params_hat=log_params_hat if method is Method.S2 else None)
         model = infer_discrepancy(
             case.simulate, theta, case.X_train, case.z_train, scenario=method.scenario,
-            theta_map=theta_map, n_phi=settings.n_phi, phi_prior=case.phi_prior, seed=seed,
-            log_params_hat=log_params_hat if method is Method.S2 else None,
-            fit_options={"n_iterations": settings.fit_iterations},
-            prune=settings.prune, proposal=settings.proposal, backend=settings.backend,
+            theta_map=theta_map, options=options, seed=seed,
             progress=stage(0.0, 0.5, f"{method.label}: fitting the discrepancy GP"),
             executor=executor)
     predicting = stage(0.9 if method is Method.KOH else 0.5, 1.0, f"{method.label}: predicting")

@@ -6,6 +6,7 @@ Every method goes through :func:`mdcore.pipeline.run_method`, as in the app.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
@@ -23,8 +24,9 @@ from .validation import as_seed_int
 __all__ = ["SCHEMA_VERSION", "CaseRun", "default_methods", "parse_methods", "reproduce",
            "run_case", "run_methods"]
 
-#: Version of the JSON layout written by :meth:`CaseRun.to_dict`.
-SCHEMA_VERSION = 2
+#: Version of the JSON layout written by :meth:`CaseRun.to_dict` (3: the failed simulator
+#: runs of each wave; 4: the rule, its cut-off and V_m's correlation).
+SCHEMA_VERSION = 4
 
 
 def default_methods(name: str) -> tuple[Method, ...]:
@@ -75,11 +77,20 @@ class CaseRun:
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
                              "fit_iterations": s.fit_iterations,
                              "backend": compiled.resolve_backend(s.backend)},
-                "history_matching": {"waves": len(self.hm.waves),
+                "history_matching": {"rule": self.hm.problem.rule,
+                                     "cutoff": self.hm.problem.cutoff,
+                                     "V_m_length": self.hm.problem.V_m_length.tolist(),
+                                     "V_m_corr": None if self.hm.problem.V_m_corr is None
+                                     else self.hm.problem.V_m_corr.tolist(),
+                                     "waves": len(self.hm.waves),
                                      "nroy_fraction": self.hm.nroy_fraction,
                                      "theta_map": self.hm.theta_map.tolist(),
                                      "truth_nroy": self.truth_in_nroy,
-                                     "status": self.hm.status},
+                                     "status": self.hm.status,
+                                     "failed_runs": [[{"theta": f.theta.tolist(),
+                                                       "message": f.message}
+                                                      for f in w.failures]
+                                                     for w in self.hm.waves]},
                 "methods": {r.method.value: _entry(r) for r in self.results}}
 
 
@@ -104,7 +115,8 @@ def _entry(r: MethodResult) -> dict:
 def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed=0,
               report: Callable[[str], None] | None = None,
               progress: Progress | None = None,
-              executor: Executor | None = None) -> CaseRun:
+              executor: Executor | None = None, timeout: float | None = None,
+              history_matching: dict | None = None) -> CaseRun:
     """History-match a case, run the methods, and score them (the ``reproduce`` command).
 
     Parameters
@@ -125,16 +137,21 @@ def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed
     executor : concurrent.futures.Executor, optional
         Runs the simulator runs of the history match and the pair chunks of scenarios 2–3
         (see :func:`run_case`); the numbers are identical to the serial run's.
+    timeout : float, optional
+        Seconds one simulator run may take (:attr:`mdcore.cases.Case.timeout`).
+    history_matching : dict, optional
+        Options of :func:`mdcore.history_matching.setup` (``rule``, ``V_m_length`` …).
 
     Returns
     -------
     CaseRun
     """
     executor = check_executor(executor)
-    case = _cases.load(name, seed=seed)
+    case = dataclasses.replace(_cases.load(name, seed=seed), timeout=timeout)
     return run_case(case, methods=default_methods(name) if methods is None else methods,
                     settings=Settings.paper(name) if settings is None else settings,
-                    seed=case.seed, report=report, progress=progress, executor=executor)
+                    seed=case.seed, report=report, progress=progress, executor=executor,
+                    **(history_matching or {}))
 
 
 def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),

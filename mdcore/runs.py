@@ -11,6 +11,10 @@ own run. The caller decides how many failures are acceptable (history matching:
 Any ``concurrent.futures.Executor`` works, including a Dask client's ``get_executor()``;
 the numbers do not depend on the executor, because results are assembled in θ order.
 
+A simulator from a case file runs in a process of its own (:class:`SimulatorProcess`), so a
+run that outlasts its timeout is stopped, not only abandoned, and a simulator that exits or
+crashes is a failed run with a message instead of the end of the program.
+
 Examples
 --------
 >>> import numpy as np
@@ -26,15 +30,25 @@ Examples
 from __future__ import annotations
 
 import concurrent.futures
+import os
+import pickle
+import queue
+import subprocess
+import sys
+import threading
+import time
+import weakref
 from collections.abc import Callable
 from concurrent.futures import Executor
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from .validation import as_float_array, as_int
 
-__all__ = ["Failure", "Runs", "run_simulator"]
+__all__ = ["Failure", "Runs", "SimulatorError", "SimulatorProcess", "call_with_timeout",
+           "run_simulator"]
 
 
 class Failure(NamedTuple):
@@ -71,18 +85,226 @@ class Runs(NamedTuple):
 
 def _call(simulate: Callable, X: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Run one batch (module level, so process and Dask executors can pickle it)."""
-    return np.asarray(simulate(X, theta), dtype=np.float64)
+    try:
+        return np.asarray(simulate(X, theta), dtype=np.float64)
+    except SystemExit as exc:                 # not the end of the program: a failed run
+        raise SimulatorError(f"the simulator called sys.exit({exc.code!r})") from None
 
 
-def _in_own_thread(simulate: Callable, X: np.ndarray, theta: np.ndarray,
-                   timeout: float) -> np.ndarray:
+def call_with_timeout(simulate: Callable, X: np.ndarray, theta: np.ndarray,
+                      timeout: float) -> np.ndarray:
     """One batch on a thread of its own, so that waiting for it can end after ``timeout``
-    (a thread cannot be killed: a run that hangs is abandoned, not stopped)."""
+    seconds with a ``TimeoutError`` (a thread cannot be killed: a run that hangs is
+    abandoned, not stopped; :class:`SimulatorProcess` stops it)."""
     pool = concurrent.futures.ThreadPoolExecutor(max_workers=1)
     try:
         return pool.submit(_call, simulate, X, theta).result(timeout=timeout)
+    except concurrent.futures.TimeoutError:
+        raise TimeoutError(f"timed out after {timeout:g} s") from None
     finally:
         pool.shutdown(wait=False, cancel_futures=True)
+
+
+class SimulatorError(RuntimeError):
+    """A simulator run in a :class:`SimulatorProcess` raised, exited or could not start."""
+
+
+#: The worker of :class:`SimulatorProcess`, run as ``python -c``: it imports only the
+#: simulator's module (not mdcore), answers each pickled (X, θ) with a pickled result, and
+#: ends when its parent does.
+_WORKER = r"""
+import os, pickle, sys, threading, time
+out = os.fdopen(os.dup(1), "wb")
+os.dup2(2, 1)                                   # the simulator's prints go to stderr
+sys.dont_write_bytecode = True                  # no __pycache__ beside the user's module
+parent = os.getppid()
+
+def orphaned():                                 # the parent was killed: do not linger
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
+
+threading.Thread(target=orphaned, daemon=True).start()
+
+def send(*message):
+    pickle.dump(message, out)
+    out.flush()
+
+module, function, path = pickle.load(sys.stdin.buffer)
+sys.path[:] = path
+try:
+    import importlib
+    fn = getattr(importlib.import_module(module), function, None)
+except BaseException as exc:
+    send("failed", f"cannot import module {module!r} ({type(exc).__name__}: {exc}); set "
+         "[simulator] path to the folder that contains it")
+    sys.exit()
+if not callable(fn):
+    send("failed", f"module {module!r} has no function {function!r}")
+    sys.exit()
+send("ready", None)
+while True:
+    try:
+        X, theta = pickle.load(sys.stdin.buffer)
+    except EOFError:
+        break
+    try:
+        import numpy
+        send("ok", numpy.asarray(fn(X, theta), dtype=numpy.float64))
+    except SystemExit as exc:
+        send("exit", f"the simulator called sys.exit({exc.code!r}), which ends its process")
+        break
+    except BaseException as exc:
+        send("error", f"{type(exc).__name__}: {exc}")
+"""
+
+
+class SimulatorProcess:
+    """A simulator ``module:function`` imported and run in a child process of its own.
+
+    A call sends ``(X, θ)`` to the process and waits for the result. When ``timeout``
+    runs out, the process is killed (the run is stopped, not abandoned) and the call
+    raises ``TimeoutError``; the next call starts a new process. A simulator that raises,
+    calls ``sys.exit`` or crashes raises :class:`SimulatorError` with what happened, one
+    that cannot be imported ``ImportError``. The process imports the module from
+    ``folder`` (this process never does), so a module that hangs or fails at import cannot
+    stop this one, and it writes no ``__pycache__`` beside the module.
+
+    Calls from several threads take turns (one process). Pickled (to a process pool or a
+    Dask cluster), it travels as the function itself, by value (cloudpickle): the
+    simulator's module and every module imported from its folder need not exist on the
+    workers. There each call runs in the worker, on a thread that a timeout abandons.
+
+    Parameters
+    ----------
+    module, function : str
+        What to import: ``module.function``.
+    folder : str or Path, optional
+        A folder to import it from, put first on the search path.
+    """
+
+    def __init__(self, module: str, function: str, folder=None):
+        self.module, self.function = module, function
+        self.folder = None if folder is None else str(folder)
+        self._lock = threading.Lock()
+        self._proc: subprocess.Popen | None = None
+        self._answers: queue.Queue = queue.Queue()
+        self._shipped: bytes | None = None          # the function by value, once pickled
+
+    def __repr__(self) -> str:
+        where = "" if self.folder is None else f" from {self.folder}"
+        return f"SimulatorProcess({self.module}:{self.function}{where})"
+
+    def __call__(self, X, theta, timeout: float | None = None) -> np.ndarray:
+        """``simulate(X, θ)`` in the process; ``timeout`` in seconds (None: no limit),
+        counted from the call (a process that starts includes its import)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        with self._lock:
+            if self._proc is None:
+                self._start()
+                self._answer(deadline, timeout)               # "ready", or why not
+            self._send((np.asarray(X), np.asarray(theta)))
+            return self._answer(deadline, timeout)
+
+    def _send(self, message) -> None:
+        stdin = None if self._proc is None else self._proc.stdin
+        try:
+            if stdin is not None:
+                pickle.dump(message, stdin)
+                stdin.flush()
+        except OSError:
+            pass                              # it ended; its answer says how
+
+    def _start(self) -> None:
+        proc = subprocess.Popen([sys.executable, "-c", _WORKER], stdin=subprocess.PIPE,
+                                stdout=subprocess.PIPE)
+        self._proc, self._answers = proc, queue.Queue()
+        self._stop = weakref.finalize(self, _stop, proc)      # at exit too
+        path = ([self.folder] if self.folder else []) + [os.getcwd() if p == "" else p
+                                                        for p in sys.path]
+        self._send((self.module, self.function, path))
+
+        def read(answers=self._answers, stream=proc.stdout):
+            try:
+                while True:
+                    answers.put(pickle.load(stream))
+            except Exception:                                 # EOF: the process ended
+                answers.put(None)
+
+        # Not "mdcore-…": that names the app's job threads (app/jobs.py), which end.
+        threading.Thread(target=read, daemon=True, name="simulator-reader").start()
+
+    def _answer(self, deadline: float | None, timeout: float | None):
+        """The process's next answer: ``ready`` or ``ok`` give their value; an error, an
+        exit or an ended process raise :class:`SimulatorError`, a timeout kills it."""
+        try:
+            answer = self._answers.get(
+                timeout=None if deadline is None else max(deadline - time.monotonic(), 0.0))
+        except queue.Empty:
+            self.close()
+            raise TimeoutError(f"timed out after {timeout:g} s") from None
+        kind, value = ("ended", None) if answer is None else answer
+        if kind in ("ready", "ok"):
+            return value
+        if kind != "error":                   # it ended: the next call starts another
+            code = self.close()
+            if kind == "failed":
+                raise ImportError(value)
+            value = value or (f"the simulator's process ended (exit code {code}) without an "
+                              "answer: it crashed or was killed")
+        raise SimulatorError(value)
+
+    def close(self) -> int | None:
+        """Stop the process (the next call starts another); its exit code. Called from
+        another thread, it ends the running call, which raises :class:`SimulatorError`:
+        this is how a caller cancels a run."""
+        proc, self._proc = self._proc, None
+        return None if proc is None else self._stop()
+
+    def __reduce__(self):
+        try:
+            import cloudpickle
+        except ImportError:            # a local process pool: the worker imports it itself
+            return _import_function, (self.module, self.function, self.folder)
+        if self._shipped is None:
+            self._shipped = cloudpickle.dumps(self._function_by_value())
+        return cloudpickle.loads, (self._shipped,)
+
+    def _function_by_value(self) -> Callable:
+        """The function, imported here, with its module and every module imported from
+        its folder registered with cloudpickle to travel by value."""
+        import cloudpickle
+        fn = _import_function(self.module, self.function, self.folder)
+        top = sys.modules[self.module.split(".")[0]]
+        ours = [top] + [m for m in list(sys.modules.values()) if self.folder
+                        and Path(getattr(m, "__file__", None) or "/").resolve()
+                        .is_relative_to(self.folder)]
+        for m in ours:
+            if m.__name__ not in cloudpickle.list_registry_pickle_by_value():
+                cloudpickle.register_pickle_by_value(m)
+        return fn
+
+
+def _stop(proc: subprocess.Popen) -> int:
+    """Kill a :class:`SimulatorProcess`'s process and close its pipes; its exit code."""
+    proc.kill()
+    code = proc.wait()
+    for stream in (proc.stdin, proc.stdout):
+        if stream is not None:
+            stream.close()
+    return code
+
+
+def _import_function(module: str, function: str, folder: str | None) -> Callable:
+    """``module.function``, imported in this process from ``folder`` (first on the path
+    while it imports)."""
+    import importlib
+    path = list(sys.path)
+    sys.path[:0] = [folder] if folder else []
+    try:
+        return getattr(importlib.import_module(module), function)
+    finally:
+        sys.path[:] = path
 
 
 def run_simulator(simulate: Callable, X, theta, n_out: int, *,
@@ -142,16 +364,17 @@ def run_simulator(simulate: Callable, X, theta, n_out: int, *,
     def collect(idx: np.ndarray, get: Callable[[], np.ndarray]) -> None:
         try:
             out = get()
-        except concurrent.futures.TimeoutError:
+        except TimeoutError as exc:           # the batch is abandoned, its runs failed
             for i in idx:
-                messages[int(i)] = f"timed out after {timeout:g} s"
+                messages[int(i)] = str(exc) or f"timed out after {timeout:g} s"
             return
         except Exception as exc:                              # a failing simulator run
             if len(idx) > 1:                                   # isolate the bad θ
                 for i in idx:
                     collect(np.array([i]), run(np.array([i])))
                 return
-            messages[int(idx[0])] = f"{type(exc).__name__}: {exc}"
+            messages[int(idx[0])] = str(exc) if isinstance(exc, SimulatorError) \
+                else f"{type(exc).__name__}: {exc}"           # the process says which error
             return
         if out.shape != (len(idx),) + want:
             raise ValueError(f"simulate(X, theta) must return shape (n_theta, N, n_out) = "
@@ -168,7 +391,7 @@ def run_simulator(simulate: Callable, X, theta, n_out: int, *,
             return lambda: future.result(timeout=timeout)
         if timeout is None:
             return lambda: _call(simulate, X, theta[idx])
-        return lambda: _in_own_thread(simulate, X, theta[idx], timeout)
+        return lambda: call_with_timeout(simulate, X, theta[idx], timeout)
 
     batches = [np.arange(s, min(R, s + batch_size)) for s in range(0, R, batch_size)]
     waits = [run(idx) for idx in batches]                     # submit all, then wait in order

@@ -34,7 +34,7 @@ import numpy as np
 from . import cases
 from .pipeline import Settings
 from .reproduce import default_methods, parse_methods, reproduce
-from .validation import choose
+from .validation import MAX_SEED, choose, short
 
 __all__ = ["PAPER", "Study", "study", "parse_seeds"]
 
@@ -63,15 +63,16 @@ def parse_seeds(text: str) -> tuple[int, ...]:
     """
     seeds: list[int] = []
     for part in str(text).split(","):
-        m = re.fullmatch(r"\s*(\d+)\s*(?:-\s*(\d+)\s*)?", part)
-        if m is None or (m.group(2) is not None and int(m.group(2)) < int(m.group(1))):
-            raise ValueError(f"seeds must look like '0-9', '0,3,5' or '2' (non-negative "
-                             f"integers, ranges low-high); received {text!r}.")
+        m = re.fullmatch(r"\s*(\d{1,19})\s*(?:-\s*(\d{1,19})\s*)?", part)
+        if m is None or (m.group(2) is not None and int(m.group(2)) < int(m.group(1))) \
+                or int(m.group(2) or m.group(1)) > MAX_SEED:
+            raise ValueError(f"seeds must look like '0-9', '0,3,5' or '2' (integers from 0 to "
+                             f"2**63 − 1, ranges low-high); received {short(text)}.")
         lo = int(m.group(1))
         hi = int(m.group(2) or lo)
         if len(seeds) + hi - lo + 1 > MAX_SEEDS:
             raise ValueError(f"seeds must name at most {MAX_SEEDS:,} seeds (each is a whole "
-                             f"reproduce run); received {text!r}, which names "
+                             f"reproduce run); received {short(text)}, which names "
                              f"{len(seeds) + hi - lo + 1:,} or more. Give a shorter range.")
         seeds.extend(range(lo, hi + 1))
     if len(set(seeds)) != len(seeds):
@@ -79,11 +80,13 @@ def parse_seeds(text: str) -> tuple[int, ...]:
     return tuple(seeds)
 
 
-def _one(name: str, seed: int, methods: tuple, settings: Settings) -> dict:
+def _one(name: str, seed: int, methods: tuple, settings: Settings,
+         timeout: float | None = None, history: dict | None = None) -> dict:
     """One seed's reproduce run as its JSON dict (picklable, small: no models)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")          # collected in each method's "warnings"
-        return reproduce(name, methods=methods, settings=settings, seed=seed).to_dict()
+        return reproduce(name, methods=methods, settings=settings, seed=seed,
+                         timeout=timeout, history_matching=history).to_dict()
 
 
 @dataclass(frozen=True)
@@ -136,6 +139,19 @@ class Study:
                                  "min": np.min([e["ess"] for e in ess], axis=0).tolist()}
         return out
 
+    def history(self) -> dict:
+        """History matching over the seeds: the rule, the final NROY share (mean and sd over
+        seeds), how many seeds keep the truth in NROY, and θ_MAP's mean absolute error per
+        parameter (None where the truth is unknown)."""
+        hm = [r["history_matching"] for r in self.runs]
+        share = np.array([h["nroy_fraction"][-1] for h in hm])
+        truth = cases.load(self.case).theta_true
+        return {"rule": hm[0].get("rule"), "nroy_mean": float(share.mean()),
+                "nroy_sd": float(share.std(ddof=1)) if len(share) > 1 else 0.0,
+                "truth_in": sum(bool(h["truth_nroy"]) for h in hm), "n": len(hm),
+                "theta_map_error": None if truth is None else np.mean(
+                    [np.abs(np.array(h["theta_map"]) - truth) for h in hm], axis=0).tolist()}
+
     def patterns(self) -> dict:
         """The paper's patterns over the seeds' means (None where they cannot be judged)."""
         decoupled: list[str] = [m for m in ("1", "2", "3") if m in self.methods]
@@ -167,12 +183,14 @@ class Study:
                 "settings": {"n_s": s.n_s, "n_phi": s.n_phi, "n_iter": s.n_iter,
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
                              "fit_iterations": s.fit_iterations},
-                "summary": self.summary(), "paper": PAPER.get(self.case),
+                "summary": self.summary(), "history_matching": self.history(),
+                "paper": PAPER.get(self.case),
                 "patterns": self.patterns(), "runs": list(self.runs)}
 
 
 def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
-          executor: Executor | None = None) -> Study:
+          executor: Executor | None = None, timeout: float | None = None,
+          history: dict | None = None) -> Study:
     """Reproduce ``name`` once per seed and collect the runs.
 
     Parameters
@@ -189,6 +207,11 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
         Runs the seeds (for example a ``ProcessPoolExecutor`` or a Dask client's
         ``get_executor()``); default: one after the other in this process. The numbers do
         not depend on the executor.
+    timeout : float, optional
+        Seconds one simulator run may take (:attr:`mdcore.cases.Case.timeout`).
+    history : dict, optional
+        History-matching options for every seed (:func:`mdcore.history_matching.setup`:
+        ``rule``, ``V_m_length`` …); default the case's.
 
     Returns
     -------
@@ -205,9 +228,10 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
     settings = Settings.paper(name) if settings is None else settings
     labels = tuple(m.value for m in chosen)
     if executor is None:
-        runs = [_one(name, int(s), labels, settings) for s in seeds]
+        runs = [_one(name, int(s), labels, settings, timeout, history) for s in seeds]
     else:
-        futures = [executor.submit(_one, name, int(s), labels, settings) for s in seeds]
+        futures = [executor.submit(_one, name, int(s), labels, settings, timeout, history)
+                   for s in seeds]
         runs = [f.result() for f in futures]
     return Study(name, tuple(int(s) for s in seeds), settings, tuple(runs))
 

@@ -1,94 +1,105 @@
-"""Keep BLAS single-threaded inside mdcore's numerical entry points, safely across threads.
+"""mdcore's one thread policy: one pool of compute threads, and BLAS at one thread.
 
-The core works on many small matrices (13–100 rows). On a 2-core machine OpenBLAS's own
-threads make such calls an order of magnitude slower (measured: an emulator fit took 4.2 s
-with default BLAS threading and 0.30 s single-threaded), so the entry points limit BLAS to
-one thread and parallelise over chunks themselves where that pays (:mod:`mdcore.linalg`).
-
-The BLAS thread count is a process-wide setting, and threadpoolctl's ``limit`` context is
-not safe when two threads (two app sessions, two jobs) enter and leave it interleaved: the
-one that leaves last restores what the first one set, and the process can stay at one
-thread for good. So the limit is reference-counted under a lock: the first caller in saves
-the original setting and sets one thread, nested and concurrent callers only count, and
-the last one out restores the original.
-
-A program that owns its process (the app server, the command line) calls
-:func:`single_threaded_blas_for_process` once at start instead. Between the entry points, the
-restored two-thread BLAS wakes OpenBLAS's worker thread on every call from other code (the
-app's plots, Bokeh, SciPy's optimiser), and that thread then spins for about 0.1 s: measured
-in the served app, two OpenBLAS workers burned 3.9 CPU-s of a 5.9 s shear-5 wave and made
-its emulator fit (``eigh``) five times slower; with the process-wide limit the wave took
-2.7 s and 1.1 CPU-s. Two BLAS threads bought no wall time on these matrix sizes.
+The core works on many small matrices (13–100 rows): threads pay over independent pieces
+of work, while a second BLAS thread on such sizes only spins. So :func:`run_pieces` runs
+pieces on one process-wide pool that NumPy chunks and compiled kernels share (concurrent
+sessions take turns piece by piece), and :func:`single_threaded_blas_for_process` sets BLAS
+to one thread for the whole process. It is never undone: undoing a process-wide setting is
+not safe while another thread relies on it.
 """
 
 from __future__ import annotations
 
 import functools
+import os
 import sys
 import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 
-from threadpoolctl import ThreadpoolController
+__all__ = ["THREADS_ENV", "cores", "num_threads", "run_pieces", "single_threaded_blas",
+           "single_threaded_blas_for_process"]
+
+#: Environment variable limiting the compute threads of mdcore (a positive integer).
+THREADS_ENV = "MDCORE_NUM_THREADS"
 
 _lock = threading.Lock()
-_depth = 0
-_saved: list = []          # threadpoolctl's limiters to restore, held while _depth > 0
-_controller: ThreadpoolController | None = None
-_scanned_modules = 0
-_process_wide = False      # set by single_threaded_blas_for_process: never restore two threads
+_pool: dict[int, ThreadPoolExecutor] = {}  # the process's pool (by size), made on first use
+_in_pool = threading.local()
+_blas_modules = -1                         # len(sys.modules) when BLAS was last limited
 
 
-def _enter() -> None:
-    global _depth, _controller, _scanned_modules
+def _forget_pool_after_fork() -> None:
+    _pool.clear()             # a forked child has none of the pool's threads
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool_after_fork)
+
+
+def cores() -> int:
+    """Cores this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:            # not on Linux
+        return os.cpu_count() or 1
+
+
+def num_threads() -> int:
+    """Compute threads: ``MDCORE_NUM_THREADS`` (a positive integer) if set, else every core."""
+    raw = os.environ.get(THREADS_ENV, "").strip()
+    if not raw:
+        return cores()
+    try:
+        n = int(raw)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise ValueError(f"{THREADS_ENV} must be a positive integer (the number of compute "
+                         f"threads); received {raw!r}. Unset it to use every core.")
+    return n
+
+
+def _mark_pool_thread() -> None:
+    _in_pool.active = True
+
+
+def run_pieces(work: Callable, pieces: list) -> list:
+    """``[work(*piece) for piece in pieces]`` on the compute threads; in the calling thread
+    for one piece, one thread, or a call from a pool thread (it would wait on itself)."""
+    n = num_threads()
+    if len(pieces) <= 1 or n == 1 or getattr(_in_pool, "active", False):
+        return [work(*p) for p in pieces]
     with _lock:
-        if _depth == 0:
-            # A scan of the loaded libraries costs 4–15 ms, a limit 0.4 ms, and a small
-            # reproduce enters ~100 times: scan again only when modules were imported since
-            # the last scan (one of them may have loaded another BLAS).
-            if _controller is None or len(sys.modules) != _scanned_modules:
-                _controller = ThreadpoolController()
-                _scanned_modules = len(sys.modules)
-            _saved.append(_controller.limit(limits=1, user_api="blas"))
-        _depth += 1
-
-
-def _exit() -> None:
-    global _depth
-    with _lock:
-        _depth -= 1
-        if _depth == 0:
-            limiter = _saved.pop()
-            if not _process_wide:
-                limiter.restore_original_limits()
+        if n not in _pool:                     # a new MDCORE_NUM_THREADS replaces the pool
+            for old in _pool.values():
+                old.shutdown(wait=False)
+            _pool.clear()
+            _pool[n] = ThreadPoolExecutor(n, thread_name_prefix="mdcore",
+                                          initializer=_mark_pool_thread)
+        pool = _pool[n]
+    return [f.result() for f in [pool.submit(work, *p) for p in pieces]]
 
 
 def single_threaded_blas_for_process() -> None:
-    """Limit every BLAS library loaded so far to one thread, for the whole process.
+    """Limit every BLAS library loaded so far to one thread, for the whole process; cheap
+    when repeated (a new scan only if modules were imported since: one may load a BLAS)."""
+    global _blas_modules
+    if len(sys.modules) == _blas_modules:
+        return
+    from threadpoolctl import threadpool_limits
 
-    For programs that own their process (``panel serve app/main.py``, ``python -m
-    mdcore``); a library import never calls it. Call it from the main thread after the
-    imports that load BLAS (NumPy, SciPy). Idempotent (a second call only scans again if
-    modules were imported since); it is not undone: :func:`single_threaded_blas` sections,
-    even one that began before the call, then leave BLAS at one thread.
-    """
-    global _controller, _scanned_modules, _process_wide
     with _lock:
-        if _process_wide and len(sys.modules) == _scanned_modules:
-            return
-        _process_wide = True
-        _controller = ThreadpoolController()
-        _scanned_modules = len(sys.modules)
-        _controller.limit(limits=1, user_api="blas")
+        _blas_modules = len(sys.modules)
+        threadpool_limits(limits=1, user_api="blas")
 
 
 def single_threaded_blas(fn):
-    """Decorator: run ``fn`` with BLAS limited to one thread (restored by the last caller)."""
+    """Decorator of the numerical entry points: BLAS at one thread (for good) before ``fn``."""
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        _enter()
-        try:
-            return fn(*args, **kwargs)
-        finally:
-            _exit()
+        single_threaded_blas_for_process()
+        return fn(*args, **kwargs)
 
     return wrapper

@@ -9,6 +9,21 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Largest magnitude of an observation or input: the method squares values (variances,
+#: kernels), and beyond this they overflow float64 on the way (measured clean to 1e30).
+MAX_MAGNITUDE = 1e30
+#: Largest seed: an int64, which any JSON reader and NumPy's seeding take as it is.
+MAX_SEED = 2**63 - 1
+
+
+def short(value, limit: int = 60) -> str:
+    """``repr(value)``, cut in the middle when longer than ``limit`` characters, so that a
+    message never echoes a 5,000-digit number or a whole line of a file."""
+    text = repr(value)
+    if len(text) <= limit:
+        return text
+    return f"{text[:limit // 2]}…{text[-10:]} ({len(text):,} characters)"
+
 
 def as_float_array(value, name: str, *, ndim: int | None = None, min_ndim: int | None = None,
                    allow_empty: bool = False, finite: bool = True) -> np.ndarray:
@@ -120,9 +135,11 @@ def as_seed_int(seed, name: str = "seed") -> int:
     """
     if isinstance(seed, np.random.Generator):
         return int(seed.integers(0, 2**63 - 1))
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
-        raise ValueError(f"{name} must be an integer ≥ 0 or a numpy.random.Generator; "
-                         f"received {seed!r}.")
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not \
+            0 <= seed <= MAX_SEED:
+        raise ValueError(f"{name} must be an integer from 0 to 2**63 − 1 or a "
+                         f"numpy.random.Generator; received {short(seed)}. Any seed in that "
+                         "range gives its own reproducible run, e.g. 0.")
     return int(seed)
 
 
@@ -138,6 +155,10 @@ def as_outputs(z, n_rows: int, name: str = "z") -> np.ndarray:
     if arr.ndim != 2 or arr.shape[0] != n_rows:
         raise ValueError(f"{name} must have shape (N, n_out) with N = {n_rows} rows like X "
                          f"(or (N,) for one output); received {arr.shape}.")
+    if np.max(np.abs(arr), initial=0.0) > MAX_MAGNITUDE:
+        raise ValueError(f"{name} has values up to {np.max(np.abs(arr)):.3g} in magnitude; "
+                         f"they must be at most {MAX_MAGNITUDE:g}, or their squares (variances) "
+                         "overflow. Express them in other units.")
     return arr
 
 

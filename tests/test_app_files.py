@@ -5,6 +5,7 @@ import json
 import warnings
 
 import numpy as np
+import pandas as pd
 import pytest
 
 pytest.importorskip("panel")
@@ -48,9 +49,9 @@ def lab_csv(case_name="beam-1d", shift=0.02):
     """Measurements in the template layout: the case's data with every reading shifted."""
     c = cases.load(case_name)
     lines = measurements_template(c).splitlines()
-    out = lines[:3]
+    out = lines[:1]                            # the header
     n_out = c.n_out
-    for row in lines[3:]:
+    for row in lines[1:]:
         cells = row.split(",")
         for j in range(c.d_x, c.d_x + n_out):
             cells[j] = repr(float(cells[j]) + shift)
@@ -96,10 +97,10 @@ def test_uploaded_measurements_become_a_case_of_this_session_only():
     (b"", "empty"),
     (b"x" * (session.MAX_UPLOAD_BYTES + 1), "more than the 5 MB limit (5,000,000 bytes)"),
     ("crack location,tip deflection,test\n0.2,\xe9,0\n".encode("latin-1"), "not UTF-8"),
-    (b"position,deflection\n0.2,0.5\n", "not found in the header"),
+    (b"position,deflection\n0.2,0.5\n", "not found in a header with none of them"),
     (b"crack location,tip deflection,test\n", "no data rows"),
     (b"crack location,tip deflection,test\n0.2,0.5,0\n0.3,0.6,2\n", "must be 0"),
-    (b"crack location,tip deflection,test\n0.2,0.5,1\n0.3,0.6,1\n", "at least one training"),
+    (b"crack location,tip deflection,test\n0.2,0.5,1\n0.3,0.6,1\n", "marks 0 training row(s) (0) and 2 test row(s) (1); at least 3 training"),
     (b"crack location,tip deflection,test\n200,0.5,0\n0.3,0.6,1\n", "far outside"),
     (b"crack location,tip deflection,test\n0.2,0.5,0\n0.3,0.6,1\n", "at least 3"),
     (b"crack location,tip deflection,test\n0.2,__import__('os'),0\n0.3,0.6,1\n",
@@ -255,13 +256,14 @@ def test_downloads_give_the_files_of_the_current_results():
     assert template == measurements_template(s.case)
     run_small(s, [Method.S1])
     assert not buttons["dl-nroy"].disabled and not buttons["dl-predictions"].disabled
-    nroy = buttons["dl-nroy"].callback().getvalue().decode().splitlines()
-    assert nroy[1] == "wave,l_cr [mm],E [GPa],implausibility"
-    rows = [line.split(",") for line in nroy[2:]]
-    assert {int(r[0]) for r in rows} == {w.index for w in s.waves}
-    assert max(float(r[-1]) for r in rows) <= s.threshold
-    pred = buttons["dl-predictions"].callback().getvalue().decode().splitlines()
-    assert len(pred) == 2 + s.case.X_test.shape[0]            # one method, one output
+    # Plain CSV: pandas reads the downloads as they are (no comment lines).
+    nroy = pd.read_csv(buttons["dl-nroy"].callback())
+    assert list(nroy.columns) == ["wave", "l_cr [mm]", "E [GPa]", "implausibility"]
+    assert set(nroy["wave"]) == {w.index for w in s.waves}
+    assert nroy["implausibility"].max() <= s.threshold
+    pred = pd.read_csv(buttons["dl-predictions"].callback())
+    assert len(pred) == s.case.X_test.shape[0]                 # one method, one output
+    assert pred["z_mean"].dtype.kind == "f" and set(pred["method"]) == {1}
     html = buttons["dl-report"].callback().getvalue().decode()
     assert html.startswith("<!DOCTYPE html>") and "<script src=" not in html
     doc = json.loads(buttons["dl-session"].callback().getvalue())
@@ -389,7 +391,7 @@ def test_scenario_3_and_koh_on_many_training_rows_are_refused_before_they_run():
     rng = np.random.default_rng(0)
     lines += [f"{x:.6f},{1.0 + 0.01 * rng.standard_normal():.6f},0"
               for x in np.linspace(0.1, 0.5, 300)]
-    lines += ["0.3,1.0,1"]
+    lines += ["0.3,1.0,1", "0.4,1.1,1"]
     s = small_state()
     assert s.upload_measurements(("\n".join(lines) + "\n").encode(), "many.csv")
     seen = errors_of(s)

@@ -152,7 +152,9 @@ def test_hostile_names_are_shown_as_text_and_run_nothing(browser, server, tmp_pa
     header = beam_csv().replace("tip deflection", HOSTILE)
     drop_file(page, "upload-csv", "header.csv", header.encode())
     text = wait_toast(page, "not found in the header")
-    assert HOSTILE in text, text
+    # A long header cell is cut in the middle (no message echoes a whole line of a file),
+    # but what is shown is shown literally.
+    assert HOSTILE[:14] in text, text
 
     # A file named with the markup: taken (a new case named after it).
     drop_file(page, "upload-csv", HOSTILE + ".csv", beam_csv().encode())

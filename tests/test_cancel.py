@@ -16,8 +16,8 @@ import pytest
 from mdcore import Cancelled, cases
 from mdcore.emulator import fit_emulator
 from mdcore.history_matching import HistoryMatchResult, case_problem, next_wave
-from mdcore.hyperfit import fit_hyperparameters
-from mdcore.koh import infer_koh
+from mdcore.hyperfit import FitOptions, fit_hyperparameters
+from mdcore.koh import KOHOptions, infer_koh
 from mdcore.pipeline import Method, Settings, koh_phi_prior, run_method
 
 
@@ -95,21 +95,22 @@ def test_the_phi_hat_fit_stops_in_the_swarm_and_in_the_polish():
     Y = np.sin(3 * X)
     z = (Y + 0.3 * X)[:, 0] + 0.01 * rng.standard_normal(30)
     seen = Stopper()
-    fit = fit_hyperparameters(Y, X, z, seed=0, n_iterations=20, progress=seen)
+    options = FitOptions(n_iterations=20)
+    fit = fit_hyperparameters(Y, X, z, seed=0, options=options, progress=seen)
     f = np.array(seen.fractions)
     assert np.sum(f < 0.5) == 20 and np.sum(f >= 0.5) >= 3          # swarm, then polish
     for at in (5, 22):
         with pytest.raises(Cancelled):
-            fit_hyperparameters(Y, X, z, seed=0, n_iterations=20, progress=Stopper(at))
-    again = fit_hyperparameters(Y, X, z, seed=0, n_iterations=20)
+            fit_hyperparameters(Y, X, z, seed=0, options=options, progress=Stopper(at))
+    again = fit_hyperparameters(Y, X, z, seed=0, options=options)
     np.testing.assert_array_equal(again.log_params, fit.log_params)
 
 
 def test_koh_stops_in_its_phi_fit_and_in_its_chain():
     case = cases.load("beam-1d", seed=0)
     first = next_wave(case_problem(case, n_candidates=2000, seed=0))
-    kw = dict(theta_prior=case.theta_prior, bounds=case.theta_bounds,
-              phi_prior=koh_phi_prior(case), n_iter=2000, burn_in=500, seed=0)
+    kw = dict(theta_prior=case.theta_prior, bounds=case.theta_bounds, seed=0,
+              options=KOHOptions(n_iter=2000, burn_in=500, phi_prior=koh_phi_prior(case)))
     seen = Stopper()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

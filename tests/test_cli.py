@@ -13,7 +13,7 @@ def test_reproduce_writes_the_documented_json(tmp_path, capsys):
     assert main(["reproduce", "beam-1d", "--n-s", "40", "--n-phi", "10", "--n-iter", "3000",
                  "--burn-in", "1000", "--json", str(path)]) == 0
     out = json.loads(path.read_text())
-    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 2
+    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 4
     assert out["settings"]["n_s"] == 40 and out["settings"]["n_phi"] == 10
     hm = out["history_matching"]
     assert hm["truth_nroy"] is True and hm["status"] == "converged"
@@ -59,7 +59,7 @@ def test_history_match_and_cases(capsys):
     out = capsys.readouterr().out
     assert "θ_MAP: l_cr = " in out and "NROY %" in out
     assert main(["history-match", "beam-1d", "--v-m", "1e-6", "--n-candidates", "2000",
-                 "--threshold", "0.5"]) == 1               # everything ruled out: exit 1
+                 "--threshold", "0.5"]) == 2               # everything ruled out: bad input
     assert "Raise V_m" in capsys.readouterr().out
     assert main(["history-match", "beam-1d", "--threshold", "0"]) == 2
     assert "threshold T must be a positive number" in capsys.readouterr().err
@@ -106,6 +106,24 @@ def test_history_options_reach_the_history_match(capsys):
     assert len(rows) >= 2 and runs == [25] + [6] * (len(rows) - 1)   # design, then --n-runs
     assert main(["history-match", "shear-5", "--v-m", "0.1", "0.2"]) == 2
     assert "--v-m takes 1 value or one per output (5 for shear-5" in capsys.readouterr().err
+
+
+def test_multivariate_rule_options(capsys):
+    assert main(["history-match", "beam-2d", "--rule", "multivariate", "--v-m-length", "0.2",
+                 "--n-candidates", "3000", "--max-waves", "1"]) == 0
+    assert "θ_MAP: E = " in capsys.readouterr().out
+    assert main(["history-match", "shear-5", "--rule", "multivariate", "--v-m-corr", "0.5",
+                 "--chi2-probability", "0.99", "--n-candidates", "3000", "--max-waves", "1"]) == 0
+    capsys.readouterr()
+    assert main(["history-match", "shear-5", "--rule", "multivariate", "--v-m-corr", "-0.3",
+                 "--n-candidates", "3000"]) == 2
+    assert "V_m_corr is not positive definite: its smallest eigenvalue is -0.2" \
+        in capsys.readouterr().err
+    assert main(["history-match", "shear-5", "--v-m-corr", "0.1", "0.2"]) == 2
+    assert "--v-m-corr takes 1 value (ρ for every pair of outputs) or the 5 × 5 = 25" \
+        in capsys.readouterr().err
+    assert main(["history-match", "beam-1d", "--v-m-length", "-1"]) == 2
+    assert "V_m_length must be one length ≥ 0" in capsys.readouterr().err
 
 
 def test_warnings_are_summarised_once_in_words(capsys, monkeypatch):

@@ -2,7 +2,6 @@
 between scenarios, pruning, and beam-1d at reduced sizes."""
 
 import warnings
-from concurrent.futures import ThreadPoolExecutor
 
 import naive_gp
 import numpy as np
@@ -10,7 +9,7 @@ import pytest
 from scipy.special import logsumexp
 
 from mdcore import cases
-from mdcore.discrepancy import infer_discrepancy
+from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
 from mdcore.exceptions import LowESSWarning
 from mdcore.history_matching import history_match_case
 from mdcore.metrics import coverage, nmse
@@ -58,7 +57,8 @@ def naive_mixture(model, X_star, Ys):
 @pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_scenario3_matches_naive_loop(toy):
     X, z, theta, _, prior = toy
-    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=5, phi_prior=prior, seed=1)
+    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=1,
+        options=DiscrepancyOptions(n_phi=5, phi_prior=prior))
     # weights: −NLML of every pair by the naive oracle, normalised jointly
     for o in range(2):
         lw = np.array([[-naive_gp.nlml(model.log_params[o, j, k], model.Y[j], X, z[:, o])
@@ -82,8 +82,8 @@ def test_replicated_inputs_are_predicted_once_with_the_same_numbers(toy, backend
         pytest.importorskip("numba")
     X, z, theta, _, prior = toy
     rows = np.array([0, 1, 1, 2, 3, 3, 3, 4, 5, 6, 6])
-    model = infer_discrepancy(toy_simulate, theta, X[rows], z[rows], scenario=3, n_phi=5,
-                              phi_prior=prior, seed=1, backend=backend)
+    model = infer_discrepancy(toy_simulate, theta, X[rows], z[rows], scenario=3, seed=1,
+        options=DiscrepancyOptions(n_phi=5, phi_prior=prior, backend=backend))
     Xs = np.array([[0.5], [0.1], [0.5], [0.9], [0.1], [0.5]])
     pred = model.predict(Xs, prune=0)
     for i, x in enumerate(Xs):
@@ -98,7 +98,8 @@ def test_replicated_inputs_are_predicted_once_with_the_same_numbers(toy, backend
 @pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_mixture_moments_match_brute_force_sampling(toy):
     X, z, theta, _, prior = toy
-    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=3, phi_prior=prior, seed=2)
+    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=2,
+        options=DiscrepancyOptions(n_phi=3, phi_prior=prior))
     Xs = np.array([[0.25], [0.8]])
     pred = model.predict(Xs, prune=0)
     Ys = toy_simulate(Xs, theta)
@@ -130,9 +131,11 @@ def test_mixture_moments_match_brute_force_sampling(toy):
 
 def test_scenario2_with_map_samples_reproduces_scenario1(toy):
     X, z, _, truth, prior = toy
-    s1 = infer_discrepancy(toy_simulate, None, X, z, scenario=1, theta_map=truth, phi_prior=prior, seed=3)
+    s1 = infer_discrepancy(toy_simulate, None, X, z, scenario=1, theta_map=truth, seed=3,
+        options=DiscrepancyOptions(phi_prior=prior))
     same = np.repeat(truth[None], 6, axis=0)
-    s2 = infer_discrepancy(toy_simulate, same, X, z, scenario=2, theta_map=truth, phi_prior=prior, seed=3)
+    s2 = infer_discrepancy(toy_simulate, same, X, z, scenario=2, theta_map=truth, seed=3,
+        options=DiscrepancyOptions(phi_prior=prior))
     np.testing.assert_array_equal(s1.log_params_hat, s2.log_params_hat)   # same seed, same fit
     Xs = np.linspace(0, 1, 11)[:, None]
     for a, b in zip(s1.predict(Xs), s2.predict(Xs)):
@@ -147,11 +150,13 @@ def test_scenario3_with_concentrated_prior_approaches_scenario2(toy):
     X, z, theta, truth, prior = toy
     Xs = np.linspace(0, 1, 11)[:, None]
     for thetas in (np.repeat(theta[:1], 3, axis=0), theta):
-        s2 = infer_discrepancy(toy_simulate, thetas, X, z, scenario=2, theta_map=truth, phi_prior=prior,
-                   seed=4)
+        s2 = infer_discrepancy(toy_simulate, thetas, X, z, scenario=2, theta_map=truth,
+                   seed=4,
+        options=DiscrepancyOptions(phi_prior=prior))
         for o in range(2):
             tight = GaussianPrior(mean=s2.log_params_hat[o], var=np.full(5, 1e-14))
-            s3 = infer_discrepancy(toy_simulate, thetas, X, z, scenario=3, n_phi=4, phi_prior=tight, seed=4)
+            s3 = infer_discrepancy(toy_simulate, thetas, X, z, scenario=3, seed=4,
+        options=DiscrepancyOptions(n_phi=4, phi_prior=tight))
             lw = -np.array([naive_gp.nlml(s2.log_params_hat[o], y, X, z[:, o]) for y in s2.Y])
             np.testing.assert_allclose(s3.weights[o].sum(axis=1), np.exp(lw - logsumexp(lw)),
                                        rtol=1e-5)
@@ -165,7 +170,8 @@ def test_pruning_matches_unpruned_and_reports_mass(toy):
     wide = GaussianPrior(mean=[0.0, 0.0, 0.0, -0.5, -2.5], var=[4.0, 4.0, 4.0, 4.0, 4.0])
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=400, phi_prior=wide, seed=5)
+        model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=5,
+        options=DiscrepancyOptions(n_phi=400, phi_prior=wide))
     assert np.all(model.skipped_mass > 0)                       # something was pruned
     assert np.all(model.skipped_mass <= 1e-12 * model.weights[0].size)
     assert np.all(model.n_components < model.weights[0].size)
@@ -175,54 +181,14 @@ def test_pruning_matches_unpruned_and_reports_mass(toy):
 
 
 @pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
-@pytest.mark.parametrize("backend", ["numpy", "numba"])
-def test_negligible_pairs_are_left_out_and_their_mass_bounded(rng, monkeypatch, backend):
-    """Scenario 3 leaves out (−inf) the pairs whose weight is provably negligible. Against
-    every pair's NLML computed in full: the others' normalised log weights are unchanged,
-    the left-out ones' true weights add up to at most ``abandoned_mass ≤ ABANDON_MASS``.
-    30 training points (the compiled path checks during the factorisation) and a pilot
-    of one θ row, so the cut is set before most chunks."""
-    from mdcore import discrepancy, gp
-
-    monkeypatch.setattr(discrepancy, "PILOT_PAIRS", 200)
-    monkeypatch.setattr(discrepancy, "WEIGHT_PAIRS", 600)          # several chunks
-    X = np.linspace(0, 1, 30)[:, None]
-    truth = np.array([1.0, 0.2])
-    z = toy_simulate(X, truth)[0] + 0.3 * np.cos(4 * X) + 0.05 * rng.normal(size=(30, 2))
-    theta = truth + 0.1 * rng.normal(size=(8, 2))
-    wide = GaussianPrior(mean=[0.0, 0.0, 0.0, -0.5, -2.5], var=[4.0, 4.0, 4.0, 4.0, 4.0])
-    model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=200, phi_prior=wide,
-                              seed=5, backend=backend)
-    for o in range(2):
-        full = -gp.neg_log_marginal_likelihood(model.log_params[o], model.Y[:, None], X,
-                                               z[:, o])
-        full -= logsumexp(full)
-        gone = model.log_weights[o] == -np.inf
-        assert 0.3 < gone.mean() < 1.0                      # most of the wide prior is hopeless
-        np.testing.assert_allclose(model.log_weights[o][~gone], full[~gone], rtol=1e-10)
-        left_out = np.exp(logsumexp(full[gone]))
-        assert 0 < left_out <= model.abandoned_mass[o] <= discrepancy.ABANDON_MASS
-    with ThreadPoolExecutor(2) as pool:                   # chunks in flight: the same cut
-        other = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=200,
-                                  phi_prior=wide, seed=5, backend=backend, executor=pool)
-    np.testing.assert_array_equal(other.log_weights, model.log_weights)
-    monkeypatch.setattr(discrepancy, "ABANDON_MASS", 0.0)      # the switch: every pair
-    every = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=200,
-                              phi_prior=wide, seed=5, backend=backend)
-    assert np.all(np.isfinite(every.log_weights)) and np.all(every.abandoned_mass == 0)
-    for o in range(2):
-        kept = np.isfinite(model.log_weights[o])
-        np.testing.assert_allclose(every.log_weights[o][kept], model.log_weights[o][kept],
-                                   rtol=1e-12)
-
-
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_same_seed_same_numbers_and_progress(toy):
     X, z, theta, truth, prior = toy
     seen = []
-    a = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, seed=7,
-              progress=seen.append)
-    b = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, seed=7)
+    a = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=7,
+              progress=seen.append,
+        options=DiscrepancyOptions(n_phi=6, phi_prior=prior))
+    b = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=7,
+        options=DiscrepancyOptions(n_phi=6, phi_prior=prior))
     np.testing.assert_array_equal(a.log_weights, b.log_weights)
     assert seen == sorted(seen) and seen[-1] == 1.0
     seen.clear()
@@ -236,7 +202,8 @@ def test_same_seed_same_numbers_and_progress(toy):
         raise Stop
 
     with pytest.raises(Stop):
-        infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=6, phi_prior=prior, progress=cancel)
+        infer_discrepancy(toy_simulate, theta, X, z, scenario=3, progress=cancel,
+        options=DiscrepancyOptions(n_phi=6, phi_prior=prior))
 
 
 @pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
@@ -254,8 +221,8 @@ def test_prior_draws_not_kept_are_drawn_again_bit_for_bit(toy, monkeypatch, seed
     def run():
         if state is not None:
             seed.bit_generator.state = state
-        return infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=7,
-                                 phi_prior=prior, seed=seed)
+        return infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=seed,
+        options=DiscrepancyOptions(n_phi=7, phi_prior=prior))
 
     kept = run()
     monkeypatch.setattr(discrepancy, "KEEP_DRAWS_BYTES", 0)
@@ -274,7 +241,8 @@ def test_low_ess_warns_with_a_suggestion(toy):
     X, z, theta, _, _ = toy
     far = GaussianPrior(mean=[3.0, 3.0, 3.0, 3.0, -6.0], var=[9.0] * 5)
     with pytest.warns(LowESSWarning, match="Increase n_phi"):
-        infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=20, phi_prior=far, seed=0)
+        infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=0,
+        options=DiscrepancyOptions(n_phi=20, phi_prior=far))
 
 
 @pytest.mark.parametrize("kwargs, match", [
@@ -299,11 +267,16 @@ def test_low_ess_warns_with_a_suggestion(toy):
 ])
 @pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
 def test_bad_input(toy, kwargs, match):
+    """Each bad argument is refused by name: the options when they are made, the data
+    when infer_discrepancy sees them."""
     X, z, theta, _, prior = toy
     args = dict(theta_samples=theta, X=X, z=z, n_phi=2)
     args.update(kwargs)
+    keys = ("n_phi", "phi_prior", "prune", "log_params_hat")
     with pytest.raises(ValueError, match=match):
-        infer_discrepancy(toy_simulate, args.pop("theta_samples"), args.pop("X"), args.pop("z"), **args)
+        options = DiscrepancyOptions(**{k: args.pop(k) for k in keys if k in args})
+        infer_discrepancy(toy_simulate, args.pop("theta_samples"), args.pop("X"), args.pop("z"),
+                          options=options, **args)
 
 
 def test_predict_bad_input(toy):
@@ -326,7 +299,8 @@ def test_beam1d_reduced_sizes(beam1d, scenario):
     case, hm = beam1d
     theta = hm.posterior_samples(200, seed=0)
     model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=scenario,
-                  theta_map=hm.theta_map, n_phi=50, phi_prior=case.phi_prior, seed=0)
+                  theta_map=hm.theta_map, seed=0,
+        options=DiscrepancyOptions(n_phi=50, phi_prior=case.phi_prior))
     pred = model.predict(case.X_test)
     delta = case.true_delta(case.X_test)
     assert pred.z_mean.shape == pred.delta_var.shape == (200, 1)
@@ -346,12 +320,14 @@ def test_adaptive_proposal_agrees_with_a_long_prior_run_and_keeps_more_samples(r
     theta = np.array([1.0, 0.2]) + 0.1 * rng.normal(size=(3, 2))
     wide = GaussianPrior(mean=[0.0, 0.0, 0.0, -0.5, -2.5], var=[2.0] * 5)
     Xs = np.linspace(0, 1, 5)[:, None]
-    ref_model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=40_000, phi_prior=wide,
-                      seed=1)
+    ref_model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3,
+                      seed=1,
+        options=DiscrepancyOptions(n_phi=40_000, phi_prior=wide))
     ref = ref_model.predict(Xs)
-    ada = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=800, phi_prior=wide, seed=2,
-                proposal="adaptive")
-    plain = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=800, phi_prior=wide, seed=2)
+    ada = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=2,
+        options=DiscrepancyOptions(n_phi=800, phi_prior=wide, proposal="adaptive"))
+    plain = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=2,
+        options=DiscrepancyOptions(n_phi=800, phi_prior=wide))
     assert ada.proposal == "adaptive" and plain.proposal == "prior"
     assert ada.log_params.shape == (2, 3, 800, 5)
     np.testing.assert_allclose(logsumexp(ada.log_weights.reshape(2, -1), axis=1), 0.0,
@@ -364,9 +340,9 @@ def test_adaptive_proposal_agrees_with_a_long_prior_run_and_keeps_more_samples(r
     np.testing.assert_allclose(np.exp(logsumexp(ada.log_weights, axis=2)),
                                np.exp(logsumexp(ref_model.log_weights, axis=2)), atol=0.05)
     assert np.all(ada.ess > 5 * plain.ess) and np.all(ada.k_hat < 0.7)
-    same = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=800, phi_prior=wide, seed=2,
-                 proposal="adaptive")
+    same = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=2,
+        options=DiscrepancyOptions(n_phi=800, phi_prior=wide, proposal="adaptive"))
     np.testing.assert_array_equal(same.log_weights, ada.log_weights)
     with pytest.raises(ValueError, match="'amis' is not a valid proposal"):
-        infer_discrepancy(toy_simulate, theta, X, z, scenario=3, n_phi=8, phi_prior=wide,
-              proposal="amis")
+        infer_discrepancy(toy_simulate, theta, X, z, scenario=3,
+        options=DiscrepancyOptions(n_phi=8, phi_prior=wide, proposal="amis"))

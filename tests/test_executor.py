@@ -7,9 +7,10 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 
 import numpy as np
 import pytest
+from conftest import missing
 
 from mdcore import cases, discrepancy
-from mdcore.discrepancy import infer_discrepancy
+from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
 from mdcore.history_matching import history_match_case
 from mdcore.pipeline import Settings, run_method
 from mdcore.reproduce import reproduce, run_case
@@ -39,9 +40,10 @@ def fit(beam, scenario, executor=None, **kwargs):
     case, hm, theta = beam
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        options = DiscrepancyOptions(n_phi=20, phi_prior=case.phi_prior, **kwargs)
         model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train,
-                                  scenario=scenario, theta_map=hm.theta_map, n_phi=20,
-                                  phi_prior=case.phi_prior, seed=3, executor=executor, **kwargs)
+                                  scenario=scenario, theta_map=hm.theta_map, seed=3,
+                                  options=options, executor=executor)
         return model, model.predict(case.X_test, executor=executor, prune=0.0)
 
 
@@ -68,9 +70,9 @@ def test_process_pool_pickles_the_chunks(beam, small_chunks, start):
     """Module-level functions on plain arrays: process pools (plain pickle) give the same
     numbers, spawned (fresh interpreters) or forked after the compiled backend's compute
     threads have started in this process (they are not inherited; see
-    ``compiled._forget_pools_after_fork``)."""
+    ``threads._forget_pool_after_fork``)."""
     if start not in multiprocessing.get_all_start_methods():
-        pytest.skip(f"no {start} start method here")
+        missing(f"no {start} start method here")
     serial = fit(beam, 3)                     # starts the compute threads here first
     workers = 2 if start == "fork" else 1     # a spawned worker imports numba: keep it one
     with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context(start)) as pool:
@@ -163,9 +165,9 @@ def test_cancel_stops_and_cancels_the_queued_chunks(beam, small_chunks):
 
     with ThreadPoolExecutor(1) as pool:
         with pytest.raises(Stop):
-            infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=3,
-                              n_phi=20, phi_prior=case.phi_prior, seed=0, executor=pool,
-                              progress=cancel)
+            infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=3, seed=0, executor=pool,
+                              progress=cancel,
+        options=DiscrepancyOptions(n_phi=20, phi_prior=case.phi_prior))
         assert pool.submit(int, "7").result() == 7      # the pool is still usable
 
 
@@ -174,10 +176,11 @@ def test_bad_executor_is_refused_by_name(beam, bad):
     case, hm, theta = beam
     match = "executor must be a concurrent.futures.Executor"
     with pytest.raises(ValueError, match=match):
-        infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=3,
-                          n_phi=2, phi_prior=case.phi_prior, executor=bad)
+        infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=3, executor=bad,
+        options=DiscrepancyOptions(n_phi=2, phi_prior=case.phi_prior))
     model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=2,
-                              theta_map=hm.theta_map, log_params_hat=np.zeros((1, 4)))
+                              theta_map=hm.theta_map,
+        options=DiscrepancyOptions(log_params_hat=np.zeros((1, 4))))
     with pytest.raises(ValueError, match=match):
         model.predict(case.X_test, executor=bad)
     with pytest.raises(ValueError, match=match):

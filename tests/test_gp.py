@@ -139,21 +139,18 @@ def test_jitter_ladder_is_per_matrix_and_warns_once(rng):
     assert np.all(np.isfinite(p.mean)) and np.all(p.var >= 0)
 
 
-@pytest.mark.parametrize("backend", ["numpy", "numba"])
-def test_a_jitter_log_takes_the_counts_instead_of_a_warning(rng, backend):
+def test_a_jitter_log_takes_the_counts_instead_of_a_warning(rng):
     """A caller that reports jitter itself (an optimiser's trial points) passes a log: the
     same values, the counts in the log, no warning, and no warnings filter touched
     (``catch_warnings`` is process-wide, unsafe with fits on several threads)."""
-    if backend == "numba":
-        pytest.importorskip("numba")
     lp, Y, X, z = ill_conditioned(rng)
     with pytest.warns(NumericalWarning, match="jitter"):
-        warned = gp.neg_log_marginal_likelihood(lp, Y, X, z, backend=backend)
+        warned = gp.neg_log_marginal_likelihood(lp, Y, X, z)
     log = linalg.JitterLog()
     filters = list(warnings.filters)
     with warnings.catch_warnings():
         warnings.simplefilter("error")                      # any warning fails the test
-        quiet = gp.neg_log_marginal_likelihood(lp, Y, X, z, backend=backend, jitter_log=log)
+        quiet = gp.neg_log_marginal_likelihood(lp, Y, X, z, jitter_log=log)
         assert log.jittered == 1 and log.failed == 0 and log.max_jitter > 0
         f, g = gp.nlml_and_gradient(lp[0], Y, X, z, jitter_log=log)
         assert log.jittered == 2 and np.isfinite(f) and np.all(np.isfinite(g))

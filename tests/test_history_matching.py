@@ -1,4 +1,5 @@
-"""History matching: implausibility by hand, a closed-form toy, and beam-1d against SPEC §9."""
+"""History matching: implausibility by hand, a closed-form toy, and beam-1d against the
+case study's expected NROY region."""
 
 import numpy as np
 import pytest
@@ -183,7 +184,7 @@ def test_beam1d_nroy_matches_exact_simulator(beam1d_match):
     exact = combine(implausibility(c.z_train, c.simulate(c.X_train, th), 0.0,
                                    V_o=c.noise_var, V_m=c.V_m)) <= 3
     f_exact = exact.mean()
-    assert 0.19 <= f_exact <= 0.29                        # SPEC §9: a ridge of ≈ 24 %
+    assert 0.19 <= f_exact <= 0.29                        # a ridge of ≈ 24 % of the box
     f = result.nroy_fraction
     assert abs(f[-1] - f_exact) <= abs(f[0] - f_exact) + 0.005   # approaches with waves
     assert f[-1] == pytest.approx(f_exact, abs=0.02)
@@ -210,7 +211,8 @@ def test_public_scoring_matches_the_closed_form_and_the_waves():
     np.testing.assert_allclose(wave.implausibility(theta), by_hand, rtol=1e-12)
     score = prob.score(theta, wave.emulator)
     np.testing.assert_allclose(score.implausibility, by_hand, rtol=1e-12)
-    np.testing.assert_array_equal(score.var, pred.var)
+    sf2 = np.exp(2 * wave.emulator.log_params[:, 0])         # var = σ_f² − (…) cancels
+    np.testing.assert_allclose(score.var, pred.var, rtol=1e-12, atol=1e-14 * sf2.max())
     # The candidates' stored implausibility is the same function.
     np.testing.assert_allclose(wave.implausibility(wave.candidates[:50]),
                                wave.candidate_implausibility[:50], rtol=1e-12)
@@ -232,7 +234,7 @@ def test_seed_accepts_a_generator():
     np.testing.assert_array_equal(a.waves[0].nroy, b.waves[0].nroy)
     assert a.problem.seed == b.problem.seed
     for bad in (-1, 1.5, "0", True):
-        with pytest.raises(ValueError, match="seed must be an integer ≥ 0 or a numpy.random"):
+        with pytest.raises(ValueError, match="seed must be an integer from 0 to 2..63 − 1 or a numpy.random"):
             history_match(toy_simulator, X, z, TOY_BOUNDS, seed=bad, **kw)
 
 
@@ -259,20 +261,17 @@ def test_posterior_samples_are_kept_per_seed_and_equal_a_fresh_draw(beam1d_match
     assert len(result._posterior_memo) <= 4
 
 
-@pytest.mark.parametrize("backend", ["numpy", "numba"])
-def test_scoring_in_chunks_gives_the_same_waves(monkeypatch, backend):
+def test_scoring_in_chunks_gives_the_same_waves(monkeypatch):
     """Candidates are scored (and θ weighted) in chunks of at most CHUNK_VALUES values,
     so memory does not grow with candidates × observations; chunks of a few rows give
     the waves, implausibilities and likelihoods of one chunk for all (to rounding: BLAS
     may sum a product in another order for another number of rows)."""
-    if backend == "numba":
-        pytest.importorskip("numba")
     import mdcore.history_matching as hm_module
     case = cases.load("shear-5", seed=0)
 
     def run():
         problem = hm_module.case_problem(case, n_candidates=3000, max_waves=2, seed=0,
-                                         convergence_ratio=0.001, backend=backend)
+                                         convergence_ratio=0.001)
         waves = (hm_module.next_wave(problem),)
         waves += (hm_module.next_wave(problem, waves),)
         result = hm_module.HistoryMatchResult(problem, waves)
@@ -286,8 +285,8 @@ def test_scoring_in_chunks_gives_the_same_waves(monkeypatch, backend):
     assert len(problem.chunks(3000)) == 429                   # 7 rows a chunk
     for a, b in zip(whole, chunked):
         np.testing.assert_allclose(a.candidate_implausibility, b.candidate_implausibility,
-                                   rtol=1e-12)
-        np.testing.assert_allclose(a.nroy, b.nroy, rtol=1e-12)
-        np.testing.assert_allclose(a.max_var, b.max_var, rtol=1e-12)
+                                   rtol=1e-10)
+        np.testing.assert_allclose(a.nroy, b.nroy, rtol=1e-10)
+        np.testing.assert_allclose(a.max_var, b.max_var, rtol=1e-10)
         assert a.nroy_fraction == b.nroy_fraction and a.status == b.status
-    np.testing.assert_allclose(ll_whole, ll_chunked, rtol=1e-12)
+    np.testing.assert_allclose(ll_whole, ll_chunked, rtol=1e-10)

@@ -11,7 +11,7 @@ from test_gp import random_problem
 from mdcore import gp
 from mdcore.discrepancy import default_phi_prior
 from mdcore.exceptions import ConvergenceWarning
-from mdcore.hyperfit import default_bounds, fit_hyperparameters, lbfgs_converged
+from mdcore.hyperfit import FitOptions, default_bounds, fit_hyperparameters, lbfgs_converged
 from mdcore.priors import GaussianPrior
 
 
@@ -27,7 +27,8 @@ def test_fit_recovers_nlml_optimum(rng, method):
     Y = np.cos(3 * X) + 0.1 * rng.normal(size=(N, 1))
     truth = np.log([1.5, 0.8, 0.25, 0.1])
     z = draw_from_gp(rng, truth, Y, X)
-    fit = fit_hyperparameters(Y, X, z, method=method, seed=1)
+    fit = fit_hyperparameters(Y, X, z, seed=1,
+        options=FitOptions(method=method))
     # Dense multi-start reference: 20,000 random points in the same box, best 3 polished by
     # Nelder–Mead (no gradient, no swarm: independent of the fitter's search).
     from scipy.optimize import minimize
@@ -43,13 +44,16 @@ def test_fit_recovers_nlml_optimum(rng, method):
 
 def test_fit_is_reproducible_and_map_uses_prior(rng):
     Y, X, z = random_problem(rng, N=10, d_y=1, d_x=1)
-    a = fit_hyperparameters(Y, X, z, seed=3, n_iterations=30)
-    b = fit_hyperparameters(Y, X, z, seed=3, n_iterations=30)
+    a = fit_hyperparameters(Y, X, z, seed=3,
+        options=FitOptions(n_iterations=30))
+    b = fit_hyperparameters(Y, X, z, seed=3,
+        options=FitOptions(n_iterations=30))
     np.testing.assert_array_equal(a.log_params, b.log_params)
     # A very tight prior pins the MAP to its mean.
     prior = GaussianPrior(mean=[0.1, 0.2, -0.5, -2.0], var=[1e-8] * 4)
-    m = fit_hyperparameters(Y, X, z, log_prior=prior, method="lbfgs", n_starts=2, seed=0,
-                               bounds=np.c_[prior.mean - 3, prior.mean + 3])
+    m = fit_hyperparameters(Y, X, z, log_prior=prior, seed=0,
+                               bounds=np.c_[prior.mean - 3, prior.mean + 3],
+        options=FitOptions(method="lbfgs", n_starts=2))
     np.testing.assert_allclose(m.log_params, prior.mean, atol=1e-4)
     assert m.objective != pytest.approx(m.nlml)
 
@@ -60,7 +64,8 @@ def test_non_convergence_warns_and_a_normal_fit_does_not(rng):
     Y, X, z = random_problem(rng, N=12, d_y=1, d_x=1)
     with pytest.warns(ConvergenceWarning, match="L-BFGS-B did not converge .*ran out of "
                                                 "iterations: raise maxiter"):
-        fit = fit_hyperparameters(Y, X, z, method="lbfgs", n_starts=1, seed=0, maxiter=1)
+        fit = fit_hyperparameters(Y, X, z, seed=0,
+        options=FitOptions(method="lbfgs", n_starts=1, maxiter=1))
     assert not fit.converged
     with warnings.catch_warnings():
         warnings.simplefilter("error", ConvergenceWarning)
@@ -71,7 +76,7 @@ def test_non_convergence_warns_and_a_normal_fit_does_not(rng):
 def test_bad_input():
     Y, X, z = np.zeros((5, 1)), np.linspace(0, 1, 5)[:, None], np.arange(5.0)
     with pytest.raises(ValueError, match="not a valid method"):
-        fit_hyperparameters(Y, X, z, method="adam")
+        FitOptions(method="adam")
     with pytest.raises(ValueError, match=r"bounds must have shape \(P, 2\) = \(4, 2\)"):
         fit_hyperparameters(Y, X, z, bounds=np.zeros((3, 2)))
     with pytest.raises(ValueError, match="log_prior must have P = 4 entries"):

@@ -2,13 +2,12 @@
 of the GP core's invariants (hypothesis): symmetric PSD covariances, non-negative predictive
 variance, invariance to the order of the training points."""
 
-from unittest import mock
 
 import naive_gp
 import numpy as np
 import pytest
 
-from mdcore import gp, kernels
+from mdcore import gp
 from mdcore.kernels import kernel, matern32, matern32_and_dlog_ell, train_cov
 
 hypothesis = pytest.importorskip("hypothesis")
@@ -117,52 +116,16 @@ def assert_one_matches_naive(K, theta, Y, X, rng):
 
 
 @settings(max_examples=60, deadline=None)
-@given(st.integers(2, 50), st.integers(2, 40), st.integers(0, 5), st.integers(0, 2**32 - 1))
-def test_a_shared_y_gives_the_bits_of_the_gathered_one(b, N, d_y, seed):
-    """train_cov takes the differences of a Y shared by the batch (a broadcast view: a fit's
-    particles) once; its covariances are the very bits it gave when it gathered them by
-    indexing the view, and the values of the naive covariance."""
-    rng = np.random.default_rng(seed)
-    Y = np.broadcast_to(rng.normal(size=(N, d_y)), (b, N, d_y))
-    X = rng.normal(size=(N, 2))
-    theta = rng.normal(scale=0.5, size=(b, 4 + d_y))
-    z = rng.normal(size=N)
-    K = train_cov(theta, Y, X, border=z)
-    with mock.patch.object(kernels, "_pair_diffs",
-                           lambda Y, I, J: Y[:, I, :] - Y[:, J, :]):     # the gathering
-        gathered = train_cov(theta, Y, X, border=z)
-    np.testing.assert_array_equal(K, gathered)
-    assert_one_matches_naive(K, theta, Y, X, rng)
-
-
-@settings(max_examples=60, deadline=None)
 @given(st.integers(1, 50), st.integers(2, 40), st.integers(1, 6), st.integers(0, 5),
        st.integers(1, 2), st.integers(0, 2**32 - 1))
-def test_replicated_inputs_give_the_bits_of_every_entry_computed(b, N, n_distinct, d_y, d_x,
-                                                                  seed):
-    """Replicated inputs (shear-5's repeats) with a Y shared by the batch: train_cov
-    computes each distinct pair of inputs once and copies it; the covariances are the very
-    bits of computing every entry, and the naive covariance's values."""
+def test_a_shared_y_and_replicated_inputs_give_the_naive_covariance(b, N, n_distinct, d_y,
+                                                                    d_x, seed):
+    """A Y shared by the batch (a broadcast view: a fit's particles) with replicated
+    inputs (shear-5's repeats): the covariance is the naive one."""
     rng = np.random.default_rng(seed)
     rows = rng.integers(0, min(n_distinct, N), size=N)
     X = rng.normal(size=(n_distinct, d_x))[rows]
     Y = np.broadcast_to(rng.normal(size=(n_distinct, d_y))[rows], (b, N, d_y))
     theta = rng.normal(scale=0.5, size=(b, 2 + d_y + d_x))
-    z = rng.normal(size=N)
-    K = train_cov(theta, Y, X, border=z)
-    with mock.patch.object(kernels, "DISTINCT_INPUTS", False):
-        every = train_cov(theta, Y, X, border=z)
-    np.testing.assert_array_equal(K, every)
+    K = train_cov(theta, Y, X, border=rng.normal(size=N))
     assert_one_matches_naive(K, theta, Y, X, rng)
-
-
-def test_distinct_rows_in_order_of_first_sight_and_bad_input():
-    A = np.array([[3.0, 1.0], [1.0, 2.0], [3.0, 1.0], [0.0, 0.0], [1.0, 2.0], [-0.0, 0.0]])
-    distinct, inverse = kernels.distinct_rows(A)
-    np.testing.assert_array_equal(distinct, [[3.0, 1.0], [1.0, 2.0], [0.0, 0.0]])
-    np.testing.assert_array_equal(inverse, [0, 1, 0, 2, 1, 2])      # −0 equals 0
-    np.testing.assert_array_equal(distinct[inverse], A)
-    for bad, match in [(np.array([[1.0, np.nan]]), "NaN"), (np.ones(3), "dimension"),
-                       (np.empty((0, 2)), "empty")]:
-        with pytest.raises(ValueError, match=match):
-            kernels.distinct_rows(bad)

@@ -7,7 +7,7 @@ import scipy.stats
 from mdcore import cases
 from mdcore.emulator import fit_emulator
 from mdcore.kernels import matern32
-from mdcore.koh import infer_koh
+from mdcore.koh import KOHOptions, infer_koh
 from mdcore.mcmc import adaptive_metropolis
 from mdcore.pipeline import Method, Settings, run_method, scores
 from mdcore.priors import GaussianPrior, ThetaPrior
@@ -122,8 +122,8 @@ def toy():
     z = TOY_G @ np.array([1.3, 0.2]) + 0.2 * np.sin(6 * TOY_X[:, 0]) \
         + 0.1 * rng.standard_normal(len(TOY_X))
     bounds = TOY_PRIOR.mean[:, None] + 15 * np.sqrt(TOY_PRIOR.var)[:, None] * [-1, 1]
-    model = infer_koh(_toy_simulate, TOY_X, z, theta_prior=TOY_PRIOR, bounds=bounds,
-                  log_phi=TOY_PHI, n_iter=80_000, burn_in=20_000, seed=5)
+    model = infer_koh(_toy_simulate, TOY_X, z, theta_prior=TOY_PRIOR, bounds=bounds, seed=5,
+        options=KOHOptions(log_phi=TOY_PHI, n_iter=80_000, burn_in=20_000))
     return model, _toy_posterior(z)
 
 
@@ -159,8 +159,8 @@ def test_adaptive_proposal_converges_to_scaled_posterior_covariance(toy):
 
 
 def test_reproducible_under_seed():
-    kw = dict(theta_prior=TOY_PRIOR, bounds=[[-5.0, 7.0], [-8.0, 8.0]], log_phi=TOY_PHI,
-              n_iter=600, burn_in=100)
+    kw = dict(theta_prior=TOY_PRIOR, bounds=[[-5.0, 7.0], [-8.0, 8.0]],
+              options=KOHOptions(log_phi=TOY_PHI, n_iter=600, burn_in=100))
     z = TOY_G @ np.array([1.0, 0.0])
     a = infer_koh(_toy_simulate, TOY_X, z, seed=4, **kw)
     b = infer_koh(_toy_simulate, TOY_X, z, seed=4, **kw)
@@ -175,8 +175,8 @@ def test_reproducible_under_seed():
 def test_predictions_match_dense_conditioning(beam):
     case, em = beam
     model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
-                  bounds=case.theta_bounds, log_phi=[np.log(0.4), np.log(0.3), np.log(0.03)],
-                  n_iter=300, burn_in=100, seed=1)
+                  bounds=case.theta_bounds, seed=1,
+        options=KOHOptions(log_phi=[np.log(0.4), np.log(0.3), np.log(0.03)], n_iter=300, burn_in=100))
     Xs = np.array([[0.12], [0.41], [0.88]])
     pred = model.predict(Xs, n_samples=3)
     idx = np.unique(np.linspace(0, model.theta.shape[0] - 1, 3).round().astype(int))
@@ -213,8 +213,8 @@ def test_beam1d_reduced_chain_contains_truth_and_predicts_z_like_the_decoupled_s
     pp = case.phi_prior
     hyper = GaussianPrior(np.r_[pp.mean[0], pp.mean[2:]], np.r_[pp.var[0], pp.var[2:]])
     model = infer_koh(hm.waves[-1].emulator, case.X_train, case.z_train,
-                  theta_prior=case.theta_prior, bounds=case.theta_bounds, phi_prior=hyper,
-                  n_iter=20_000, burn_in=5_000, seed=0)
+                  theta_prior=case.theta_prior, bounds=case.theta_bounds, seed=0,
+        options=KOHOptions(phi_prior=hyper, n_iter=20_000, burn_in=5_000))
     lo, hi = np.percentile(model.theta, [0.5, 99.5], axis=0)
     assert np.all((lo < case.theta_true) & (case.theta_true < hi)), (lo, hi)
     koh = scores(case, model.predict(case.X_test))
@@ -250,15 +250,18 @@ def test_infer_bad_input(kwargs, match):
                 theta_prior=TOY_PRIOR, bounds=[[-5.0, 7.0], [-8.0, 8.0]], log_phi=TOY_PHI,
                 n_iter=200, burn_in=50, seed=0)
     args.update(kwargs)
+    keys = ("n_iter", "burn_in", "log_phi", "phi_prior")
     with pytest.raises(ValueError, match=match):
-        infer_koh(args.pop("model"), args.pop("X"), args.pop("z"), **args)
+        options = KOHOptions(**{k: args.pop(k) for k in keys if k in args})
+        infer_koh(args.pop("model"), args.pop("X"), args.pop("z"), options=options, **args)
 
 
 def test_emulator_dimensions_must_match_data(beam):
     case, em = beam
     with pytest.raises(ValueError, match="the emulator has p = 2"):
         infer_koh(em, case.X_train, case.z_train, theta_prior=([70.0], [36.0]),
-              bounds=[[50.0, 90.0]], n_iter=10, burn_in=1)
+              bounds=[[50.0, 90.0]],
+        options=KOHOptions(n_iter=10, burn_in=1))
 
 
 def test_predict_bad_input_and_cancel(toy):
@@ -276,8 +279,9 @@ def test_predict_bad_input_and_cancel(toy):
 
     with pytest.raises(Stop):
         infer_koh(_toy_simulate, TOY_X, TOY_G @ np.array([1.0, 0.0]), theta_prior=TOY_PRIOR,
-              bounds=[[-5.0, 7.0], [-8.0, 8.0]], log_phi=TOY_PHI, n_iter=5000, burn_in=10,
-              progress=cancel)
+              bounds=[[-5.0, 7.0], [-8.0, 8.0]],
+              progress=cancel,
+        options=KOHOptions(log_phi=TOY_PHI, n_iter=5000, burn_in=10))
 
 
 def test_evidence_gradient_matches_finite_differences(beam):

@@ -57,25 +57,3 @@ def test_chunks_cover_the_batch_once():
     covered = np.concatenate([np.arange(35)[s] for s, _, _ in pieces])
     np.testing.assert_array_equal(covered, np.arange(35))
     assert all(n <= 4 for _, _, n in pieces)
-
-
-def test_chunks_run_on_one_pool_for_the_process(monkeypatch):
-    # A pool per call started and joined its threads every time (a third of a small
-    # call); every call now queues on the same threads, and each chunk runs exactly once.
-    import threading
-
-    monkeypatch.setattr(linalg, "N_WORKERS", 2)
-    seen: list[tuple[int, str]] = []
-    out = np.zeros(12)
-
-    def work(sl, multi, n):
-        seen.append((threading.get_ident(), threading.current_thread().name))
-        out[sl] += np.arange(sl.start, sl.stop)
-
-    pieces = linalg.chunks((12,), linalg.CHUNK_BYTES / 4)       # 3 chunks of 4
-    assert len(pieces) == 3
-    linalg.for_each_chunk(work, pieces)
-    linalg.for_each_chunk(work, pieces)
-    np.testing.assert_array_equal(out, 2 * np.arange(12))
-    assert all(name.startswith("mdcore-chunks") for _, name in seen)
-    assert linalg._chunk_pool() is linalg._chunk_pool()

@@ -18,6 +18,8 @@ from mdcore.pipeline import (
     Settings,
     _union,
     importance_diagnostics,
+    metric_text,
+    metrics_table,
     run_method,
     scores,
 )
@@ -243,8 +245,35 @@ def test_bad_input(beam):
            ((case, hm, 1, SMALL), {"X_extra": np.zeros((3, 2))},
             r"X_extra must have shape \(M, d_x\) with d_x = 1"),
            ((case, hm, 1, SMALL), {"X_extra": [[np.nan]]}, "X_extra contains 1 NaN"),
-           ((case, hm, 1, SMALL), {"seed": -2}, "seed must be an integer ≥ 0")]
+           ((case, hm, 1, SMALL), {"seed": -2}, "seed must be an integer from 0 to 2..63 − 1")]
     for args, kwargs, match in bad:
         kwargs = {"seed": 0, **kwargs}
         with pytest.raises(ValueError, match=match):
             run_method(*args, **kwargs)
+
+
+def test_metrics_table_is_the_results_numbers_per_output(beam):
+    """One row per (method, output) carrying each result's own numbers; None (shown "—")
+    where a number does not apply: scenario 3's diagnostics elsewhere, KOH's chain's."""
+    case, hm = beam
+    results = [quiet(run_method, case, hm, m, SMALL, seed=0) for m in (3, "koh")]
+    rows = metrics_table(results, case.output_names)
+    assert [(r["method"], r["output"]) for r in rows] == [(Method.S3, "tip deflection"),
+                                                         (Method.KOH, "tip deflection")]
+    s3, koh = rows
+    m = results[0].metrics
+    assert s3["NMSE z %"] == m.nmse_z[0] and s3["cover δ ±2σ"] == m.coverage_delta_2sd[0]
+    assert s3["ESS φ"] == results[0].importance.ess_phi[0] and s3["acceptance"] is None
+    assert koh["ESS pairs"] is None and koh["IAT (max)"] == max(results[1].chain.iat)
+    assert s3["unreliable"] == results[0].importance.low[0] and not koh["unreliable"]
+    assert metric_text("k̂", None) == "—" and metric_text("LPL", 12.345) == "12.3"
+
+
+def test_one_v_m_scales_by_the_squared_output_means():
+    case = cases.load("shear-5")
+    zbar = case.z_train.mean(axis=0)
+    v = case.scaled_v_m(0.2)
+    np.testing.assert_allclose(v, [0.2 * (zbar[i] / zbar[0]) ** 2 for i in range(5)],
+                               rtol=1e-14)
+    # shear-5's own default is this rule at 3 % of each mean
+    np.testing.assert_allclose(case.scaled_v_m(case.V_m[0]), case.V_m, rtol=1e-12)

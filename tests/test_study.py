@@ -80,3 +80,25 @@ def test_bad_input_and_cli(tmp_path, capsys):
     assert "mean ± sd over seeds" in out and "[0.433]" in out and path.exists()
     assert main(["study", "beam-2d", "--seeds", "2-1"]) == 2
     assert "seeds must look like" in capsys.readouterr().err
+
+
+def test_workers_in_processes_finish_with_the_serial_numbers(tmp_path):
+    """``study --workers 2`` from a fresh command line (whose background kernel warm-up
+    thread a forked worker would inherit mid-lock and hang on) gives the serial run's
+    numbers."""
+    import json
+    import subprocess
+    import sys
+
+    def run(workers: str) -> dict:
+        path = tmp_path / f"study-{workers}.json"
+        subprocess.run([sys.executable, "-m", "mdcore", "study", "beam-1d", "--seeds", "0-1",
+                        "--methods", "1", "--n-s", "20", "--n-phi", "10", "--workers", workers,
+                        "--json", str(path)], check=True, timeout=240, capture_output=True)
+        data = json.loads(path.read_text())
+        for run_ in data["runs"]:
+            for entry in run_["methods"].values():
+                entry.pop("seconds", None)
+        return data["runs"]
+
+    assert run("2") == run("1")

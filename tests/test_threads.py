@@ -1,8 +1,7 @@
-"""The BLAS limit is reference-counted: concurrent jobs leave the process as they found it.
+"""The one thread policy: one pool of compute threads, and BLAS at one thread for good.
 
-(Whether OpenBLAS honours a limit set from a worker thread depends on its build: the one
-NumPy and SciPy ship ignores it once its thread server runs, so the limit is asserted
-from the main thread only.)"""
+(Whether OpenBLAS honours a limit set from a worker thread depends on its build, so the
+BLAS limit is asserted in a subprocess that starts with two BLAS threads.)"""
 
 import os
 import subprocess
@@ -10,80 +9,68 @@ import sys
 import threading
 
 import numpy as np
-from threadpoolctl import threadpool_info
+import pytest
 
-from mdcore import gp
-from mdcore.threads import single_threaded_blas
-
-
-def blas_threads():
-    return sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+from mdcore import linalg, threads
 
 
-def test_two_concurrent_jobs_restore_the_blas_thread_count():
-    before = blas_threads()
-    assert before, "NumPy's BLAS is not visible to threadpoolctl"
-    rng = np.random.default_rng(0)
-    X = np.linspace(0, 1, 20)[:, None]
-    Y = np.sin(3 * X)
-    z = (Y + X)[:, 0]
-    lp = rng.normal(scale=0.3, size=(400, 4))
-    lp[:, -1] = -2.0
-    start = threading.Barrier(2)
+def test_pieces_run_once_in_order_on_one_pool(monkeypatch):
+    monkeypatch.setenv(threads.THREADS_ENV, "2")
+    seen: list[tuple[str, int]] = []
 
-    def job():
-        start.wait(timeout=30)
-        for _ in range(15):
-            gp.neg_log_marginal_likelihood(lp, Y, X, z)
-            gp.predict(lp[:50], Y, X, z, Y, X)
+    def work(a, b):
+        seen.append((threading.current_thread().name, threading.get_ident()))
+        return np.arange(a, b).sum()
 
-    threads = [threading.Thread(target=job) for _ in range(2)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=120)
-    assert not any(t.is_alive() for t in threads)
-    assert blas_threads() == before
+    pieces = [(0, 4), (4, 8), (8, 12)]
+    for _ in range(3):                              # the same two threads every time
+        assert threads.run_pieces(work, pieces) == [6, 22, 38]
+    assert all(name.startswith("mdcore") for name, _ in seen)
+    assert len({ident for _, ident in seen}) <= 2
+    out = np.zeros(12)
+
+    def chunk(sl, multi, n):
+        out[sl] += np.arange(sl.start, sl.stop)
+
+    linalg.for_each_chunk(chunk, linalg.chunks((12,), linalg.CHUNK_BYTES / 4))
+    np.testing.assert_array_equal(out, np.arange(12))          # every chunk exactly once
 
 
-def test_nested_calls_keep_the_limit_until_the_outermost_returns():
-    before = blas_threads()
+def test_one_thread_and_nested_calls_run_in_the_calling_thread(monkeypatch):
+    caller = threading.current_thread().name
+    monkeypatch.setenv(threads.THREADS_ENV, "1")
+    assert threads.run_pieces(lambda: threading.current_thread().name, [(), ()]) == [caller] * 2
+    monkeypatch.setenv(threads.THREADS_ENV, "2")
 
-    @single_threaded_blas
-    def inner():
-        return blas_threads()
+    def outer(i):                       # work that queues work: no deadlock, runs inline
+        me = threading.current_thread().name
+        return threads.run_pieces(lambda: threading.current_thread().name == me, [(), ()])
 
-    @single_threaded_blas
-    def outer():
-        first = inner()
-        return first, blas_threads()
-
-    first, after_inner = outer()
-    assert set(first) == {1} and set(after_inner) == {1}
-    assert blas_threads() == before
+    assert threads.run_pieces(outer, [(0,), (1,)]) == [[True, True], [True, True]]
 
 
-def test_the_process_wide_limit_outlasts_a_section_that_began_before_it():
-    # In a subprocess: the limit is process-wide and not undone.
+@pytest.mark.parametrize("value", ["0", "-2", "two"])
+def test_thread_count_from_the_environment(monkeypatch, value):
+    monkeypatch.setenv(threads.THREADS_ENV, "3")
+    assert threads.num_threads() == 3
+    monkeypatch.setenv(threads.THREADS_ENV, value)
+    with pytest.raises(ValueError, match="MDCORE_NUM_THREADS must be a positive integer"):
+        threads.num_threads()
+
+
+def test_an_entry_point_limits_blas_to_one_thread_for_good():
     code = """
 import threading
+import numpy as np
 from threadpoolctl import threadpool_info
-from mdcore import threads
+from mdcore import gp
 blas = lambda: sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
 before = blas()
-inside, go = threading.Event(), threading.Event()
-@threads.single_threaded_blas
-def section():
-    inside.set()
-    go.wait(30)
-t = threading.Thread(target=section)
-t.start()
-inside.wait(30)
-threads.single_threaded_blas_for_process()
-threads.single_threaded_blas_for_process()
-go.set()
-t.join(30)
-threads.single_threaded_blas(blas)()
+X = np.linspace(0, 1, 20)[:, None]; Y = np.sin(3 * X); z = (Y + X)[:, 0]
+lp = np.tile([0.0, 0.0, 0.0, -2.0], (50, 1))
+jobs = [threading.Thread(target=gp.neg_log_marginal_likelihood, args=(lp, Y, X, z))
+        for _ in range(2)]
+[j.start() for j in jobs]; [j.join() for j in jobs]
 print(before, blas())
 """
     env = dict(os.environ, OPENBLAS_NUM_THREADS="2")           # two, even on one core

@@ -837,7 +837,7 @@ class ExplorerState(param.Parameterized):
             case = doc["case"]
             controls = dict(doc["controls"])
             controls["scenarios"] = [Method.parse(v) for v in controls["scenarios"]]
-            settings = self._set_controls(ExplorerState(), controls, filename)
+            self._set_controls(ExplorerState(), controls, filename)   # refused before any change
             own = None
             if case["measurements_csv"] is not None:
                 base = case["based_on"]

@@ -2,7 +2,7 @@
 
 Your own cases join the built-in ones with ``panel serve app/main.py --address 127.0.0.1
 --warm --args --case my_case.toml [--case other.toml ...]`` (TOML case files, see
-:mod:`mdcore.case_file`); ``--warm`` loads them when the server starts, not for its first
+:mod:`mdcore._case_file`); ``--warm`` loads them when the server starts, not for its first
 visitor.
 
 Each browser session runs this module and gets its own :class:`ExplorerState`, so two
@@ -26,8 +26,9 @@ from panel.io.resources import LOCAL_DIST
 from panel.io.state import set_curdoc
 from tornado.ioloop import IOLoop
 
-from mdcore import compiled, threads
-from mdcore.case_file import load_case_file
+from mdcore import _compiled as compiled
+from mdcore import _threads as threads
+from mdcore._case_file import load_case_file
 from mdcore_app import network, session_pool
 from mdcore_app.markup import markdown_text
 from mdcore_app.state import ExplorerState

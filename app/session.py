@@ -29,7 +29,7 @@ import sys
 from typing import Any
 
 import mdcore
-from mdcore.pipeline import Method, MethodResult
+from mdcore._pipeline import Method, MethodResult
 
 __all__ = ["CONTROLS", "MAX_UPLOAD_BYTES", "SCHEMA", "SCHEMA_VERSION", "SessionError",
            "compare_metrics", "decode_upload", "megabytes", "parse_session"]
@@ -37,7 +37,7 @@ __all__ = ["CONTROLS", "MAX_UPLOAD_BYTES", "SCHEMA", "SCHEMA_VERSION", "SessionE
 SCHEMA, SCHEMA_VERSION = "mdcore-session", 1
 #: Largest file the app accepts from a browser (bytes): the one cap of the drop areas
 #: (counted as the chunks arrive, :mod:`mdcore_app.upload`) and of :func:`decode_upload`.
-#: Far above what the row limit lets through (mdcore.cases.MAX_ROWS rows of beam-2d's
+#: Far above what the row limit lets through (mdcore._cases.MAX_ROWS rows of beam-2d's
 #: template are 60 kB); a session file carries its measurements inside.
 MAX_UPLOAD_BYTES = 5_000_000
 #: The state's parameters a session file stores, and the JSON types each must have.

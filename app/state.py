@@ -2,7 +2,7 @@
 
 No widget code lives here. :class:`ExplorerState` holds the user's settings as ``param``
 parameters, calls :mod:`mdcore` (history matching wave by wave, then
-:func:`mdcore.pipeline.run_method` per method), and caches what it computed; the views
+:func:`mdcore.run_method` per method), and caches what it computed; the views
 only display it.
 
 Long work (a wave, a discrepancy run) goes through a :class:`~mdcore_app.jobs.JobRunner`:
@@ -24,16 +24,17 @@ import numpy as np
 import param
 import scipy.stats
 
-from mdcore import cases, koh
-from mdcore.case_file import with_measurements
-from mdcore.cases import Case
-from mdcore.history_matching import (
+from mdcore import _cases as cases
+from mdcore import _koh as koh
+from mdcore._case_file import with_measurements
+from mdcore._cases import Case
+from mdcore._history_matching import (
     RULES,
     HistoryMatchResult,
     case_problem,
     next_wave,
 )
-from mdcore.pipeline import (
+from mdcore._pipeline import (
     PAPER_SIZES,
     Method,
     MethodKey,
@@ -63,7 +64,7 @@ GRID_2D = 20
 #: baseline. The keys are the labels of the scenario buttons.
 METHODS = {"1": Method.S1, "2": Method.S2, "3": Method.S3, "koh": Method.KOH}
 #: KOH chain settings: the app's short chain and the paper's (SPEC §7); the app runs no
-#: longer chain (the library takes up to mdcore.mcmc.MAX_CHAIN = 10⁸ steps).
+#: longer chain (the library takes up to mdcore._mcmc.MAX_CHAIN = 10⁸ steps).
 KOH_CHAINS = {"fast": dict(koh.FAST), "paper": {"n_iter": koh.N_ITER, "burn_in": koh.BURN_IN}}
 
 # The app's own limits, tighter than the library's (which only refuse what cannot fit in
@@ -156,7 +157,7 @@ class ProblemKey(NamedTuple):
 
 
 class ResultKey(NamedTuple):
-    """What a cached :class:`~mdcore.pipeline.MethodResult` depends on."""
+    """What a cached :class:`~mdcore.MethodResult` depends on."""
 
     problem: ProblemKey
     n_waves: int
@@ -472,7 +473,7 @@ class ExplorerState(param.Parameterized):
 
         ``stop(wave)`` says when to end after ``wave`` (converged waves always end).
         """
-        total = max(problem.max_waves - len(waves), 1)
+        total = max(problem.options.max_waves - len(waves), 1)
         first = len(waves)
         report(0.0, f"wave {first + 1}")
         while True:
@@ -543,7 +544,8 @@ class ExplorerState(param.Parameterized):
         t1 = np.linspace(b[0, 0], b[0, 1], MAP_RESOLUTION)
         t2 = np.linspace(b[1, 0], b[1, 1], MAP_RESOLUTION)
         T1, T2 = np.meshgrid(t1, t2, indexing="xy")
-        I = problem.implausibility(np.column_stack([T1.ravel(), T2.ravel()]), wave.emulator)
+        grid = np.column_stack([T1.ravel(), T2.ravel()])
+        I = problem.combined_implausibility(grid, wave.emulator)
         return t1, t2, I.reshape(T1.shape)
 
     @property
@@ -735,7 +737,7 @@ class ExplorerState(param.Parameterized):
     def upload_measurements(self, data: bytes, filename: str) -> bool:
         """Use uploaded measurements with the current case's simulator (a new case).
 
-        The file must have the layout of :func:`mdcore.case_file.measurements_template`
+        The file must have the layout of :func:`mdcore.measurements_template`
         (the "Template CSV" download). It is only parsed: nothing in it is run. Each
         problem found becomes one notification, and the session keeps its case.
 
@@ -774,10 +776,10 @@ class ExplorerState(param.Parameterized):
             self.case_name = case.name
 
     def case_run(self):
-        """The current history match and shown results as a :class:`~mdcore.reproduce.CaseRun`
+        """The current history match and shown results as a :class:`~mdcore.CaseRun`
         (what the CLI's ``--json``, ``--csv`` and ``--out`` write), or None before any
         result."""
-        from mdcore.reproduce import CaseRun
+        from mdcore._reproduce import CaseRun
         if not self.results or self.history_match is None:
             return None
         results = tuple(self.results[m] for m in sorted(self.results, key=method_order))

@@ -17,11 +17,11 @@ import pandas as pd
 import panel as pn
 import param
 
-from mdcore.case_file import MAX_TRAINING_ROWS, TEST_COLUMN, measurements_template
-from mdcore.cases import MAX_ROWS
-from mdcore.export import nroy_csv, predictions_csv
-from mdcore.pipeline import Method, MethodResult
-from mdcore.study import PAPER
+from mdcore._case_file import MAX_TRAINING_ROWS, TEST_COLUMN, measurements_template
+from mdcore._cases import MAX_ROWS
+from mdcore._export import nroy_csv, predictions_csv
+from mdcore._pipeline import Method, MethodResult
+from mdcore._study import PAPER
 
 from . import plots
 from .calibration_panel import CalibrationPanel

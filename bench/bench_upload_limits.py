@@ -10,7 +10,7 @@ emulator and the discrepancy GPs see as many distinct inputs as there are rows),
 it to an :class:`~mdcore_app.state.ExplorerState` and presses "Run discrepancy" at the
 app's defaults: waves to convergence, then scenarios 1–3 (``Settings.interactive()``).
 Its peak resident set size is the child's ``ru_maxrss`` (the whole process). The defaults
-are the limits (``mdcore.cases.MAX_ROWS``, ``mdcore.case_file.MAX_TRAINING_ROWS``).
+are the limits (``mdcore._cases.MAX_ROWS``, ``mdcore._case_file.MAX_TRAINING_ROWS``).
 """
 
 from __future__ import annotations
@@ -29,8 +29,8 @@ def measurements(base: str, rows: int, train: int) -> str:
     the true δ plus noise, at distinct uniform inputs over the case's span."""
     import numpy as np
 
-    from mdcore import cases
-    from mdcore.case_file import TEST_COLUMN
+    from mdcore import _cases as cases
+    from mdcore._case_file import TEST_COLUMN
     c = cases.load(base, seed=0)
     rng = np.random.default_rng(1)
     lo = np.minimum(c.X_train.min(0), c.X_test.min(0))
@@ -71,8 +71,8 @@ def child(base: str, rows: int, train: int) -> None:
 
 
 def main() -> None:
-    from mdcore.case_file import MAX_TRAINING_ROWS
-    from mdcore.cases import MAX_ROWS
+    from mdcore._case_file import MAX_TRAINING_ROWS
+    from mdcore._cases import MAX_ROWS
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cases", nargs="+", default=["beam-1d", "beam-2d", "shear-5"])
     parser.add_argument("--rows", type=int, default=MAX_ROWS)

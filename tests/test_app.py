@@ -17,7 +17,7 @@ from event_loop import drain  # noqa: E402
 
 import mdcore_app.state as state_module  # noqa: E402
 import mdcore_app.views as views_module  # noqa: E402
-from mdcore.pipeline import Method  # noqa: E402
+from mdcore._pipeline import Method  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.views import (  # noqa: E402
     NOT_APPLICABLE,
@@ -315,7 +315,7 @@ def test_a_job_and_the_views_share_one_history_match():
 
 def test_koh_is_a_fourth_column(monkeypatch):
     """KOH runs beside scenarios 1–3: its bands, its metrics row and its chain summary."""
-    from mdcore import koh
+    from mdcore import _koh as koh
     s = small_state()
     v = ExplorerView(state=s)
     s.run_to_convergence()

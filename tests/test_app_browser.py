@@ -319,7 +319,7 @@ def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_hm, n_
     page.goto(server)
     page.wait_for_selector(".data-plot canvas", timeout=60_000)
     if case != "beam-1d":
-        from mdcore import cases
+        from mdcore import _cases as cases
         title = cases.load(case).title[-10:]          # "paper §4.2)": unique per case
         page.locator("select").first.select_option(case)
         tab(page, "History matching")      # tabs are drawn when shown (dynamic)

@@ -106,9 +106,9 @@ def large_upload(tmp_path: Path) -> Path:
     (the emulator's and the GPs' work grows with the distinct inputs)."""
     import numpy as np
 
-    from mdcore import cases
-    from mdcore.case_file import MAX_TRAINING_ROWS
-    from mdcore.cases import MAX_ROWS
+    from mdcore import _cases as cases
+    from mdcore._case_file import MAX_TRAINING_ROWS
+    from mdcore._cases import MAX_ROWS
     c = cases.load("beam-1d", seed=0)
     rng = np.random.default_rng(1)
     x = np.sort(0.1 + 0.4 * rng.random(MAX_ROWS))[:, None]

@@ -13,9 +13,9 @@ import holoviews as hv  # noqa: E402
 import panel as pn  # noqa: E402
 from bokeh.document import Document  # noqa: E402
 
-from mdcore import cases  # noqa: E402
-from mdcore.case_file import measurements_template, with_measurements  # noqa: E402
-from mdcore.pipeline import Method  # noqa: E402
+from mdcore import _cases as cases  # noqa: E402
+from mdcore._case_file import measurements_template, with_measurements  # noqa: E402
+from mdcore._pipeline import Method  # noqa: E402
 from mdcore_app import session  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.views import ExplorerView  # noqa: E402

@@ -127,8 +127,8 @@ def session_file(tmp_path: Path, name: str, **edits) -> Path:
 
 
 def beam_csv() -> str:
-    from mdcore import cases
-    from mdcore.case_file import measurements_template
+    from mdcore import _cases as cases
+    from mdcore._case_file import measurements_template
     return measurements_template(cases.load("beam-1d"))
 
 
@@ -307,7 +307,7 @@ def test_uploads_through_the_page_chunked_again_and_over_the_limits(browser, ser
     twice in the same page recomputes the same metrics; files over the row limit and over
     the byte cap are refused in red with a notification, and the session keeps its case.
     Nothing fails on the server (its log has no traceback)."""
-    from mdcore.cases import MAX_ROWS
+    from mdcore._cases import MAX_ROWS
     from mdcore_app.session import MAX_UPLOAD_BYTES
     from mdcore_app.upload import CHUNK_BYTES
     url, server_log = server

@@ -13,12 +13,13 @@ import warnings
 import numpy as np
 import pytest
 
-from mdcore import Cancelled, cases
-from mdcore.emulator import fit_emulator
-from mdcore.history_matching import HistoryMatchResult, case_problem, next_wave
-from mdcore.hyperfit import FitOptions, fit_hyperparameters
-from mdcore.koh import KOHOptions, infer_koh
-from mdcore.pipeline import Method, Settings, koh_phi_prior, run_method
+from mdcore import Cancelled
+from mdcore import _cases as cases
+from mdcore._emulator import fit_emulator
+from mdcore._history_matching import HistoryMatchResult, case_problem, next_wave
+from mdcore._hyperfit import FitOptions, fit_hyperparameters
+from mdcore._koh import KOHOptions, infer_koh
+from mdcore._pipeline import Method, Settings, koh_phi_prior, run_method
 
 
 class Stopper:
@@ -43,7 +44,7 @@ def shear5():
 
 
 def test_a_wave_reports_through_its_fit_walk_and_scoring_and_stops(shear5, monkeypatch):
-    import mdcore.history_matching as hm_module
+    import mdcore._history_matching as hm_module
     _, problem, first = shear5
     monkeypatch.setattr(hm_module, "CHUNK_VALUES", 1000 * problem.z.size)  # 5 chunks
     seen = Stopper()

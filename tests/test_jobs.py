@@ -14,7 +14,7 @@ import time
 import pytest
 from event_loop import drain
 
-from mdcore.exceptions import Cancelled
+from mdcore._exceptions import Cancelled
 from mdcore_app.jobs import JobRunner, error_message, seconds_since_work
 
 TIMEOUT = 30.0
@@ -294,7 +294,7 @@ def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monk
     """Scenario 1 is applied before KOH starts; KOH then fails: the results go back to what
     they were before the run (not scenario 1 alone), with one notification."""
     import mdcore_app.state as state_module
-    from mdcore.pipeline import Method
+    from mdcore._pipeline import Method
     s = _state()
     s.run_to_convergence()
     s.scenarios = [Method.S2]
@@ -370,7 +370,7 @@ def test_state_value_error_restores_and_notifies_once():
 def test_state_cancel_stops_a_running_discrepancy_run():
     """Background mode: cancel a slow scenario-3 run once it reports progress; it ends with
     no error and no result, and the session is idle again."""
-    from mdcore.pipeline import Method
+    from mdcore._pipeline import Method
     inbox: queue.Queue = queue.Queue()
     s = _state(background=True, schedule=inbox.put)
     s.run_to_convergence()

@@ -7,8 +7,8 @@ import warnings
 import numpy as np
 import pytest
 
-from mdcore.exceptions import ConvergenceWarning
-from mdcore.mcmc import RELIABLE_TAUS, adaptive_metropolis, integrated_autocorr_time
+from mdcore._exceptions import ConvergenceWarning
+from mdcore._mcmc import RELIABLE_TAUS, adaptive_metropolis, integrated_autocorr_time
 
 
 def target(x):

@@ -7,10 +7,11 @@ import warnings
 import numpy as np
 import pytest
 
-from mdcore import Cancelled, cases
-from mdcore.history_matching import history_match_case
-from mdcore.metrics import coverage, lpl, mmd, nmse
-from mdcore.pipeline import (
+from mdcore import Cancelled
+from mdcore import _cases as cases
+from mdcore._history_matching import history_match_case
+from mdcore._metrics import coverage, lpl, mmd, nmse
+from mdcore._pipeline import (
     INTERACTIVE_FIT_ITERATIONS,
     ChainDiagnostics,
     Method,

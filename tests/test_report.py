@@ -10,9 +10,9 @@ pytest.importorskip("bokeh")
 from bokeh.models import Div, GlyphRenderer, Plot  # noqa: E402
 from browser import CHROMIUM, FLAGS, files_only, require_browser  # noqa: E402
 
-from mdcore import cases  # noqa: E402
-from mdcore.pipeline import Settings  # noqa: E402
-from mdcore.reproduce import run_case  # noqa: E402
+from mdcore import _cases as cases  # noqa: E402
+from mdcore._pipeline import Settings  # noqa: E402
+from mdcore._reproduce import run_case  # noqa: E402
 from mdcore_app.report import report_html, report_layout, write_report  # noqa: E402
 
 

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..validation import as_float_array
+from .._validation import as_float_array
 
 __all__ = ["ShearBuilding", "natural_frequencies"]
 

@@ -4,14 +4,14 @@ SPEC §1: history matching (A) gives θ samples and θ_MAP; a *method* then lear
 discrepancy (B) and predicts at the case's test inputs, and the prediction is scored
 (SPEC §8). The methods are the decoupled scenarios 1–3 (SPEC §6) and the Kennedy–O'Hagan
 baseline (SPEC §7, "KOH"). :func:`run_method` is the one place that wires a method to a
-case; :func:`mdcore.reproduce.reproduce` and the app both call it.
+case; :func:`mdcore.reproduce` and the app both call it.
 
 Examples
 --------
->>> from mdcore import cases
->>> from mdcore.history_matching import history_match_case
->>> from mdcore.pipeline import Method, Settings, run_method
->>> case = cases.load("beam-1d", seed=0)
+>>> import mdcore
+>>> from mdcore import history_match_case
+>>> from mdcore import Method, Settings, run_method
+>>> case = mdcore.load_case("beam-1d", seed=0)
 >>> hm = history_match_case(case, n_candidates=20_000)
 >>> result = run_method(case, hm, Method.S2, Settings(n_s=50), seed=0)
 >>> result.method.label, result.importance is None, len(result.metrics.nmse_z)
@@ -31,9 +31,9 @@ from typing import NamedTuple
 import numpy as np
 from scipy.special import logsumexp
 
-from . import compiled
-from .cases import Case
-from .discrepancy import (
+from . import _compiled as compiled
+from ._cases import Case
+from ._discrepancy import (
     LOW_ESS,
     MAX_N_PHI,
     MAX_N_S,
@@ -46,14 +46,14 @@ from .discrepancy import (
     check_executor,
     infer_discrepancy,
 )
-from .exceptions import Cancelled
-from .history_matching import HistoryMatchResult
-from .hyperfit import QPSO_ITERATIONS, FitOptions
-from .importance import K_HAT_THRESHOLD
-from .koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
-from .metrics import coverage, lpl, mmd, nmse
-from .priors import GaussianPrior
-from .validation import as_float_array, as_int, as_seed_int, choose
+from ._exceptions import Cancelled
+from ._history_matching import HistoryMatchResult
+from ._hyperfit import QPSO_ITERATIONS, FitOptions
+from ._importance import K_HAT_THRESHOLD
+from ._koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
+from ._metrics import coverage, lpl, mmd, nmse
+from ._priors import GaussianPrior
+from ._validation import as_float_array, as_int, as_seed_int, choose
 
 __all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics",
            "ChainDiagnostics", "MethodResult", "PAPER_SIZES", "MAX_N_S", "MAX_N_PHI",
@@ -64,7 +64,7 @@ __all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics"
 PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
 
 #: Longest KOH chain :class:`Settings` accepts (the sizes of scenarios 2–3 are limited by
-#: :data:`mdcore.discrepancy.MAX_N_S`, ``MAX_N_PHI`` and ``MAX_PAIRS``).
+#: :data:`mdcore._discrepancy.MAX_N_S`, ``MAX_N_PHI`` and ``MAX_PAIRS``).
 MAX_N_ITER = MAX_CHAIN
 #: Most swarm steps of the φ̂ fit (10× the default; more only costs time).
 MAX_FIT_ITERATIONS = 10 * QPSO_ITERATIONS
@@ -145,14 +145,14 @@ class Settings:
         Scenario 3 skips components whose weight is below ``prune × max`` when predicting
         (the skipped mass is reported in :class:`ImportanceDiagnostics`).
     proposal : {"prior", "adaptive"}, default="prior"
-        Scenario 3's φ proposal (:func:`mdcore.discrepancy.infer_discrepancy`).
+        Scenario 3's φ proposal (:func:`mdcore.infer_discrepancy`).
     fit_iterations : int, default=120
         Swarm steps of the QPSO behind φ̂ (scenario 1's fit, Eq. 8, also scenario 2's when
         it is not given φ̂), before its L-BFGS-B polish
-        (:func:`mdcore.hyperfit.fit_hyperparameters`).
+        (:func:`mdcore._hyperfit.fit_hyperparameters`).
     backend : {"auto", "numpy", "numba"}, default="auto"
         Kernels of scenario 3 and of the KOH chain
-        (:func:`mdcore.compiled.resolve_backend`): ``"auto"`` is the compiled path when
+        (:func:`mdcore._compiled.resolve_backend`): ``"auto"`` is the compiled path when
         numba is installed. The backends agree to ~1e-12, so
         :meth:`key` leaves the backend out.
 
@@ -286,7 +286,7 @@ class ImportanceDiagnostics:
     @property
     def low(self) -> tuple:
         """Per output, whether the weights are unreliable: ESS over pairs below
-        :data:`mdcore.discrepancy.LOW_ESS` or k̂ above 0.7."""
+        :data:`mdcore._discrepancy.LOW_ESS` or k̂ above 0.7."""
         return tuple(e < LOW_ESS or k > K_HAT_THRESHOLD for e, k in zip(self.ess, self.k_hat))
 
 
@@ -535,7 +535,7 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     Parameters
     ----------
     case : Case
-        Data, simulator and priors (:func:`mdcore.cases.load`).
+        Data, simulator and priors (:func:`mdcore._cases.load`).
     hm : HistoryMatchResult
         A history match of ``case``; the decoupled scenarios draw θ from its posterior and
         use its θ_MAP, KOH uses its final emulator.
@@ -556,7 +556,7 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
         Checked between chunks of work; when set, the run stops with :class:`Cancelled`.
     executor : concurrent.futures.Executor, optional
         Runs the chunks of (θ, φ) pairs of scenarios 2–3 (the scenario-3 weights and the
-        mixture prediction; see "Chunks and executors" in :mod:`mdcore.discrepancy`), for
+        mixture prediction; see "Chunks and executors" in :mod:`mdcore._discrepancy`), for
         example a Dask ``Client(...).get_executor()``. The results are identical to the
         serial run's. Scenario 1 and KOH run here. Default: in this process.
 
@@ -573,7 +573,7 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     """
     start = time.perf_counter()
     if not isinstance(case, Case):
-        raise ValueError(f"case must be an mdcore Case (mdcore.cases.load); received "
+        raise ValueError(f"case must be an mdcore Case (mdcore._cases.load); received "
                          f"{type(case).__name__}.")
     if not isinstance(hm, HistoryMatchResult):
         raise ValueError(f"hm must be a HistoryMatchResult (history_match_case); received "

@@ -7,7 +7,7 @@ The sampler is a random-walk Metropolis whose Gaussian proposal covariance is, a
 
 (Haario et al. 2001, Eq. 2.1), updated every step by Welford's recursion.
 :func:`chain_setup`, :func:`draw_blocks` and :func:`finish_chain` are shared with the
-compiled chain (:func:`mdcore.compiled.koh_chain`), so both draw the same random numbers.
+compiled chain (:func:`mdcore._compiled.koh_chain`), so both draw the same random numbers.
 
 >>> import numpy as np
 >>> chain = adaptive_metropolis(lambda x: -0.5 * float(x @ x), np.zeros(2), n_iter=5000,
@@ -26,8 +26,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .exceptions import ConvergenceWarning
-from .validation import as_float_array, as_int
+from ._exceptions import ConvergenceWarning
+from ._validation import as_float_array, as_int
 
 __all__ = ["Chain", "ChainSetup", "MAX_CHAIN", "RELIABLE_TAUS", "adaptive_metropolis",
            "chain_setup", "draw_blocks", "finish_chain", "integrated_autocorr_time"]

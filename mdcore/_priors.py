@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .validation import as_float_array, as_int
+from ._validation import as_float_array, as_int
 
 __all__ = ["GaussianPrior", "ThetaPrior"]
 

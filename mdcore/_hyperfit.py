@@ -3,7 +3,7 @@
 :func:`fit_hyperparameters` minimises the NLML (Eq. 9), or NLML − log p(φ), over the log
 hyperparameters: the paper's quantum-behaved particle swarm (QPSO, Sun et al. 2004, batched
 over the particles) polished by L-BFGS-B with the analytic gradient, or multi-start
-L-BFGS-B; a fit that does not converge says so (:class:`~mdcore.exceptions.ConvergenceWarning`).
+L-BFGS-B; a fit that does not converge says so (:class:`~mdcore.ConvergenceWarning`).
 """
 
 from __future__ import annotations
@@ -16,12 +16,12 @@ from typing import NamedTuple
 import numpy as np
 import scipy.optimize
 
-from .exceptions import ConvergenceWarning
-from .gp import check_problem, neg_log_marginal_likelihood, nlml_and_gradient
-from .linalg import JitterLog
-from .priors import GaussianPrior
-from .threads import single_threaded_blas
-from .validation import as_float_array, as_int, choose
+from ._exceptions import ConvergenceWarning
+from ._gp import check_problem, neg_log_marginal_likelihood, nlml_and_gradient
+from ._linalg import JitterLog
+from ._priors import GaussianPrior
+from ._threads import single_threaded_blas
+from ._validation import as_float_array, as_int, choose
 
 __all__ = ["FitOptions", "HyperFit", "PROJECTED_GRADIENT_TOL", "QPSO_ITERATIONS",
            "default_bounds", "fit_hyperparameters", "lbfgs_converged"]

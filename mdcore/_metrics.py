@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.stats import norm
 
-from .validation import as_float_array, as_positive_float, check_positive
+from ._validation import as_float_array, as_positive_float, check_positive
 
 __all__ = ["nmse", "lpl", "coverage", "mmd"]
 

@@ -18,4 +18,4 @@ class LowESSWarning(NumericalWarning):
 
 
 class Cancelled(Exception):
-    """The work was cancelled through its ``cancel`` event (:func:`mdcore.pipeline.run_method`)."""
+    """The work was cancelled through its ``cancel`` event (:func:`mdcore.run_method`)."""

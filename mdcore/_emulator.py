@@ -17,13 +17,13 @@ from typing import NamedTuple
 import numpy as np
 import scipy.optimize
 
-from .exceptions import ConvergenceWarning
-from .gp import LOG_2PI
-from .hyperfit import lbfgs_advice, lbfgs_converged
-from .kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
-from .linalg import chunks, for_each_chunk
-from .threads import single_threaded_blas
-from .validation import as_float_array, check_bounds
+from ._exceptions import ConvergenceWarning
+from ._gp import LOG_2PI
+from ._hyperfit import lbfgs_advice, lbfgs_converged
+from ._kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
+from ._linalg import chunks, for_each_chunk
+from ._threads import single_threaded_blas
+from ._validation import as_float_array, check_bounds
 
 __all__ = ["Emulator", "EmulatorArrays", "EmulatorAt", "EmulatorPrediction", "KronGP",
            "ThetaTerms", "fit_emulator"]
@@ -226,7 +226,8 @@ class Emulator:
         return EmulatorPrediction(mean, var)
 
     @single_threaded_blas
-    def implausibility(self, X, theta, z, V, *, rank: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def implausibility_and_var(self, X, theta, z, V, *,
+                               rank: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Combined implausibility (Eq. 16) of every θ and the emulator variance.
 
         ``I(θ)`` is the ``rank``-th largest over the targets (n, o) of ``|z[n, o] − E[y]| /

@@ -2,10 +2,10 @@
 
 Examples
 --------
->>> from mdcore import cases
->>> cases.names()
+>>> import mdcore
+>>> mdcore.case_names()
 ('beam-1d', 'beam-2d', 'shear-5')
->>> case = cases.load("beam-1d", seed=0)
+>>> case = mdcore.load_case("beam-1d", seed=0)
 >>> case.X_train.shape, case.z_train.shape, case.simulate(case.X_train, case.theta_true).shape
 ((13, 1), (13, 1), (1, 13, 1))
 """
@@ -22,10 +22,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .priors import GaussianPrior, ThetaPrior
-from .runs import SimulatorProcess, call_with_timeout
-from .simulators import natural_frequencies, tip_deflection
-from .validation import (
+from ._priors import GaussianPrior, ThetaPrior
+from ._runs import SimulatorProcess, call_with_timeout
+from ._validation import (
     MAX_MAGNITUDE,
     as_float_array,
     as_positive_float,
@@ -33,6 +32,7 @@ from .validation import (
     choose,
     short,
 )
+from .simulators import natural_frequencies, tip_deflection
 
 __all__ = ["Case", "MAX_ROWS", "Measurements", "MeasurementsError", "load", "names",
            "parse_measurements", "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
@@ -82,14 +82,14 @@ class Case:
     timeout : float or None, default=None
         Seconds one simulator run (one θ) may take; a call with n θ may take n × timeout.
         A run past it raises ``TimeoutError``: history matching counts it as a failed run
-        (:func:`~mdcore.history_matching.case_problem` then sends one θ per call) and the
+        (:func:`~mdcore.case_problem` then sends one θ per call) and the
         scenarios stop with the error. A case file's simulator runs in a process that the
-        timeout kills (:class:`mdcore.runs.SimulatorProcess`); any other simulator runs on
+        timeout kills (:class:`mdcore._runs.SimulatorProcess`); any other simulator runs on
         a thread that it abandons (a thread cannot be stopped). Set it on a loaded case
         with ``dataclasses.replace(case, timeout=30.0)``; None: no limit.
     V_m_length : ndarray of shape (n_out,), default 0
         Default correlation length ℓ_m of V_m over x per output, in ``x_units`` (0:
-        independent); only the multivariate rule uses it (:mod:`mdcore.multivariate`). The
+        independent); only the multivariate rule uses it (:mod:`mdcore._multivariate`). The
         built-in cases keep 0: on them any ℓ_m > 0 weakened the rule
         (docs/multivariate_history_matching.md).
     V_m_corr : ndarray of shape (n_out, n_out) or None, default None
@@ -333,7 +333,7 @@ def make_shear5_measurements(seed: int = 0) -> str:
     z = _shear5_real(X) + SHEAR5_NOISE_SD * rng.standard_normal((X.shape[0], 5))
     out = io.StringIO()
     out.write(f"# SYNTHETIC data, not laboratory measurements. Made by assets/make_shear5_data.py "
-              f"(mdcore.cases.make_shear5_measurements, seed={seed}): 'real' 5-storey shear "
+              f"(mdcore._cases.make_shear5_measurements, seed={seed}): 'real' 5-storey shear "
               "building E=70 GPa nu=0.33 rho=2700 kg/m3, +0.03 kg per floor, rocking spring "
               "2.3e6 N.m/rad, noise sd 0.004 Hz, 10 repeats per mass.\n")
     out.write("mass_kg,repeat," + ",".join(SHEAR5_OUTPUTS) + "\n")
@@ -367,7 +367,7 @@ MAX_PROBLEMS = 5
 #: Most data rows a measurements file may have (every reader: uploads, case files,
 #: :func:`read_measurements`); reading stops at the first row beyond. Test rows cost
 #: predictions only; the training rows, which every GP factorises, have their own, lower
-#: limit (:data:`mdcore.case_file.MAX_TRAINING_ROWS`). The built-in cases' templates have
+#: limit (:data:`mdcore._case_file.MAX_TRAINING_ROWS`). The built-in cases' templates have
 #: at most 464 rows (beam-2d: 64 training, 400 test).
 MAX_ROWS = 1_000
 
@@ -458,7 +458,7 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     if header_line is None:
         raise MeasurementsError([f"{source}: no header row found; the first non-comment line "
                                  "must name the columns."])
-    # A name that mdcore.export wrote with a leading "'" (it would start a formula) reads
+    # A name that mdcore._export wrote with a leading "'" (it would start a formula) reads
     # back as the name.
     header = [h[1:] if h[:1] == "'" and h[1:2] in ("=", "+", "-", "@") else h
               for h in (c.strip() for c in next(csv.reader([lines[header_line - 1]])))]

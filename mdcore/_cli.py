@@ -17,15 +17,17 @@ from collections import Counter
 
 import numpy as np
 
-from . import cases, compiled, threads
-from .exceptions import LowESSWarning
-from .export import write_tables
-from .history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
-from .koh import BURN_IN, N_ITER
-from .pipeline import Method, Settings, metric_text, metrics_table
-from .reproduce import CaseRun, default_methods, parse_methods, run_methods
-from .study import PAPER, study
-from .validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
+from . import _cases as cases
+from . import _compiled as compiled
+from . import _threads as threads
+from ._exceptions import LowESSWarning
+from ._export import write_tables
+from ._history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
+from ._koh import BURN_IN, N_ITER
+from ._pipeline import Method, Settings, metric_text, metrics_table
+from ._reproduce import CaseRun, default_methods, parse_methods, run_methods
+from ._study import PAPER, study
+from ._validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
 
 
 def _cmd_cases(args) -> int:
@@ -86,7 +88,7 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
     problem = case_problem(case, seed=args.seed, executor=executor,
                            **_history_options(args, case))
     waves = []
-    with _Bar("history matching", problem.max_waves, "wave") as bar:
+    with _Bar("history matching", problem.options.max_waves, "wave") as bar:
         for wave in iter_waves(problem):
             waves.append(wave)
             bar.update_to(len(waves), f"wave {wave.index}: NROY {100 * wave.nroy_fraction:.2f} %")
@@ -229,7 +231,7 @@ def _cmd_reproduce(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from .case_file import load_case_file
+    from ._case_file import load_case_file
     case = _with_timeout(load_case_file(args.case_file, seed=args.seed,
                                         default_timeout=args.timeout), args)
     return _run(case, args, args.scenarios or ("1", "2", "3"), case.name)
@@ -504,7 +506,7 @@ def _summarise(caught) -> None:
 def console_main() -> int:
     """``python -m mdcore`` and the ``mdcore`` script: :func:`main` in a process of its own,
     so BLAS is limited to one thread for the whole process first (see
-    :func:`mdcore.threads.single_threaded_blas_for_process`)."""
+    :func:`mdcore._threads.single_threaded_blas_for_process`)."""
     threads.single_threaded_blas_for_process()
     return main()
 

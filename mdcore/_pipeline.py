@@ -34,7 +34,6 @@ from scipy.special import logsumexp
 from . import _compiled as compiled
 from ._cases import Case
 from ._discrepancy import (
-    LOW_ESS,
     MAX_N_PHI,
     MAX_N_S,
     MAX_PAIRS,
@@ -46,10 +45,9 @@ from ._discrepancy import (
     check_executor,
     infer_discrepancy,
 )
-from ._exceptions import Cancelled
+from ._exceptions import K_HAT_THRESHOLD, LOW_ESS, Cancelled, chain_advice, weights_advice, where
 from ._history_matching import HistoryMatchResult
 from ._hyperfit import QPSO_ITERATIONS, FitOptions
-from ._importance import K_HAT_THRESHOLD
 from ._koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
 from ._metrics import coverage, lpl, mmd, nmse
 from ._priors import GaussianPrior
@@ -286,7 +284,7 @@ class ImportanceDiagnostics:
     @property
     def low(self) -> tuple:
         """Per output, whether the weights are unreliable: ESS over pairs below
-        :data:`mdcore._discrepancy.LOW_ESS` or k̂ above 0.7."""
+        :data:`mdcore._exceptions.LOW_ESS` or k̂ above 0.7."""
         return tuple(e < LOW_ESS or k > K_HAT_THRESHOLD for e, k in zip(self.ess, self.k_hat))
 
 
@@ -483,25 +481,16 @@ def _chain_diagnostics(model: KOHModel) -> ChainDiagnostics:
                             int(chain.burn_in), bool(chain.reliable))
 
 
-def _advice(method: Method, settings: Settings, importance, chain) -> tuple:
+def _advice(importance, chain) -> tuple:
     """The warnings the diagnostics call for, each saying what to change."""
-    out = []
-    if importance is not None:
-        switch = " or switch to the adaptive proposal" if importance.proposal == "prior" else ""
-        for o, low in enumerate(importance.low):
-            if low:
-                out.append(f"{method.label}, output {o + 1}: the importance weights are "
-                           f"unreliable: {importance.ess[o]:.1f} effective (θ, φ) pairs of "
-                           f"{importance.n_pairs}, ESS over φ {importance.ess_phi[o]:.1f} of "
-                           f"{importance.n_phi}, Pareto k̂ {importance.k_hat[o]:.2f} (reliable: "
-                           f"≤ {K_HAT_THRESHOLD}); raise N_φ (now {settings.n_phi}) or N_s "
-                           f"(now {settings.n_s}){switch}.")
+    out = [] if importance is None else [
+        weights_advice(where("scenario 3", o, len(importance.low)), importance.ess[o],
+                       importance.n_pairs // importance.n_phi, importance.n_phi,
+                       importance.k_hat[o], importance.proposal)
+        for o, low in enumerate(importance.low) if low]
     if chain is not None and not chain.reliable:
-        longest = max(chain.iat)
-        out.append(f"KOH: the chain is shorter than 50 autocorrelation times (τ up to "
-                   f"{longest:.1f} with {chain.n_iter - chain.burn_in:,} kept steps), so its "
-                   f"ESS is unreliable; raise n_iter to at least "
-                   f"{int(np.ceil(50 * longest)) + chain.burn_in:,}.")
+        out.append(chain_advice("adaptive Metropolis", max(chain.iat),
+                                chain.n_iter - chain.burn_in, chain.burn_in))
     return tuple(out)
 
 
@@ -643,5 +632,5 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     chain = _chain_diagnostics(model) if isinstance(model, KOHModel) else None
     return MethodResult(method, settings.key(method), seed, model, on_test, on_extra,
                         scores(case, on_test), importance, chain,
-                        _advice(method, settings, importance, chain),
+                        _advice(importance, chain),
                         time.perf_counter() - start)

@@ -77,8 +77,7 @@ MAX_MCMC_STEPS = 1_000
 #: Values (θ rows × observed inputs × outputs) of the emulator's mean and variance held at
 #: once while candidates are scored or weighted: θ go through in chunks of at most this
 #: many values (16 MB per array), so memory does not grow with the number of candidates
-#: times the number of observations (150,000 shear-5 candidates at 160 distinct inputs
-#: held 1.8 GB at once).
+#: times the number of observations.
 CHUNK_VALUES = 2**21
 #: Posterior draws kept per history match, by (n, seed): see ``posterior_samples``.
 POSTERIOR_MEMO = 4
@@ -185,7 +184,7 @@ class HistoryMatchOptions:
         names the first failure.
     V_m_length : float or ndarray of shape (n_out,), default=0
         Correlation length ℓ_m of the model discrepancy over x, per output, in X's units:
-        ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps today's independent V_m. Only
+        ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps V_m independent. Only
         the multivariate rule sees the correlation (the max rules use the diagonal).
     V_m_corr : ndarray of shape (n_out, n_out), optional
         Correlation matrix of the outputs' discrepancies (symmetric, unit diagonal,

@@ -36,7 +36,7 @@ def toy(rng):
 
 
 def naive_mixture(model, X_star, Ys):
-    """Mixture moments (SPEC §6) by a plain loop over components with the naive GP."""
+    """Mixture moments (docs/method.md §6) by a plain loop over components with the naive GP."""
     S, K = model.log_weights.shape[1:]
     out = np.zeros((4, X_star.shape[0], model.n_out))
     for o in range(model.n_out):

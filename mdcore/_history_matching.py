@@ -60,7 +60,7 @@ __all__ = ["RULES", "MULTIVARIATE", "RULE_NAMES", "elementwise_implausibility", 
 
 #: Combiner rules: the k-th largest implausibility over all targets.
 RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
-#: The multivariate rule: I_M² over all targets against a χ² quantile (issue 43).
+#: The multivariate rule: I_M² over all targets against a χ² quantile (Vernon et al. 2010).
 MULTIVARIATE = "multivariate"
 #: Every rule :func:`setup` accepts.
 RULE_NAMES = (*RULES, MULTIVARIATE)
@@ -273,11 +273,12 @@ class HistoryMatchProblem:
         if self.options.rule == MULTIVARIATE:     # I_M² over all targets at once
             return Score(*multivariate.multivariate_implausibility(emulator, theta, self.z,
                                                                    self.V))
-        return Score(*emulator.implausibility_and_var(self.X, theta, self.z, self.V_o + self.V_m,
-                                              rank=RULES[self.options.rule]))
+        return Score(*emulator.implausibility_and_var(self.X, theta, self.z,
+                                                      self.V_o + self.V_m,
+                                                      rank=RULES[self.options.rule]))
 
     def combined_implausibility(self, theta, emulator: Emulator,
-                       progress: Callable[[float], None] | None = None) -> np.ndarray:
+                                progress: Callable[[float], None] | None = None) -> np.ndarray:
         """Combined implausibility (Eq. 16) of ``theta`` (M, p) under ``emulator``, (M,).
 
         Scored in chunks of θ (:data:`CHUNK_VALUES`): memory stays bounded for any M.
@@ -667,7 +668,7 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = (),
     if nroy.shape[0]:
         max_var = np.max(chunk_max, axis=0)
         converged = bool(np.all(max_var < threshold_var))
-        if problem.options.rule == MULTIVARIATE:  # issue 43: V_em(θ) ≼ ratio · (V_o + V_m) at NROY
+        if problem.options.rule == MULTIVARIATE:  # V_em(θ) ≼ ratio · (V_o + V_m) at NROY
             converged = multivariate.cov_ratio(emulator, nroy, problem.V) \
                 < problem.options.convergence_ratio
     else:

@@ -32,19 +32,10 @@ SERIES_MAX_EPS = 0.01
 
 
 class EmulatorCov(NamedTuple):
-    """The emulator's joint moments at its training inputs (:func:`emulator_cov`).
-
-    Attributes
-    ----------
-    mean : ndarray of shape (M, n_out, N)
-        ``E[f(θ)]``.
-    basis : ndarray of shape (n_out, N, N)
-        ``Q_o``, the orthonormal eigenvectors of output o's x-kernel.
-    s : ndarray of shape (M, n_out, N)
-        ``V_em,o(θ) = Q_o diag(s[m, o]) Q_oᵀ``, output units squared.
-    prior : ndarray of shape (n_out, N)
-        ``σ_f² μ``: ``s`` before conditioning on the simulator runs.
-    """
+    """The emulator's joint moments at its training inputs (:func:`emulator_cov`): ``mean``
+    E[f(θ)] (M, n_out, N); ``basis`` Q_o (n_out, N, N), the orthonormal eigenvectors of
+    output o's x-kernel; ``s`` (M, n_out, N), ``V_em,o(θ) = Q_o diag(s[m, o]) Q_oᵀ`` in
+    output units squared; ``prior`` σ_f² μ (n_out, N), ``s`` before the simulator runs."""
 
     mean: np.ndarray
     basis: np.ndarray
@@ -60,7 +51,6 @@ def chi2_cutoff(n_targets: int, probability: float = 0.995) -> float:
     n_targets : int
         Degrees of freedom, N · n_out.
     probability : float, default=0.995
-        Vernon et al. (2010) use 0.995.
 
     Examples
     --------

@@ -21,6 +21,7 @@ import scipy.stats
 
 from ._cases import Case, MeasurementsError, parse_measurements, read_measurements
 from ._discrepancy import default_phi_prior
+from ._history_matching import MAX_RUNS, check_correlation, replicate_summary
 from ._priors import ThetaPrior
 from ._runs import SimulatorError, SimulatorProcess
 from ._validation import as_seed_int, short
@@ -161,7 +162,6 @@ def _split(m, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def _pooled_replicate_var(X: np.ndarray, z: np.ndarray) -> np.ndarray | None:
     """Noise variance per output pooled over replicate groups, (n_out,); None unless every
     input has replicates."""
-    from ._history_matching import replicate_summary
     _, _, var, counts = replicate_summary(X, z)
     if np.any(counts < 2):
         return None
@@ -290,12 +290,10 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
                 for row in corr)):
             raise hm._fail("V_m_corr", f"a list of {n_out} rows of {n_out} numbers (the "
                            "outputs' correlation matrix)", corr)
-        from ._history_matching import check_correlation
         try:
             corr = check_correlation(length, corr, 0.995, n_out)[1]
         except ValueError as exc:
             raise CaseFileError(f"{path}: [history_matching] {exc}") from None
-    from ._history_matching import MAX_RUNS
     n_design = hm.integer("initial_design", 2, MAX_RUNS) if hm.has("initial_design") \
         else max(10 * p, 10)
     lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng(seed))

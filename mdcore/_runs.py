@@ -20,6 +20,7 @@ Examples
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import os
 import pickle
 import queue
@@ -175,12 +176,10 @@ class SimulatorProcess:
 
     def _send(self, message) -> None:
         stdin = None if self._proc is None else self._proc.stdin
-        try:
-            if stdin is not None:
+        if stdin is not None:
+            with contextlib.suppress(OSError):    # it ended; its answer says how
                 pickle.dump(message, stdin)
                 stdin.flush()
-        except OSError:
-            pass                              # it ended; its answer says how
 
     def _start(self) -> None:
         proc = subprocess.Popen([sys.executable, "-c", _WORKER], stdin=subprocess.PIPE,

@@ -85,12 +85,9 @@ def natural_frequencies(E, nu, rho, added_mass=0.0, *, added_mass_floor: int = 4
     k = g.columns_per_storey * 12.0 * E1 * I / (L**3 * (1.0 + Phi))      # (...,)
 
     # Tridiagonal storey stiffness: storey j connects floor j-1 (ground for j = 1) to floor j.
-    K = np.zeros(shape + (n, n))
-    idx = np.arange(n)
-    K[..., idx, idx] = 2.0 * k[..., None]
-    K[..., n - 1, n - 1] = k
-    K[..., idx[:-1], idx[1:]] = -k[..., None]
-    K[..., idx[1:], idx[:-1]] = -k[..., None]
+    T = 2.0 * np.eye(n) - np.eye(n, k=1) - np.eye(n, k=-1)
+    T[-1, -1] = 1.0
+    K = k[..., None, None] * T
 
     plate_mass = rho * np.prod(g.plate)
     storey_columns = rho * g.columns_per_storey * b * h * L

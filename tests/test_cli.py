@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mdcore.cli import main
+from mdcore._cli import main
 
 
 def test_reproduce_writes_the_documented_json(tmp_path, capsys):
@@ -129,8 +129,8 @@ def test_multivariate_rule_options(capsys):
 def test_warnings_are_summarised_once_in_words(capsys, monkeypatch):
     import warnings as w
 
-    from mdcore import cli
-    from mdcore.exceptions import ConvergenceWarning
+    from mdcore import _cli as cli
+    from mdcore._exceptions import ConvergenceWarning
 
     def noisy(args):
         for _ in range(3):
@@ -149,7 +149,7 @@ def test_warnings_are_summarised_once_in_words(capsys, monkeypatch):
 def test_progress_bars_only_on_a_terminal(capsys, monkeypatch):
     import io
 
-    from mdcore import cli
+    from mdcore import _cli as cli
 
     class Terminal(io.StringIO):
         def isatty(self):

@@ -7,10 +7,11 @@ import warnings
 import numpy as np
 import pytest
 
-from mdcore import Cancelled, cases
-from mdcore.history_matching import history_match_case
-from mdcore.metrics import coverage, lpl, mmd, nmse
-from mdcore.pipeline import (
+from mdcore import Cancelled, LowESSWarning
+from mdcore import _cases as cases
+from mdcore._history_matching import history_match_case
+from mdcore._metrics import coverage, lpl, mmd, nmse
+from mdcore._pipeline import (
     INTERACTIVE_FIT_ITERATIONS,
     ChainDiagnostics,
     Method,
@@ -18,6 +19,8 @@ from mdcore.pipeline import (
     Settings,
     _union,
     importance_diagnostics,
+    metric_text,
+    metrics_table,
     run_method,
     scores,
 )
@@ -186,9 +189,14 @@ def test_koh_chain_diagnostics_and_advice(beam):
 
 def test_low_ess_gives_advice_in_words(beam):
     case, hm = beam
-    r = quiet(run_method, case, hm, 3, Settings(n_s=2, n_phi=2), seed=0)
+    with pytest.warns(LowESSWarning) as caught:
+        r = run_method(case, hm, 3, Settings(n_s=2, n_phi=2), seed=0)
     assert r.importance.ess[0] < 30
     assert len(r.warnings) == 1 and "raise N_φ (now 2) or N_s (now 2)" in r.warnings[0]
+    # Worded once: the core's warning and the result's advice are the same text, and a
+    # single-output case names no output.
+    assert r.warnings[0] in {str(w.message) for w in caught}
+    assert "output" not in r.warnings[0]
 
 
 def test_progress_and_cancel(beam):
@@ -248,3 +256,30 @@ def test_bad_input(beam):
         kwargs = {"seed": 0, **kwargs}
         with pytest.raises(ValueError, match=match):
             run_method(*args, **kwargs)
+
+
+def test_metrics_table_is_the_results_numbers_per_output(beam):
+    """One row per (method, output) carrying each result's own numbers; None (shown "—")
+    where a number does not apply: scenario 3's diagnostics elsewhere, KOH's chain's."""
+    case, hm = beam
+    results = [quiet(run_method, case, hm, m, SMALL, seed=0) for m in (3, "koh")]
+    rows = metrics_table(results, case.output_names)
+    assert [(r["method"], r["output"]) for r in rows] == [(Method.S3, "tip deflection"),
+                                                         (Method.KOH, "tip deflection")]
+    s3, koh = rows
+    m = results[0].metrics
+    assert s3["NMSE z %"] == m.nmse_z[0] and s3["cover δ ±2σ"] == m.coverage_delta_2sd[0]
+    assert s3["ESS φ"] == results[0].importance.ess_phi[0] and s3["acceptance"] is None
+    assert koh["ESS pairs"] is None and koh["IAT (max)"] == max(results[1].chain.iat)
+    assert s3["unreliable"] == results[0].importance.low[0] and not koh["unreliable"]
+    assert metric_text("k̂", None) == "—" and metric_text("LPL", 12.345) == "12.3"
+
+
+def test_one_v_m_scales_by_the_squared_output_means():
+    case = cases.load("shear-5")
+    zbar = case.z_train.mean(axis=0)
+    v = case.scaled_v_m(0.2)
+    np.testing.assert_allclose(v, [0.2 * (zbar[i] / zbar[0]) ** 2 for i in range(5)],
+                               rtol=1e-14)
+    # shear-5's own default is this rule at 3 % of each mean
+    np.testing.assert_allclose(case.scaled_v_m(case.V_m[0]), case.V_m, rtol=1e-12)

@@ -8,15 +8,16 @@ import warnings
 import numpy as np
 import pytest
 
-from mdcore import cases, gp
-from mdcore.discrepancy import (
+from mdcore import _cases as cases
+from mdcore import _gp as gp
+from mdcore._discrepancy import (
     PREDICT_DRAWS,
     PREDICT_WORK,
     DiscrepancyOptions,
     infer_discrepancy,
 )
-from mdcore.history_matching import history_match_case
-from mdcore.pipeline import scores
+from mdcore._history_matching import history_match_case
+from mdcore._pipeline import scores
 
 CASES = ("beam-1d", "beam-2d", "shear-5")
 N_PHI = {"beam-1d": 50, "beam-2d": 50, "shear-5": 500}

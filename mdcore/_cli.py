@@ -17,15 +17,16 @@ from collections import Counter
 
 import numpy as np
 
-from . import cases, compiled, threads
-from .exceptions import LowESSWarning
-from .export import write_tables
-from .history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
-from .koh import BURN_IN, N_ITER
-from .pipeline import Method, Settings
-from .reproduce import CaseRun, default_methods, parse_methods, run_methods
-from .study import PAPER, study
-from .validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
+from . import _cases as cases
+from . import _compiled as compiled
+from . import _threads as threads
+from ._export import write_tables
+from ._history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
+from ._koh import BURN_IN, N_ITER
+from ._pipeline import Method, Settings, metric_text, metrics_table
+from ._reproduce import CaseRun, default_methods, parse_methods, run_methods
+from ._study import PAPER, study
+from ._validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
 
 
 def _cmd_cases(args) -> int:
@@ -44,9 +45,8 @@ def _v_m(case, values):
     if values is None:
         return None
     v = np.asarray(values, dtype=np.float64)
-    if v.size == 1 and case.n_out > 1:
-        zbar = np.abs(case.z_train.mean(axis=0))
-        return v[0] * (zbar / zbar[0]) ** 2
+    if v.size == 1:
+        return case.scaled_v_m(v[0])
     if v.size != case.n_out:
         raise ValueError(f"--v-m takes 1 value or one per output ({case.n_out} for "
                          f"{case.name}: {', '.join(case.output_names)}); received {v.size}.")
@@ -87,7 +87,7 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
     problem = case_problem(case, seed=args.seed, executor=executor,
                            **_history_options(args, case))
     waves = []
-    with _Bar("history matching", problem.max_waves, "wave") as bar:
+    with _Bar("history matching", problem.options.max_waves, "wave") as bar:
         for wave in iter_waves(problem):
             waves.append(wave)
             bar.update_to(len(waves), f"wave {wave.index}: NROY {100 * wave.nroy_fraction:.2f} %")
@@ -230,7 +230,7 @@ def _cmd_reproduce(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from .case_file import load_case_file
+    from ._case_file import load_case_file
     case = _with_timeout(load_case_file(args.case_file, seed=args.seed,
                                         default_timeout=args.timeout), args)
     return _run(case, args, args.scenarios or ("1", "2", "3"), case.name)
@@ -245,24 +245,12 @@ def _print_run(run, args) -> int:
           f"{100 * hm.nroy_fraction[-1]:.2f} %, θ_MAP: {theta}, truth in NROY: "
           f"{run.truth_in_nroy}\nN_s = {settings.n_s}, N_φ = {settings.n_phi}, seed "
           f"{run.seed}\n")
-    header = ["method", "output", "NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cov z 3σ",
-              "cov δ 3σ", "ESS pairs", "ESS φ", "k̂", "seconds"]
-    rows = []
-    for r in run.results:
-        m, imp = r.metrics, r.importance
-        for o, name in enumerate(case.output_names):
-            def pick(values, spec, o=o):
-                return "—" if values is None else spec.format(values[o])
-            low = imp is not None and imp.low[o]
-            rows.append([r.method.value + ("!" if low else ""), name,
-                         pick(m.nmse_z, "{:.3f}"), pick(m.nmse_delta, "{:.3f}"),
-                         pick(m.rmse_delta, "{:.3g}"), pick(m.mmd, "{:.4f}"),
-                         pick(m.lpl, "{:.1f}"), pick(m.coverage_z_3sd, "{:.2f}"),
-                         pick(m.coverage_delta_3sd, "{:.2f}"),
-                         pick(None if imp is None else imp.ess, "{:,.1f}"),
-                         pick(None if imp is None else imp.ess_phi, "{:.1f}"),
-                         pick(None if imp is None else imp.k_hat, "{:.2f}"),
-                         f"{r.seconds:.2f}"])
+    shown = ("NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cover z ±3σ", "cover δ ±3σ",
+             "ESS pairs", "ESS φ", "k̂", "seconds")
+    header = ["method", "output", *shown]
+    rows = [[row["method"].value + ("!" if row["unreliable"] else ""), row["output"],
+             *(metric_text(c, row[c]) for c in shown)]
+            for row in metrics_table(run.results, case.output_names)]
     print(_table(header, rows))
     for r in run.results:
         if r.chain is not None:
@@ -274,7 +262,7 @@ def _print_run(run, args) -> int:
                   f"{c.acceptance_rate:.3f}, IAT {', '.join(f'{t:.1f}' for t in c.iat)}, "
                   f"ESS {', '.join(f'{e:,.0f}' for e in c.ess)}\nKOH posterior θ: {theta}")
     notes = [w for r in run.results for w in r.warnings]
-    _SHOWN.update(notes)                    # not repeated in the warnings summary
+    args.shown.update(notes)                # not repeated in the warnings summary
     if notes:
         print("\n! unreliable importance weights or chain:\n"
               + "\n".join(f"  - {w}" for w in notes))
@@ -286,9 +274,19 @@ def _print_run(run, args) -> int:
         for path in write_tables(run, args.csv):
             print(f"wrote {path}")
     if args.out:
-        from mdcore_app.report import write_report  # plotting lives in the app package
-        print(f"wrote {write_report(run, args.out)} (self-contained; opens offline)")
+        print(f"wrote {_report_writer()(run, args.out)} (self-contained; opens offline)")
     return 0
+
+
+def _report_writer():
+    """The HTML report's writer, ``write(run, path) -> path``: plotting is not the core's,
+    so a package registers it under the ``mdcore.report`` entry point (the app does)."""
+    from importlib.metadata import entry_points
+    found = entry_points(group="mdcore.report", name="html")
+    if not found:
+        raise ValueError("--out needs the HTML report of the app package, which is not "
+                         "installed: pip install mdcore (with its app), or leave out --out.")
+    return next(iter(found)).load()
 
 
 def _cmd_study(args) -> int:
@@ -456,9 +454,6 @@ def _add_history_options(p) -> None:
                    help="start a local Dask cluster of N processes for the simulator runs")
 
 
-#: The run's own advice, printed with its table; the warnings summary leaves it out.
-_SHOWN: set[str] = set()
-
 EXIT_CODES = ("exit codes: 0 done; 2 bad input (the message names the option or file and "
               "what to fix, as for a history match that rules out every θ: raise V_m or T); "
               "1 a failure (a file that cannot be written, a simulator or cluster that "
@@ -490,11 +485,11 @@ WARNING_WORDS = {"LowESSWarning": "few effective importance samples",
                  "RuntimeWarning": "numerical"}
 
 
-def _summarise(caught) -> None:
-    """Print each distinct warning once, with how often it came, in words. Low-ESS
-    warnings are left out once the run's own advice (printed with the table) said it."""
+def _summarise(caught, shown: set[str]) -> None:
+    """Print each distinct warning once, with how often it came, in words, leaving out
+    the advice already printed with a run's table (``shown``)."""
     counts = Counter((w.category.__name__, str(w.message)) for w in caught
-                     if not (_SHOWN and issubclass(w.category, LowESSWarning)))
+                     if str(w.message) not in shown)
     if not counts:
         return
     print(f"\n{sum(counts.values())} warning(s) while running, each listed once:",
@@ -507,7 +502,7 @@ def _summarise(caught) -> None:
 def console_main() -> int:
     """``python -m mdcore`` and the ``mdcore`` script: :func:`main` in a process of its own,
     so BLAS is limited to one thread for the whole process first (see
-    :func:`mdcore.threads.single_threaded_blas_for_process`)."""
+    :func:`mdcore._threads.single_threaded_blas_for_process`)."""
     threads.single_threaded_blas_for_process()
     return main()
 
@@ -560,7 +555,7 @@ def main(argv=None) -> int:
     if args.command in ("reproduce", "run", "study"):
         # Load (or compile) the numba kernels while history matching runs.
         compiled.warm_up_in_background()
-    _SHOWN.clear()
+    args.shown = set()              # advice printed with a run's table
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -573,7 +568,7 @@ def main(argv=None) -> int:
         except (OSError, RuntimeError) as exc:     # a file that cannot be written, a failure
             print(f"error: {type(exc).__name__}: {exc}", file=sys.stderr)
             code = 1
-    _summarise(caught)
+    _summarise(caught, args.shown)
     return code
 
 

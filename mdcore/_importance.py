@@ -24,13 +24,12 @@ import scipy.optimize
 from scipy.linalg import solve_triangular
 from scipy.special import gammaln, logsumexp
 
-from .validation import as_float_array, as_int, as_positive_float
+from ._exceptions import K_HAT_THRESHOLD
+from ._validation import as_float_array, as_int, as_positive_float
 
 __all__ = ["K_HAT_THRESHOLD", "PSIS", "psis", "generalized_pareto_fit", "resample",
            "StudentT", "AdaptiveSample", "stage_sizes", "adaptive_importance_sampling"]
 
-#: Above this Pareto shape the importance-sampling estimate is unreliable (Vehtari et al.).
-K_HAT_THRESHOLD = 0.7
 
 
 class PSIS(NamedTuple):
@@ -256,7 +255,7 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     ``log_likelihood`` maps ``x`` (S, m, P), row j for group j, to (S, m) (``-inf``
     allowed); ``log_likelihood_grad(x, j)`` its value and gradient at one ``x`` (P,) of
     group j; ``prior`` has ``sample(n, seed)``, ``logpdf``, ``grad`` and ``var`` (e.g.
-    :class:`mdcore.priors.GaussianPrior`); ``progress`` gets the fraction done after each
+    :class:`mdcore.GaussianPrior`); ``progress`` gets the fraction done after each
     stage and may raise to stop.
     """
     S = as_int(n_groups, "n_groups", 1)

@@ -57,8 +57,7 @@ from ._validation import as_float_array, as_int, as_outputs, choose
 
 __all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions",
            "DiscrepancyPrediction", "default_phi_prior", "LowESSWarning", "SCENARIOS",
-           "PROPOSALS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "PREDICT_DRAWS", "PREDICT_WORK",
-           "check_executor"]
+           "PROPOSALS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
 
 SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
@@ -382,8 +381,7 @@ class DiscrepancyModel:
 
     def _kept(self, prune: float | None = None, m: int = PREDICT_WORK // PREDICT_DRAWS):
         """Per output: flat indices, weights (sum 1) and skipped mass of the components
-        :meth:`predict` evaluates at ``m`` inputs; ``prune`` None: draws by weight if
-        :attr:`draw_seed`, else :attr:`prune`."""
+        :meth:`predict` evaluates at ``m`` inputs (``prune`` None: as :meth:`predict`)."""
         n = min(max(PREDICT_DRAWS, PREDICT_WORK // m), 10 * PREDICT_DRAWS)
         rng, p = np.random.default_rng(self.draw_seed), self.prune if prune is None else prune
         out = []

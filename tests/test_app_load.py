@@ -411,9 +411,12 @@ def test_five_sessions_at_once_each_see_their_own_results(browser, server):
 
 
 def _start_paper_sizes_job(page):
-    """Tick "Paper sizes" (N_s = 1000, N_φ = 500), converge, and run the discrepancy: about
-    10 s of work on beam-1d (scenario 3 most of it). Returns the Cancel button once that
-    run shows it."""
+    """Switch to beam-2d, tick "Paper sizes" (N_s = 1000, N_φ = 500), converge, and run the
+    discrepancy: several seconds of work (beam-1d's, with scenario 3's prediction from
+    pairs drawn by weight, ends before a Cancel could be measured). Returns the Cancel
+    button once that run shows it."""
+    page.locator("select").first.select_option("beam-2d")
+    page.wait_for_selector(".data-plot canvas", timeout=60_000)
     choose(page, PRESET, among=["teaching", "paper"])
     page.locator(".bk-Checkbox", has_text="Paper sizes").locator("input").check()
     tab(page, "History matching")
@@ -447,7 +450,7 @@ def _cancel_and_measure(page, cancel):
 
 
 def test_cancel_frees_the_cpu_within_one_second(browser, server):
-    """A paper-sized discrepancy run (beam-1d, N_s = 1000, N_φ = 500) is cancelled a couple
+    """A paper-sized discrepancy run (beam-2d, N_s = 1000, N_φ = 500) is cancelled a couple
     of seconds in; from 1 s after the click the server process is near idle.
 
     The run checks the cancel flag at least every ~0.3 s of single-core work at these sizes

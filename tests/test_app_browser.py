@@ -114,15 +114,18 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     wait_drawn(page, ".data-plot", n=2)               # data and true δ of the mode shown
     page.screenshot(path=str(ARTIFACTS / "05-shear5.png"))
 
-    # beam-2d from the Discrepancy tab: its waves run while their tab is hidden, and
-    # scenario 3 warns beside its band; then the player, and back to beam-1d, whose results
-    # are kept. Panes updated while their tab was hidden must not come back with Panel's
-    # CDN style sheets (they did: loading.css, alerts.css), which the log would catch.
+    # beam-2d from the Discrepancy tab: its waves run while their tab is hidden, and with
+    # the paper's prior proposal (the default adaptive one is reliable here) scenario 3
+    # warns beside its band; then the player, and back to beam-1d, whose results are kept.
+    # Panes updated while their tab was hidden must not come back with Panel's CDN style
+    # sheets (they did: loading.css, alerts.css), which the log would catch.
     page.locator("select").first.select_option("beam-2d")
     tab(page, "Discrepancy")
+    page.get_by_role("button", name="prior", exact=True).click()
     page.get_by_role("button", name="Run discrepancy").click()
     wait_drawn(page, ".disc-plot", n=9)
     page.wait_for_selector(".disc-warnings:has-text('unreliable')", timeout=30_000)
+    page.get_by_role("button", name="adaptive", exact=True).click()
     tab(page, "History matching")
     wait_drawn(page, ".hm-plot", n=2)
     page.locator("button.previous").first.click()     # the wave player: one wave back

@@ -19,22 +19,23 @@ from ._cases import Case, MeasurementsError
 from ._cases import load as load_case
 from ._cases import names as case_names
 from ._discrepancy import (
-                           DiscrepancyModel,
-                           DiscrepancyOptions,
-                           DiscrepancyPrediction,
-                           infer_discrepancy,
+    DiscrepancyModel,
+    DiscrepancyOptions,
+    DiscrepancyPrediction,
+    infer_discrepancy,
 )
 from ._emulator import Emulator, fit_emulator
 from ._exceptions import Cancelled, ConvergenceWarning, LowESSWarning, NumericalWarning
 from ._export import write_tables
 from ._history_matching import (
-                           HistoryMatchProblem,
-                           HistoryMatchResult,
-                           Wave,
-                           case_problem,
-                           history_match,
-                           history_match_case,
-                           next_wave,
+    HistoryMatchOptions,
+    HistoryMatchProblem,
+    HistoryMatchResult,
+    Wave,
+    case_problem,
+    history_match,
+    history_match_case,
+    next_wave,
 )
 from ._hyperfit import FitOptions
 from ._koh import KOHModel, KOHOptions, infer_koh

@@ -16,6 +16,7 @@ The public face is small: :func:`run_method` with :class:`Method` and :class:`Se
 
 from .exceptions import Cancelled as Cancelled
 from .exceptions import ConvergenceWarning as ConvergenceWarning
+from .exceptions import EmulatorWarning as EmulatorWarning
 from .exceptions import LowESSWarning as LowESSWarning
 from .exceptions import NumericalWarning as NumericalWarning
 from .pipeline import Method as Method
@@ -24,5 +25,5 @@ from .pipeline import Settings as Settings
 from .pipeline import run_method as run_method
 
 __version__ = "0.1.0"
-__all__ = ["Cancelled", "ConvergenceWarning", "LowESSWarning", "Method", "MethodResult",
-           "NumericalWarning", "Settings", "__version__", "run_method"]
+__all__ = ["Cancelled", "ConvergenceWarning", "EmulatorWarning", "LowESSWarning", "Method",
+           "MethodResult", "NumericalWarning", "Settings", "__version__", "run_method"]

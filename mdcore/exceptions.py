@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-__all__ = ["NumericalWarning", "ConvergenceWarning", "LowESSWarning", "Cancelled"]
+__all__ = ["NumericalWarning", "ConvergenceWarning", "LowESSWarning", "EmulatorWarning",
+           "Cancelled"]
 
 
 class NumericalWarning(RuntimeWarning):
@@ -15,6 +16,11 @@ class ConvergenceWarning(NumericalWarning):
 
 class LowESSWarning(NumericalWarning):
     """Importance weights rest on few samples (small effective sample size)."""
+
+
+class EmulatorWarning(UserWarning):
+    """A wave's emulator fails its leave-one-out check (:func:`mdcore.diagnostics.validate_wave`):
+    too confident, or it rules out runs that the simulator does not."""
 
 
 class Cancelled(Exception):

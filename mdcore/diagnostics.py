@@ -486,5 +486,6 @@ def theta_delta_message(label: str, output: str, share: float) -> str | None:
         return None
     return (f"{label}, {output}: {100 * share:.0f} % of δ's predictive variance comes from "
             "which θ in the NROY set is used (δ varies more across θ than at one θ). This δ "
-            "is mostly a consequence of the θ chosen, not physics: narrow θ first (more "
-            "waves, more data) before reading its shape.")
+            "is mostly a consequence of the θ chosen, not physics: narrow θ first (data that "
+            "tell the parameters apart, or a smaller V_m if you can justify one) before "
+            "reading its shape.")

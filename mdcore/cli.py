@@ -18,6 +18,7 @@ from collections import Counter
 import numpy as np
 
 from . import cases, compiled, threads
+from .diagnostics import space_removed, theta_delta_message, validate_waves
 from .exceptions import LowESSWarning
 from .export import write_tables
 from .history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
@@ -90,7 +91,29 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
         for wave in iter_waves(problem):
             waves.append(wave)
             bar.update_to(len(waves), f"wave {wave.index}: NROY {100 * wave.nroy_fraction:.2f} %")
-    return HistoryMatchResult(problem, tuple(waves))
+    result = HistoryMatchResult(problem, tuple(waves))
+    validate_waves(result)                      # EmulatorWarning for a wave that fails LOO
+    return result
+
+
+def _print_space(case, hm) -> None:
+    """The share of each parameter's range the final NROY samples leave empty."""
+    removed = space_removed(hm.waves[-1].nroy, hm.problem.bounds)
+    print("space removed along each parameter's range (docs/diagnostics.md §2): " + ", ".join(
+        f"{n} {100 * r:.0f} %" for n, r in zip(case.theta_names, removed)))
+
+
+def _print_validation(validation) -> None:
+    """Each wave's leave-one-run-out check (docs/diagnostics.md §1), and its advice."""
+    rows = [[str(v.wave), str(len(v.theta)), f"{100 * v.share_beyond_3:.2f}",
+             f"{v.p_value:.2g}", str(int(v.wrongly_ruled_out.sum()))] for v in validation]
+    print("\nemulator check, leaving out each run (a calibrated emulator: |e| > 3 for about "
+          "0.3 %):")
+    print(_table(["wave", "runs", "|e| > 3 %", "p (bound)", "wrongly ruled out"], rows))
+    advice = [v.advice for v in validation if v.advice]
+    _SHOWN.update(advice)
+    for line in advice:
+        print(f"! {line}")
 
 
 def _print_waves(case, result) -> None:
@@ -116,6 +139,8 @@ def _cmd_history_match(args) -> int:
     with _executor(args) as executor:
         result = _history_match(case, args, executor)
     _print_waves(case, result)
+    _print_space(case, result)
+    _print_validation(validate_waves(result, warn=False))
     if result.status != "ruled_out":
         names = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
                           zip(case.theta_names, result.theta_map, case.theta_units))
@@ -251,6 +276,20 @@ def _print_run(run, args) -> int:
              *(metric_text(c, row[c]) for c in shown)]
             for row in metrics_table(run.results, case.output_names)]
     print(_table(header, rows))
+    print()
+    _print_space(case, hm)
+    _print_validation(run.validation)
+    if run.theta_delta:
+        print("\nθ–δ trade-off: the share of δ's predictive variance that comes from θ "
+              "(docs/diagnostics.md §3; above 0.5 δ is mostly the θ chosen's)")
+        print(_table(["method", "output", "share from θ"],
+                     [[m, name, f"{split.share[o]:.2f}"] for m, split in run.theta_delta.items()
+                      for o, name in enumerate(case.output_names)]))
+        for m, split in run.theta_delta.items():
+            for o, name in enumerate(case.output_names):
+                text = theta_delta_message(Method.parse(m).label, name, split.share[o])
+                if text:
+                    print(f"! {text}")
     for r in run.results:
         if r.chain is not None:
             c, post = r.chain, r.model.theta
@@ -482,6 +521,7 @@ EXAMPLES = {
 
 #: Warning classes in words, for the summary.
 WARNING_WORDS = {"LowESSWarning": "few effective importance samples",
+                 "EmulatorWarning": "emulator check",
                  "ConvergenceWarning": "did not converge",
                  "NumericalWarning": "numerical fallback",
                  "RuntimeWarning": "numerical"}
@@ -491,7 +531,8 @@ def _summarise(caught) -> None:
     """Print each distinct warning once, with how often it came, in words. Low-ESS
     warnings are left out once the run's own advice (printed with the table) said it."""
     counts = Counter((w.category.__name__, str(w.message)) for w in caught
-                     if not (_SHOWN and issubclass(w.category, LowESSWarning)))
+                     if not (_SHOWN and issubclass(w.category, LowESSWarning))
+                     and str(w.message) not in _SHOWN)
     if not counts:
         return
     print(f"\n{sum(counts.values())} warning(s) while running, each listed once:",

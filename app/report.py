@@ -29,7 +29,6 @@ from bokeh.models import ColumnDataSource, Div, FactorRange, Whisker
 from bokeh.plotting import figure
 from bokeh.resources import Resources
 
-from mdcore.diagnostics import theta_delta_message
 from mdcore.study import PAPER
 
 __all__ = ["report_html", "report_layout", "write_report", "metric_bars"]
@@ -252,8 +251,8 @@ def _diagnostics(run) -> str:
                     for m, split in run.theta_delta.items()
                     for o, name in enumerate(run.case.output_names)])
     notes = [v.advice for v in run.validation if v.advice] + [
-        t for m, split in run.theta_delta.items() for o, name in enumerate(run.case.output_names)
-        if (t := theta_delta_message(LABELS[m], name, split.share[o]))]
+        t for m, split in run.theta_delta.items()
+        for t in split.advice(LABELS[m], run.case.output_names)]
     return ("<h3>Emulator check, leaving out each run</h3>" + check
             + ("<h3>θ–δ trade-off</h3>" + share if run.theta_delta else "")
             + "".join(f"<p class='warn'>{_esc(t)}</p>" for t in notes))

@@ -18,7 +18,7 @@ from collections import Counter
 import numpy as np
 
 from . import cases, compiled, threads
-from .diagnostics import space_removed, theta_delta_message, validate_waves
+from .diagnostics import space_removed, validate_waves
 from .exceptions import LowESSWarning
 from .export import write_tables
 from .history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
@@ -91,29 +91,30 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
         for wave in iter_waves(problem):
             waves.append(wave)
             bar.update_to(len(waves), f"wave {wave.index}: NROY {100 * wave.nroy_fraction:.2f} %")
-    result = HistoryMatchResult(problem, tuple(waves))
-    validate_waves(result)                      # EmulatorWarning for a wave that fails LOO
-    return result
+    return HistoryMatchResult(problem, tuple(waves))
 
 
-def _print_space(case, hm) -> None:
-    """The share of each parameter's range the final NROY samples leave empty."""
-    removed = space_removed(hm.waves[-1].nroy, hm.problem.bounds)
-    print("space removed along each parameter's range (docs/diagnostics.md §2): " + ", ".join(
-        f"{n} {100 * r:.0f} %" for n, r in zip(case.theta_names, removed)))
-
-
-def _print_validation(validation) -> None:
-    """Each wave's leave-one-run-out check (docs/diagnostics.md §1), and its advice."""
-    rows = [[str(v.wave), str(len(v.theta)), f"{100 * v.share_beyond_3:.2f}",
-             f"{v.p_value:.2g}", str(int(v.wrongly_ruled_out.sum()))] for v in validation]
+def _print_checks(case, hm, validation, splits=None) -> None:
+    """Space removed, each wave's LOO check and the θ–δ shares, with their advice
+    (docs/diagnostics.md)."""
+    print("\nspace removed along each parameter's range: " + ", ".join(
+        f"{n} {100 * r:.0f} %" for n, r in zip(case.theta_names, space_removed(
+            hm.waves[-1].nroy, hm.problem.bounds))))
     print("\nemulator check, leaving out each run (a calibrated emulator: |e| > 3 for about "
-          "0.3 %):")
-    print(_table(["wave", "runs", "|e| > 3 %", "p (bound)", "wrongly ruled out"], rows))
+          "0.3 %):\n" + _table(["wave", "runs", "|e| > 3 %", "p (bound)", "wrongly ruled out"],
+                               [[str(v.wave), str(len(v.theta)), f"{100 * v.share_beyond_3:.2f}",
+                                 f"{v.p_value:.2g}", str(int(v.wrongly_ruled_out.sum()))]
+                                for v in validation]))
     advice = [v.advice for v in validation if v.advice]
-    _SHOWN.update(advice)
-    for line in advice:
-        print(f"! {line}")
+    if splits:
+        print("\nθ–δ trade-off: the share of δ's predictive variance that comes from θ "
+              "(above 0.5 δ is mostly the θ chosen's)\n" + _table(
+                  ["method", "output", "share from θ"],
+                  [[m, name, f"{t.share[o]:.2f}"] for m, t in splits.items()
+                   for o, name in enumerate(case.output_names)]))
+        advice += [a for m, t in splits.items()
+                   for a in t.advice(Method.parse(m).label, case.output_names)]
+    print("".join(f"! {line}\n" for line in advice), end="")
 
 
 def _print_waves(case, result) -> None:
@@ -139,8 +140,7 @@ def _cmd_history_match(args) -> int:
     with _executor(args) as executor:
         result = _history_match(case, args, executor)
     _print_waves(case, result)
-    _print_space(case, result)
-    _print_validation(validate_waves(result, warn=False))
+    _print_checks(case, result, validate_waves(result, warn=False))
     if result.status != "ruled_out":
         names = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
                           zip(case.theta_names, result.theta_map, case.theta_units))
@@ -276,20 +276,7 @@ def _print_run(run, args) -> int:
              *(metric_text(c, row[c]) for c in shown)]
             for row in metrics_table(run.results, case.output_names)]
     print(_table(header, rows))
-    print()
-    _print_space(case, hm)
-    _print_validation(run.validation)
-    if run.theta_delta:
-        print("\nθ–δ trade-off: the share of δ's predictive variance that comes from θ "
-              "(docs/diagnostics.md §3; above 0.5 δ is mostly the θ chosen's)")
-        print(_table(["method", "output", "share from θ"],
-                     [[m, name, f"{split.share[o]:.2f}"] for m, split in run.theta_delta.items()
-                      for o, name in enumerate(case.output_names)]))
-        for m, split in run.theta_delta.items():
-            for o, name in enumerate(case.output_names):
-                text = theta_delta_message(Method.parse(m).label, name, split.share[o])
-                if text:
-                    print(f"! {text}")
+    _print_checks(case, hm, run.validation, run.theta_delta)
     for r in run.results:
         if r.chain is not None:
             c, post = r.chain, r.model.theta
@@ -521,7 +508,6 @@ EXAMPLES = {
 
 #: Warning classes in words, for the summary.
 WARNING_WORDS = {"LowESSWarning": "few effective importance samples",
-                 "EmulatorWarning": "emulator check",
                  "ConvergenceWarning": "did not converge",
                  "NumericalWarning": "numerical fallback",
                  "RuntimeWarning": "numerical"}
@@ -531,8 +517,7 @@ def _summarise(caught) -> None:
     """Print each distinct warning once, with how often it came, in words. Low-ESS
     warnings are left out once the run's own advice (printed with the table) said it."""
     counts = Counter((w.category.__name__, str(w.message)) for w in caught
-                     if not (_SHOWN and issubclass(w.category, LowESSWarning))
-                     and str(w.message) not in _SHOWN)
+                     if not (_SHOWN and issubclass(w.category, LowESSWarning)))
     if not counts:
         return
     print(f"\n{sum(counts.values())} warning(s) while running, each listed once:",

@@ -19,8 +19,7 @@ class LowESSWarning(NumericalWarning):
 
 
 class EmulatorWarning(UserWarning):
-    """A wave's emulator fails its leave-one-out check (:func:`mdcore.diagnostics.validate_wave`):
-    too confident, or it rules out runs that the simulator does not."""
+    """A wave's emulator fails its leave-one-out check (docs/diagnostics.md §1)."""
 
 
 class Cancelled(Exception):

@@ -79,8 +79,7 @@ class CaseRun:
 
     @cached_property
     def theta_delta(self) -> dict:
-        """Method value -> :class:`~mdcore.diagnostics.ThetaDeltaSplit` at the test inputs,
-        for the decoupled scenarios."""
+        """Each decoupled scenario's :class:`~mdcore.diagnostics.ThetaDeltaSplit` at X_test."""
         return {r.method.value: theta_delta_split(r.model, self.case.X_test)
                 for r in self.results if isinstance(r.model, DiscrepancyModel)}
 
@@ -110,9 +109,8 @@ class CaseRun:
                                      "space_removed": [
                                          space_removed(w.nroy, self.hm.problem.bounds).tolist()
                                          for w in self.hm.waves]},
-                "methods": {r.method.value: {**_entry(r), "theta_delta": None if r.method.value
-                                             not in self.theta_delta else
-                                             self.theta_delta[r.method.value].as_dict()}
+                "methods": {r.method.value: {**_entry(r), "theta_delta": (
+                    t := self.theta_delta.get(r.method.value)) and t.as_dict()}
                             for r in self.results}}
 
 

@@ -293,7 +293,8 @@ def theta_delta_split(model, X_star, *, n_theta: int = 100) -> ThetaDeltaSplit:
         rows, weight = np.arange(S), w_theta
     else:
         avg = w_theta.mean(axis=0)
-        picks = np.searchsorted(np.cumsum(avg), (np.arange(n_theta) + 0.5) / n_theta * avg.sum())
+        cum = np.cumsum(avg)
+        picks = np.searchsorted(cum, (np.arange(n_theta) + 0.5) / n_theta * cum[-1])
         rows, counts = np.unique(np.minimum(picks, S - 1), return_counts=True)
         weight = counts * w_theta[:, rows] / avg[rows]
     weight = weight / weight.sum(axis=1, keepdims=True)

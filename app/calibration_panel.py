@@ -18,7 +18,7 @@ import param
 from bokeh.core.properties import value
 from bokeh.models import ColumnDataSource, LegendItem, Range1d
 
-from mdcore.validation import as_int
+from mdcore._validation import as_int
 
 from .live_figures import (
     CURRENT,
@@ -77,10 +77,10 @@ def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
     """The weighted θ posterior of history matching; None when NROY is empty.
 
     The posterior is the Gaussian likelihood behind the implausibility measure
-    (:meth:`mdcore.history_matching.HistoryMatchResult.log_likelihood`) restricted to NROY,
+    (:meth:`mdcore.HistoryMatchResult.log_likelihood`) restricted to NROY,
     under the uniform prior on the box: ``n`` samples uniform in the final NROY set, each
     weighted by its normalised likelihood (the density that
-    :meth:`~mdcore.history_matching.HistoryMatchResult.posterior_samples` resamples from,
+    :meth:`~mdcore.HistoryMatchResult.posterior_samples` resamples from,
     without the resampling noise).
     """
     n, bins = as_int(n, "n", 1), as_int(bins, "bins", 1)

@@ -14,7 +14,7 @@ import param
 from bokeh.models import ColorBar, ColumnDataSource, LegendItem, LinearColorMapper, Range1d
 from bokeh.palettes import RdBu11, Viridis256
 
-from mdcore.validation import as_float_array, check_positive
+from mdcore._validation import as_float_array, check_positive
 
 from .live_figures import (
     LivePanel,

@@ -26,7 +26,7 @@ import panel as pn
 import param
 from bokeh.models import Range1d
 
-from mdcore.pipeline import Method
+from mdcore._pipeline import Method
 
 from .data_panel import true_delta_figure
 from .live_figures import (

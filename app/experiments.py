@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
-from mdcore.pipeline import Method
+from mdcore._pipeline import Method
 
 __all__ = ["EXPERIMENTS", "Experiment"]
 

@@ -9,10 +9,10 @@ which puts each partial result into the session's state on the session's thread 
 * **Progress.** ``report(fraction, message="")`` forwards at most about four updates a
   second to ``on_progress`` (every re-render reaches the browser).
 * **Supersession.** Submitting a job retires the running one: its ``cancel`` event is set
-  (so the pipeline stops at its next chunk, see :func:`mdcore.pipeline.run_method`) and
+  (so the pipeline stops at its next chunk, see :func:`mdcore.run_method`) and
   nothing it yields or raises afterwards reaches the state.
 * **Cancel.** :meth:`JobRunner.cancel` sets the running job's event; the work raises
-  :class:`mdcore.exceptions.Cancelled` and the job ends quietly, keeping what it already
+  :class:`mdcore.Cancelled` and the job ends quietly, keeping what it already
   applied (each applied partial result is a consistent state).
 * **Failure.** Any ``Exception`` from ``compute`` or from ``apply`` ends the job: the
   state is restored from the snapshot taken when the job was submitted (so partial
@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterator
 from typing import Any
 
-from mdcore.exceptions import Cancelled
+from mdcore._exceptions import Cancelled
 
 __all__ = ["PROGRESS_INTERVAL", "Cancelled", "Job", "JobRunner", "seconds_since_work"]
 

@@ -23,7 +23,7 @@ from bokeh.models import (
 from bokeh.palettes import Magma256, RdBu11
 from bokeh.plotting import figure
 
-from mdcore.validation import as_float_array, as_int, check_positive
+from mdcore._validation import as_float_array, as_int, check_positive
 
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
 

@@ -2,7 +2,7 @@
 
 Your own cases join the built-in ones with ``panel serve app/main.py --address 127.0.0.1
 --warm --args --case my_case.toml [--case other.toml ...]`` (TOML case files, see
-:mod:`mdcore.case_file`); ``--warm`` loads them when the server starts, not for its first
+:mod:`mdcore._case_file`); ``--warm`` loads them when the server starts, not for its first
 visitor.
 
 Each browser session runs this module and gets its own :class:`ExplorerState`, so two
@@ -12,6 +12,7 @@ its results back to the session's event loop.
 
 import argparse
 import gc
+import logging
 import sys
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
@@ -23,10 +24,13 @@ from bokeh.core.property.validation import validate
 from bokeh.settings import settings
 from panel.io.resources import LOCAL_DIST
 from panel.io.state import set_curdoc
+from tornado.ioloop import IOLoop
 
-from mdcore import compiled, threads
-from mdcore.case_file import load_case_file
-from mdcore_app import session_pool
+from mdcore import _compiled as compiled
+from mdcore import _threads as threads
+from mdcore._case_file import load_case_file
+from mdcore_app import network, session_pool
+from mdcore_app.markup import markdown_text
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 
@@ -42,7 +46,7 @@ NOTIFICATION_CSS = """
                   "Helvetica Neue", Arial, sans-serif; font-size: 13px; line-height: 1.35; }
 .notyf__toast { max-width: 380px !important; }
 """
-pn.extension("filedropper", notifications=True, raw_css=[NOTIFICATION_CSS])
+pn.extension(notifications=True, raw_css=[NOTIFICATION_CSS])
 hv.extension("bokeh")
 #: The page's Content-Security-Policy: everything from the page's own origin (its scripts,
 #: style sheets, fonts and the websocket: 'self' covers ws:// of the same host), nothing
@@ -50,14 +54,14 @@ hv.extension("bokeh")
 #: page's own; Bokeh's carries the session's token, so no hash can name it), code compiled
 #: in the browser (BokehJS compiles CustomJS callbacks and Panel's ReactiveHTML scripts,
 #: such as the notifications', with ``new Function``), blob: scripts (es-module-shims
-#: probes ``import()`` with one; only a script already running can make a blob), inline
-#: styles, and data:/blob: images (Bokeh's image glyphs, the "save" tool, FilePond's
-#: previews). ``script-src-attr 'none'`` refuses every inline event handler
-#: (``<img onerror=…>``), so markup that slipped into an HTML pane runs nothing; user text
-#: is escaped everywhere (:mod:`mdcore_app.markup`), which is what keeps it from becoming a
-#: <script> or an iframe's ``srcdoc``. A <meta> element, the first in the page's head:
-#: Panel 1.9 / Bokeh 3.9 offer no public way to add a response header to ``panel serve``'s
-#: page (and a <meta> policy cannot carry frame-ancestors).
+#: fetches and loads the drop areas' module, app/upload.js, as one, and probes ``import()`` with
+#: another; only a script already running can make a blob), inline styles, and data:/blob:
+#: images (Bokeh's image glyphs, the "save" tool). ``script-src-attr 'none'`` refuses
+#: every inline event handler (``<img onerror=…>``), so markup that slipped into an HTML
+#: pane runs nothing; user text is escaped everywhere (:mod:`mdcore_app.markup`), which is
+#: what keeps it from becoming a <script> or an iframe's ``srcdoc``. A <meta> element, the
+#: first in the page's head: Panel 1.9 / Bokeh 3.9 offer no public way to add a response
+#: header to ``panel serve``'s page (and a <meta> policy cannot carry frame-ancestors).
 CONTENT_SECURITY_POLICY = "; ".join((
     "default-src 'self'",
     "script-src 'self' 'unsafe-inline' 'unsafe-eval' blob:",
@@ -65,36 +69,59 @@ CONTENT_SECURITY_POLICY = "; ".join((
     "style-src 'self' 'unsafe-inline'",
     "img-src 'self' data: blob:",
     "font-src 'self' data:",
-    "connect-src 'self'",
+    "connect-src 'self' blob:",
     "object-src 'none'",
     "frame-src 'none'",
     "base-uri 'self'",
     "form-action 'self'"))
-#: Panel's page (a string template extends it) with the policy first in its head, then two
-#: scripts of ours: one before every other script, so that FilePond (the Files tab's drop
-#: areas) paints only while a drop area is shown; one after BokehJS and before the document
-#: is drawn, so that a plot with a legend is laid out and painted once, not twice (see the
-#: files). Inline: no request (offline).
+#: Panel's page (a string template extends it) with the policy first in its head, and a
+#: script of ours after BokehJS and before the document is drawn, so that a plot with a
+#: legend is laid out and painted once, not twice (see the file). Inline: no request
+#: (offline).
 PAGE_TEMPLATE = (
     "{% block inner_head %}<meta http-equiv=\"Content-Security-Policy\" content=\""
     + CONTENT_SECURITY_POLICY + "\">{{ super() }}{% endblock %}"
-    + "".join(
-        "{% block " + block + " %}{{ super() }}<script>{% raw %}"
-        + Path(__file__).with_name(script).read_text() + "{% endraw %}</script>{% endblock %}"
-        for block, script in (("preamble", "filepond_painter.js"),
-                              ("postamble", "legend_resize.js"))))
+    "{% block postamble %}{{ super() }}<script>{% raw %}"
+    + Path(__file__).with_name("legend_resize.js").read_text()
+    + "{% endraw %}</script>{% endblock %}")
+log = logging.getLogger("mdcore_app")
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()
 # Load (or, on a new machine, compile) the numba kernels while the first page is drawn.
 compiled.warm_up_in_background()
 
 
-def case_files(argv: list[str]) -> list[Path]:
-    """The ``--case`` files given after ``panel serve app/main.py --args``."""
+def app_args(argv: list[str]) -> argparse.Namespace:
+    """The options given after ``panel serve app/main.py --args``."""
     parser = argparse.ArgumentParser(prog="panel serve app/main.py --args")
     parser.add_argument("--case", action="append", default=[], type=Path,
                         help="a TOML case file to add to the case list (repeatable)")
-    return parser.parse_args(argv).case
+    parser.add_argument(network.OPT_IN, action="store_true",
+                        help="serve other machines too (with panel serve --address 0.0.0.0); "
+                             "by default the app refuses any but this one")
+    return parser.parse_args(argv)
+
+
+def refusal(doc, allow_remote: bool) -> str | None:
+    """Why this session's request is refused (:mod:`mdcore_app.network`), or None. The
+    first session of a server also checks where the server listens; a server that
+    answers beyond this machine stops (its log says why), unless ``allow_remote``."""
+    if allow_remote:
+        return None
+    request = doc.session_context.request
+    why = network.request_refusal(request)
+    port = network.port_of(request)          # None for --warm's session: no request yet
+    if why is None and port is not None:
+        if "mdcore-binding" not in pn.state.cache:
+            pn.state.cache["mdcore-binding"] = network.binding_refusal(port)
+        why = pn.state.cache["mdcore-binding"]
+        if why is not None:                      # stop once the page shows why
+            loop = IOLoop.current()
+            doc.on_event("document_ready", lambda _event: loop.call_later(0.5, loop.stop))
+            loop.call_later(10.0, loop.stop)
+    if why is not None:
+        log.error("mdcore: %s", why)
+    return why
 
 
 #: Seconds one run of a ``--case`` file's simulator may take when the file sets no
@@ -130,15 +157,24 @@ def own_cases(paths: list[Path]):
 def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
     """Build one session's page (state + view) for the current Bokeh document."""
     doc = pn.state.curdoc
-    cases, errors = own_cases(case_files(sys.argv[1:] if argv is None else argv))
-    state = ExplorerState(background=doc is not None and doc.session_context is not None,
-                          schedule=_scheduler(doc), own_cases=tuple(cases))
-    view = ExplorerView(state=state)
-    if state.background:
+    args = app_args(sys.argv[1:] if argv is None else argv)
+    served = doc is not None and doc.session_context is not None
+    if served:
         _local_style_sheets(doc)
         doc.template = PAGE_TEMPLATE
+        why = refusal(doc, args.allow_remote)
+        if why is not None:
+            return pn.pane.Alert(markdown_text(why), alert_type="danger",
+                                 css_classes=["mdcore-refused"], sizing_mode="stretch_width")
+    cases, errors = own_cases(args.case)
+    state = ExplorerState(background=served, schedule=_scheduler(doc), own_cases=tuple(cases))
+    view = ExplorerView(state=state)
+    if served:
         # A closed tab stops its running job: nobody will see the result, and the CPU is
-        # shared by every session of the server.
+        # shared by every session of the server. The page's websocket closing says so at
+        # once (Bokeh ends the session itself only after its unused lifetime, 15-32 s by
+        # default); the session stays for a reconnect, idle.
+        doc.on_event("connection_lost", lambda _event: state.cancel())
         doc.on_session_destroyed(lambda _context: state.jobs.close())
         context = doc.session_context             # (--warm's has no server yet)
         if session_pool.install() and context.server_context is not None:

@@ -11,7 +11,7 @@ import holoviews as hv
 import numpy as np
 from bokeh.models import ColumnDataSource, FixedTicker, HoverTool, LegendItem, Range1d
 
-from mdcore.pipeline import Method
+from mdcore._pipeline import Method
 
 from .live_figures import below_legend, live_figure
 from .report import PAPER_COLOR, metric_bars
@@ -120,9 +120,9 @@ def phi_posterior(case, result, *, output: int | None = None, bins: int = 30) ->
 
     Parameters
     ----------
-    case : mdcore.cases.Case
-    result : mdcore.pipeline.MethodResult
-        A scenario-3 result; its ``model`` (a :class:`mdcore.discrepancy.DiscrepancyModel`)
+    case : mdcore.Case
+    result : mdcore.MethodResult
+        A scenario-3 result; its ``model`` (a :class:`mdcore.DiscrepancyModel`)
         holds ``log_params`` (n_out, N_s, N_φ, P) and ``log_weights`` (n_out, N_s, N_φ).
     output : int, optional
         Only this output (default: every output).
@@ -191,12 +191,12 @@ def metrics_chart(case, results, paper=None, *, logy: bool = True):
 
     Parameters
     ----------
-    case : mdcore.cases.Case
+    case : mdcore.Case
     results : dict
-        :class:`mdcore.pipeline.Method` -> :class:`mdcore.pipeline.MethodResult`; drawn in
+        :class:`mdcore.Method` -> :class:`mdcore.MethodResult`; drawn in
         the order S1, S2, S3, KOH, each in its method colour.
     paper : dict, optional
-        The paper's values, as :data:`mdcore.study.PAPER` ``[case.name]`` (``{metric:
+        The paper's values, as :data:`mdcore._study.PAPER` ``[case.name]`` (``{metric:
         {"1" | "2" | "3" | "koh": value}}``); None draws no reference.
     logy : bool, default=True
         Log y axis (KOH's δ NMSE is ~20× the scenarios' on beam-1d).

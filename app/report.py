@@ -7,10 +7,10 @@ paper's values, and the warnings. Plots are Bokeh figures with BokehJS inlined
 
 Examples
 --------
->>> from mdcore import cases
->>> from mdcore.pipeline import Settings
->>> from mdcore.reproduce import run_case
->>> run = run_case(cases.load("beam-1d"), methods=[1], settings=Settings(n_s=10),
+>>> import mdcore
+>>> from mdcore import Settings
+>>> from mdcore import run_case
+>>> run = run_case(mdcore.load_case("beam-1d"), methods=[1], settings=Settings(n_s=10),
 ...                n_candidates=5000)
 >>> html = report_html(run)
 >>> "<script src=" in html, "Bokeh" in html
@@ -23,13 +23,14 @@ import html as _html
 from pathlib import Path
 
 import numpy as np
+from bokeh.document import Document
 from bokeh.embed import file_html
 from bokeh.layouts import column, gridplot
 from bokeh.models import ColumnDataSource, Div, FactorRange, Whisker
 from bokeh.plotting import figure
 from bokeh.resources import Resources
 
-from mdcore.study import PAPER
+from mdcore._study import PAPER
 
 __all__ = ["report_html", "report_layout", "write_report", "metric_bars"]
 
@@ -143,13 +144,13 @@ def metric_bars(case, results, metric: str, paper: dict | None = None) -> list[t
 
     Parameters
     ----------
-    case : mdcore.cases.Case
-    results : iterable of mdcore.pipeline.MethodResult
+    case : mdcore.Case
+    results : iterable of mdcore.MethodResult
         In the order the bars are drawn. Methods whose metric is None (no true δ) are left out.
     metric : str
-        A field of :class:`mdcore.pipeline.Metrics`, e.g. ``"nmse_z"`` or ``"nmse_delta"``.
+        A field of :class:`mdcore._pipeline.Metrics`, e.g. ``"nmse_z"`` or ``"nmse_delta"``.
     paper : dict, optional
-        The paper's values in the layout of :data:`mdcore.study.PAPER` ``[case]``:
+        The paper's values in the layout of :data:`mdcore._study.PAPER` ``[case]``:
         ``{metric: {method value ("1", "2", "3", "koh"): value}}``. A single value stands
         for a single-output case only (the paper's tables are per case); a sequence of
         ``n_out`` values gives one per output.
@@ -157,7 +158,7 @@ def metric_bars(case, results, metric: str, paper: dict | None = None) -> list[t
     Returns
     -------
     list of tuple ``(method, output, value, paper_value)``
-        ``method`` a :class:`mdcore.pipeline.Method`, ``output`` the output index,
+        ``method`` a :class:`mdcore.Method`, ``output`` the output index,
         ``value`` this run's metric and ``paper_value`` the paper's (NaN where it has none).
     """
     ref = (paper or {}).get(metric) or {}
@@ -226,10 +227,18 @@ class _InlineBokehOnly(Resources):
 
 
 def report_html(run) -> str:
-    """The report of a :class:`mdcore.reproduce.CaseRun` as one self-contained HTML page."""
-    case = run.case
-    return file_html(report_layout(run), resources=_InlineBokehOnly(mode="inline"),
-                     title=f"mdcore report: {case.name}")
+    """The report of a :class:`mdcore.CaseRun` as one self-contained HTML page.
+
+    The layout is the one root of a document of its own: ``file_html`` then writes that
+    document. Given bare models, it would make one and copy into it the JS callbacks of
+    Bokeh's global current document, which in a server process can be a session's
+    document already destroyed (an ``AttributeError`` on ``_js_event_callbacks``: the
+    served app's report download failed).
+    """
+    layout = report_layout(run)
+    Document().add_root(layout)
+    return file_html(layout, resources=_InlineBokehOnly(mode="inline"),
+                     title=f"mdcore report: {run.case.name}")
 
 
 def _failures(case, hm) -> str:
@@ -271,8 +280,8 @@ def report_layout(run):
                  ["seed", "N_s", "N_φ", "φ proposal", "φ̂ swarm steps", "KOH chain",
                   "threshold T", "rule"],
                  [[run.seed, s.n_s, s.n_phi, s.proposal, s.fit_iterations,
-                   f"{s.n_iter:,} ({s.burn_in:,} burn-in)", f"{hm.problem.threshold:g}",
-                   hm.problem.rule]])
+                   f"{s.n_iter:,} ({s.burn_in:,} burn-in)", f"{hm.problem.options.threshold:g}",
+                   hm.problem.options.rule]])
              + "<h2>History matching</h2>" + _table(
                  ["wave", "NROY % of box", "runs", "failed runs", "status"],
                  [[w.index, f"{100 * w.nroy_fraction:.3g}", len(w.runs_theta), len(w.failures),

@@ -25,17 +25,21 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 from typing import Any
 
 import mdcore
-from mdcore.pipeline import Method, MethodResult
+from mdcore._pipeline import Method, MethodResult
 
 __all__ = ["CONTROLS", "MAX_UPLOAD_BYTES", "SCHEMA", "SCHEMA_VERSION", "SessionError",
-           "compare_metrics", "decode_upload", "parse_session"]
+           "compare_metrics", "decode_upload", "megabytes", "parse_session"]
 
 SCHEMA, SCHEMA_VERSION = "mdcore-session", 1
-#: Largest file the app accepts from a browser (bytes).
-MAX_UPLOAD_BYTES = 5 * 1024 * 1024
+#: Largest file the app accepts from a browser (bytes): the one cap of the drop areas
+#: (counted as the chunks arrive, :mod:`mdcore_app.upload`) and of :func:`decode_upload`.
+#: Far above what the row limit lets through (mdcore._cases.MAX_ROWS rows of beam-2d's
+#: template are 60 kB); a session file carries its measurements inside.
+MAX_UPLOAD_BYTES = 5_000_000
 #: The state's parameters a session file stores, and the JSON types each must have.
 CONTROLS: dict[str, tuple[type, ...]] = {
     "preset": (str,), "v_m": (int, float), "threshold": (int, float), "rule": (str,),
@@ -53,6 +57,12 @@ class SessionError(ValueError):
     def __init__(self, problems: list[str]):
         self.problems = tuple(problems)
         super().__init__(" ".join(self.problems))
+
+
+def megabytes(n: int) -> str:
+    """``n`` bytes for messages: decimal megabytes from 0.1 MB ("5 MB", "6.2 MB"), else
+    bytes ("1,001 bytes")."""
+    return f"{n / 1e6:.1f}".removesuffix(".0") + " MB" if n >= 100_000 else f"{n:,} bytes"
 
 
 def decode_upload(data: bytes, filename: str, *, kind: str) -> str:
@@ -75,8 +85,9 @@ def decode_upload(data: bytes, filename: str, *, kind: str) -> str:
     if not isinstance(data, bytes | bytearray) or not data:
         raise SessionError([f"{filename}: the file is empty; choose a {kind}."])
     if len(data) > MAX_UPLOAD_BYTES:
-        raise SessionError([f"{filename}: {len(data) / 2**20:.1f} MB is more than the "
-                            f"{MAX_UPLOAD_BYTES / 2**20:.0f} MB limit for a {kind}."])
+        raise SessionError([f"{filename} is {len(data):,} bytes, more than the "
+                            f"{megabytes(MAX_UPLOAD_BYTES)} limit ({MAX_UPLOAD_BYTES:,} bytes) "
+                            f"for a {kind}."])
     try:
         return bytes(data).decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -103,6 +114,14 @@ def parse_session(text: str, filename: str = "session.json") -> dict[str, Any]:
     except json.JSONDecodeError as exc:
         raise SessionError([f"{filename}: not valid JSON (line {exc.lineno}, column "
                             f"{exc.colno}: {exc.msg})."]) from None
+    except RecursionError:
+        raise SessionError([f"{filename}: not a session file: its JSON is nested too deeply "
+                            "to read (a session file is nested three levels deep). Save "
+                            "one with “Save session”."]) from None
+    except ValueError:                            # an integer of more than 4,300 digits
+        raise SessionError([f"{filename}: not a session file: a number in it has more "
+                            f"digits than Python reads ({sys.get_int_max_str_digits():,}). "
+                            "Save one with “Save session”."]) from None
     if not isinstance(doc, dict) or doc.get("schema") != SCHEMA:
         found = doc.get("schema") if isinstance(doc, dict) else type(doc).__name__
         raise SessionError([f"{filename}: not an mdcore session (expected \"schema\": "

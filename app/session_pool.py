@@ -35,6 +35,7 @@ import os
 import time
 from dataclasses import dataclass
 
+from mdcore_app import network
 from mdcore_app.jobs import seconds_since_work
 
 log = logging.getLogger(__name__)
@@ -87,8 +88,9 @@ class SessionPool:
         from bokeh.server.session import current_time
 
         if any(handler.get_argument(a, default=None) is not None for a in _SESSION_ARGS) \
-                or "Bokeh-Session-Id" in handler.request.headers:
-            return None
+                or "Bokeh-Session-Id" in handler.request.headers \
+                or network.request_refusal(handler.request) is not None:
+            return None         # the app decides on a request it may refuse (main.refusal)
         ready = self._ready.pop(id(handler.application_context), None)
         if ready is None:
             return None

@@ -2,7 +2,7 @@
 
 No widget code lives here. :class:`ExplorerState` holds the user's settings as ``param``
 parameters, calls :mod:`mdcore` (history matching wave by wave, then
-:func:`mdcore.pipeline.run_method` per method), and caches what it computed; the views
+:func:`mdcore.run_method` per method), and caches what it computed; the views
 only display it.
 
 Long work (a wave, a discrepancy run) goes through a :class:`~mdcore_app.jobs.JobRunner`:
@@ -24,20 +24,17 @@ import numpy as np
 import param
 import scipy.stats
 
-from mdcore import cases, koh
-from mdcore.case_file import with_measurements
-from mdcore.cases import Case
-from mdcore.history_matching import (
-    MAX_CANDIDATES,
-    MAX_RUNS,
+from mdcore import _cases as cases
+from mdcore import _koh as koh
+from mdcore._case_file import with_measurements
+from mdcore._cases import Case
+from mdcore._history_matching import (
     RULES,
     HistoryMatchResult,
     case_problem,
     next_wave,
 )
-from mdcore.pipeline import (
-    MAX_N_PHI,
-    MAX_N_S,
+from mdcore._pipeline import (
     PAPER_SIZES,
     Method,
     MethodKey,
@@ -66,8 +63,58 @@ GRID_2D = 20
 #: The columns of the Discrepancy tab, in order: decoupled scenarios 1–3 and the KOH
 #: baseline. The keys are the labels of the scenario buttons.
 METHODS = {"1": Method.S1, "2": Method.S2, "3": Method.S3, "koh": Method.KOH}
-#: KOH chain settings: the app's short chain and the paper's (SPEC §7).
+#: KOH chain settings: the app's short chain and the paper's (SPEC §7); the app runs no
+#: longer chain (the library takes up to mdcore._mcmc.MAX_CHAIN = 10⁸ steps).
 KOH_CHAINS = {"fast": dict(koh.FAST), "paper": {"n_iter": koh.N_ITER, "burn_in": koh.BURN_IN}}
+
+# The app's own limits, tighter than the library's (which only refuse what cannot fit in
+# memory): each keeps one click of one session within about a minute and well under 1 GB on
+# the built-in cases, and the command line (python -m mdcore reproduce / run) takes more.
+#: Candidates per wave (library: 10⁷). A wave scores each at every observed input, in
+#: chunks (memory does not grow), and later waves walk them through the earlier waves.
+APP_MAX_CANDIDATES = 1_000_000
+#: Simulator runs per wave (library: 10⁴). The emulator factorises runs × runs over all
+#: waves so far.
+APP_MAX_RUNS = 100
+#: θ samples and φ per θ (library: 10⁵ each and 10⁸ pairs): at most 10⁶ (θ, φ) pairs, the
+#: paper's largest (beam-2d: 1000 × 1000).
+APP_MAX_N_S = APP_MAX_N_PHI = 1_000
+#: Work of one run of scenario 3 and of KOH, in units of (θ, φ) pairs or chain steps ×
+#: outputs × training rows³ (each pair or step factorises an N × N covariance per output):
+#: beam-2d at the paper's sizes (10⁶ pairs × 64³ = 2.6 × 10¹¹, the paper chain
+#: 150,000 × 64³ = 3.9 × 10¹⁰) is the most a built-in case asks for; an upload with many
+#: training rows reaches these with smaller N_s × N_φ or the fast chain.
+MAX_S3_WORK, MAX_KOH_WORK = 1e12, 4e10
+#: What the app says when a value is beyond one of its limits.
+APP_LIMITS = {
+    "n_candidates": f"The app scores at most {APP_MAX_CANDIDATES:,} candidates per wave "
+                    "(a wave then takes seconds); the command line takes up to 10,000,000.",
+    "n_runs": f"The app runs at most {APP_MAX_RUNS} simulator runs per wave (its emulator "
+              "factorises all runs × all runs); the command line takes up to 10,000.",
+    "n_s": f"The app takes at most {APP_MAX_N_S:,} θ samples and {APP_MAX_N_PHI:,} φ per θ "
+           "(10⁶ pairs, the paper's largest; a minute or so); the command line takes more.",
+}
+APP_LIMITS["n_phi"] = APP_LIMITS["n_s"]
+
+
+def work_problem(case, settings: Settings, methods) -> str | None:
+    """Why the app will not run ``methods`` on ``case`` with ``settings`` (scenario 3 or
+    KOH beyond :data:`MAX_S3_WORK` / :data:`MAX_KOH_WORK`), or None."""
+    n = case.X_train.shape[0]
+    per = case.n_out * float(n) ** 3
+    if Method.S3 in methods and settings.n_s * settings.n_phi * per > MAX_S3_WORK:
+        most = int(MAX_S3_WORK / per)
+        return (f"Scenario 3 with N_s × N_φ = {settings.n_s * settings.n_phi:,} pairs on "
+                f"{n} training rows × {case.n_out} output(s) is more than the app runs in "
+                f"one go (minutes to hours): every pair factorises a {n} × {n} covariance. "
+                f"Lower N_s × N_φ to at most {most:,}, or run it from the command line.")
+    if Method.KOH in methods and settings.n_iter * per > MAX_KOH_WORK:
+        return (f"KOH with a {settings.n_iter:,}-step chain on {n} training rows × "
+                f"{case.n_out} output(s) is more than the app runs in one go (minutes to "
+                f"hours): every step factorises a {n} × {n} covariance. Choose the fast "
+                "chain, fewer training rows, or run it from the command line "
+                "(python -m mdcore run … --methods koh).")
+    return None
 
 
 def method_order(method: Method) -> int:
@@ -110,7 +157,7 @@ class ProblemKey(NamedTuple):
 
 
 class ResultKey(NamedTuple):
-    """What a cached :class:`~mdcore.pipeline.MethodResult` depends on."""
+    """What a cached :class:`~mdcore.MethodResult` depends on."""
 
     problem: ProblemKey
     n_waves: int
@@ -178,8 +225,8 @@ class ExplorerState(param.Parameterized):
     threshold = param.Number(default=3.0, bounds=(0.0, 1e6), inclusive_bounds=(False, True),
                              softbounds=(1.0, 5.0), label="Threshold T")
     rule = param.Selector(objects=list(RULES), default="max", label="Implausibility rule")
-    n_runs = param.Integer(default=10, bounds=(1, MAX_RUNS), label="Runs per wave")
-    n_candidates = param.Integer(default=50_000, bounds=(100, MAX_CANDIDATES),
+    n_runs = param.Integer(default=10, bounds=(1, APP_MAX_RUNS), label="Runs per wave")
+    n_candidates = param.Integer(default=50_000, bounds=(100, APP_MAX_CANDIDATES),
                                  label="Candidates per wave")
     max_waves = param.Integer(default=5, bounds=(1, 20), label="Max waves")
     convergence_ratio = param.Number(
@@ -189,8 +236,9 @@ class ExplorerState(param.Parameterized):
     selected_wave = param.Integer(default=0, bounds=(0, None), label="Wave shown")
 
     # --- discrepancy controls ----------------------------------------------------------
-    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, MAX_N_S), label="N_s (θ samples)")
-    n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, MAX_N_PHI), label="N_φ (φ per θ)")
+    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, APP_MAX_N_S), label="N_s (θ samples)")
+    n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, APP_MAX_N_PHI),
+                          label="N_φ (φ per θ)")
     paper_sizes = param.Boolean(default=False, label="Paper sizes")
     scenarios = param.ListSelector(default=[Method.S1, Method.S2, Method.S3],
                                    objects=METHODS, label="Scenarios",
@@ -269,8 +317,11 @@ class ExplorerState(param.Parameterized):
     # Case
 
     @param.depends("case_name", watch=True)
-    def _load_case(self):
-        if self.case is not None and self.case_name == self.case.name:
+    def _load_case(self, replace: bool = False):
+        """Load the case ``case_name`` names; ``replace``: it is the current case with new
+        data (an upload or a session file of the same name), whose results are dropped.
+        ``case`` goes from one case to the next, never through None (its watchers draw it)."""
+        if not replace and self.case is not None and self.case_name == self.case.name:
             return                                   # put back after a failed load
         try:
             case = (self._own[self.case_name][0] if self.case_name in self._own
@@ -283,7 +334,7 @@ class ExplorerState(param.Parameterized):
             self.case_name = self.case.name
             return
         self._jobs.drop()                            # drop work for the previous case
-        if self.case is not None:                    # keep its results for switching back
+        if self.case is not None and not replace:    # keep its results for switching back
             self._kept[self.case.name] = ({k: getattr(self, k) for k in HM_CONTROLS},
                                           self._snapshot())
         self._problem, self._problem_key, self._cache = None, None, {}
@@ -293,7 +344,7 @@ class ExplorerState(param.Parameterized):
             self.grid = plotting_grid(case)
             self.v_m = float(case.V_m[0])
             self._apply_preset()
-            self.n_candidates = 50_000 * case.p
+            self.n_candidates = min(50_000 * case.p, APP_MAX_CANDIDATES)
             if case.d_x == 2:
                 self.param.slice_x2.bounds = (float(case.X_train[:, 1].min()),
                                               float(case.X_train[:, 1].max()))
@@ -377,10 +428,16 @@ class ExplorerState(param.Parameterized):
                           results=snap.results)
 
     def reject(self, name: str, value, reason: Exception) -> None:
-        """Report a typed value the parameter ``name`` refused (the field reverts)."""
+        """Report a typed value the parameter ``name`` refused (the field reverts); for the
+        app's own limits (:data:`APP_LIMITS`), the range and why."""
         p = self.param[name]
-        self.report_error(f"{p.label}: {value!r} is not allowed ({reason}). The field keeps "
-                           f"{getattr(self, name)!r}.")
+        if name in APP_LIMITS and isinstance(value, int) and not isinstance(value, bool) \
+                and value > p.bounds[1]:
+            why = (f"{p.label}: {value:,} is not allowed (at most {p.bounds[1]:,}: "
+                   f"{APP_LIMITS[name].rstrip('.')}).")
+        else:
+            why = f"{p.label}: {value!r} is not allowed ({reason})."
+        self.report_error(f"{why} The field keeps {getattr(self, name)!r}.")
 
     def report_error(self, message: str) -> None:
         """Show ``message`` as one error notification."""
@@ -416,15 +473,22 @@ class ExplorerState(param.Parameterized):
 
         ``stop(wave)`` says when to end after ``wave`` (converged waves always end).
         """
-        total = max(problem.max_waves - len(waves), 1)
-        report(0.0, f"wave {len(waves) + 1}")
+        total = max(problem.options.max_waves - len(waves), 1)
+        first = len(waves)
+        report(0.0, f"wave {first + 1}")
         while True:
-            wave = next_wave(problem, waves)
+            k = len(waves)            # the wave's steps report (and check Cancel) as it runs
+            wave = next_wave(problem, waves, progress=lambda f, k=k: report(
+                min(1.0, (k - first + f) / total), f"wave {k + 1}"))
             if wave.status == "ruled_out":
                 raise ValueError(wave.message + " The previous waves are kept.")
             waves = waves + (wave,)
+            # θ_MAP here, where Cancel reaches it, not when the views first draw it on the
+            # session's thread (seconds for a large upload).
+            self._history_match_of(problem, waves).compute_theta_map(
+                lambda f, k=k: report(min(1.0, (k - first + 1) / total), f"wave {k + 1}: θ_MAP"))
             maps = self._implausibility_map(problem, wave)
-            report(min(1.0, len(waves) / total), f"wave {wave.index} done")
+            report(min(1.0, (len(waves) - first) / total), f"wave {wave.index} done")
             yield "wave", (problem, key, waves, wave.index, maps)
             if wave.done or stop(wave):
                 return
@@ -480,7 +544,8 @@ class ExplorerState(param.Parameterized):
         t1 = np.linspace(b[0, 0], b[0, 1], MAP_RESOLUTION)
         t2 = np.linspace(b[1, 0], b[1, 1], MAP_RESOLUTION)
         T1, T2 = np.meshgrid(t1, t2, indexing="xy")
-        I = problem.implausibility(np.column_stack([T1.ravel(), T2.ravel()]), wave.emulator)
+        grid = np.column_stack([T1.ravel(), T2.ravel()])
+        I = problem.combined_implausibility(grid, wave.emulator)
         return t1, t2, I.reshape(T1.shape)
 
     @property
@@ -603,8 +668,12 @@ class ExplorerState(param.Parameterized):
             waves = waves[:n_waves]              # each wave depends only on the earlier ones
         target = n_waves if n_waves is not None else (len(waves) or None)
 
+        too_much = work_problem(case, settings, chosen)
+
         def compute(report, cancel):
             nonlocal waves
+            if too_much is not None:
+                raise ValueError(too_much)
             if target is None:
                 yield "note", ("No history match for these settings yet: running the waves "
                                "until convergence, then the discrepancy methods.")
@@ -668,7 +737,7 @@ class ExplorerState(param.Parameterized):
     def upload_measurements(self, data: bytes, filename: str) -> bool:
         """Use uploaded measurements with the current case's simulator (a new case).
 
-        The file must have the layout of :func:`mdcore.case_file.measurements_template`
+        The file must have the layout of :func:`mdcore.measurements_template`
         (the "Template CSV" download). It is only parsed: nothing in it is run. Each
         problem found becomes one notification, and the session keeps its case.
 
@@ -702,16 +771,15 @@ class ExplorerState(param.Parameterized):
         names = list(cases.names()) + list(self._own)
         self.param.case_name.objects = names
         if self.case_name == case.name:              # replaced: load the new data
-            self.case = None
-            self._load_case()
+            self._load_case(replace=True)
         else:
             self.case_name = case.name
 
     def case_run(self):
-        """The current history match and shown results as a :class:`~mdcore.reproduce.CaseRun`
+        """The current history match and shown results as a :class:`~mdcore.CaseRun`
         (what the CLI's ``--json``, ``--csv`` and ``--out`` write), or None before any
         result."""
-        from mdcore.reproduce import CaseRun
+        from mdcore._reproduce import CaseRun
         if not self.results or self.history_match is None:
             return None
         results = tuple(self.results[m] for m in sorted(self.results, key=method_order))
@@ -732,18 +800,47 @@ class ExplorerState(param.Parameterized):
             run=None if run is None else run.to_dict())
         return json.dumps(doc, indent=1, allow_nan=False)
 
+    @staticmethod
+    def _set_controls(state: ExplorerState, controls: dict, filename: str) -> Settings:
+        """Set a session file's ``controls`` on ``state`` in the file's order (a preset
+        first sets what it implies); returns the pipeline settings they make.
+
+        Raises
+        ------
+        SessionError
+            Naming the first control outside its parameter's bounds or choices.
+        """
+        state._restoring = True
+        try:
+            for k, v in controls.items():
+                try:
+                    setattr(state, k, v)
+                except ValueError as exc:                # the parameter's own bounds or choices
+                    why = f" {APP_LIMITS[k]}" if k in APP_LIMITS else ""
+                    raise session.SessionError([
+                        f"{filename}: controls.{k} = {v!r} is not allowed for "
+                        f"{state.param[k].label} ({exc}).{why}"]) from None
+        finally:
+            state._restoring = False
+        return state.method_settings()
+
     def open_session(self, data: bytes, filename: str) -> bool:
         """Restore a saved session: its case (with uploaded data), controls, waves and
         methods, recomputed and checked against the saved metrics.
 
         Returns whether the file was accepted; each problem with it is one notification,
-        and the session is unchanged.
+        and the session is unchanged (the file is checked in full, its controls on a
+        scratch state, before anything of this session changes).
         """
         before = {k: getattr(self, k) for k in ("case_name", *session.CONTROLS)}
         try:
             doc = session.parse_session(
                 session.decode_upload(data, filename, kind="session JSON"), filename)
             case = doc["case"]
+            controls = dict(doc["controls"])
+            controls["scenarios"] = [Method.parse(v) for v in controls["scenarios"]]
+            self._set_controls(ExplorerState(), controls, filename)   # refused before any change
+            own = None
             if case["measurements_csv"] is not None:
                 base = case["based_on"]
                 if base not in cases.names():
@@ -751,29 +848,17 @@ class ExplorerState(param.Parameterized):
                                                 f"{list(cases.names())}; found {base!r}."])
                 own = with_measurements(cases.load(base, seed=0), case["measurements_csv"],
                                         source=case["measurements_file"] or "measurements.csv")
-                self._add_case(own, base, case["measurements_csv"],
-                               case["measurements_file"])
             elif case["name"] not in self.param.case_name.objects:
                 raise session.SessionError([
                     f"{filename}: the case {case['name']!r} is not in this app (it has "
                     f"{', '.join(self.param.case_name.objects)}); start the app with "
                     f"`--args --case <its case file>.toml` to add it."])
+            if own is not None:
+                self._add_case(own, case["based_on"], case["measurements_csv"],
+                               case["measurements_file"])
             else:
                 self.case_name = case["name"]
-            controls = dict(doc["controls"])
-            controls["scenarios"] = [Method.parse(v) for v in controls["scenarios"]]
-            self._restoring = True
-            try:
-                for k, v in controls.items():
-                    try:
-                        setattr(self, k, v)
-                    except ValueError as exc:        # the parameter's own bounds or choices
-                        raise session.SessionError([
-                            f"{filename}: controls.{k} = {v!r} is not allowed for "
-                            f"{self.param[k].label} ({exc})."]) from None
-            finally:
-                self._restoring = False
-            settings = self.method_settings()
+            settings = self._set_controls(self, controls, filename)
         except ValueError as exc:
             self._restoring = True
             try:

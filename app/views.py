@@ -17,10 +17,11 @@ import pandas as pd
 import panel as pn
 import param
 
-from mdcore.case_file import TEST_COLUMN, measurements_template
-from mdcore.export import nroy_csv, predictions_csv
-from mdcore.pipeline import Method, MethodResult
-from mdcore.study import PAPER
+from mdcore._case_file import MAX_TRAINING_ROWS, TEST_COLUMN, measurements_template
+from mdcore._cases import MAX_ROWS
+from mdcore._export import nroy_csv, predictions_csv
+from mdcore._pipeline import Method, MethodResult
+from mdcore._study import PAPER
 
 from . import plots
 from .calibration_panel import CalibrationPanel
@@ -30,13 +31,15 @@ from .experiments import EXPERIMENTS
 from .live_figures import alert_box, figure_pane, live_text
 from .markup import html_text, markdown_text
 from .report import report_html
-from .session import MAX_UPLOAD_BYTES
+from .session import MAX_UPLOAD_BYTES, megabytes
 from .state import ExplorerState, method_order
+from .upload import FileUpload
 from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
 #: A job's progress bar and Cancel button appear once it has run this long (seconds), so
-#: that runs at the default sizes (a fraction of a second) do not flash them.
+#: that runs at the default sizes (a fraction of a second) do not flash them; then they
+#: stay until it ends, whether or not it reports progress (a long wave may not).
 SHOW_PROGRESS_AFTER = 0.5
 #: Height of the busy line (two lines of text), fixed so that a new message never
 #: changes the page's layout.
@@ -279,15 +282,17 @@ class ExplorerView(pn.viewable.Viewer):
         change of a size, a visibility or a CSS class re-lays-out the whole page, which
         redraws every plot (0.5–0.8 s each time on 2 cores, several times per run). So the
         line has a fixed height and says busy or idle with a class *inside* its text, and
-        the bar and the Cancel button keep their place, hidden by ``visibility``.
+        the bar and the Cancel button keep their place, hidden by ``visibility``: of their
+        row (Panel's Progress copies its own styles to its bar once, when drawn, so a bar
+        drawn hidden stayed hidden).
         """
         text = pn.pane.HTML(_status_html(False, ""), height=STATUS_HEIGHT,
                             sizing_mode="stretch_width",
                             styles={"overflow": "hidden", "font-size": "0.9em"})
-        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width",
-                                     styles=dict(HIDDEN))
-        cancel = pn.widgets.Button(label="Cancel", color="warning", styles=dict(HIDDEN),
-                                   css_classes=["cancel-job"])
+        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width")
+        cancel = pn.widgets.Button(label="Cancel", color="warning", css_classes=["cancel-job"])
+        row = pn.Row(bar, cancel, sizing_mode="stretch_width", styles=dict(HIDDEN),
+                     css_classes=["job-progress"])
         cancel.on_click(lambda _: self.state.cancel())
         since: list[float | None] = [None]          # when the current job started
 
@@ -297,18 +302,19 @@ class ExplorerView(pn.viewable.Viewer):
                 since[0] = None
             elif since[0] is None:
                 since[0] = time.monotonic()
+                doc = pn.state.curdoc            # look again then, progress or not
+                if doc is not None and doc.session_context is not None:
+                    doc.add_timeout_callback(update, int(1000 * SHOW_PROGRESS_AFTER) + 20)
             show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
             text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
             styles = dict(SHOWN if show else HIDDEN)
-            if bar.styles != styles:
-                bar.styles = styles
-                cancel.styles = styles
+            if row.styles != styles:
+                row.styles = styles
             bar.value = int(100 * s.progress)
 
         self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
         update()
-        return pn.Column(text, pn.Row(bar, cancel, sizing_mode="stretch_width"),
-                         sizing_mode="stretch_width")
+        return pn.Column(text, row, sizing_mode="stretch_width")
 
     # --- tabs --------------------------------------------------------------------------
     @property
@@ -415,20 +421,27 @@ class ExplorerView(pn.viewable.Viewer):
     def _slug(self) -> str:
         return re.sub(r"[^A-Za-z0-9_.-]+", "_", self.state.case_name).strip("_")
 
-    def _dropper(self, accept: list[str], handler, css: str):
-        """A file drop area (chunked upload, size cap in the browser) calling
-        ``handler(data, filename)`` once per file."""
-        drop = pn.widgets.FileDropper(accepted_filetypes=accept, multiple=False,
-                                      max_file_size=f"{MAX_UPLOAD_BYTES // 2**20}MB",
-                                      layout="compact", css_classes=[css],
-                                      sizing_mode="stretch_width")
+    def _dropper(self, accept: str, handler, css: str, prompt: str) -> FileUpload:
+        """A drop area calling ``handler(data, filename) -> bool`` once per file (sent in
+        counted chunks, at most MAX_UPLOAD_BYTES); a file it refuses is marked refused
+        with its first problem (every problem is also a notification)."""
+        s = self.state
 
-        def received(event):
-            for filename, data in (event.new or {}).items():
-                handler(data.encode("utf-8") if isinstance(data, str) else data, filename)
+        def take(data: bytes, filename: str) -> str | None:
+            problems: list[str] = []
+            watcher = s.param.watch(lambda _: problems.append(s.error), "n_errors")
+            try:
+                taken = handler(data, filename)
+            finally:
+                s.param.unwatch(watcher)
+            if taken:
+                return None
+            more = f" (and {len(problems) - 1} more: see the messages)" if problems[1:] else ""
+            return (problems[0] if problems else "It was not taken.") + more
 
-        drop.param.watch(received, "value")
-        return drop
+        return FileUpload(take=take, refuse=s.report_error, accept=accept, prompt=prompt,
+                          max_bytes=MAX_UPLOAD_BYTES, css_classes=[css], margin=(5, 10),
+                          sizing_mode="stretch_width")
 
     def _download(self, label: str, css: str, make, filename):
         """A download button whose file is made when pressed; disabled while ``make``
@@ -453,8 +466,10 @@ class ExplorerView(pn.viewable.Viewer):
             f"(now {markdown_text(s.base_case_name())}): a header row with the columns "
             f"{columns} (`{TEST_COLUMN}`: 1 = held-out test row, 0 = training row), one row per "
             "observation, replicates as repeated rows, `#` lines as comments. Start from "
-            f"the template. At most {MAX_UPLOAD_BYTES // 2**20} MB; the file is only read, "
-            "never run. It becomes a new case of this session, named after the file.",
+            f"the template. At most {MAX_ROWS:,} data rows, of which at most "
+            f"{MAX_TRAINING_ROWS:,} training rows, and {megabytes(MAX_UPLOAD_BYTES)}; the "
+            "file is only read, never run. It becomes a new case of this session, named "
+            "after the file.",
             css_classes=["upload-help"])
 
     def files_view(self):
@@ -500,7 +515,8 @@ class ExplorerView(pn.viewable.Viewer):
         refresh()
         return pn.Column(
             self._upload_help,
-            pn.Row(self._dropper([".csv", "text/csv"], s.upload_measurements, "upload-csv"),
+            pn.Row(self._dropper(".csv,text/csv", s.upload_measurements, "upload-csv",
+                                 "Drop your measurements CSV here, or click to choose it."),
                    downloads["template"], sizing_mode="stretch_width"),
             pn.pane.Markdown("#### Results out\nCSV tables (every wave's NROY samples with "
                              "their implausibility; z and δ means and sds per method at the "
@@ -512,7 +528,8 @@ class ExplorerView(pn.viewable.Viewer):
                              "settings, waves and methods are recomputed (every step is "
                              "seeded) and checked against the saved metrics; the status line "
                              "says whether they agree."),
-            self._dropper([".json", "application/json"], s.open_session, "open-session"),
+            self._dropper(".json,application/json", s.open_session, "open-session",
+                          "Drop a session JSON here, or click to choose it."),
             sizing_mode="stretch_width", max_width=900)
 
     def try_view(self):

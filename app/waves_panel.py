@@ -41,7 +41,7 @@ from bokeh.models import (
 )
 from bokeh.palettes import Category10_10, Viridis256
 
-from mdcore.validation import as_float_array, as_int, as_positive_float
+from mdcore._validation import as_float_array, as_int, as_positive_float
 
 from .live_figures import (
     CURRENT,
@@ -364,7 +364,7 @@ class WavesPanel(LivePanel):
         if c.p == 1:
             self._map_line.location = None if theta_map is None else float(theta_map[0])
         if self._image is not None:
-            self._show_map(s.implausibility_maps.get(upto), hm.problem.threshold, upto)
+            self._show_map(s.implausibility_maps.get(upto), hm.problem.options.threshold, upto)
         self._legend_div.text = legend_html(shown, c.theta_true is not None,
                                           theta_map is not None, lines=c.p == 1)
         k = [w.index for w in shown]

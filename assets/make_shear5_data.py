@@ -9,7 +9,7 @@ never the copy of an installed mdcore.
 import argparse
 from pathlib import Path
 
-from mdcore.cases import make_shear5_measurements
+from mdcore._cases import make_shear5_measurements
 
 CHECKOUT = Path(__file__).resolve().parent.parent
 CHECKOUT_CSV = CHECKOUT / "mdcore" / "data" / "shear5_measurements.csv"

@@ -19,7 +19,7 @@ import holoviews as hv
 import panel as pn
 from bokeh.document import Document
 
-from mdcore.pipeline import Method
+from mdcore._pipeline import Method
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 

@@ -12,10 +12,10 @@ import sys
 import time
 import warnings
 
-from mdcore import cases
-from mdcore.diagnostics import space_views, theta_delta_split, validate_waves
-from mdcore.history_matching import history_match_case
-from mdcore.pipeline import Method, Settings, run_method
+from mdcore import _cases as cases
+from mdcore._diagnostics import space_views, theta_delta_split, validate_waves
+from mdcore._history_matching import history_match_case
+from mdcore._pipeline import Method, Settings, run_method
 
 
 def best(fn, repeat=3):

@@ -18,10 +18,10 @@ import warnings
 
 import numpy as np
 
-from mdcore import cases
-from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
-from mdcore.history_matching import history_match_case
-from mdcore.reproduce import PAPER_SIZES
+from mdcore import _cases as cases
+from mdcore._discrepancy import DiscrepancyOptions, infer_discrepancy
+from mdcore._history_matching import history_match_case
+from mdcore._reproduce import PAPER_SIZES
 
 
 def sklearn_loop(case, theta, phi, idx):

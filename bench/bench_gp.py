@@ -2,7 +2,7 @@
 
 Usage: python bench/bench_gp.py [--pairs 20000] [--sk-pairs 300]
 
-Prints pairs per second for mdcore.gp.neg_log_marginal_likelihood (one batched call) and
+Prints pairs per second for mdcore._gp.neg_log_marginal_likelihood (one batched call) and
 for scikit-learn's GaussianProcessRegressor.log_marginal_likelihood called once per pair
 (same kernel: ConstantKernel * Matern(nu=1.5, ARD) + WhiteKernel, d_y = 1, d_x = 1),
 both measured in this run, and the ratio.
@@ -13,7 +13,7 @@ import time
 
 import numpy as np
 
-from mdcore import gp
+from mdcore import _gp as gp
 
 
 def main():

@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from mdcore import cases
-from mdcore.history_matching import case_problem, iter_waves
+from mdcore import _cases as cases
+from mdcore._history_matching import case_problem, iter_waves
 
 
 def main():

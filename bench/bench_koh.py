@@ -2,7 +2,7 @@
 
 Usage: python bench/bench_koh.py [--n-iter 150000] [--burn-in 50000] [--ref-steps 3000]
 
-Times ``mdcore.koh.infer`` with the paper's chain (empirical Bayes, 150,000 adaptive-
+Times ``mdcore._koh.infer`` with the paper's chain (empirical Bayes, 150,000 adaptive-
 Metropolis steps) and the prediction at the 200 test inputs. The reference, measured in the
 same run, is the same log posterior evaluated naively: every step rebuilds what does not
 depend on θ (the emulator's x-parts via ``Emulator.at``, ``K_δ + σ_n² I``) before the
@@ -14,11 +14,11 @@ import time
 
 import numpy as np
 
-from mdcore import cases
-from mdcore.history_matching import history_match_case
-from mdcore.koh import KOHOptions, gaussian_log_likelihood, infer_koh, noise_cov
-from mdcore.linalg import JitterLog
-from mdcore.pipeline import koh_phi_prior
+from mdcore import _cases as cases
+from mdcore._history_matching import history_match_case
+from mdcore._koh import KOHOptions, gaussian_log_likelihood, infer_koh, noise_cov
+from mdcore._linalg import JitterLog
+from mdcore._pipeline import koh_phi_prior
 
 
 def main():

@@ -4,7 +4,7 @@ Usage: python bench/bench_memory.py [--scale 10] [--scenarios 3 2] [--backend au
 
 Each run is a fresh child process (``python bench/bench_memory.py --child …``) that loads
 beam-1d (seed 0), history-matches it and runs one method through
-:func:`mdcore.pipeline.run_method`: the θ draws, the weights of every (θ, φ) pair, the
+:func:`mdcore.run_method`: the θ draws, the weights of every (θ, φ) pair, the
 mixture prediction at the test inputs, the metrics and the importance diagnostics. Its
 peak resident set size is the child's ``ru_maxrss`` as :func:`os.wait4` reports it (the
 whole process: interpreter, NumPy, numba and the compiled kernels included). The child also
@@ -13,12 +13,12 @@ is ``peak − before``.
 
 The paper's sizes on beam-1d are N_s = 1000, N_φ = 500 (500,000 pairs); ``--scale 10``
 runs N_s = 10,000 (5,000,000 pairs for scenario 3, 10,000 for scenario 2). The work is
-chunked (:mod:`mdcore.discrepancy`): no array of pairs × N or pairs × N* is ever formed.
+chunked (:mod:`mdcore._discrepancy`): no array of pairs × N or pairs × N* is ever formed.
 What grows with the pairs is the log weights, (n_out, N_s, N_φ) float64 (40 MB at 10×),
 and a few temporaries of that shape (normalising, Pareto k̂, ESS). The φ draws
-(N_s, N_φ, P) are kept only up to ``mdcore.discrepancy.KEEP_DRAWS_BYTES`` (64 MB); above,
+(N_s, N_φ, P) are kept only up to ``mdcore._discrepancy.KEEP_DRAWS_BYTES`` (64 MB); above,
 the model keeps the generator state of each chunk and draws them again when predicting
-(:class:`mdcore.discrepancy.PriorDraws`), so at 10× they cost no 160 MB.
+(:class:`mdcore._discrepancy.PriorDraws`), so at 10× they cost no 160 MB.
 """
 
 from __future__ import annotations
@@ -37,9 +37,9 @@ CASE = "beam-1d"
 
 def child(scenario: int, n_s: int, n_phi: int, backend: str) -> None:
     """One run in this process; prints a JSON line with its figures."""
-    from mdcore import cases
-    from mdcore.history_matching import history_match_case
-    from mdcore.pipeline import Settings, run_method
+    from mdcore import _cases as cases
+    from mdcore._history_matching import history_match_case
+    from mdcore._pipeline import Settings, run_method
 
     case = cases.load(CASE, seed=0)
     hm = history_match_case(case, seed=0)
@@ -87,7 +87,7 @@ def main() -> None:
         child(args.scenario, args.n_s, args.n_phi, args.backend)
         return
 
-    from mdcore.pipeline import PAPER_SIZES
+    from mdcore._pipeline import PAPER_SIZES
 
     n_s, n_phi = PAPER_SIZES[CASE]
     print(f"{CASE}, backend {args.backend}; peak RSS of each child process (MB)")

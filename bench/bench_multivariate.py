@@ -18,9 +18,9 @@ import time
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from mdcore import cases
-from mdcore.history_matching import case_problem, next_wave
-from mdcore.threads import single_threaded_blas_for_process
+from mdcore import _cases as cases
+from mdcore._history_matching import case_problem, next_wave
+from mdcore._threads import single_threaded_blas_for_process
 
 M = 100_000
 

@@ -45,11 +45,13 @@ from functools import partial
 
 import numpy as np
 
-from mdcore import cases, compiled, threads
-from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
-from mdcore.emulator import fit_emulator
-from mdcore.history_matching import case_problem, history_match_case, next_wave
-from mdcore.pipeline import PAPER_SIZES, Method, Settings, run_method
+from mdcore import _cases as cases
+from mdcore import _compiled as compiled
+from mdcore import _threads as threads
+from mdcore._discrepancy import DiscrepancyOptions, infer_discrepancy
+from mdcore._emulator import fit_emulator
+from mdcore._history_matching import case_problem, history_match_case, next_wave
+from mdcore._pipeline import PAPER_SIZES, Method, Settings, run_method
 
 APP = (100, 50)
 
@@ -232,7 +234,7 @@ def hm_wave_row(name, repeat):
 
 def jit_times():
     """warm_up() in fresh processes: empty numba cache (cold), then filled (warm)."""
-    code = ("import time; t = time.perf_counter(); from mdcore import compiled; "
+    code = ("import time; t = time.perf_counter(); from mdcore import _compiled as compiled; "
             "w = compiled.warm_up(); print(w, time.perf_counter() - t)")
     with tempfile.TemporaryDirectory() as cache:
         env = dict(os.environ, NUMBA_CACHE_DIR=cache)

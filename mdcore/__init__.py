@@ -3,27 +3,73 @@
 Decoupled calibration (Bayesian history matching) and GP model discrepancy of
 Gardner, Rogers, Lord, Barthorpe & Worden, "Learning model discrepancy: a Gaussian
 process and sampling-based approach", Mechanical Systems and Signal Processing (2021).
+The method in our own words is in ``docs/method.md``.
 
-The public face is small: :func:`run_method` with :class:`Method` and :class:`Settings`
-(the pipeline), the warnings and :class:`Cancelled`. The modules behind it:
-:mod:`mdcore.cases` and :mod:`mdcore.case_file` (case studies, your own data),
-:mod:`mdcore.history_matching` (with :mod:`mdcore.emulator`, :mod:`mdcore.runs`),
-:mod:`mdcore.discrepancy` (scenarios 1–3, with :mod:`mdcore.importance`),
-:mod:`mdcore.koh` (with :mod:`mdcore.mcmc`), the GP core (:mod:`mdcore.gp`,
-:mod:`mdcore.kernels`, :mod:`mdcore.linalg`, :mod:`mdcore.hyperfit`, :mod:`mdcore.priors`),
-:mod:`mdcore.metrics`, :mod:`mdcore.reproduce`, :mod:`mdcore.study`, :mod:`mdcore.export`.
+Everything a user needs is imported from here; the modules behind it are private
+(``mdcore._name``) and may change without notice::
+
+    import mdcore
+    case = mdcore.load_case("beam-1d", seed=0)
+    hm = mdcore.history_match_case(case)
+    result = mdcore.run_method(case, hm, mdcore.Method.S3, mdcore.Settings(), seed=0)
 """
 
-from .exceptions import Cancelled as Cancelled
-from .exceptions import ConvergenceWarning as ConvergenceWarning
-from .exceptions import EmulatorWarning as EmulatorWarning
-from .exceptions import LowESSWarning as LowESSWarning
-from .exceptions import NumericalWarning as NumericalWarning
-from .pipeline import Method as Method
-from .pipeline import MethodResult as MethodResult
-from .pipeline import Settings as Settings
-from .pipeline import run_method as run_method
+from ._case_file import CaseFileError, load_case_file, measurements_template, with_measurements
+from ._cases import Case, MeasurementsError
+from ._cases import load as load_case
+from ._cases import names as case_names
+from ._diagnostics import WaveValidation, theta_delta_split, validate_waves
+from ._discrepancy import (
+                           DiscrepancyModel,
+                           DiscrepancyOptions,
+                           DiscrepancyPrediction,
+                           infer_discrepancy,
+)
+from ._emulator import Emulator, fit_emulator
+from ._exceptions import (
+                           Cancelled,
+                           ConvergenceWarning,
+                           EmulatorWarning,
+                           LowESSWarning,
+                           NumericalWarning,
+)
+from ._export import write_tables
+from ._history_matching import (
+                           HistoryMatchProblem,
+                           HistoryMatchResult,
+                           Wave,
+                           case_problem,
+                           history_match,
+                           history_match_case,
+                           next_wave,
+)
+from ._hyperfit import FitOptions
+from ._koh import KOHModel, KOHOptions, infer_koh
+from ._metrics import coverage, lpl, mmd, nmse
+from ._pipeline import Method, MethodResult, Settings, metrics_table, run_method
+from ._priors import GaussianPrior, ThetaPrior
+from ._reproduce import CaseRun, reproduce, run_case
+from ._study import Study, study
 
 __version__ = "0.1.0"
-__all__ = ["Cancelled", "ConvergenceWarning", "EmulatorWarning", "LowESSWarning", "Method",
-           "MethodResult", "NumericalWarning", "Settings", "__version__", "run_method"]
+__all__ = [
+    # case studies and your own data
+    "Case", "load_case", "case_names", "load_case_file", "measurements_template",
+    "with_measurements", "CaseFileError", "MeasurementsError",
+    # history matching
+    "HistoryMatchOptions", "HistoryMatchProblem", "HistoryMatchResult", "Wave", "history_match",
+    "history_match_case", "case_problem", "next_wave", "Emulator", "fit_emulator",
+    # diagnostics: each wave's leave-one-run-out check, the θ–δ trade-off
+    "validate_waves", "WaveValidation", "theta_delta_split",
+    # discrepancy (scenarios 1-3) and the Kennedy-O'Hagan baseline
+    "infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions", "DiscrepancyPrediction",
+    "infer_koh", "KOHModel", "KOHOptions", "FitOptions", "GaussianPrior", "ThetaPrior",
+    # the pipeline behind the API, the CLI and the app
+    "Method", "Settings", "MethodResult", "run_method", "metrics_table",
+    "reproduce", "run_case", "CaseRun", "study", "Study", "write_tables",
+    # metrics
+    "nmse", "lpl", "mmd", "coverage",
+    # warnings and cancellation
+    "Cancelled", "ConvergenceWarning", "EmulatorWarning", "LowESSWarning", "NumericalWarning",
+    "__version__",
+]

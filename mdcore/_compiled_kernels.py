@@ -1,4 +1,4 @@
-"""Numba kernels behind :mod:`mdcore.compiled`: :func:`pair_range` (scenario 3's pairs)
+"""Numba kernels behind :mod:`mdcore._compiled`: :func:`pair_range` (scenario 3's pairs)
 and :func:`koh_steps` (the KOH chain), serial with the GIL released, on C-contiguous arrays
 in NamedTuples (one signature each). The Matérn 3/2 kernel (Eq. 3) is :func:`_matern_parts`;
 hot loops are flat loops over contiguous arrays, which LLVM vectorises.
@@ -163,8 +163,8 @@ def _log_density(R, n, c):
 def pair_range(mode, b0, b1, pairs, test, ladder, out, acc):
     """Pairs ``b0 ≤ b < b1``: the NLML (Eq. 9) of ``(pairs.theta[b], pairs.Y[pairs.row[b]])``
     for every column of ``pairs.z`` (one factorisation) into ``out``
-    (:class:`mdcore.compiled.PairOut`), and in :data:`MIXTURE` mode the sums of
-    :func:`mdcore.compiled.mixture_sums` into ``acc`` (4, M). Pairs of one row of Y should
+    (:class:`mdcore._compiled.PairOut`), and in :data:`MIXTURE` mode the sums of
+    :func:`mdcore._compiled.mixture_sums` into ``acc`` (4, M). Pairs of one row of Y should
     follow each other: their differences are computed once."""
     theta, row, Y, X, z = pairs
     N, d_x = X.shape
@@ -255,7 +255,7 @@ def pair_range(mode, b0, b1, pairs, test, ladder, out, acc):
 @_inline
 def _koh_log_likelihood(u, em, koh, work):
     """``Σ_o log N(z_o | m_η(X, θ), Σ_η(X, X; θ) + K_δ,o + σ_n,o² I)`` at ``θ = μ + sd u``,
-    with the emulator's moments (:class:`mdcore.emulator.EmulatorAt`): ``k_θ = m32(θ,
+    with the emulator's moments (:class:`mdcore._emulator.EmulatorAt`): ``k_θ = m32(θ,
     Θ_train)``, ``m_η = lin + θᵀβ_θ + k_θ AK``, ``Σ_η = σ_f² m32(X, X) − σ_f⁴ V diag(d)
     Vᵀ`` with ``d = (k_θ Q_θ)² W``. ``-inf`` where a covariance fails the jitter ladder.
     Returns ``(value, jittered, failed, largest step)``."""
@@ -313,8 +313,8 @@ def _koh_log_likelihood(u, em, koh, work):
 
 @_kernel
 def koh_steps(t_start, lp, steps, log_u, chain, em, koh, stats):
-    """Steps ``t_start …`` of :func:`mdcore.mcmc.adaptive_metropolis` (the same operations)
-    on the KOH target, updating ``chain`` (:class:`mdcore.compiled.ChainState`) in place;
+    """Steps ``t_start …`` of :func:`mdcore._mcmc.adaptive_metropolis` (the same operations)
+    on the KOH target, updating ``chain`` (:class:`mdcore._compiled.ChainState`) in place;
     returns the state's log target. ``stats`` adds up [jittered, failed, largest step]."""
     x, mean, m2, L = chain.x, chain.mean, chain.m2, chain.L
     d = x.size

@@ -94,15 +94,19 @@ class ServerLog:
         return "".join(self.lines)
 
 
-def serve_app(script: str = "main.py", args: tuple[str, ...] = ()):
+def serve_app(script: str = "main.py", args: tuple[str, ...] = (),
+              options: tuple[str, ...] | None = None):
     """Start ``panel serve app/<script> [--args ARGS]`` on a free port; return (process,
-    url, log)."""
+    url, log). ``options``: panel serve's options instead of ``--address 127.0.0.1
+    --allow-websocket-origin 127.0.0.1:PORT`` ("{port}" in them is the port)."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
+    if options is None:
+        options = ("--address", "127.0.0.1", "--allow-websocket-origin", "127.0.0.1:{port}")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "panel", "serve", str(ROOT / "app" / script), "--address",
-         "127.0.0.1", "--port", str(port), "--allow-websocket-origin", f"127.0.0.1:{port}",
+        [sys.executable, "-m", "panel", "serve", str(ROOT / "app" / script), "--port",
+         str(port), *(o.format(port=port) for o in options),
          *(["--args", *args] if args else [])],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=ROOT)
     log = ServerLog(proc)
@@ -135,3 +139,19 @@ class PageLog:
         url = urlparse(request.url)
         if url.scheme not in ("data", "blob", "about"):
             self.hosts.add(url.hostname)
+
+
+def files_only(page) -> list[str]:
+    """Refuse every request of ``page`` but file:, data: and blob: (a file opened from
+    disk, offline); returns the list the refused addresses are added to."""
+    outside: list[str] = []
+
+    def route(r):
+        if r.request.url.startswith(("file:", "data:", "blob:")):
+            r.continue_()
+        else:
+            outside.append(r.request.url)
+            r.abort()
+
+    page.route("**/*", route)
+    return outside

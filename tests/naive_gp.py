@@ -1,6 +1,6 @@
 """Deliberately naive GP reference: explicit kernel loops and scipy's cho_factor.
 
-Nothing here is vectorised or shared with ``mdcore.gp``; it is the oracle the batched core
+Nothing here is vectorised or shared with ``mdcore._gp``; it is the oracle the batched core
 is compared against (GPflow's ``tests/.../reference.py`` pattern).
 """
 

@@ -17,7 +17,7 @@ from event_loop import drain  # noqa: E402
 
 import mdcore_app.state as state_module  # noqa: E402
 import mdcore_app.views as views_module  # noqa: E402
-from mdcore.pipeline import Method  # noqa: E402
+from mdcore._pipeline import Method  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.views import (  # noqa: E402
     NOT_APPLICABLE,
@@ -79,7 +79,7 @@ def test_first_screen_is_the_paper_fig1():
 @pytest.mark.parametrize("case", ["beam-1d", "beam-2d", "shear-5"])
 def test_waves_then_scenarios_for_each_case(case):
     s = small_state(case)
-    s.preset = "paper"                       # the paper's design, refined past SPEC §5
+    s.preset = "paper"                       # the paper's design, refined past docs/method.md §5
     s.param.update(max_waves=3, convergence_ratio=0.01)
     v = ExplorerView(state=s)
     s.next_wave()
@@ -315,7 +315,7 @@ def test_a_job_and_the_views_share_one_history_match():
 
 def test_koh_is_a_fourth_column(monkeypatch):
     """KOH runs beside scenarios 1–3: its bands, its metrics row and its chain summary."""
-    from mdcore import koh
+    from mdcore import _koh as koh
     s = small_state()
     v = ExplorerView(state=s)
     s.run_to_convergence()
@@ -409,7 +409,8 @@ def test_progress_bar_appears_only_for_runs_longer_than_half_a_second(monkeypatc
 
     s = ExplorerState()
     panel = ExplorerView(state=s)._progress_panel()
-    text, bar, cancel = panel[0], panel[1][0], panel[1][1]
+    text, row = panel[0], panel[1]
+    bar, cancel = row[0], row[1]
     shown = [bar.visible, cancel.visible, text.height]
     clock = [100.0]
     monkeypatch.setattr(views_module.time, "monotonic", lambda: clock[0])
@@ -420,7 +421,7 @@ def test_progress_bar_appears_only_for_runs_longer_than_half_a_second(monkeypatc
 
     s.param.update(busy=True, task="scenario 1")
     s.param.update(progress=0.5, progress_message="pairs 10 of 20")
-    assert hidden(bar) and hidden(cancel)                  # a short run: no flash
+    assert hidden(row)                                     # a short run: no flash
     assert 'class="mdcore-busy"' in text.object and "scenario 1" in text.object
     assert "pairs" not in text.object
     s.busy = False
@@ -429,10 +430,10 @@ def test_progress_bar_appears_only_for_runs_longer_than_half_a_second(monkeypatc
     s.param.update(busy=True, task="scenario 3")
     clock[0] += views_module.SHOW_PROGRESS_AFTER
     s.param.update(progress=0.2, progress_message="pairs 1 of 5 <b>")
-    assert not hidden(bar) and not hidden(cancel) and bar.value == 20
+    assert not hidden(row) and bar.value == 20
     assert "pairs 1 of 5 &lt;b&gt;" in text.object        # messages are text, not HTML
     s.busy = False
-    assert hidden(bar) and hidden(cancel)
+    assert hidden(row)
     assert [bar.visible, cancel.visible, text.height] == shown == [True, True, STATUS_HEIGHT]
 
 

@@ -13,9 +13,9 @@ import holoviews as hv  # noqa: E402
 import panel as pn  # noqa: E402
 from bokeh.document import Document  # noqa: E402
 
-from mdcore import cases  # noqa: E402
-from mdcore.case_file import measurements_template, with_measurements  # noqa: E402
-from mdcore.pipeline import Method  # noqa: E402
+from mdcore import _cases as cases  # noqa: E402
+from mdcore._case_file import measurements_template, with_measurements  # noqa: E402
+from mdcore._pipeline import Method  # noqa: E402
 from mdcore_app import session  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.views import ExplorerView  # noqa: E402
@@ -95,7 +95,7 @@ def test_uploaded_measurements_become_a_case_of_this_session_only():
 
 @pytest.mark.parametrize("data, problem", [
     (b"", "empty"),
-    (b"x" * (session.MAX_UPLOAD_BYTES + 1), "MB limit"),
+    (b"x" * (session.MAX_UPLOAD_BYTES + 1), "more than the 5 MB limit (5,000,000 bytes)"),
     ("crack location,tip deflection,test\n0.2,\xe9,0\n".encode("latin-1"), "not UTF-8"),
     (b"position,deflection\n0.2,0.5\n", "not found in a header with none of them"),
     (b"crack location,tip deflection,test\n", "no data rows"),
@@ -105,8 +105,13 @@ def test_uploaded_measurements_become_a_case_of_this_session_only():
     (b"crack location,tip deflection,test\n0.2,0.5,0\n0.3,0.6,1\n", "at least 3"),
     (b"crack location,tip deflection,test\n0.2,__import__('os'),0\n0.3,0.6,1\n",
      "is not a number"),
+    (("crack location,tip deflection,test\n" + "0.3,1.0,1\n" * 1001).encode(),
+     "more than 1,000 data rows"),
+    (("crack location,tip deflection,test\n" + "0.3,1.0,0\n" * 301 + "0.3,1.0,1\n").encode(),
+     "301 training rows; at most 300"),
 ], ids=["empty", "too-big", "latin-1", "wrong-columns", "no-rows", "bad-test-flag",
-        "no-training-rows", "wrong-units", "too-few-rows", "code-is-not-run"])
+        "no-training-rows", "wrong-units", "too-few-rows", "code-is-not-run", "too-many-rows",
+        "too-many-training-rows"])
 def test_a_bad_upload_is_a_notification_and_the_session_keeps_its_case(data, problem):
     s = small_state()
     s.run_to_convergence()
@@ -211,9 +216,11 @@ def edit(path, value):
     (edit(["controls", "v_m"], -0.5), "V_m"),
     (edit(["controls", "n_phi"], 0), "N_φ"),
     (edit(["controls", "rule"], "mean"), "rule"),
+    (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
+    (b'{"schema": ' + b"9" * 5000 + b"}", "more digits than Python reads"),
 ], ids=["not-json", "a-list", "other-schema", "newer-version", "missing-control",
         "wrong-type", "bool-for-int", "negative-waves", "unknown-case", "negative-v_m",
-        "zero-n_phi", "unknown-rule"])
+        "zero-n_phi", "unknown-rule", "deeply-nested", "huge-integer"])
 def test_a_bad_session_file_is_a_notification_and_changes_nothing(data, problem):
     s = small_state(v_m=0.07)
     s.run_to_convergence()
@@ -283,3 +290,120 @@ def test_case_files_given_to_the_server_join_the_case_list(tmp_path):
     cases_, errors = main.own_cases([bad, tmp_path / "missing.toml"])
     assert cases_ == [] and len(errors) == 2
     assert "bad.toml" in errors[0] and "file" in errors[0] and "does not exist" in errors[1]
+
+
+# ---------------------------------------------------------------------------------------
+# The same file again, the session you are on again (issue 40 item 3)
+
+
+def test_the_same_file_again_and_the_open_session_again_keep_the_session_working():
+    """Uploading a file of the same name replaces its case's data, and opening the session
+    you are on reopens it: ``case`` never passes through None, so every view (the whole
+    page is built here, watchers included) keeps drawing, and later actions work."""
+    s = small_state()
+    view = ExplorerView(state=s)
+    view.__panel__()
+    view.files_view()
+    seen = errors_of(s)
+    cases_seen = []
+    s.param.watch(lambda e: cases_seen.append(e.new), "case")
+    assert s.upload_measurements(lab_csv(shift=0.02).encode(), "lab.csv")
+    quiet(run_small, s, [Method.S1])
+    assert s.upload_measurements(lab_csv(shift=0.05).encode(), "lab.csv")   # new data
+    assert s.case_name == "beam-1d · lab.csv" and s.waves == () and s.results == {}
+    np.testing.assert_allclose(s.case.z_train, cases.load("beam-1d").z_train + 0.05,
+                               rtol=0, atol=1e-12)
+    quiet(run_small, s, [Method.S1])
+    saved = s.session_json().encode()
+    for _ in range(2):
+        assert quiet(s.open_session, saved, "lab_session.json")
+        assert "every metric equals the saved one" in s.status
+    assert None not in cases_seen and seen == []
+    assert list(s.param.case_name.objects).count("beam-1d · lab.csv") == 1
+    s.case_name = "beam-2d"                       # and the session goes on
+    s.case_name = "beam-1d · lab.csv"
+    assert s.results and seen == []
+
+
+def test_a_refused_session_leaves_no_case_behind():
+    """A session file on uploaded data whose controls are refused adds no case to the
+    list and changes nothing (before, the case stayed in the list)."""
+    s = small_state()
+    s.run_to_convergence()
+    other = small_state()
+    other.upload_measurements(lab_csv().encode(), "lab.csv")
+    doc = json.loads(other.session_json())
+    doc["controls"]["n_phi"] = 0
+    objects, waves = list(s.param.case_name.objects), s.waves
+    seen = errors_of(s)
+    assert not s.open_session(json.dumps(doc).encode(), "lab_session.json")
+    assert len(seen) == 1 and "N_φ" in seen[0]
+    assert list(s.param.case_name.objects) == objects and s.case_name == "beam-1d"
+    assert s.waves is waves
+
+
+# ---------------------------------------------------------------------------------------
+# The app's own limits, tighter than the library's (issue 40 item 11)
+
+
+@pytest.mark.parametrize("name, value, words", [
+    ("n_candidates", 1_000_001, "at most 1,000,000 candidates per wave"),
+    ("n_candidates", 10_000_000, "the command line takes up to 10,000,000"),
+    ("n_runs", 101, "at most 100 simulator runs per wave"),
+    ("n_s", 1_001, "at most 1,000 θ samples and 1,000 φ per θ"),
+    ("n_phi", 100_000, "10⁶ pairs"),
+])
+def test_the_app_refuses_more_work_than_its_limits_and_says_why(name, value, words):
+    """The fields refuse values beyond the app's limits (the library takes 10⁷ candidates,
+    10⁴ runs, 10⁵ × 10⁵ pairs) with a notification that says the limit and why; the
+    session keeps its value. The limits themselves are accepted."""
+    from mdcore_app.state import APP_MAX_CANDIDATES, APP_MAX_N_PHI, APP_MAX_N_S, KOH_CHAINS
+    s = ExplorerState()
+    view = ExplorerView(state=s)
+    fields = {w.label: w for w in view._controls().select(pn.widgets.Widget)
+              if hasattr(w, "label")}
+    field = fields[s.param[name].label]
+    before = getattr(s, name)
+    seen = errors_of(s)
+    field.value = value
+    assert getattr(s, name) == before and field.value == before
+    assert len(seen) == 1 and words in seen[0] and f"{value:,} is not allowed" in seen[0]
+    s.param.update(n_candidates=APP_MAX_CANDIDATES, n_s=APP_MAX_N_S, n_phi=APP_MAX_N_PHI)
+    assert max(c["n_iter"] for c in KOH_CHAINS.values()) <= 150_000 < 10**8
+
+
+def test_a_session_file_beyond_the_app_limits_is_refused():
+    doc = good_doc()
+    doc["controls"]["n_candidates"] = 10_000_000         # the library's limit
+    s = small_state()
+    seen = errors_of(s)
+    assert not s.open_session(json.dumps(doc).encode(), "big.json")
+    assert len(seen) == 1 and "at most 1,000,000 candidates per wave" in seen[0]
+
+
+def test_scenario_3_and_koh_on_many_training_rows_are_refused_before_they_run():
+    """Each (θ, φ) pair of scenario 3 and each step of the KOH chain factorises an N × N
+    covariance per output: on 300 training rows, the app refuses what would take it
+    minutes to hours, at once and with what to change; the built-in cases run at the
+    paper's sizes and chain."""
+    from mdcore_app.state import work_problem
+    lines = ["crack location,tip deflection,test"]
+    rng = np.random.default_rng(0)
+    lines += [f"{x:.6f},{1.0 + 0.01 * rng.standard_normal():.6f},0"
+              for x in np.linspace(0.1, 0.5, 300)]
+    lines += ["0.3,1.0,1", "0.4,1.1,1"]
+    s = small_state()
+    assert s.upload_measurements(("\n".join(lines) + "\n").encode(), "many.csv")
+    seen = errors_of(s)
+    s.scenarios, s.koh_chain = [Method.KOH], "paper"
+    s.run_discrepancy()
+    assert len(seen) == 1 and "KOH with a 150,000-step chain on 300 training rows" in seen[0]
+    assert "fast chain" in seen[0] and s.results == {} and not s.busy
+    s.param.update(scenarios=[Method.S3], n_s=1000, n_phi=1000)
+    s.run_discrepancy()
+    assert len(seen) == 2 and "Lower N_s × N_φ to at most 37,037" in seen[1]
+    for name in cases.names():
+        case = cases.load(name)
+        for chain in ("fast", "paper"):
+            big = ExplorerState(case_name=name, koh_chain=chain, paper_sizes=True)
+            assert work_problem(case, big.method_settings(), [Method.S3, Method.KOH]) is None

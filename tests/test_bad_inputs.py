@@ -25,14 +25,48 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mdcore import cases, export, gp, importance, kernels, koh, metrics, runs
-from mdcore.case_file import CaseFileError, load_case_file
-from mdcore.cli import main
-from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
-from mdcore.history_matching import history_match, history_match_case, implausibility, setup
-from mdcore.pipeline import Settings, run_method
+from mdcore import (
+    _cases as cases,
+)
+from mdcore import (
+    _export as export,
+)
+from mdcore import (
+    _gp as gp,
+)
+from mdcore import (
+    _importance as importance,
+)
+from mdcore import (
+    _kernels as kernels,
+)
+from mdcore import (
+    _koh as koh,
+)
+from mdcore import (
+    _metrics as metrics,
+)
+from mdcore import (
+    _runs as runs,
+)
+from mdcore._case_file import CaseFileError, load_case_file
+from mdcore._cli import main
+from mdcore._discrepancy import DiscrepancyOptions, infer_discrepancy
+from mdcore._history_matching import (
+    elementwise_implausibility,
+    history_match,
+    history_match_case,
+    setup_arguments,
+)
+from mdcore._history_matching import setup as hm_setup
+from mdcore._pipeline import Settings, run_method
 
 HUGE = 10**12
+
+
+def setup(simulate, X, z, bounds, **kwargs):
+    """:func:`mdcore._history_matching.setup` with the options' fields by name."""
+    return hm_setup(simulate, X, z, bounds, **setup_arguments(kwargs))
 
 
 class Attempted(Exception):
@@ -143,7 +177,7 @@ def _call(fn, *args, **kwargs):
 
 
 API = [
-    # --- mdcore.gp ---------------------------------------------------------------------
+    # --- mdcore._gp ---------------------------------------------------------------------
     ("gp.predict-X-1d", lambda c: _call(gp.predict, LP, Y6, X6[:, 0], Z6, Y6, X6),
      r"X must have 2 dimension\(s\); received shape \(6,\)", ()),
     ("gp.nlml-z-nan", lambda c: _call(gp.neg_log_marginal_likelihood, LP, Y6, X6,
@@ -162,7 +196,7 @@ API = [
     ("gp.predict-X_star-wrong-d_x", lambda c: _call(gp.predict, LP, Y6, X6, Z6, Y6[:3],
                                                     np.zeros((3, 2))),
      r"X_star must have shape \(N\*, d_x\) with d_x = 1 like X; received \(3, 2\)", ()),
-    # --- mdcore.kernels ----------------------------------------------------------------
+    # --- mdcore._kernels ----------------------------------------------------------------
     ("kernels.kernel-log_params-nan", lambda c: _call(kernels.kernel, with_value(LP, 0, np.nan),
                                                       Y6, X6, Y6, X6),
      r"log_params contains 1 NaN or infinite value\(s\)", ()),
@@ -174,11 +208,11 @@ API = [
      r"Yb must have d_y = 1 columns like Ya \(6, 1\); received \(3, 2\)", ()),
     ("kernels.kernel-Xa-1d", lambda c: _call(kernels.kernel, LP, Y6, X6[:, 0], Y6, X6),
      r"Xa must have 2 dimension\(s\); received shape \(6,\)", ()),
-    # --- mdcore.history_matching ----------------------------------------------------------
-    ("hm.implausibility-V_m-negative", lambda c: _call(implausibility, 1.0, 0.0, 0.1, V_o=0.1,
+    # --- mdcore._history_matching ----------------------------------------------------------
+    ("hm.implausibility-V_m-negative", lambda c: _call(elementwise_implausibility, 1.0, 0.0, 0.1, V_o=0.1,
                                                        V_m=np.array([-0.1])),
      r"V_m must be non-negative; received minimum -0\.1", ()),
-    ("hm.implausibility-var-nan", lambda c: _call(implausibility, 1.0, 0.0, np.array([np.nan]),
+    ("hm.implausibility-var-nan", lambda c: _call(elementwise_implausibility, 1.0, 0.0, np.array([np.nan]),
                                                   V_o=0.1, V_m=0.1),
      r"var contains 1 NaN or infinite value\(s\)", ()),
     ("hm.setup-V_m-zero", lambda c: _call(setup, toy, X8, Z8, BOUNDS,
@@ -213,7 +247,7 @@ API = [
     ("hm.history_match-n_candidates-huge",
      lambda c: _call(history_match, toy, X8, Z8, BOUNDS, **{**HM_OPTIONS, "n_candidates": HUGE}),
      r"n_candidates must be an integer ≥ 10 and ≤ 10,000,000; received 1000000000000",
-     ("mdcore.history_matching:next_wave",)),
+     ("mdcore._history_matching:next_wave",)),
     ("hm.setup-convergence_ratio-inf", lambda c: _call(setup, toy, X8, Z8, BOUNDS,
                                                        convergence_ratio=np.inf, **HM_OPTIONS),
      r"convergence_ratio must be a positive number \(finite, > 0\); received inf", ()),
@@ -229,10 +263,10 @@ API = [
      r"no θ samples: wave 1: nothing is non-implausible.*Raise V_m .* or the threshold T", ()),
     ("hm.nroy_samples-n-huge", lambda c: _call(c.hm.nroy_samples, HUGE),
      r"n must be an integer ≥ 1 and ≤ 10,000,000; received 1000000000000",
-     ("mdcore.history_matching:_uniform_in_nroy",)),
+     ("mdcore._history_matching:_uniform_in_nroy",)),
     ("hm.posterior_samples-n-zero", lambda c: _call(c.hm.posterior_samples, 0),
      r"n must be an integer ≥ 1; received 0", ()),
-    # --- mdcore.runs -------------------------------------------------------------------
+    # --- mdcore._runs -------------------------------------------------------------------
     ("runs.run_simulator-wrong-shape", lambda c: _call(runs.run_simulator, toy_wrong_shape, X8,
                                                        BOUNDS.T, 1),
      r"simulate\(X, theta\) must return shape \(n_theta, N, n_out\) = \(2, 8, 1\); it "
@@ -242,7 +276,7 @@ API = [
     ("runs.run_simulator-theta-nan", lambda c: _call(runs.run_simulator, toy, X8,
                                                      with_value(BOUNDS.T, (0, 1), np.nan), 1),
      r"theta contains 1 NaN or infinite value\(s\)", ()),
-    # --- mdcore.discrepancy (validation as it stands) ------------------------------------
+    # --- mdcore._discrepancy (validation as it stands) ------------------------------------
     ("discrepancy-scenario-4", lambda c: _call(infer_discrepancy, toy, BOUNDS.T, X8, Z8,
                                                scenario=4, theta_map=[1.0, 0.0]),
      r"4 is not a valid scenario\. It must be one of \[1, 2, 3\]", ()),
@@ -267,7 +301,7 @@ API = [
      r"n_phi must be an integer ≥ 1.*; received 0", ()),
     ("discrepancy-n_phi-huge", lambda c: _call(DiscrepancyOptions, n_phi=HUGE),
      r"n_phi must be an integer ≥ 1 and ≤ [\d,]+; received 1000000000000", ()),
-    # --- mdcore.pipeline ---------------------------------------------------------------
+    # --- mdcore._pipeline ---------------------------------------------------------------
     ("Settings-n_s-zero", lambda c: _call(Settings, n_s=0),
      r"n_s must be an integer ≥ 1; received 0", ()),
     ("Settings-n_phi-zero", lambda c: _call(Settings, n_phi=0),
@@ -289,7 +323,7 @@ API = [
      r"'bogus' is not a valid proposal\. It must be one of \['adaptive', 'prior'\]", ()),
     ("run_method-empty-nroy", lambda c: _call(run_method, c.case, c.ruled_out, 1,
                                               Settings(n_s=5), seed=0),
-     r"hm \(the history match\) ruled out every θ.*Raise V_m", ("mdcore.pipeline:infer_discrepancy",)),
+     r"hm \(the history match\) ruled out every θ.*Raise V_m", ("mdcore._pipeline:infer_discrepancy",)),
     ("run_method-method-unknown", lambda c: _call(run_method, c.case, c.hm, "4",
                                                   Settings(n_s=5), seed=0),
      r"'4' is not a valid method\. It must be one of \['1', '2', '3', 'koh'\]", ()),
@@ -297,13 +331,13 @@ API = [
                                                      Settings(n_s=5), seed=0,
                                                      X_extra=np.zeros((4, 2))),
      r"X_extra must have shape \(M, d_x\) with d_x = 1; received \(4, 2\)",
-     ("mdcore.pipeline:infer_discrepancy",)),
+     ("mdcore._pipeline:infer_discrepancy",)),
     ("run_method-seed-negative", lambda c: _call(run_method, c.case, c.hm, 1, Settings(n_s=5),
                                                  seed=-1),
      r"seed must be an integer from 0 to 2\*\*63 − 1 or a numpy\.random\.Generator; "
      r"received -1\. Any seed in that range",
-     ("mdcore.pipeline:infer_discrepancy",)),
-    # --- mdcore.cases ------------------------------------------------------------------
+     ("mdcore._pipeline:infer_discrepancy",)),
+    # --- mdcore._cases ------------------------------------------------------------------
     ("cases.load-unknown-name", lambda c: _call(cases.load, "beam-3d"),
      r"'beam-3d' is not a valid case name\. It must be one of \['beam-1d', 'beam-2d', "
      r"'shear-5'\]", ()),
@@ -313,14 +347,14 @@ API = [
      r"seed must be an integer from 0 to 2\*\*63 − 1 .*received -5", ()),
     ("Case.simulate-theta-wrong-p", lambda c: _call(c.case.simulate, X8, np.ones((2, 3))),
      r"theta must have shape \(n_theta, 2\) for beam-1d \(l_cr, E\); received \(2, 3\)", ()),
-    # --- mdcore.export -----------------------------------------------------------------
+    # --- mdcore._export -----------------------------------------------------------------
     ("export.nroy_csv-names-wrong-length", lambda c: _call(export.nroy_csv, c.hm, ["l_cr"]),
      r"names must be a list of 2 strings, one per θ component; received \['l_cr'\]", ()),
     ("export.nroy_csv-not-a-history-match", lambda c: _call(export.nroy_csv, {"waves": []}),
      r"hm must be a HistoryMatchResult .*; received dict", ()),
     ("export.predictions_csv-not-a-run", lambda c: _call(export.predictions_csv, c.hm),
-     r"run must be an mdcore\.reproduce\.CaseRun .*; received HistoryMatchResult", ()),
-    # --- mdcore.importance -------------------------------------------------------------
+     r"run must be an mdcore\.CaseRun .*; received HistoryMatchResult", ()),
+    # --- mdcore._importance -------------------------------------------------------------
     ("importance.psis-log_weights-nan", lambda c: _call(importance.psis,
                                                         with_value(np.zeros(50), 7, np.nan)),
      r"log_weights must not contain NaN or \+inf", ()),
@@ -335,25 +369,25 @@ API = [
     ("importance.StudentT-scale-wrong-shape", lambda c: _call(importance.StudentT, np.zeros(2),
                                                               np.eye(3), 5.0),
      r"scale must have shape \(P, P\) = \(2, 2\); received \(3, 3\)", ()),
-    # --- mdcore.koh --------------------------------------------------------------------
+    # --- mdcore._koh --------------------------------------------------------------------
     ("koh.infer_koh-theta_prior-var-negative",
      lambda c: _call(koh.infer_koh, toy, X8, Z8, theta_prior=([1.0, 0.0], [-1.0, 0.25]),
                      bounds=BOUNDS, options=koh.KOHOptions(n_iter=100, burn_in=10)),
      r"theta_prior var must be positive; received \[-1\.0, 0\.25\]",
-     ("mdcore.koh:_fit_phi", "mdcore.koh:adaptive_metropolis")),
+     ("mdcore._koh:_fit_phi", "mdcore._koh:adaptive_metropolis")),
     ("koh.infer_koh-n_iter-huge", lambda c: _call(koh.KOHOptions, n_iter=HUGE),
      r"n_iter must be an integer ≥ 2 and ≤ 100,000,000; received 1000000000000",
-     ("mdcore.koh:_fit_phi", "mdcore.koh:adaptive_metropolis")),
+     ("mdcore._koh:_fit_phi", "mdcore._koh:adaptive_metropolis")),
     ("koh.infer_koh-burn_in-ge-n_iter",
      lambda c: _call(koh.KOHOptions, n_iter=500, burn_in=500),
      r"burn_in must be smaller than n_iter − 1 = 499 .*received burn_in=500",
-     ("mdcore.koh:_fit_phi", "mdcore.koh:adaptive_metropolis")),
+     ("mdcore._koh:_fit_phi", "mdcore._koh:adaptive_metropolis")),
     ("koh.infer_koh-z-wrong-rows",
      lambda c: _call(koh.infer_koh, toy, X8, Z8[:6], theta_prior=([1.0, 0.0], [0.25, 0.25]),
                      bounds=BOUNDS, options=koh.KOHOptions(n_iter=100, burn_in=10)),
      r"z must have shape \(N, n_out\) with N = 8 rows like X .*received \(6, 1\)",
-     ("mdcore.koh:_fit_phi", "mdcore.koh:adaptive_metropolis")),
-    # --- mdcore.metrics ----------------------------------------------------------------
+     ("mdcore._koh:_fit_phi", "mdcore._koh:adaptive_metropolis")),
+    # --- mdcore._metrics ----------------------------------------------------------------
     ("metrics.lpl-var-zero", lambda c: _call(metrics.lpl, [0.0, 1.0], [0.0, 1.0], [0.0, 1.0]),
      r"var must be positive; received minimum 0\.0", ()),
     ("metrics.coverage-var-negative", lambda c: _call(metrics.coverage, [0.0, 1.0], [0.0, 1.0],
@@ -680,8 +714,8 @@ def test_cli_refuses_bad_input_with_exit_2_and_writes_nothing(tmp_path, monkeypa
         (tmp_path / "case").mkdir()
         write_case_folder(tmp_path / "case", CLI_FOLDERS[name])
     # The work a refused input must never reach: waves, the reproduce/run pipelines, seeds.
-    guard(monkeypatch, "mdcore.history_matching:next_wave", "mdcore.pipeline:infer_discrepancy",
-          "mdcore.pipeline:infer_koh", "mdcore.study:_one")
+    guard(monkeypatch, "mdcore._history_matching:next_wave", "mdcore._pipeline:infer_discrepancy",
+          "mdcore._pipeline:infer_koh", "mdcore._study:_one")
     before = _folder_state(tmp_path)
     assert run_cli(argv) == 2
     captured = capsys.readouterr()
@@ -706,7 +740,7 @@ CONTROLS = ("case_name", "v_m", "threshold", "rule", "n_runs", "n_candidates", "
 def app_state():
     """A session with one wave and scenario 1's result, at tiny sizes."""
     pytest.importorskip("panel")
-    from mdcore.pipeline import Method
+    from mdcore._pipeline import Method
     from mdcore_app.state import ExplorerState
     s = ExplorerState()
     s.param.update(n_candidates=2000, max_waves=2, n_s=10, n_phi=5, scenarios=[Method.S1])

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mdcore.case_file import CaseFileError, load_case_file
+from mdcore._case_file import CaseFileError, load_case_file
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "beam_lab"
 
@@ -97,9 +97,9 @@ def test_a_valid_case_file_builds_a_case(folder):
 
 
 def test_the_worked_example_runs_end_to_end(tmp_path):
-    from mdcore.export import write_tables
-    from mdcore.pipeline import Settings
-    from mdcore.reproduce import run_case
+    from mdcore._export import write_tables
+    from mdcore._pipeline import Settings
+    from mdcore._reproduce import run_case
     case = load_case_file(EXAMPLE / "beam_lab.toml")
     assert case.theta_names == ("E", "w0") and case.X_test.shape == (9, 1)
     with warnings.catch_warnings():
@@ -192,7 +192,7 @@ def test_malformed_case_files_name_the_problem(folder, capsys, kind, make, match
     with pytest.raises(CaseFileError, match=match) as info:
         load_case_file(path)
     # Bad input for the command line too: exit 2 and the same message (a ValueError).
-    from mdcore.cli import main
+    from mdcore._cli import main
     assert main(["run", str(path)]) == 2
     assert capsys.readouterr().err == f"error: {info.value}\n"
     if kind != "missing file":
@@ -224,9 +224,33 @@ def test_errors_name_the_file_and_quote_nothing_of_a_foreign_one(folder, capsys,
     """A case file or CSV path that points at some other file (a password file, another
     TOML, a folder): the command line says which file and what is wrong, exit 2, and no
     line of that file appears in the message (issue 40, item 11)."""
-    from mdcore.cli import main
+    from mdcore._cli import main
     path = make(folder)
     assert main(["run", str(path)]) == 2
     err = capsys.readouterr().err
     assert re.search(match, err), err
     assert "SECRET" not in err and "Traceback" not in err and len(err) < 600
+
+
+def test_a_case_file_has_at_most_the_row_limits(folder):
+    """The measurements of a case file have at most mdcore._cases.MAX_ROWS rows, of which
+    at most MAX_TRAINING_ROWS training rows; at the limits the case loads."""
+    from mdcore._case_file import MAX_TRAINING_ROWS
+    from mdcore._cases import MAX_ROWS
+
+    def rows(n, flag):
+        return "".join(f"{0.3 + 0.4 * i / n:.6f},{0.5 + 0.1 * i / n:.6f},{flag}\n"
+                       for i in range(n))
+
+    header = CSV.split("\n", 2)[:2]
+    head = "\n".join(header) + "\n"
+    noise = TOML.replace('test_column = "test"', 'test_column = "test"\nnoise_var = [1e-4]')
+    case = load_case_file(write(folder, noise, csv=head + rows(MAX_TRAINING_ROWS, 0)
+                                + rows(MAX_ROWS - MAX_TRAINING_ROWS, 1)))
+    assert case.X_train.shape[0] == MAX_TRAINING_ROWS
+    with pytest.raises(CaseFileError, match=rf"{MAX_TRAINING_ROWS + 1:,} training rows; at "
+                                            rf"most {MAX_TRAINING_ROWS:,}"):
+        load_case_file(write(folder, noise, csv=head + rows(MAX_TRAINING_ROWS + 1, 0)
+                             + rows(10, 1)))
+    with pytest.raises(CaseFileError, match=rf"more than {MAX_ROWS:,} data rows"):
+        load_case_file(write(folder, noise, csv=head + rows(100, 0) + rows(MAX_ROWS, 1)))

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mdcore import cases
+from mdcore import _cases as cases
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -69,7 +69,7 @@ def test_shear5_reads_shipped_csv_and_regenerates_exactly():
     assert sorted(set(c.X_train[:, 0].round(6))) == [0.0, 0.3, 0.5]
     assert sorted(set(c.X_test[:, 0].round(6))) == [0.1, 0.2, 0.4]
     assert c.X_train.shape == (30, 1) and c.z_test.shape == (30, 5)
-    # First mode carries the largest discrepancy, about −0.6 Hz (SPEC §9).
+    # First mode carries the largest discrepancy, about −0.6 Hz (docs/cases.md).
     d = c.true_delta(np.array([[0.0]]))[0]
     assert np.argmax(np.abs(d)) == 0 and -0.75 < d[0] < -0.5
     np.testing.assert_allclose(c.V_m, (0.03 * c.z_train.mean(axis=0)) ** 2)
@@ -91,14 +91,14 @@ def test_make_shear5_data_script_regenerates_the_shipped_csv(tmp_path):
 
 
 def test_shear5_truth_is_not_implausible_under_the_spec_v_m():
-    """SPEC §9: with V_m,i = (0.03 z̄_i)² the exact simulator at the true θ has a largest
+    """docs/cases.md: with V_m,i = (0.03 z̄_i)² the exact simulator at the true θ has a largest
     implausibility of 1.7 (with 1 % it was 5.1 and history matching ruled the truth out)."""
-    from mdcore.history_matching import implausibility, replicate_summary
+    from mdcore._history_matching import elementwise_implausibility, replicate_summary
     c = cases.load("shear-5")
     Xu, zm, zv, _ = replicate_summary(c.X_train, c.z_train)
-    I = implausibility(zm, c.simulate(Xu, c.theta_true)[0], 0.0, V_o=zv, V_m=c.V_m)
+    I = elementwise_implausibility(zm, c.simulate(Xu, c.theta_true)[0], 0.0, V_o=zv, V_m=c.V_m)
     assert 1.6 < I.max() < 1.8 and np.argmax(I.max(axis=0)) == 0     # mode 1 carries it
-    I_old = implausibility(zm, c.simulate(Xu, c.theta_true)[0], 0.0, V_o=zv,
+    I_old = elementwise_implausibility(zm, c.simulate(Xu, c.theta_true)[0], 0.0, V_o=zv,
                            V_m=(0.01 * c.z_train.mean(axis=0)) ** 2)
     assert 5.0 < I_old.max() < 5.2
     assert "SYNTHETIC" in c.title and "SYNTHETIC" in c.description
@@ -145,3 +145,17 @@ def test_read_measurements_bad_files(tmp_path, text, match):
         cases.read_measurements(p, inputs=["mass_kg"], outputs=outputs)
     with pytest.raises(ValueError, match="does not exist"):
         cases.read_measurements(tmp_path / "nope.csv", inputs=["mass_kg"])
+
+
+def test_a_measurements_file_has_at_most_max_rows_data_rows():
+    """MAX_ROWS data rows are read; one more is refused at its line, before the rest of
+    the file is parsed (comment and blank lines do not count)."""
+    head = "# provenance\nmass_kg,f1\n"
+    rows = "".join(f"{i / 1000},{i}\n\n# a comment\n" for i in range(cases.MAX_ROWS))
+    m = cases.parse_measurements(head + rows, source="m.csv", inputs=["mass_kg"])
+    assert m.X.shape == (cases.MAX_ROWS, 1)
+    too_many = head + rows + "9,x\n" + "not,even,parsed\n" * 10
+    line = 2 + 3 * cases.MAX_ROWS + 1
+    with pytest.raises(cases.MeasurementsError,
+                       match=rf"m.csv line {line}: more than {cases.MAX_ROWS:,} data rows"):
+        cases.parse_measurements(too_many, source="m.csv", inputs=["mass_kg"])

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from mdcore.cli import main
+from mdcore._cli import main
 
 
 def test_reproduce_writes_the_documented_json(tmp_path, capsys):
@@ -144,8 +144,8 @@ def test_multivariate_rule_options(capsys):
 def test_warnings_are_summarised_once_in_words(capsys, monkeypatch):
     import warnings as w
 
-    from mdcore import cli
-    from mdcore.exceptions import ConvergenceWarning
+    from mdcore import _cli as cli
+    from mdcore._exceptions import ConvergenceWarning
 
     def noisy(args):
         for _ in range(3):
@@ -164,7 +164,7 @@ def test_warnings_are_summarised_once_in_words(capsys, monkeypatch):
 def test_progress_bars_only_on_a_terminal(capsys, monkeypatch):
     import io
 
-    from mdcore import cli
+    from mdcore import _cli as cli
 
     class Terminal(io.StringIO):
         def isatty(self):
@@ -199,7 +199,7 @@ def test_a_too_confident_emulator_is_reported_once_with_its_advice(capsys, monke
     gets its advice beside the table, not again in the warnings summary."""
     from test_diagnostics import with_params
 
-    from mdcore import history_matching
+    from mdcore import _history_matching as history_matching
 
     fit = history_matching.fit_emulator
 

@@ -4,7 +4,7 @@ processes started here, and ``python -m mdcore run CASE.toml --dask tcp://…`` 
 
 The case's simulator module lives in ``tmp_path``, outside every installed package, and
 the workers run in another folder with nothing of it on their path: the run only works
-if the module travels to them (by value, :class:`mdcore.runs.SimulatorProcess`).
+if the module travels to them (by value, :class:`mdcore._runs.SimulatorProcess`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import time
 import pytest
 from test_own_simulators import CSV, case_toml
 
-from mdcore.cli import main
+from mdcore._cli import main
 
 #: The simulator: a helper module beside it too, which must travel as well.
 SIMULATOR = '''

@@ -18,10 +18,13 @@ import pytest
 
 pytest.importorskip("numba")
 
-from mdcore import cases, compiled, gp, linalg  # noqa: E402
-from mdcore.discrepancy import DiscrepancyOptions, _mixture_chunk, infer_discrepancy  # noqa: E402
-from mdcore.exceptions import NumericalWarning  # noqa: E402
-from mdcore.history_matching import history_match_case  # noqa: E402
+from mdcore import _cases as cases  # noqa: E402
+from mdcore import _compiled as compiled
+from mdcore import _gp as gp
+from mdcore import _linalg as linalg
+from mdcore._discrepancy import DiscrepancyOptions, _mixture_chunk, infer_discrepancy  # noqa: E402
+from mdcore._exceptions import NumericalWarning  # noqa: E402
+from mdcore._history_matching import history_match_case  # noqa: E402
 
 RTOL = 1e-8
 
@@ -133,7 +136,7 @@ def test_package_runs_without_numba():
 import sys
 sys.modules["numba"] = None
 import numpy as np
-from mdcore import compiled, gp
+from mdcore import _compiled as compiled, _gp as gp
 assert not compiled.available() and compiled.warm_up_in_background() is None
 assert compiled.resolve_backend("auto") == "numpy"
 X = np.linspace(0, 1, 5)[:, None]
@@ -256,8 +259,8 @@ def test_fused_prediction_reports_progress_and_stops_when_asked(beam1d):
 def test_koh_chain_is_the_python_loop(name):
     """The compiled chain takes the Python loop's random numbers and steps: the same
     chain, acceptance and jitter counts, to rounding."""
-    from mdcore.koh import KOHOptions, infer_koh
-    from mdcore.pipeline import koh_phi_prior
+    from mdcore._koh import KOHOptions, infer_koh
+    from mdcore._pipeline import koh_phi_prior
 
     case, hm = posterior(name, 0)
     models = {}
@@ -278,7 +281,7 @@ def test_koh_chain_is_the_python_loop(name):
 
 
 def test_koh_compiled_chain_stops_when_progress_raises():
-    from mdcore.koh import KOHOptions, infer_koh
+    from mdcore._koh import KOHOptions, infer_koh
 
     case, hm = posterior("beam-1d", 0)
     seen = []

@@ -13,8 +13,10 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.special import logsumexp
 from scipy.stats import binom, norm
 
-from mdcore import cases, diagnostics, discrepancy
-from mdcore.diagnostics import (
+from mdcore import _cases as cases
+from mdcore import _diagnostics as diagnostics
+from mdcore import _discrepancy as discrepancy
+from mdcore._diagnostics import (
     emulator_loo,
     loo_p_value,
     space_removed,
@@ -23,18 +25,19 @@ from mdcore.diagnostics import (
     validate_wave,
     validate_waves,
 )
-from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
-from mdcore.emulator import KronGP, fit_emulator
-from mdcore.exceptions import EmulatorWarning
-from mdcore.history_matching import (
+from mdcore._discrepancy import DiscrepancyOptions, infer_discrepancy
+from mdcore._emulator import KronGP, fit_emulator
+from mdcore._exceptions import EmulatorWarning
+from mdcore._history_matching import (
     HistoryMatchResult,
     combine,
     history_match_case,
     next_wave,
     setup,
+    setup_arguments,
 )
-from mdcore.kernels import matern32, scaled_sq_dist
-from mdcore.priors import GaussianPrior
+from mdcore._kernels import matern32, scaled_sq_dist
+from mdcore._priors import GaussianPrior
 
 BOUNDS = np.array([[0.0, 2.0], [-1.0, 1.0]])
 TRUTH = np.array([1.2, 0.3])
@@ -130,12 +133,12 @@ def toy_problem(**kw):
     z = two_outputs(X, TRUTH[None])[0] + 0.02 * rng.standard_normal((6, 2))
     options = dict(V_o=4e-4, V_m=4e-3, n_runs=10, n_candidates=20_000, max_waves=2,
                    convergence_ratio=1e-9, seed=3)
-    return setup(two_outputs, X, z, BOUNDS, **{**options, **kw})
+    return setup(two_outputs, X, z, BOUNDS, **setup_arguments({**options, **kw}))
 
 
 def naive_implausibility(problem, mean, var, cov):
     """Each run's combined implausibility from the naive LOO (the rule of ``problem``)."""
-    if problem.rule == "multivariate":
+    if problem.options.rule == "multivariate":
         out = []
         for r in range(mean.shape[0]):
             resid = (problem.z - mean[r]).T.ravel()                    # output-major
@@ -146,7 +149,7 @@ def naive_implausibility(problem, mean, var, cov):
             out.append(resid @ np.linalg.solve(total, resid))
         return np.array(out)
     I = np.abs(problem.z - mean) / np.sqrt(problem.V_o + problem.V_m + var)
-    return np.sort(I.reshape(len(I), -1), axis=1)[:, -{"max": 1, "2nd max": 2}[problem.rule]]
+    return np.sort(I.reshape(len(I), -1), axis=1)[:, -{"max": 1, "2nd max": 2}[problem.options.rule]]
 
 
 @pytest.mark.parametrize("rule", ["max", "2nd max", "multivariate"])
@@ -261,7 +264,7 @@ def naive_split(model, X_star):
     return mean, var, between, within
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")     # N_φ = 8 on purpose
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")     # N_φ = 8 on purpose
 @pytest.mark.parametrize("scenario, backend, redraw", [(2, "numpy", False), (3, "numpy", False),
                                                       (3, "numpy", True), (3, "numba", False)])
 def test_theta_delta_split_matches_a_naive_loop_and_the_mixture(scenario, backend, redraw,
@@ -291,7 +294,7 @@ def test_theta_delta_split_matches_a_naive_loop_and_the_mixture(scenario, backen
     np.testing.assert_allclose(twice.between[-2:], split.between[:2], rtol=1e-12)
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 def test_theta_delta_split_subsamples_theta_and_scenario_1_has_no_theta_share():
     model = toy_model(2, S=60)
     X_star = np.linspace(0.05, 0.95, 9)[:, None]
@@ -348,7 +351,7 @@ def test_space_views_match_per_point_loops():
     theta, cut = hm.waves[0].candidates, problem.cutoff
     # per point: the first wave whose implausibility is above the cut-off, and the largest
     # implausibility up to it
-    I_all = np.stack([w.implausibility(theta) for w in hm.waves])             # (W, M)
+    I_all = np.stack([w.combined_implausibility(theta) for w in hm.waves])    # (W, M)
     above = I_all > cut
     first = np.where(above.any(0), above.argmax(0) + 1, 0)
     np.testing.assert_array_equal(views.ruled_out_by, first)
@@ -456,8 +459,8 @@ def plume(tmp_path_factory):
 
 
 def test_an_own_case_with_six_parameters_and_two_inputs(plume, tmp_path, capsys):
-    from mdcore.case_file import load_case_file
-    from mdcore.cli import main
+    from mdcore._case_file import load_case_file
+    from mdcore._cli import main
 
     case = load_case_file(plume)
     assert case.p == 6 and case.X_train.shape == (12, 2)
@@ -480,7 +483,7 @@ def test_an_own_case_with_six_parameters_and_two_inputs(plume, tmp_path, capsys)
     worst = np.zeros(len(theta))
     for w in hm.waves:                          # each wave scores what is still alive
         alive = first == 0
-        I = w.implausibility(theta[alive])
+        I = w.combined_implausibility(theta[alive])
         worst[alive] = np.maximum(worst[alive], I)
         first[np.flatnonzero(alive)[I > cut]] = w.index
     np.testing.assert_array_equal(views.ruled_out_by, first)

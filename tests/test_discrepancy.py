@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from scipy.special import logsumexp
 
-from mdcore import cases
-from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
-from mdcore.exceptions import LowESSWarning
-from mdcore.history_matching import history_match_case
-from mdcore.metrics import coverage, nmse
-from mdcore.priors import GaussianPrior
+from mdcore import _cases as cases
+from mdcore._discrepancy import DiscrepancyOptions, infer_discrepancy
+from mdcore._exceptions import LowESSWarning
+from mdcore._history_matching import history_match_case
+from mdcore._metrics import coverage, nmse
+from mdcore._priors import GaussianPrior
 
 
 def toy_simulate(X, theta):
@@ -36,7 +36,7 @@ def toy(rng):
 
 
 def naive_mixture(model, X_star, Ys):
-    """Mixture moments (SPEC §6) by a plain loop over components with the naive GP."""
+    """Mixture moments (docs/method.md §6) by a plain loop over components with the naive GP."""
     S, K = model.log_weights.shape[1:]
     out = np.zeros((4, X_star.shape[0], model.n_out))
     for o in range(model.n_out):
@@ -54,7 +54,7 @@ def naive_mixture(model, X_star, Ys):
     return out
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 def test_scenario3_matches_naive_loop(toy):
     X, z, theta, _, prior = toy
     model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=1,
@@ -72,7 +72,7 @@ def test_scenario3_matches_naive_loop(toy):
     assert model.log_params.shape == (2, 4, 5, 5) and model.weights.sum() == pytest.approx(2.0)
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 @pytest.mark.parametrize("backend", ["numpy", "numba"])
 def test_replicated_inputs_are_predicted_once_with_the_same_numbers(toy, backend):
     """Replicated training and test inputs (shear-5 repeats each mass ten times): predict
@@ -95,7 +95,7 @@ def test_replicated_inputs_are_predicted_once_with_the_same_numbers(toy, backend
         np.testing.assert_allclose(got, want, rtol=1e-8, atol=1e-10)
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 def test_mixture_moments_match_brute_force_sampling(toy):
     X, z, theta, _, prior = toy
     model = infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=2,
@@ -143,7 +143,7 @@ def test_scenario2_with_map_samples_reproduces_scenario1(toy):
     assert s2.ess == pytest.approx([6.0, 6.0]) and s1.ess == pytest.approx([1.0, 1.0])
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 def test_scenario3_with_concentrated_prior_approaches_scenario2(toy):
     """With φ pinned at φ̂, scenario 3 is scenario 2 with θ re-weighted by p(z | y^(j), φ̂):
     equal to scenario 2 when the θ samples are equally likely (here: identical)."""
@@ -180,7 +180,7 @@ def test_pruning_matches_unpruned_and_reports_mass(toy):
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-8)
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 def test_same_seed_same_numbers_and_progress(toy):
     X, z, theta, truth, prior = toy
     seen = []
@@ -206,12 +206,12 @@ def test_same_seed_same_numbers_and_progress(toy):
         options=DiscrepancyOptions(n_phi=6, phi_prior=prior))
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 @pytest.mark.parametrize("seed", [4, np.random.Generator(np.random.MT19937(4))])
 def test_prior_draws_not_kept_are_drawn_again_bit_for_bit(toy, monkeypatch, seed):
     """Above KEEP_DRAWS_BYTES scenario 3 keeps the generator state per chunk instead of the
     (N_s, N_φ, P) draws; the weights, the prediction and log_params are the same."""
-    from mdcore import discrepancy
+    from mdcore import _discrepancy as discrepancy
     X, z, theta, _, prior = toy
     theta = np.repeat(theta, 5, axis=0)                             # 20 θ rows
     monkeypatch.setattr(discrepancy, "WEIGHT_PAIRS", 21)            # 3 rows × 7 draws a chunk
@@ -240,7 +240,7 @@ def test_prior_draws_not_kept_are_drawn_again_bit_for_bit(toy, monkeypatch, seed
 def test_low_ess_warns_with_a_suggestion(toy):
     X, z, theta, _, _ = toy
     far = GaussianPrior(mean=[3.0, 3.0, 3.0, 3.0, -6.0], var=[9.0] * 5)
-    with pytest.warns(LowESSWarning, match="Increase n_phi"):
+    with pytest.warns(LowESSWarning, match=r"raise N_φ \(now 20\) or N_s \(now "):
         infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=0,
         options=DiscrepancyOptions(n_phi=20, phi_prior=far))
 
@@ -265,7 +265,7 @@ def test_low_ess_warns_with_a_suggestion(toy):
      r"log_params_hat must have shape \(n_out, P\) = \(2, 5\)"),
     (dict(scenario=2, theta_map=[1.0, 0.2, 3.0]), "p = 3 like theta_map"),
 ])
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 def test_bad_input(toy, kwargs, match):
     """Each bad argument is refused by name: the options when they are made, the data
     when infer_discrepancy sees them."""
@@ -310,7 +310,7 @@ def test_beam1d_reduced_sizes(beam1d, scenario):
         assert coverage(delta, pred.delta_mean, pred.delta_var, k=3)[0] >= 0.9
 
 
-@pytest.mark.filterwarnings("ignore::mdcore.exceptions.LowESSWarning")
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
 def test_adaptive_proposal_agrees_with_a_long_prior_run_and_keeps_more_samples(rng):
     """Same budget, same target (Eq. 15): the adaptive proposal's mixture is close to a
     40,000-draw prior run, with far more effective samples than 800 prior draws."""

@@ -15,7 +15,7 @@ import panel as pn  # noqa: E402
 from bokeh.document import Document  # noqa: E402
 from bokeh.models import ColumnDataSource, Plot  # noqa: E402
 
-from mdcore.pipeline import Method  # noqa: E402
+from mdcore._pipeline import Method  # noqa: E402
 from mdcore_app.discrepancy_panel import (  # noqa: E402
     CURRENT,
     EMPTY_HTML,

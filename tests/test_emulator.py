@@ -1,4 +1,4 @@
-"""The GP emulator (SPEC §4): the Kronecker solve against the dense core, interpolation of
+"""The GP emulator (docs/method.md §4): the Kronecker solve against the dense core, interpolation of
 the runs, the analytic gradient, a fit that does not converge, and bad input."""
 
 import warnings
@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from test_history_matching import TOY_BOUNDS, toy_simulator
 
-from mdcore import cases, gp
-from mdcore.emulator import _kron_nlml, fit_emulator
-from mdcore.exceptions import ConvergenceWarning
+from mdcore import _cases as cases
+from mdcore import _gp as gp
+from mdcore._emulator import _kron_nlml, fit_emulator
+from mdcore._exceptions import ConvergenceWarning
 
 
 def test_emulator_bad_input():
@@ -93,7 +94,7 @@ def test_scoring_is_the_implausibility_of_the_predicted_moments(rng):
     pred = em.predict(X, theta)
     I_all = (np.abs(z - pred.mean) / np.sqrt(V + pred.var)).reshape(len(theta), -1)
     for rank in (1, 2, 3):
-        I, var = em.implausibility(X, theta, z, V, rank=rank)
+        I, var = em.implausibility_and_var(X, theta, z, V, rank=rank)
         np.testing.assert_allclose(I, -np.sort(-I_all, axis=1)[:, rank - 1], rtol=1e-9,
                                    atol=1e-8)
         np.testing.assert_allclose(var, pred.var, rtol=1e-9, atol=1e-12 * pred.var.max())

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 from conftest import missing
 
-from mdcore import cases, discrepancy
-from mdcore.discrepancy import DiscrepancyOptions, infer_discrepancy
-from mdcore.history_matching import history_match_case
-from mdcore.pipeline import Settings, run_method
-from mdcore.reproduce import reproduce, run_case
+from mdcore import _cases as cases
+from mdcore import _discrepancy as discrepancy
+from mdcore._discrepancy import DiscrepancyOptions, infer_discrepancy
+from mdcore._history_matching import history_match_case
+from mdcore._pipeline import Settings, run_method
+from mdcore._reproduce import reproduce, run_case
 
 SMALL = Settings(n_s=40, n_phi=20, n_iter=2000, burn_in=500)
 HM = dict(n_candidates=5000, max_waves=2)

@@ -15,11 +15,11 @@ import pandas as pd
 import scipy.stats
 from test_own_simulators import CSV, SIMULATOR, case_toml
 
-from mdcore import cases
-from mdcore.case_file import load_case_file, measurements_template, with_measurements
-from mdcore.cli import main
-from mdcore.export import NROY_ROWS_PER_WAVE, nroy_csv
-from mdcore.history_matching import history_match_case
+from mdcore import _cases as cases
+from mdcore._case_file import load_case_file, measurements_template, with_measurements
+from mdcore._cli import main
+from mdcore._export import NROY_ROWS_PER_WAVE, nroy_csv
+from mdcore._history_matching import history_match_case
 
 #: What a spreadsheet runs when a cell starts with it.
 FORMULA = ("=", "+", "-", "@", "\t", "\r")
@@ -117,5 +117,5 @@ def test_the_nroy_table_keeps_a_sample_of_each_wave(tmp_path):
         assert len(rows) == min(len(w.nroy), NROY_ROWS_PER_WAVE)
         np.testing.assert_allclose(rows.iloc[:, 1:3].to_numpy(), w.nroy[:len(rows)],
                                    rtol=5e-7)
-        assert (rows["implausibility"] <= hm.problem.threshold * (1 + 5e-7)).all()
+        assert (rows["implausibility"] <= hm.problem.options.threshold * (1 + 5e-7)).all()
     assert len(text) / len(table) < 40                  # bytes per row: 7 digits, not 17

@@ -7,8 +7,9 @@ import naive_gp
 import numpy as np
 import pytest
 
-from mdcore import gp, linalg
-from mdcore.exceptions import NumericalWarning
+from mdcore import _gp as gp
+from mdcore import _linalg as linalg
+from mdcore._exceptions import NumericalWarning
 
 
 def random_problem(rng, N=9, d_y=5, d_x=2):
@@ -158,7 +159,7 @@ def test_a_jitter_log_takes_the_counts_instead_of_a_warning(rng):
     assert list(warnings.filters) == filters
     for fn, args in [(gp.neg_log_marginal_likelihood, (lp, Y, X, z)),
                      (gp.nlml_and_gradient, (lp[0], Y, X, z))]:
-        with pytest.raises(ValueError, match="jitter_log must be a mdcore.linalg.JitterLog or "
+        with pytest.raises(ValueError, match="jitter_log must be a mdcore._linalg.JitterLog or "
                                              "None; received list"):
             fn(*args, jitter_log=[])
 

@@ -4,26 +4,32 @@ case study's expected NROY region."""
 import numpy as np
 import pytest
 
-from mdcore import cases
-from mdcore.history_matching import (
+from mdcore import _cases as cases
+from mdcore._history_matching import (
     HistoryMatchResult,
     combine,
+    elementwise_implausibility,
     history_match,
     history_match_case,
-    implausibility,
     iter_waves,
     next_wave,
     replicate_summary,
-    setup,
+    setup_arguments,
 )
+from mdcore._history_matching import setup as hm_setup
+
+
+def setup(simulate, X, z, bounds, **kwargs):
+    """:func:`mdcore._history_matching.setup` with the options' fields by name."""
+    return hm_setup(simulate, X, z, bounds, **setup_arguments(kwargs))
 
 
 def test_implausibility_by_hand():
-    I = implausibility(np.array([1.0, 4.0]), np.array([0.0, 1.0]), np.array([0.5, 0.0]),
+    I = elementwise_implausibility(np.array([1.0, 4.0]), np.array([0.0, 1.0]), np.array([0.5, 0.0]),
                        V_o=0.25, V_m=np.array([0.25, 1 / 9 - 0.25 + 0.25]))
     # |1−0|/sqrt(0.25+0.25+0.5) = 1;  |4−1|/sqrt(0.25 + 1/9) ...
     np.testing.assert_allclose(I, [1.0, 3.0 / np.sqrt(0.25 + 1 / 9)])
-    np.testing.assert_allclose(implausibility(2.0, 1.0, 0.0, V_o=0.0, V_m=1 / 81), 9.0)
+    np.testing.assert_allclose(elementwise_implausibility(2.0, 1.0, 0.0, V_o=0.0, V_m=1 / 81), 9.0)
 
 
 def test_combiner_rules_by_hand():
@@ -43,13 +49,13 @@ def test_combiner_rules_by_hand():
 
 def test_implausibility_bad_input():
     with pytest.raises(ValueError, match="mean contains 1 NaN"):
-        implausibility(1.0, np.nan, 0.1, V_o=0.1, V_m=0.1)
+        elementwise_implausibility(1.0, np.nan, 0.1, V_o=0.1, V_m=0.1)
     with pytest.raises(ValueError, match="var must be non-negative"):
-        implausibility(1.0, 0.0, -0.1, V_o=0.1, V_m=0.1)
+        elementwise_implausibility(1.0, 0.0, -0.1, V_o=0.1, V_m=0.1)
     with pytest.raises(ValueError, match="V_m is empty"):
-        implausibility(1.0, 0.0, 0.1, V_o=0.1, V_m=[])
+        elementwise_implausibility(1.0, 0.0, 0.1, V_o=0.1, V_m=[])
     with pytest.raises(ValueError, match="must be positive for every target"):
-        implausibility(1.0, 0.0, 0.0, V_o=0.0, V_m=0.0)
+        elementwise_implausibility(1.0, 0.0, 0.0, V_o=0.0, V_m=0.0)
 
 
 def test_replicates_use_mean_and_sample_variance():
@@ -92,7 +98,7 @@ def test_toy_history_match_recovers_exact_nroy_region():
     # Exact NROY region on a dense grid with the exact simulator (emulator variance 0).
     g1, g2 = np.meshgrid(np.linspace(0, 2, 301), np.linspace(-1, 1, 301), indexing="ij")
     grid = np.column_stack([g1.ravel(), g2.ravel()])
-    I = combine(implausibility(z, toy_simulator(X, grid), 0.0, V_o=V_o, V_m=V_m))
+    I = combine(elementwise_implausibility(z, toy_simulator(X, grid), 0.0, V_o=V_o, V_m=V_m))
     exact = I <= 3.0
     assert fractions[-1] == pytest.approx(exact.mean(), rel=0.10)
     # Classification agrees on ≥ 97 % of the grid (disagreement only at the boundary).
@@ -181,7 +187,7 @@ def test_beam1d_nroy_matches_exact_simulator(beam1d_match):
     c, result = beam1d_match
     rng = np.random.default_rng(1)
     th = rng.uniform(c.theta_bounds[:, 0], c.theta_bounds[:, 1], (200_000, 2))
-    exact = combine(implausibility(c.z_train, c.simulate(c.X_train, th), 0.0,
+    exact = combine(elementwise_implausibility(c.z_train, c.simulate(c.X_train, th), 0.0,
                                    V_o=c.noise_var, V_m=c.V_m)) <= 3
     f_exact = exact.mean()
     assert 0.19 <= f_exact <= 0.29                        # a ridge of ≈ 24 % of the box
@@ -208,16 +214,16 @@ def test_public_scoring_matches_the_closed_form_and_the_waves():
     theta = np.array([[1.0, 0.0], [0.2, 0.9], [1.9, -0.9]])
     pred = wave.emulator.predict(prob.X, theta)
     by_hand = np.max(np.abs(prob.z - pred.mean) / np.sqrt(V_o + V_m + pred.var), axis=(1, 2))
-    np.testing.assert_allclose(wave.implausibility(theta), by_hand, rtol=1e-12)
+    np.testing.assert_allclose(wave.combined_implausibility(theta), by_hand, rtol=1e-12)
     score = prob.score(theta, wave.emulator)
     np.testing.assert_allclose(score.implausibility, by_hand, rtol=1e-12)
     sf2 = np.exp(2 * wave.emulator.log_params[:, 0])         # var = σ_f² − (…) cancels
     np.testing.assert_allclose(score.var, pred.var, rtol=1e-12, atol=1e-14 * sf2.max())
     # The candidates' stored implausibility is the same function.
-    np.testing.assert_allclose(wave.implausibility(wave.candidates[:50]),
+    np.testing.assert_allclose(wave.combined_implausibility(wave.candidates[:50]),
                                wave.candidate_implausibility[:50], rtol=1e-12)
     # contains = inside the box and I <= T in every wave.
-    inside = np.all([w.implausibility(theta) <= prob.threshold for w in result.waves], axis=0)
+    inside = np.all([w.combined_implausibility(theta) <= prob.options.threshold for w in result.waves], axis=0)
     np.testing.assert_array_equal(result.contains(theta), inside)
     assert not result.contains([5.0, 0.0])[0]                  # outside the prior box
     with pytest.raises(ValueError, match=r"theta must have shape \(M, p\) with p = 2"):
@@ -259,3 +265,34 @@ def test_posterior_samples_are_kept_per_seed_and_equal_a_fresh_draw(beam1d_match
     for s in range(8):                                # the memo stays small
         result.posterior_samples(20, seed=100 + s)
     assert len(result._posterior_memo) <= 4
+
+
+def test_scoring_in_chunks_gives_the_same_waves(monkeypatch):
+    """Candidates are scored (and θ weighted) in chunks of at most CHUNK_VALUES values,
+    so memory does not grow with candidates × observations; chunks of a few rows give
+    the waves, implausibilities and likelihoods of one chunk for all (to rounding: BLAS
+    may sum a product in another order for another number of rows)."""
+    import mdcore._history_matching as hm_module
+    case = cases.load("shear-5", seed=0)
+
+    def run():
+        problem = hm_module.case_problem(case, n_candidates=3000, max_waves=2, seed=0,
+                                         convergence_ratio=0.001)
+        waves = (hm_module.next_wave(problem),)
+        waves += (hm_module.next_wave(problem, waves),)
+        result = hm_module.HistoryMatchResult(problem, waves)
+        return problem, waves, result.log_likelihood(waves[-1].nroy[:500])
+
+    monkeypatch.setattr(hm_module, "CHUNK_VALUES", 10**9)
+    problem, whole, ll_whole = run()
+    assert len(problem.chunks(3000)) == 1
+    monkeypatch.setattr(hm_module, "CHUNK_VALUES", 7 * problem.z.size)
+    problem, chunked, ll_chunked = run()
+    assert len(problem.chunks(3000)) == 429                   # 7 rows a chunk
+    for a, b in zip(whole, chunked):
+        np.testing.assert_allclose(a.candidate_implausibility, b.candidate_implausibility,
+                                   rtol=1e-10)
+        np.testing.assert_allclose(a.nroy, b.nroy, rtol=1e-10)
+        np.testing.assert_allclose(a.max_var, b.max_var, rtol=1e-10)
+        assert a.nroy_fraction == b.nroy_fraction and a.status == b.status
+    np.testing.assert_allclose(ll_whole, ll_chunked, rtol=1e-10)

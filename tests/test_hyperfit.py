@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from test_gp import random_problem
 
-from mdcore import gp
-from mdcore.discrepancy import default_phi_prior
-from mdcore.exceptions import ConvergenceWarning
-from mdcore.hyperfit import FitOptions, default_bounds, fit_hyperparameters, lbfgs_converged
-from mdcore.priors import GaussianPrior
+from mdcore import _gp as gp
+from mdcore._discrepancy import default_phi_prior
+from mdcore._exceptions import ConvergenceWarning
+from mdcore._hyperfit import FitOptions, default_bounds, fit_hyperparameters, lbfgs_converged
+from mdcore._priors import GaussianPrior
 
 
 def draw_from_gp(rng, log_params, Y, X):
@@ -110,7 +110,7 @@ def test_a_line_search_stop_at_the_box_edge_is_not_reported_as_non_convergence(m
     left to gain is below the objective's rounding noise. That is an optimum, not a failure."""
     import scipy.optimize
 
-    import mdcore.hyperfit as hyperfit
+    import mdcore._hyperfit as hyperfit
     Xu = np.array([[0.0], [0.5], [1.0]])
     X = np.repeat(Xu, 10, axis=0)
     Y = np.repeat(np.column_stack([10 * np.cos(Xu[:, 0] + k) for k in range(5)]), 10, axis=0)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from mdcore.importance import (
+from mdcore._importance import (
     K_HAT_THRESHOLD,
     StudentT,
     effective_sample_size,
@@ -131,7 +131,7 @@ def test_student_t_bad_input():
 
 
 def test_stage_sizes():
-    from mdcore.importance import stage_sizes
+    from mdcore._importance import stage_sizes
     assert stage_sizes(1000) == [100] + [129] * 4 + [128] * 3 and sum(stage_sizes(37)) == 37
     assert stage_sizes(1000, 4) == [100, 300, 300, 300]
     assert stage_sizes(3) == [1, 1, 1] and stage_sizes(2, 1) == [2]
@@ -142,8 +142,8 @@ def test_stage_sizes():
 def test_adaptive_sampling_against_a_conjugate_gaussian():
     """Groups j with prior x ~ N(0, v0 I) and likelihood N(y_j | x, r I): the posterior of
     each group and the groups' marginal likelihoods N(y_j | 0, (v0 + r) I) are closed form."""
-    from mdcore.importance import adaptive_importance_sampling, stage_sizes
-    from mdcore.priors import GaussianPrior
+    from mdcore._importance import adaptive_importance_sampling, stage_sizes
+    from mdcore._priors import GaussianPrior
     P, v0, r = 3, 4.0, 0.05
     y = np.array([[0.5, -1.0, 0.2], [0.6, -0.9, 0.1], [0.4, -1.2, 0.3]])
     prior = GaussianPrior(np.zeros(P), np.full(P, v0))

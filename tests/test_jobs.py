@@ -14,7 +14,7 @@ import time
 import pytest
 from event_loop import drain
 
-from mdcore.exceptions import Cancelled
+from mdcore._exceptions import Cancelled
 from mdcore_app.jobs import JobRunner, error_message, seconds_since_work
 
 TIMEOUT = 30.0
@@ -294,7 +294,7 @@ def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monk
     """Scenario 1 is applied before KOH starts; KOH then fails: the results go back to what
     they were before the run (not scenario 1 alone), with one notification."""
     import mdcore_app.state as state_module
-    from mdcore.pipeline import Method
+    from mdcore._pipeline import Method
     s = _state()
     s.run_to_convergence()
     s.scenarios = [Method.S2]
@@ -325,11 +325,11 @@ def test_state_runtime_error_in_a_later_wave_restores_waves_and_status(monkeypat
     before, n = _fields(s), s.n_errors
     real, calls = state_module.next_wave, []
 
-    def failing(problem, waves):
+    def failing(problem, waves, progress=None):
         calls.append(len(waves))
         if len(calls) == 2:
             raise RuntimeError("simulator crashed")
-        return real(problem, waves)
+        return real(problem, waves, progress)
 
     monkeypatch.setattr(state_module, "next_wave", failing)
     s.run_to_convergence()                             # wave 2 is applied, wave 3 fails
@@ -370,13 +370,13 @@ def test_state_value_error_restores_and_notifies_once():
 def test_state_cancel_stops_a_running_discrepancy_run():
     """Background mode: cancel a slow scenario-3 run once it reports progress; it ends with
     no error and no result, and the session is idle again."""
-    from mdcore.pipeline import Method
+    from mdcore._pipeline import Method
     inbox: queue.Queue = queue.Queue()
     s = _state(background=True, schedule=inbox.put)
     s.run_to_convergence()
     drain(inbox, timeout=TIMEOUT, until=lambda: len(s.waves) >= 1 and not s.busy)
     s.scenarios = [Method.S3]
-    s.param.update(n_s=200, n_phi=2000)                 # long enough to be cancelled
+    s.param.update(n_s=400, n_phi=1000)                 # long enough to be cancelled
     s.run_discrepancy()
     job = s.jobs.job
     drain(inbox, timeout=TIMEOUT, until=lambda: s.progress > 0 or not s.busy)

@@ -7,8 +7,8 @@ import naive_gp
 import numpy as np
 import pytest
 
-from mdcore import gp
-from mdcore.kernels import kernel, matern32, matern32_and_dlog_ell, train_cov
+from mdcore import _gp as gp
+from mdcore._kernels import kernel, matern32, matern32_and_dlog_ell, train_cov
 
 hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import given, settings  # noqa: E402

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 import scipy.stats
 
-from mdcore import cases
-from mdcore.emulator import fit_emulator
-from mdcore.kernels import matern32
-from mdcore.koh import KOHOptions, infer_koh
-from mdcore.mcmc import adaptive_metropolis
-from mdcore.pipeline import Method, Settings, run_method, scores
-from mdcore.priors import GaussianPrior, ThetaPrior
+from mdcore import _cases as cases
+from mdcore._emulator import fit_emulator
+from mdcore._kernels import matern32
+from mdcore._koh import KOHOptions, infer_koh
+from mdcore._mcmc import adaptive_metropolis
+from mdcore._pipeline import Method, Settings, run_method, scores
+from mdcore._priors import GaussianPrior, ThetaPrior
 
 # ---------------------------------------------------------------------------------------
 # A naive dense reference for the emulator's joint posterior (no Kronecker algebra)
@@ -207,7 +207,7 @@ def test_predictions_match_dense_conditioning(beam):
 # beam-1d, reduced chain (the paper runs 150,000 iterations)
 
 def test_beam1d_reduced_chain_contains_truth_and_predicts_z_like_the_decoupled_scenarios():
-    from mdcore.history_matching import history_match_case
+    from mdcore._history_matching import history_match_case
     case = cases.load("beam-1d", seed=0)
     hm = history_match_case(case, seed=0)
     pp = case.phi_prior
@@ -287,8 +287,8 @@ def test_predict_bad_input_and_cancel(toy):
 def test_evidence_gradient_matches_finite_differences(beam):
     import scipy.optimize
 
-    from mdcore.koh import _EvidenceObjective
-    from mdcore.linalg import JitterLog
+    from mdcore._koh import _EvidenceObjective
+    from mdcore._linalg import JitterLog
     case, em = beam
     X = np.column_stack([case.X_train[:, 0]])
     draws = np.array([[30.0, 60.0], [38.0, 68.0], [45.0, 80.0]])
@@ -310,7 +310,7 @@ def test_evidence_gradient_matches_finite_differences(beam):
 
 
 def test_nan_wrong_shape_and_empty_inputs_of_the_other_public_functions(beam, toy):
-    from mdcore.koh import fit_phi
+    from mdcore._koh import fit_phi
     case, em = beam
     at = em.at(case.X_train)
     for bad, match in ((np.array([[np.nan]]), "NaN"), (np.empty((0, 1)), "empty"),

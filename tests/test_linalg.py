@@ -5,9 +5,9 @@ import warnings
 import numpy as np
 import pytest
 
-from mdcore import linalg
-from mdcore.exceptions import NumericalWarning
-from mdcore.linalg import JitterLog, cholesky, solve_lower_inplace
+from mdcore import _linalg as linalg
+from mdcore._exceptions import NumericalWarning
+from mdcore._linalg import JitterLog, cholesky, solve_lower_inplace
 
 
 def batch(rng, n=7, size=40, bad=(3, 17, 18, 39)):

@@ -1,4 +1,4 @@
-"""SPEC §8 metrics on tiny hand-computed cases, and MMD's closed form against quadrature."""
+"""docs/method.md §8 metrics on tiny hand-computed cases, and MMD's closed form against quadrature."""
 
 
 import numpy as np
@@ -6,7 +6,7 @@ import pytest
 from scipy import integrate
 from scipy.stats import norm
 
-from mdcore.metrics import coverage, lpl, mmd, nmse
+from mdcore._metrics import coverage, lpl, mmd, nmse
 
 
 def test_nmse_by_hand():
@@ -112,7 +112,7 @@ def _mmd_loop(target, mean, var, X):
 def test_batched_mmd_matches_the_per_input_loop(monkeypatch):
     """Groups of 1, 2, 3 and 25 repeats in shuffled row order, two outputs, and more groups
     than one chunk: the batched MMD equals the loop to 1e-12."""
-    import mdcore.metrics as metrics
+    import mdcore._metrics as metrics
     monkeypatch.setattr(metrics, "MMD_CHUNK", 7)
     rng = np.random.default_rng(3)
     sizes = [1] * 12 + [2] * 9 + [3] * 5 + [25] * 2

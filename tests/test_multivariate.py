@@ -1,6 +1,6 @@
 """Multivariate implausibility with a correlated V_m (issue 43), against naive references:
 a plain per-candidate loop with scipy.linalg.cho_factor on the emulator's own covariance
-(:meth:`mdcore.emulator.EmulatorAt.moments`), and explicit loops for V_m."""
+(:meth:`mdcore._emulator.EmulatorAt.moments`), and explicit loops for V_m."""
 
 import math
 
@@ -10,9 +10,16 @@ import scipy.linalg
 import scipy.stats
 from scipy.linalg import cho_factor, cho_solve
 
-from mdcore import cases, multivariate
-from mdcore.emulator import fit_emulator
-from mdcore.history_matching import history_match, history_match_case, setup
+from mdcore import _cases as cases
+from mdcore import _multivariate as multivariate
+from mdcore._emulator import fit_emulator
+from mdcore._history_matching import history_match, history_match_case, setup_arguments
+from mdcore._history_matching import setup as hm_setup
+
+
+def setup(simulate, X, z, bounds, **kwargs):
+    """:func:`mdcore._history_matching.setup` with the options' fields by name."""
+    return hm_setup(simulate, X, z, bounds, **setup_arguments(kwargs))
 
 
 def m32(r):

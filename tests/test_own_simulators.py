@@ -26,7 +26,7 @@ import numpy as np
 import pytest
 from test_case_file import CSV, TOML
 
-from mdcore.cli import main
+from mdcore._cli import main
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -222,7 +222,7 @@ def test_close_from_another_thread_ends_a_running_call(tmp_path):
     process, the waiting call raises at once, and the next call starts a new process."""
     import threading
 
-    from mdcore.runs import SimulatorError, SimulatorProcess
+    from mdcore._runs import SimulatorError, SimulatorProcess
     case_folder(tmp_path, "toy_sim:linear")
     sim = SimulatorProcess("toy_sim", "hangs_above", tmp_path)
     X = np.linspace(0.0, 1.0, 3)[:, None]

@@ -18,10 +18,10 @@ from bokeh.model import Model  # noqa: E402
 from bokeh.models import GlyphRenderer  # noqa: E402
 from legends import legend  # noqa: E402
 
-from mdcore import cases  # noqa: E402
-from mdcore.history_matching import history_match_case  # noqa: E402
-from mdcore.pipeline import Method, Settings, run_method  # noqa: E402
-from mdcore.study import PAPER  # noqa: E402
+from mdcore import _cases as cases  # noqa: E402
+from mdcore._history_matching import history_match_case  # noqa: E402
+from mdcore._pipeline import Method, Settings, run_method  # noqa: E402
+from mdcore._study import PAPER  # noqa: E402
 from mdcore_app import plots  # noqa: E402
 from mdcore_app.report import metric_bars  # noqa: E402
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from mdcore.priors import GaussianPrior, ThetaPrior
+from mdcore._priors import GaussianPrior, ThetaPrior
 
 
 def test_density_gradient_and_draws():

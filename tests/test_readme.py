@@ -33,7 +33,7 @@ def test_your_own_data_commands_run_as_written(tmp_path, monkeypatch, capsys):
     import json
     import shlex
 
-    from mdcore.cli import main
+    from mdcore._cli import main
 
     text = (ROOT / "README.md").read_text(encoding="utf-8")
     section = text[text.index("## Your own data"):]

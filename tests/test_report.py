@@ -8,11 +8,11 @@ import pytest
 
 pytest.importorskip("bokeh")
 from bokeh.models import Div, GlyphRenderer, Plot  # noqa: E402
-from browser import CHROMIUM, FLAGS, require_browser  # noqa: E402
+from browser import CHROMIUM, FLAGS, files_only, require_browser  # noqa: E402
 
-from mdcore import cases  # noqa: E402
-from mdcore.pipeline import Settings  # noqa: E402
-from mdcore.reproduce import run_case  # noqa: E402
+from mdcore import _cases as cases  # noqa: E402
+from mdcore._pipeline import Settings  # noqa: E402
+from mdcore._reproduce import run_case  # noqa: E402
 from mdcore_app.report import report_html, report_layout, write_report  # noqa: E402
 
 
@@ -56,19 +56,10 @@ def test_report_renders_offline_in_chromium(run, tmp_path):
     require_browser()
     from playwright.sync_api import sync_playwright
     path = write_report(run, tmp_path / "report.html")
-    outside = []
     with sync_playwright() as p:
         browser = p.chromium.launch(executable_path=CHROMIUM, args=FLAGS)
         page = browser.new_page(viewport={"width": 1280, "height": 720})
-
-        def route(r):
-            if r.request.url.startswith(("file:", "data:", "blob:")):
-                r.continue_()
-            else:
-                outside.append(r.request.url)
-                r.abort()
-
-        page.route("**/*", route)
+        outside = files_only(page)
         page.goto(path.as_uri())
         page.wait_for_function("window.Bokeh && Object.keys(Bokeh.index).length > 0",
                                timeout=30_000)
@@ -83,3 +74,26 @@ def test_report_renders_offline_in_chromium(run, tmp_path):
     # Plots drawn: well below the page top (text), many rows differ from the white page.
     body = img[img.shape[0] // 3:]
     assert np.mean(np.std(body, axis=1) > 10) > 0.3
+
+
+def test_the_report_does_not_depend_on_bokehs_current_document(run):
+    """In a server process Bokeh's global current document can be a session's document
+    that has been destroyed; the served app's report download failed with an
+    AttributeError (``_js_event_callbacks``) there. The report is built in a document of
+    its own."""
+    from bokeh.document import Document
+    from bokeh.io.doc import curdoc, set_curdoc
+    before = curdoc()
+    gone = Document()
+
+    def session(event):                     # a session's change callback, as Bokeh's
+        pass
+
+    gone.on_change(session)
+    gone.destroy(session)                   # what the server does when a session ends
+    set_curdoc(gone)
+    try:
+        html = report_html(run)
+    finally:
+        set_curdoc(before)
+    assert "Cracked cantilever" in html and html.count("<script") >= 2

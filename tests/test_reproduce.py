@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mdcore.pipeline import Method, Settings
-from mdcore.reproduce import SCHEMA_VERSION, default_methods, parse_methods, reproduce
+from mdcore._pipeline import Method, Settings
+from mdcore._reproduce import SCHEMA_VERSION, default_methods, parse_methods, reproduce
 
 #: Written by `reproduce("beam-1d", n_s=100, n_phi=50, n_iter=6000, burn_in=2000, seed=0)`
 #: at commit 77819a8, before the typed pipeline (old JSON layout).
@@ -124,10 +124,10 @@ def test_method_selection():
 def test_run_methods_refuses_bad_input():
     """run_methods (shared by run_case and the CLI): no methods, an unknown label, or a
     history match that ruled everything out are ValueErrors naming what is wrong."""
-    from mdcore import cases
-    from mdcore.history_matching import history_match_case
-    from mdcore.pipeline import Settings
-    from mdcore.reproduce import run_methods
+    from mdcore import _cases as cases
+    from mdcore._history_matching import history_match_case
+    from mdcore._pipeline import Settings
+    from mdcore._reproduce import run_methods
 
     case = cases.load("beam-1d")
     hm = history_match_case(case, n_candidates=2000)

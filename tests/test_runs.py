@@ -6,8 +6,8 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from mdcore import cases
-from mdcore.runs import run_simulator
+from mdcore import _cases as cases
+from mdcore._runs import run_simulator
 
 RELEASE = threading.Event()           # lets a "hanging" simulator finish after a test
 
@@ -91,14 +91,14 @@ def beam_failing_on_short_cracks(X, theta):
 
 
 def test_history_match_survives_a_simulator_failing_on_part_of_the_box():
-    from mdcore.history_matching import history_match_case, setup
+    from mdcore._history_matching import history_match_case, setup, setup_arguments
     case = cases.load("beam-1d")
     hm = history_match_case(case, n_candidates=5000, max_waves=2, convergence_ratio=0.05)
     failing = setup(beam_failing_on_short_cracks, case.X_train, case.z_train,
-                    case.theta_bounds, V_o=case.noise_var, V_m=case.V_m,
-                    initial_design=case.initial_design, n_candidates=5000, max_waves=2,
-                    convergence_ratio=0.05)
-    from mdcore.history_matching import iter_waves
+                    case.theta_bounds, **setup_arguments(dict(
+                        V_o=case.noise_var, V_m=case.V_m, initial_design=case.initial_design,
+                        n_candidates=5000, max_waves=2, convergence_ratio=0.05)))
+    from mdcore._history_matching import iter_waves
     waves = list(iter_waves(failing))
     w1 = waves[0]
     assert len(w1.failures) == 5                          # l_cr = 0 on the 5 × 5 grid
@@ -108,14 +108,15 @@ def test_history_match_survives_a_simulator_failing_on_part_of_the_box():
     # Fewer runs near l_cr = 0 leave the emulator less sure there, so NROY can only be as
     # large or larger; the truth stays in, and every failure is where the simulator fails.
     assert w1.nroy_fraction >= hm.waves[0].nroy_fraction - 0.02
-    from mdcore.history_matching import HistoryMatchResult
+    from mdcore._history_matching import HistoryMatchResult
     assert HistoryMatchResult(failing, tuple(waves)).contains(case.theta_true)[0]
     assert all(f.theta[0] < 8 for w in waves for f in w.failures)
     assert waves[1].nroy_fraction < w1.nroy_fraction
     # Failing on most of the box is an error that names the first failure.
     strict = setup(beam_failing_on_short_cracks, case.X_train, case.z_train, case.theta_bounds,
-                   V_o=case.noise_var, V_m=case.V_m, initial_design=case.initial_design,
-                   n_candidates=5000, max_failed_fraction=0.1)
+                   **setup_arguments(dict(V_o=case.noise_var, V_m=case.V_m,
+                                          initial_design=case.initial_design,
+                                          n_candidates=5000, max_failed_fraction=0.1)))
     with pytest.raises(ValueError, match=r"wave 1: 5 of 25 simulator runs failed \(at most "
                                          r"10% may\); the first at θ = \[ 0\. 50\.\]: "
                                          "RuntimeError: mesh generation failed"):
@@ -123,7 +124,7 @@ def test_history_match_survives_a_simulator_failing_on_part_of_the_box():
 
 
 def test_history_match_with_an_executor_equals_serial():
-    from mdcore.history_matching import history_match_case
+    from mdcore._history_matching import history_match_case
     case = cases.load("beam-2d")
     serial = history_match_case(case, n_candidates=4000, max_waves=2, convergence_ratio=0.01)
     with ThreadPoolExecutor(2) as pool:
@@ -137,7 +138,7 @@ def test_history_match_with_an_executor_equals_serial():
 
 def test_history_match_on_a_dask_local_cluster_equals_serial():
     distributed = pytest.importorskip("distributed")
-    from mdcore.history_matching import history_match_case
+    from mdcore._history_matching import history_match_case
     case = cases.load("beam-1d")
     serial = history_match_case(case, n_candidates=4000, max_waves=2, convergence_ratio=0.05)
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,

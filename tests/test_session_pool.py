@@ -87,7 +87,9 @@ class _Handler:
         context._session_contexts = {session.id: type("SessionContext", (), {})()}
         self.application_context = context
         self.request = type("Request", (), {})()
-        self.request.headers = headers or {"User-Agent": "the new visitor"}
+        self.request.headers = headers or {"User-Agent": "the new visitor",
+                                           "Host": "127.0.0.1:5006"}
+        self.request.remote_ip = "127.0.0.1"
         self.request.cookies, self.request.arguments = {}, {}
         self._arguments = arguments or {}
 
@@ -110,12 +112,13 @@ def test_the_next_page_gets_the_session_with_its_own_fresh_token():
     assert session._last_unsubscribe_time > 0.0               # unused since the hand-out
     assert get_session_id(session._token) == "abc"
     payload = get_token_payload(session._token)
-    assert payload["headers"] == {"User-Agent": "the new visitor"}
+    assert payload["headers"] == {"User-Agent": "the new visitor", "Host": "127.0.0.1:5006"}
     assert payload["session_expiry"] > time.time() + 250
     context = handler.application_context._session_contexts["abc"]
     assert context._token == session._token
     # as Bokeh's own sessions: the Cookie header rebuilt from the (here no) cookies
-    assert context._request.headers == {"User-Agent": "the new visitor", "Cookie": ""}
+    assert context._request.headers == {"User-Agent": "the new visitor",
+                                        "Host": "127.0.0.1:5006", "Cookie": ""}
     assert pool.take(handler) is None                         # one page per session
     assert pool.handed_out == 1
 
@@ -173,3 +176,14 @@ def test_a_hand_out_that_fails_builds_the_page_on_request_instead():
     pool = _pool_with(session, handler)
     assert pool.take(handler) is None
     assert session.expiring                                   # dropped, not half given out
+
+
+@pytest.mark.parametrize("remote, host", [("192.168.1.20", "127.0.0.1:5006"),
+                                          ("127.0.0.1", "evil.example:5006")])
+def test_a_request_the_app_may_refuse_is_not_given_the_session_built_ahead(remote, host):
+    """Another machine, or a page for another host name (DNS rebinding): the page is built
+    on request, where the app checks it (mdcore_app.main.refusal)."""
+    session = _Session()
+    handler = _Handler(session, headers={"Host": host})
+    handler.request.remote_ip = remote
+    assert _pool_with(session, handler).take(handler) is None

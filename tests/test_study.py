@@ -5,9 +5,9 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 import pytest
 
-from mdcore.cli import main
-from mdcore.pipeline import Settings
-from mdcore.study import PAPER, Study, parse_seeds, study
+from mdcore._cli import main
+from mdcore._pipeline import Settings
+from mdcore._study import PAPER, Study, parse_seeds, study
 
 TINY = Settings(n_s=10, n_phi=3, n_iter=400, burn_in=100)
 

@@ -11,7 +11,8 @@ import threading
 import numpy as np
 import pytest
 
-from mdcore import linalg, threads
+from mdcore import _linalg as linalg
+from mdcore import _threads as threads
 
 
 def test_pieces_run_once_in_order_on_one_pool(monkeypatch):
@@ -63,7 +64,7 @@ def test_an_entry_point_limits_blas_to_one_thread_for_good():
 import threading
 import numpy as np
 from threadpoolctl import threadpool_info
-from mdcore import gp
+from mdcore import _gp as gp
 blas = lambda: sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
 before = blas()
 X = np.linspace(0, 1, 20)[:, None]; Y = np.sin(3 * X); z = (Y + X)[:, 0]

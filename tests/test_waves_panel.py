@@ -122,7 +122,7 @@ def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
     assert len(stars) == 2 and all(r.glyph.marker == "star" for r in stars)   # pair, map
     t1, t2, I = s.implausibility_maps[n]
     np.testing.assert_array_equal(panel._image.data["image"][0],
-                                  np.minimum(I, 3 * s.history_match.problem.threshold))
+                                  np.minimum(I, 3 * s.history_match.problem.options.threshold))
 
     player = panel._player
     assert (player.styles, player.end, player.value) == (PLAYER_SHOWN, n, n)
@@ -134,7 +134,7 @@ def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
     assert panel._map_point.data["t0"] == []               # θ_MAP is the final wave's
     assert panel._image_fig.title.text.startswith("wave 2:")
     np.testing.assert_array_equal(panel._image.data["image"][0], np.minimum(
-        s.implausibility_maps[2][2], 3 * s.history_match.problem.threshold))
+        s.implausibility_maps[2][2], 3 * s.history_match.problem.options.threshold))
     # A wave keeps its points whichever wave the player is at.
     assert np.array_equal(
         np.asarray(panel._nroy.data["t0"])[np.asarray(panel._nroy.data["wave"]) == 1],

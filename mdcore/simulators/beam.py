@@ -1,4 +1,4 @@
-"""Tip deflection of a cracked cantilever (SPEC §9 beam-1d/beam-2d, paper Eq. 17).
+"""Tip deflection of a cracked cantilever (docs/cases.md, paper Eq. 17).
 
 Christides–Barr crack stiffness::
 
@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..validation import as_float_array
+from .._validation import as_float_array
 
 __all__ = ["tip_deflection"]
 

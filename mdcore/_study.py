@@ -1,10 +1,10 @@
 """Fidelity study: a case reproduced over many seeds, summarised beside the paper's tables.
 
 One seed is one draw of the noise, one history match, one set of θ and φ samples and one
-KOH chain (:func:`mdcore.reproduce.reproduce`). The paper reports a single run; whether its
+KOH chain (:func:`mdcore.reproduce`). The paper reports a single run; whether its
 *pattern* holds is a statement over seeds. :func:`study` runs the seeds (in parallel with
 any ``concurrent.futures`` executor), and :class:`Study` gives the mean and standard
-deviation of every metric per method, the paper's values (SPEC §10) beside them, and
+deviation of every metric per method, the paper's values (docs/cases.md) beside them, and
 whether each pattern of the paper holds:
 
 - KOH's δ NMSE is at least 10× that of the best decoupled scenario (Table 1);
@@ -15,8 +15,8 @@ whether each pattern of the paper holds:
 
 Examples
 --------
->>> from mdcore.pipeline import Settings
->>> from mdcore.study import study
+>>> from mdcore import Settings
+>>> from mdcore import study
 >>> s = study("beam-2d", [0, 1], methods=[1, 2], settings=Settings(n_s=10, n_phi=2))
 >>> s.seeds, sorted(s.summary())
 ((0, 1), ['1', '2'])
@@ -31,14 +31,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import cases
-from .pipeline import Settings
-from .reproduce import default_methods, parse_methods, reproduce
-from .validation import MAX_SEED, choose, short
+from . import _cases as cases
+from ._pipeline import Settings
+from ._reproduce import default_methods, parse_methods, reproduce
+from ._validation import MAX_SEED, choose, short
 
 __all__ = ["PAPER", "Study", "study", "parse_seeds"]
 
-#: The paper's published NMSE values (SPEC §10), per case and method, [%].
+#: The paper's published NMSE values (docs/cases.md), per case and method, [%].
 PAPER = {
     "beam-1d": {"nmse_z": {"1": 0.768, "2": 0.765, "3": 0.765, "koh": 0.770},
                 "nmse_delta": {"1": 1.756, "2": 2.288, "3": 1.654, "koh": 39.349}},
@@ -99,7 +99,7 @@ class Study:
     seeds : tuple of int
     settings : Settings
     runs : tuple of dict
-        Each seed's :meth:`mdcore.reproduce.CaseRun.to_dict`, in seed order.
+        Each seed's :meth:`mdcore.CaseRun.to_dict`, in seed order.
     """
 
     case: str
@@ -200,7 +200,7 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
     seeds : iterable of int, or str
         Seeds (``"0-9"`` is accepted, see :func:`parse_seeds`).
     methods : sequence of {1, 2, 3, "koh"}, optional
-        Default :func:`mdcore.reproduce.default_methods`.
+        Default :func:`mdcore._reproduce.default_methods`.
     settings : Settings, optional
         Default the paper's sizes.
     executor : concurrent.futures.Executor, optional
@@ -208,9 +208,9 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
         ``get_executor()``); default: one after the other in this process. The numbers do
         not depend on the executor.
     timeout : float, optional
-        Seconds one simulator run may take (:attr:`mdcore.cases.Case.timeout`).
+        Seconds one simulator run may take (:attr:`mdcore.Case.timeout`).
     history : dict, optional
-        History-matching options for every seed (:func:`mdcore.history_matching.setup`:
+        History-matching options for every seed (:func:`mdcore._history_matching.setup`:
         ``rule``, ``V_m_length`` …); default the case's.
 
     Returns

@@ -1,11 +1,11 @@
-"""The three case studies (SPEC §9) and the measurement-file loader.
+"""The three case studies (docs/cases.md) and the measurement-file loader.
 
 Examples
 --------
->>> from mdcore import cases
->>> cases.names()
+>>> import mdcore
+>>> mdcore.case_names()
 ('beam-1d', 'beam-2d', 'shear-5')
->>> case = cases.load("beam-1d", seed=0)
+>>> case = mdcore.load_case("beam-1d", seed=0)
 >>> case.X_train.shape, case.z_train.shape, case.simulate(case.X_train, case.theta_true).shape
 ((13, 1), (13, 1), (1, 13, 1))
 """
@@ -22,10 +22,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .priors import GaussianPrior, ThetaPrior
-from .runs import SimulatorProcess, call_with_timeout
-from .simulators import natural_frequencies, tip_deflection
-from .validation import (
+from ._priors import GaussianPrior, ThetaPrior
+from ._runs import SimulatorProcess, call_with_timeout
+from ._validation import (
     MAX_MAGNITUDE,
     as_float_array,
     as_positive_float,
@@ -33,9 +32,10 @@ from .validation import (
     choose,
     short,
 )
+from .simulators import natural_frequencies, tip_deflection
 
-__all__ = ["Case", "Measurements", "MeasurementsError", "load", "names", "parse_measurements",
-           "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
+__all__ = ["Case", "MAX_ROWS", "Measurements", "MeasurementsError", "load", "names",
+           "parse_measurements", "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
 
 #: The shipped synthetic shear-5 measurements, package data (a ``Traversable``; regenerate
 #: in a checkout with ``python assets/make_shear5_data.py``).
@@ -70,10 +70,10 @@ class Case:
     V_m : ndarray of shape (n_out,)
         Default model-discrepancy variance for history matching.
     phi_prior : GaussianPrior
-        Prior of each output's discrepancy-GP log hyperparameters (SPEC §2 layout,
+        Prior of each output's discrepancy-GP log hyperparameters (docs/method.md §2 layout,
         ``P = 2 + n_out + d_x``).
     theta_prior : ThetaPrior
-        Gaussian prior of θ for the Kennedy–O'Hagan baseline (SPEC §7), ``mean`` and
+        Gaussian prior of θ for the Kennedy–O'Hagan baseline (docs/method.md §7), ``mean`` and
         ``var`` in ``theta_units`` and their squares.
     initial_design : ndarray of shape (R, p)
         Parameter values of the first emulator's simulator runs.
@@ -82,14 +82,14 @@ class Case:
     timeout : float or None, default=None
         Seconds one simulator run (one θ) may take; a call with n θ may take n × timeout.
         A run past it raises ``TimeoutError``: history matching counts it as a failed run
-        (:func:`~mdcore.history_matching.case_problem` then sends one θ per call) and the
+        (:func:`~mdcore.case_problem` then sends one θ per call) and the
         scenarios stop with the error. A case file's simulator runs in a process that the
-        timeout kills (:class:`mdcore.runs.SimulatorProcess`); any other simulator runs on
+        timeout kills (:class:`mdcore._runs.SimulatorProcess`); any other simulator runs on
         a thread that it abandons (a thread cannot be stopped). Set it on a loaded case
         with ``dataclasses.replace(case, timeout=30.0)``; None: no limit.
     V_m_length : ndarray of shape (n_out,), default 0
         Default correlation length ℓ_m of V_m over x per output, in ``x_units`` (0:
-        independent); only the multivariate rule uses it (:mod:`mdcore.multivariate`). The
+        independent); only the multivariate rule uses it (:mod:`mdcore._multivariate`). The
         built-in cases keep 0: on them any ℓ_m > 0 weakened the rule
         (docs/multivariate_history_matching.md).
     V_m_corr : ndarray of shape (n_out, n_out) or None, default None
@@ -200,7 +200,7 @@ BEAM_V_M = 0.05                # mm²
 
 
 def _beam_prior(d_x: int) -> GaussianPrior:
-    """SPEC §9 default φ prior for the beams (not in the paper; documented defaults).
+    """docs/cases.md default φ prior for the beams (not in the paper; documented defaults).
 
     log ℓ_y ~ N(log 1, 1) (mm), log ℓ_x ~ N(log 0.3, 1) (m), log σ_f ~ N(log 2, 1),
     log σ_n² ~ N(log 1e-3, 4)  ->  log σ_n ~ N(½ log 1e-3, 1).
@@ -257,7 +257,7 @@ def _beam1d(seed: int) -> Case:
         X_train=X_train, z_train=z_train, X_test=X_test, z_test=z_test,
         noise_var=np.array([BEAM_NOISE_VAR]), V_m=np.array([BEAM_V_M]),
         phi_prior=_beam_prior(1), initial_design=grid, seed=seed,
-        # SPEC §7: l_cr ~ N(35, 10) mm, E ~ N(70, 36) GPa (second argument a variance).
+        # docs/method.md §7: l_cr ~ N(35, 10) mm, E ~ N(70, 36) GPa (second argument a variance).
         theta_prior=ThetaPrior(mean=np.array([35.0, 70.0]), var=np.array([10.0, 36.0])),
         _simulator=_beam1d_simulator, _true_delta=_beam1d_delta)
 
@@ -333,7 +333,7 @@ def make_shear5_measurements(seed: int = 0) -> str:
     z = _shear5_real(X) + SHEAR5_NOISE_SD * rng.standard_normal((X.shape[0], 5))
     out = io.StringIO()
     out.write(f"# SYNTHETIC data, not laboratory measurements. Made by assets/make_shear5_data.py "
-              f"(mdcore.cases.make_shear5_measurements, seed={seed}): 'real' 5-storey shear "
+              f"(mdcore._cases.make_shear5_measurements, seed={seed}): 'real' 5-storey shear "
               "building E=70 GPa nu=0.33 rho=2700 kg/m3, +0.03 kg per floor, rocking spring "
               "2.3e6 N.m/rad, noise sd 0.004 Hz, 10 repeats per mass.\n")
     out.write("mass_kg,repeat," + ",".join(SHEAR5_OUTPUTS) + "\n")
@@ -364,6 +364,12 @@ class Measurements(NamedTuple):
 
 #: Problems listed before a measurements file is given up on (the rest are counted).
 MAX_PROBLEMS = 5
+#: Most data rows a measurements file may have (every reader: uploads, case files,
+#: :func:`read_measurements`); reading stops at the first row beyond. Test rows cost
+#: predictions only; the training rows, which every GP factorises, have their own, lower
+#: limit (:data:`mdcore._case_file.MAX_TRAINING_ROWS`). The built-in cases' templates have
+#: at most 464 rows (beam-2d: 64 training, 400 test).
+MAX_ROWS = 1_000
 
 
 class MeasurementsError(ValueError):
@@ -438,7 +444,8 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     ------
     MeasurementsError (a ValueError)
         Listing up to :data:`MAX_PROBLEMS` problems (missing columns, ragged rows,
-        cells that are not finite numbers), each naming the line and the column.
+        cells that are not finite numbers), each naming the line and the column; or for
+        more than :data:`MAX_ROWS` data rows.
     """
     lines = text.removeprefix("\ufeff").splitlines()   # a BOM (Excel's UTF-8 CSV)
     comments, header_line = [], None
@@ -451,7 +458,7 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     if header_line is None:
         raise MeasurementsError([f"{source}: no header row found; the first non-comment line "
                                  "must name the columns."])
-    # A name that mdcore.export wrote with a leading "'" (it would start a formula) reads
+    # A name that mdcore._export wrote with a leading "'" (it would start a formula) reads
     # back as the name.
     header = [h[1:] if h[:1] == "'" and h[1:2] in ("=", "+", "-", "@") else h
               for h in (c.strip() for c in next(csv.reader([lines[header_line - 1]])))]
@@ -484,10 +491,16 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
                                  "a distinct name."])
     cols = [header.index(c) for c in inputs + outputs]
     rows, problems = [], []
+    n_rows = 0
     for lineno in range(header_line + 1, len(lines) + 1):
         line = lines[lineno - 1]
         if not line.strip() or line.startswith("#"):
             continue
+        n_rows += 1
+        if n_rows > MAX_ROWS:
+            raise MeasurementsError([f"{source} line {lineno}: more than {MAX_ROWS:,} data rows; "
+                                     f"a measurements file may have at most {MAX_ROWS:,} (keep "
+                                     "a subset of the rows, or average replicate readings)."])
         cells = next(csv.reader([line]))
         if len(cells) != len(header):
             problems.append(f"{source} line {lineno}: {len(cells)} field(s), but the header "
@@ -550,7 +563,7 @@ def _shear5(seed: int) -> Case:
         output_names=("ω1", "ω2", "ω3", "ω4", "ω5"), output_units=("Hz",) * 5,
         X_train=m.X[train], z_train=z_train, X_test=m.X[~train], z_test=m.z[~train],
         noise_var=np.full(5, SHEAR5_NOISE_SD**2),
-        V_m=(0.03 * z_train.mean(axis=0)) ** 2,   # SPEC §9: V_m,i = (0.03 z̄_i)², per mode
+        V_m=(0.03 * z_train.mean(axis=0)) ** 2,   # docs/cases.md: V_m,i = (0.03 z̄_i)², per mode
         phi_prior=prior, initial_design=design, seed=seed,
         # Not in the paper: nominal values with a 5 % standard deviation (the box is ±3 sd).
         theta_prior=ThetaPrior(mean=SHEAR5_NOMINAL, var=(0.05 * SHEAR5_NOMINAL) ** 2),

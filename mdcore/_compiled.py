@@ -23,10 +23,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from . import mcmc
-from .emulator import EmulatorArrays
-from .linalg import JITTER_LADDER, JitterLog
-from .threads import run_pieces
+from . import _mcmc as mcmc
+from ._emulator import EmulatorArrays
+from ._linalg import JITTER_LADDER, JitterLog
+from ._threads import run_pieces
 
 __all__ = ["BACKENDS", "BACKEND_ENV", "ChainState", "KOHData", "Pairs", "Test", "available",
            "koh_chain", "mixture_sums", "nlml", "resolve_backend",
@@ -183,7 +183,7 @@ def _run_pairs(mode: int, pairs: Pairs, test: Test, jitter_log: JitterLog | None
 
 def nlml(pairs: Pairs, jitter_log: JitterLog | None = None) -> np.ndarray:
     """NLML (Eq. 9) of every pair ``(pairs.theta[b], pairs.Y[pairs.row[b]])``, as
-    :func:`mdcore.gp.neg_log_marginal_likelihood`: (B,) or (B, n_z) as ``pairs.z`` (outputs
+    :func:`mdcore._gp.neg_log_marginal_likelihood`: (B,) or (B, n_z) as ``pairs.z`` (outputs
     share each pair's factor); ``jitter_log`` receives the jitter counts, else a warning."""
     d_y, d_x = pairs.Y.shape[2], pairs.X.shape[1]
     empty = Test(np.zeros((1, 0, d_y)), np.zeros((1, 0)), np.zeros((0, d_x)),
@@ -209,12 +209,12 @@ def mixture_sums(pairs: Pairs, test: Test, jitter_log: JitterLog | None = None
 
 def koh_chain(arrays: EmulatorArrays, koh: KOHData, setup: mcmc.ChainSetup, seed,
               progress=None, jitter_log: JitterLog | None = None) -> mcmc.Chain:
-    """:func:`mdcore.mcmc.adaptive_metropolis` on the KOH target ``log p(z | θ, φ̂) −
+    """:func:`mdcore._mcmc.adaptive_metropolis` on the KOH target ``log p(z | θ, φ̂) −
     ½ uᵀu`` in ``u = (θ − μ) / sd`` (``-inf`` outside the box), compiled.
 
     ``arrays`` is the emulator at the observed inputs; ``setup`` comes from
-    :func:`mdcore.mcmc.chain_setup` on the NumPy target. The random numbers are
-    :func:`mdcore.mcmc.draw_blocks`'s, as the Python loop's; each block is one kernel call,
+    :func:`mdcore._mcmc.chain_setup` on the NumPy target. The random numbers are
+    :func:`mdcore._mcmc.draw_blocks`'s, as the Python loop's; each block is one kernel call,
     and ``progress`` (which may raise to cancel) runs between blocks.
     """
     k = _kernels()

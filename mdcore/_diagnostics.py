@@ -11,11 +11,11 @@ import numpy as np
 import scipy.stats
 from scipy.special import logsumexp
 
-from .emulator import _design
-from .exceptions import EmulatorWarning
-from .history_matching import MULTIVARIATE, combine, implausibility
-from .multivariate import emulator_cov, implausibility_and_logdet
-from .validation import as_float_array, as_int
+from ._emulator import _design
+from ._exceptions import EmulatorWarning
+from ._history_matching import MULTIVARIATE, combine, elementwise_implausibility
+from ._multivariate import emulator_cov, implausibility_and_logdet
+from ._validation import as_float_array, as_int
 
 __all__ = ["EmulatorLOO", "WaveValidation", "SpaceViews", "ThetaDeltaSplit", "emulator_loo",
            "loo_p_value", "validate_wave", "validate_waves", "space_views", "space_removed",
@@ -32,9 +32,8 @@ SCORE_BLOCK = 20_000
 
 
 class EmulatorLOO(NamedTuple):
-    """Leave-one-run-out ``mean``, latent ``var`` and standardised ``error`` ``(y − mean) /
-    √(var + σ_n²)`` of R runs × N inputs, (R, N, n_out); ``s`` (R, n_out, N): the latent
-    covariance of each run is ``Q_x diag(s) Q_xᵀ``."""
+    """Leave-one-run-out ``mean``, latent ``var`` and ``error`` ``(y − mean) / √(var + σ_n²)``
+    (R, N, n_out); each run's latent covariance is ``Q_x diag(s) Q_xᵀ``, ``s`` (R, n_out, N)."""
 
     mean: np.ndarray
     var: np.ndarray
@@ -68,8 +67,7 @@ def emulator_loo(emulator) -> EmulatorLOO:
             return g.Q_t @ (g.W * (g.Q_t.T @ M @ g.Q_x)) @ g.Q_x.T
 
         KF = np.stack([kinv(F[..., j]) for j in range(F.shape[2])], axis=2)
-        a = g.A / np.exp(2 * g.log_params[0]) + np.einsum("rnq,rq->rn", KF,
-                                                           g.beta - beta[:, o])
+        a = g.A / np.exp(2 * g.log_params[0]) + np.einsum("rnq,rq->rn", KF, g.beta - beta[:, o])
         c, sn2 = g.Q_t ** 2 @ g.W, np.exp(2.0 * g.log_params[-1])               # (R, N)
         noisy = (1.0 / c) @ (g.Q_x ** 2).T
         out[0, ..., o] = em.y_train[..., o] - ((a @ g.Q_x) / c) @ g.Q_x.T
@@ -98,9 +96,8 @@ class WaveValidation(NamedTuple):
 
     def as_dict(self) -> dict:
         """The summary for JSON (``reproduce --json``)."""
-        return {"wave": self.wave, "runs": len(self.theta),
-                "share_beyond_3": self.share_beyond_3, "p_value": self.p_value,
-                "too_confident": self.p_value < TOO_CONFIDENT_P,
+        return {"wave": self.wave, "runs": len(self.theta), "share_beyond_3": self.share_beyond_3,
+                "p_value": self.p_value, "too_confident": self.p_value < TOO_CONFIDENT_P,
                 "max_abs_error": float(np.max(np.abs(self.loo.error))),
                 "wrongly_ruled_out": int(np.count_nonzero(self.wrongly_ruled_out))}
 
@@ -119,19 +116,18 @@ def loo_p_value(error) -> float:
 
 def validate_wave(wave, *, warn: bool = True) -> WaveValidation:
     """Check a wave's emulator by leaving out each run; with ``warn``, an
-    :class:`~mdcore.exceptions.EmulatorWarning` names the wave and what to do when the
+    :class:`~mdcore.EmulatorWarning` names the wave and what to do when the
     errors are too large or a run is wrongly ruled out."""
     em, problem = wave.emulator, wave.problem
     loo, y = emulator_loo(em), em.y_train
-    if problem.rule == MULTIVARIATE:       # I_M² with the LOO covariance (docs/method.md §5)
-        cov = emulator_cov(em, em.theta_train[:1])._replace(mean=loo.mean.transpose(0, 2, 1),
-                                                             s=loo.s)
-        I_loo = implausibility_and_logdet(cov, problem.z, problem.V)[0]
-        I_sim = implausibility_and_logdet(cov._replace(mean=y.transpose(0, 2, 1),
-                                                       s=0.0 * loo.s), problem.z, problem.V)[0]
+    if problem.options.rule == MULTIVARIATE:   # I_M², LOO covariance (docs/method.md §5)
+        cov = emulator_cov(em, em.theta_train[:1])
+        I_loo, I_sim = (implausibility_and_logdet(cov._replace(mean=m.transpose(0, 2, 1), s=s),
+                                                  problem.z, problem.V)[0]
+                        for m, s in ((loo.mean, loo.s), (y, 0.0 * loo.s)))
     else:
-        I_loo, I_sim = (combine(implausibility(problem.z, m, v, V_o=problem.V_o,
-                                               V_m=problem.V_m), problem.rule)
+        I_loo, I_sim = (combine(elementwise_implausibility(problem.z, m, v, V_o=problem.V_o,
+                                                           V_m=problem.V_m), problem.options.rule)
                         for m, v in ((loo.mean, loo.var), (y, 0.0)))
     wrong = (I_loo > problem.cutoff) & (I_sim <= problem.cutoff)
     share, p_value = float(np.mean(np.abs(loo.error) > 3.0)), loo_p_value(loo.error)
@@ -217,7 +213,7 @@ def space_views(hm, *, bins: int = 20, waves: int | None = None) -> SpaceViews:
         alive = np.flatnonzero(by == 0)
         for start in range(0, alive.size, SCORE_BLOCK):
             rows = alive[start:start + SCORE_BLOCK]
-            Iw = w.implausibility(theta[rows])
+            Iw = w.combined_implausibility(theta[rows])
             I[rows] = np.maximum(I[rows], Iw)
             by[rows[Iw > cut]] = w.index
     idx, ok, p = _bin(theta, b, bins), (by == 0).astype(np.float64), b.shape[0]
@@ -274,7 +270,7 @@ class ThetaDeltaSplit(NamedTuple):
 
 
 def theta_delta_split(model, X_star, *, n_theta: int = 100) -> ThetaDeltaSplit:
-    """Split the predictive variance of a :class:`~mdcore.discrepancy.DiscrepancyModel`'s δ
+    """Split the predictive variance of a :class:`~mdcore.DiscrepancyModel`'s δ
     at ``X_star`` (N*, d_x) into θ's part and the rest (law of total variance).
 
     Per θ_j, ``E[δ | θ_j]`` and ``Var[δ | θ_j]`` are :meth:`DiscrepancyModel.predict` of
@@ -303,8 +299,8 @@ def theta_delta_split(model, X_star, *, n_theta: int = 100) -> ThetaDeltaSplit:
     cache: dict = {}
     mean, var = np.empty((2, len(rows), X_u.shape[0], model.n_out))
     for i, j in enumerate(rows):
-        norm = np.where(np.isfinite(log_w[:, j]), log_w[:, j], 0.0)
-        lw = model.log_weights[:, j:j + 1] - norm[:, None, None]                 # w_k | θ_j
+        lw = model.log_weights[:, j:j + 1] - np.where(                           # w_k | θ_j
+            np.isfinite(log_w[:, j]), log_w[:, j], 0.0)[:, None, None]
         lw[~np.isfinite(log_w[:, j])] = 0.0       # an output where θ_j has no weight
         if model.phi_draws is None or model._log_params is not None:
             phi = model.log_params[:, j:j + 1]

@@ -6,15 +6,15 @@
 The paper prints ``exp(+√3 r)``; the Matérn 3/2 kernel decays. Hyperparameters travel as
 one log vector ``[log σ_f, log ℓ_y (d_y), log ℓ_x (d_x), log σ_n]`` of length
 ``P = 2 + d_y + d_x``. :func:`kernel` broadcasts; :func:`train_cov` and :func:`cross_cov`
-are :mod:`mdcore.gp`'s chunk kernels.
+are :mod:`mdcore._gp`'s chunk kernels.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .linalg import workspace
-from .validation import as_float_array, as_log_params
+from ._linalg import workspace
+from ._validation import as_float_array, as_log_params
 
 __all__ = ["SQRT3", "matern32", "matern32_and_dlog_ell", "scaled_sq_dist", "split_log_params",
            "separable_matern", "kernel", "train_cov", "cross_cov"]

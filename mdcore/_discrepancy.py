@@ -13,9 +13,9 @@ small variances. The (θ, φ) pairs go in chunks that depend on the problem size
 one call of a module-level function, so ``executor=`` (any ``concurrent.futures.Executor``,
 e.g. Dask's) runs them with the serial run's numbers (results reduced in chunk order).
 
->>> from mdcore import cases
->>> from mdcore.discrepancy import infer_discrepancy
->>> case = cases.load("beam-1d")
+>>> import mdcore
+>>> from mdcore import infer_discrepancy
+>>> case = mdcore.load_case("beam-1d")
 >>> theta = case.theta_true + [[0.0, 0.0], [1.0, -0.5], [-1.0, 0.5]]
 >>> model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=2,
 ...                           theta_map=case.theta_true, seed=0)
@@ -38,23 +38,29 @@ from typing import Any, NamedTuple
 import numpy as np
 from scipy.special import logsumexp
 
-from . import compiled, gp
-from .exceptions import LowESSWarning, NumericalWarning
-from .hyperfit import FitOptions, default_bounds, fit_hyperparameters
-from .importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis
-from .linalg import JitterLog
-from .priors import GaussianPrior
-from .threads import single_threaded_blas
-from .validation import as_float_array, as_int, as_outputs, choose
+from . import _compiled as compiled
+from . import _gp as gp
+from ._exceptions import (
+    K_HAT_THRESHOLD,
+    LOW_ESS,
+    LowESSWarning,
+    NumericalWarning,
+    weights_advice,
+    where,
+)
+from ._hyperfit import FitOptions, default_bounds, fit_hyperparameters
+from ._importance import adaptive_importance_sampling, psis
+from ._linalg import JitterLog
+from ._priors import GaussianPrior
+from ._threads import single_threaded_blas
+from ._validation import as_float_array, as_int, as_outputs, choose
 
 __all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions",
            "DiscrepancyPrediction", "default_phi_prior", "LowESSWarning", "SCENARIOS",
-           "PROPOSALS", "LOW_ESS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
+           "PROPOSALS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
 
 SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
-#: Scenario 3 warns when an output's effective sample size is below this.
-LOW_ESS = 30.0
 #: Components below ``PRUNE × max`` weight are skipped by the prediction (reported).
 PRUNE = 1e-12
 #: Largest N_s, N_φ and pairs accepted: beyond them the work would not fit in memory.
@@ -95,11 +101,11 @@ class DiscrepancyOptions:
         φ̂ fit (default none: plain empirical Bayes, Eq. 8).
     proposal : {"prior", "adaptive"}, default="prior"
         Scenario 3's φ proposal: the paper's N_φ prior draws per θ, or the same number in
-        adaptive stages (:func:`mdcore.importance.adaptive_importance_sampling`).
+        adaptive stages (:func:`mdcore._importance.adaptive_importance_sampling`).
     prune : float, default=1e-12
         See :attr:`DiscrepancyModel.prune`.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
-        Scenario 3's kernels: NumPy (the reference) or :mod:`mdcore.compiled`; None reads
+        Scenario 3's kernels: NumPy (the reference) or :mod:`mdcore._compiled`; None reads
         ``MDCORE_BACKEND``.
     fit : FitOptions, optional
         The φ̂ search of scenarios 1–2.
@@ -127,7 +133,7 @@ class DiscrepancyOptions:
 
 def default_phi_prior(Y, X, z) -> GaussianPrior:
     """A weak prior on the log hyperparameters of ``Y`` (N, d_y), ``X`` (N, d_x), ``z`` (N,):
-    mean the centre of :func:`mdcore.hyperfit.default_bounds`' box, ±2 sd spanning it."""
+    mean the centre of :func:`mdcore._hyperfit.default_bounds`' box, ±2 sd spanning it."""
     b = default_bounds(Y, X, z)
     return GaussianPrior(mean=b.mean(axis=1), var=((b[:, 1] - b[:, 0]) / 4.0) ** 2)
 
@@ -229,7 +235,7 @@ def _weights_chunk(phi: np.ndarray, Y: np.ndarray, X: np.ndarray, z: np.ndarray,
 @single_threaded_blas       # one BLAS thread, as on a Dask worker: the same sums everywhere
 def _mixture_chunk(pairs: compiled.Pairs, test: compiled.Test, backend: str
                    ) -> tuple[np.ndarray, np.ndarray, tuple]:
-    """:func:`mdcore.compiled.mixture_sums` of one block of one output: ``acc`` (4, M), the
+    """:func:`mdcore._compiled.mixture_sums` of one block of one output: ``acc`` (4, M), the
     components left out (B,) and the jitter counts."""
     log = JitterLog()
     if backend == "numba":
@@ -568,8 +574,10 @@ def _fit_phi_hat(Y_map, X, z, options, rng, progress):
     else:
         fits = []
         for o in range(n_out):
-            fits.append(fit_hyperparameters(Y_map, X, z[:, o], log_prior=options.phi_prior,
-                                            seed=rng, options=options.fit))
+            fits.append(fit_hyperparameters(
+                Y_map, X, z[:, o], log_prior=options.phi_prior, seed=rng, options=options.fit,
+                progress=None if progress is None
+                else (lambda f, o=o: progress((o + f) / n_out))))
             if progress is not None:
                 progress((o + 1) / n_out)
         hat = np.array([f.log_params for f in fits])
@@ -670,12 +678,8 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         seconds=time.perf_counter() - start, k_hat=k_hat, backend=options.backend,
         proposal=options.proposal if scenario == 3 else None, phi_draws=draws)
     if scenario == 3:
-        switch = " or use proposal='adaptive'" if options.proposal == "prior" else ""
         for o, (e, k) in enumerate(zip(model.ess, np.asarray(k_hat))):
             if e < LOW_ESS or k > K_HAT_THRESHOLD:
-                warnings.warn(
-                    f"scenario 3, output {o}: the importance weights are unreliable (ESS "
-                    f"{e:.1f} of {S * options.n_phi} pairs, Pareto k̂ = {k:.2f}; reliable "
-                    f"needs ESS ≥ {LOW_ESS:g} and k̂ ≤ {K_HAT_THRESHOLD}). Increase n_phi or "
-                    f"N_s{switch}.", LowESSWarning, stacklevel=2)
+                warnings.warn(weights_advice(where("scenario 3", o, n_out), e, S, options.n_phi,
+                                             k, options.proposal), LowESSWarning, stacklevel=2)
     return model

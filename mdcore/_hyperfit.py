@@ -3,7 +3,7 @@
 :func:`fit_hyperparameters` minimises the NLML (Eq. 9), or NLML − log p(φ), over the log
 hyperparameters: the paper's quantum-behaved particle swarm (QPSO, Sun et al. 2004, batched
 over the particles) polished by L-BFGS-B with the analytic gradient, or multi-start
-L-BFGS-B; a fit that does not converge says so (:class:`~mdcore.exceptions.ConvergenceWarning`).
+L-BFGS-B; a fit that does not converge says so (:class:`~mdcore.ConvergenceWarning`).
 """
 
 from __future__ import annotations
@@ -16,12 +16,12 @@ from typing import NamedTuple
 import numpy as np
 import scipy.optimize
 
-from .exceptions import ConvergenceWarning
-from .gp import check_problem, neg_log_marginal_likelihood, nlml_and_gradient
-from .linalg import JitterLog
-from .priors import GaussianPrior
-from .threads import single_threaded_blas
-from .validation import as_float_array, as_int, choose
+from ._exceptions import ConvergenceWarning
+from ._gp import check_problem, neg_log_marginal_likelihood, nlml_and_gradient
+from ._linalg import JitterLog
+from ._priors import GaussianPrior
+from ._threads import single_threaded_blas
+from ._validation import as_float_array, as_int, choose
 
 __all__ = ["FitOptions", "HyperFit", "PROJECTED_GRADIENT_TOL", "QPSO_ITERATIONS",
            "default_bounds", "fit_hyperparameters", "lbfgs_converged"]
@@ -92,14 +92,17 @@ def lbfgs_advice(res: scipy.optimize.OptimizeResult, iterations: str | None = No
 
 
 def _qpso(objective: Callable, lo: np.ndarray, hi: np.ndarray, rng, n_particles: int,
-          n_iterations: int):
-    """Quantum-behaved PSO (Sun et al. 2004); returns (best x, best f, evals)."""
+          n_iterations: int, step: Callable[[float], None] | None = None):
+    """Quantum-behaved PSO (Sun et al. 2004); returns (best x, best f, evals).
+    ``step(fraction)`` before every iteration (it may raise to stop)."""
     P = lo.size
     x = lo + (hi - lo) * rng.uniform(size=(n_particles, P))
     f = objective(x)
     pbest, pf = x.copy(), f.copy()
     g = int(np.argmin(pf))
     for t in range(n_iterations):
+        if step is not None:
+            step(t / n_iterations)
         beta = 1.0 - 0.5 * t / max(n_iterations - 1, 1)  # contraction 1.0 -> 0.5
         mbest = pbest.mean(axis=0)
         phi = rng.uniform(size=(n_particles, P))
@@ -143,7 +146,8 @@ class FitOptions:
 
 @single_threaded_blas
 def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, bounds=None,
-                        seed=None, options: FitOptions = FitOptions()) -> HyperFit:
+                        seed=None, options: FitOptions = FitOptions(),
+                        progress: Callable[[float], None] | None = None) -> HyperFit:
     """Empirical Bayes (Eq. 8): minimise the NLML over the log hyperparameters, or
     ``NLML − log p(φ)`` (MAP) with ``log_prior``.
 
@@ -159,6 +163,9 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
     seed : int or numpy.random.Generator, optional
         Same seed, same result.
     options : FitOptions, optional
+    progress : callable, optional
+        ``progress(fraction)`` before every swarm iteration and after every L-BFGS-B
+        iteration; if it raises (e.g. :class:`mdcore.Cancelled`), the fit stops.
 
     Returns
     -------
@@ -206,15 +213,18 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
     evals, converged, message = 0, False, "no gradient polish (polish=False)"
     if options.method == "qpso":
         best, best_f, evals = _qpso(batch_objective, lo, hi, rng, options.n_particles,
-                                    options.n_iterations)
+                                    options.n_iterations, None if progress is None
+                                    else (lambda f: progress(f / 2)))
         starts = [best] if options.polish else []
     else:
         starts = list(lo + (hi - lo) * rng.uniform(size=(options.n_starts, P)))
         best, best_f = starts[0], np.inf
     for i, x0 in enumerate(starts):
+        step = None if progress is None else \
+            (lambda *_, i=i: progress(0.5 + 0.5 * i / len(starts)))
         res = scipy.optimize.minimize(objective_and_grad, x0, jac=True, method="L-BFGS-B",
                                       bounds=list(zip(lo, hi)),
-                                      options={"maxiter": options.maxiter})
+                                      options={"maxiter": options.maxiter}, callback=step)
         evals += int(res.nfev)
         if i == 0 or res.fun < best_f:          # the run that gave (or kept) the result
             converged = lbfgs_converged(res, lo, hi)

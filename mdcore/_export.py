@@ -1,6 +1,6 @@
 """Results out as plain files: CSV tables of the history match and of the predictions.
 
-No pickle anywhere: the JSON of a run is :meth:`mdcore.reproduce.CaseRun.to_dict` (a
+No pickle anywhere: the JSON of a run is :meth:`mdcore.CaseRun.to_dict` (a
 versioned schema). The tables are plain CSV that ``pandas.read_csv`` and a spreadsheet read
 as they are: a header row, then one row per record, written by :mod:`csv`. Where a table
 comes from (the case, T and the rule, each wave's NROY share, the seed) is a JSON sidecar
@@ -10,10 +10,10 @@ leading ``'``; numbers are written as numbers, negative ones included.
 
 Examples
 --------
->>> from mdcore import cases
->>> from mdcore.reproduce import run_case
->>> from mdcore.pipeline import Settings
->>> run = run_case(cases.load("beam-1d"), methods=[1], settings=Settings(n_s=10),
+>>> import mdcore
+>>> from mdcore import run_case
+>>> from mdcore import Settings
+>>> run = run_case(mdcore.load_case("beam-1d"), methods=[1], settings=Settings(n_s=10),
 ...                n_candidates=5000)
 >>> nroy_csv(run.hm, run.case.theta_names, run.case.theta_units).splitlines()[0]
 'wave,l_cr [mm],E [GPa],implausibility'
@@ -29,14 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from .history_matching import HistoryMatchResult
-from .reproduce import CaseRun
+from ._history_matching import HistoryMatchResult
+from ._reproduce import CaseRun
 
 __all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "csv_table", "nroy_csv", "predictions_csv",
            "write_tables"]
 
-#: Most NROY samples written per wave. A wave keeps up to 50,000 p candidates, and the
-#: teaching preset runs 5 waves: all of them were 22 MB for beam-1d. The candidates are
+#: Most NROY samples written per wave (a wave keeps up to 50,000 p candidates, too many
+#: for a file one opens in a spreadsheet). The candidates are
 #: independent draws, uniform in the wave's NROY set, so the first ones retained are a
 #: uniform sample of it too (:meth:`HistoryMatchResult.nroy_samples` draws more).
 NROY_ROWS_PER_WAVE = 10_000
@@ -82,7 +82,7 @@ def _labels(values, name: str, p: int) -> list | None:
 
 def _check_run(run) -> None:
     if not isinstance(run, CaseRun):
-        raise ValueError(f"run must be an mdcore.reproduce.CaseRun (reproduce or run_case); "
+        raise ValueError(f"run must be an mdcore.CaseRun (reproduce or run_case); "
                          f"received {type(run).__name__}.")
 
 
@@ -121,7 +121,7 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
         + ["implausibility"]
     rows: list = []
     for w in hm.waves:
-        keep = _kept(w, hm.problem.threshold)
+        keep = _kept(w, hm.problem.options.threshold)
         rows += ([w.index, *theta, imp] for theta, imp in
                  zip(w.candidates[keep], w.candidate_implausibility[keep]))
     return csv_table(head, rows, number=lambda v: f"{v:.7g}")
@@ -132,7 +132,7 @@ def predictions_csv(run) -> str:
 
     Parameters
     ----------
-    run : mdcore.reproduce.CaseRun
+    run : mdcore.CaseRun
 
     Returns
     -------
@@ -160,11 +160,11 @@ def predictions_csv(run) -> str:
 
 def _nroy_sidecar(run: CaseRun) -> dict:
     hm = run.hm
-    return {"table": "nroy.csv", "case": run.case.name, "threshold": hm.problem.threshold,
-            "rule": hm.problem.rule, "status": hm.status, "message": hm.message,
+    return {"table": "nroy.csv", "case": run.case.name, "threshold": hm.problem.options.threshold,
+            "rule": hm.problem.options.rule, "status": hm.status, "message": hm.message,
             "waves": [{"wave": w.index, "nroy_fraction": w.nroy_fraction,
                        "candidates": len(w.candidates), "nroy_candidates": len(w.nroy),
-                       "rows": len(_kept(w, hm.problem.threshold))} for w in hm.waves],
+                       "rows": len(_kept(w, hm.problem.options.threshold))} for w in hm.waves],
             "rows_per_wave": f"the first {NROY_ROWS_PER_WAVE:,} non-implausible candidates "
                              "of each wave, uniform in its NROY set"}
 

@@ -17,16 +17,17 @@ from collections import Counter
 
 import numpy as np
 
-from . import cases, compiled, threads
-from .diagnostics import space_removed, validate_waves
-from .exceptions import LowESSWarning
-from .export import write_tables
-from .history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
-from .koh import BURN_IN, N_ITER
-from .pipeline import Method, Settings, metric_text, metrics_table
-from .reproduce import CaseRun, default_methods, parse_methods, run_methods
-from .study import PAPER, study
-from .validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
+from . import _cases as cases
+from . import _compiled as compiled
+from . import _threads as threads
+from ._diagnostics import space_removed, validate_waves
+from ._export import write_tables
+from ._history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
+from ._koh import BURN_IN, N_ITER
+from ._pipeline import Method, Settings, metric_text, metrics_table
+from ._reproduce import CaseRun, default_methods, parse_methods, run_methods
+from ._study import PAPER, study
+from ._validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
 
 
 def _cmd_cases(args) -> int:
@@ -87,7 +88,7 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
     problem = case_problem(case, seed=args.seed, executor=executor,
                            **_history_options(args, case))
     waves = []
-    with _Bar("history matching", problem.max_waves, "wave") as bar:
+    with _Bar("history matching", problem.options.max_waves, "wave") as bar:
         for wave in iter_waves(problem):
             waves.append(wave)
             bar.update_to(len(waves), f"wave {wave.index}: NROY {100 * wave.nroy_fraction:.2f} %")
@@ -95,8 +96,7 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
 
 
 def _print_checks(case, hm, validation, splits=None) -> None:
-    """Space removed, each wave's LOO check and the θ–δ shares, with their advice
-    (docs/diagnostics.md)."""
+    """Space removed, each wave's LOO check, the θ–δ shares and advice (docs/diagnostics.md)."""
     print("\nspace removed along each parameter's range: " + ", ".join(
         f"{n} {100 * r:.0f} %" for n, r in zip(case.theta_names, space_removed(
             hm.waves[-1].nroy, hm.problem.bounds))))
@@ -254,7 +254,7 @@ def _cmd_reproduce(args) -> int:
 
 
 def _cmd_run(args) -> int:
-    from .case_file import load_case_file
+    from ._case_file import load_case_file
     case = _with_timeout(load_case_file(args.case_file, seed=args.seed,
                                         default_timeout=args.timeout), args)
     return _run(case, args, args.scenarios or ("1", "2", "3"), case.name)
@@ -287,7 +287,7 @@ def _print_run(run, args) -> int:
                   f"{c.acceptance_rate:.3f}, IAT {', '.join(f'{t:.1f}' for t in c.iat)}, "
                   f"ESS {', '.join(f'{e:,.0f}' for e in c.ess)}\nKOH posterior θ: {theta}")
     notes = [w for r in run.results for w in r.warnings]
-    _SHOWN.update(notes)                    # not repeated in the warnings summary
+    args.shown.update(notes)                # not repeated in the warnings summary
     if notes:
         print("\n! unreliable importance weights or chain:\n"
               + "\n".join(f"  - {w}" for w in notes))
@@ -479,9 +479,6 @@ def _add_history_options(p) -> None:
                    help="start a local Dask cluster of N processes for the simulator runs")
 
 
-#: The run's own advice, printed with its table; the warnings summary leaves it out.
-_SHOWN: set[str] = set()
-
 EXIT_CODES = ("exit codes: 0 done; 2 bad input (the message names the option or file and "
               "what to fix, as for a history match that rules out every θ: raise V_m or T); "
               "1 a failure (a file that cannot be written, a simulator or cluster that "
@@ -513,11 +510,11 @@ WARNING_WORDS = {"LowESSWarning": "few effective importance samples",
                  "RuntimeWarning": "numerical"}
 
 
-def _summarise(caught) -> None:
-    """Print each distinct warning once, with how often it came, in words. Low-ESS
-    warnings are left out once the run's own advice (printed with the table) said it."""
+def _summarise(caught, shown: set[str]) -> None:
+    """Print each distinct warning once, with how often it came, in words, leaving out
+    the advice already printed with a run's table (``shown``)."""
     counts = Counter((w.category.__name__, str(w.message)) for w in caught
-                     if not (_SHOWN and issubclass(w.category, LowESSWarning)))
+                     if str(w.message) not in shown)
     if not counts:
         return
     print(f"\n{sum(counts.values())} warning(s) while running, each listed once:",
@@ -530,7 +527,7 @@ def _summarise(caught) -> None:
 def console_main() -> int:
     """``python -m mdcore`` and the ``mdcore`` script: :func:`main` in a process of its own,
     so BLAS is limited to one thread for the whole process first (see
-    :func:`mdcore.threads.single_threaded_blas_for_process`)."""
+    :func:`mdcore._threads.single_threaded_blas_for_process`)."""
     threads.single_threaded_blas_for_process()
     return main()
 
@@ -583,7 +580,7 @@ def main(argv=None) -> int:
     if args.command in ("reproduce", "run", "study"):
         # Load (or compile) the numba kernels while history matching runs.
         compiled.warm_up_in_background()
-    _SHOWN.clear()
+    args.shown = set()              # advice printed with a run's table
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -596,7 +593,7 @@ def main(argv=None) -> int:
         except (OSError, RuntimeError) as exc:     # a file that cannot be written, a failure
             print(f"error: {type(exc).__name__}: {exc}", file=sys.stderr)
             code = 1
-    _summarise(caught)
+    _summarise(caught, args.shown)
     return code
 
 

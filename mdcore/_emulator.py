@@ -10,19 +10,20 @@ the likelihood and predictions cost O(R³ + N³ + R N (R + N)) instead of O(R³ 
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 import scipy.optimize
 
-from .exceptions import ConvergenceWarning
-from .gp import LOG_2PI
-from .hyperfit import lbfgs_advice, lbfgs_converged
-from .kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
-from .linalg import chunks, for_each_chunk
-from .threads import single_threaded_blas
-from .validation import as_float_array, check_bounds
+from ._exceptions import ConvergenceWarning
+from ._gp import LOG_2PI
+from ._hyperfit import lbfgs_advice, lbfgs_converged
+from ._kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
+from ._linalg import chunks, for_each_chunk
+from ._threads import single_threaded_blas
+from ._validation import as_float_array, check_bounds
 
 __all__ = ["Emulator", "EmulatorArrays", "EmulatorAt", "EmulatorPrediction", "KronGP",
            "ThetaTerms", "fit_emulator"]
@@ -132,8 +133,9 @@ def _kron_nlml(lp, Tu, Xu, res):
     return f, g
 
 
-def _fit_one(Tu, Xu, y, rng, n_starts, output=0):
-    """Fit one output: least-squares linear mean, then empirical Bayes for the GP."""
+def _fit_one(Tu, Xu, y, rng, n_starts, output=0, step=None):
+    """Fit one output: least-squares linear mean, then empirical Bayes for the GP;
+    ``step()`` after every L-BFGS-B iteration (it may raise to stop the fit)."""
     F = _design(Xu, Tu)
     beta, *_ = np.linalg.lstsq(F, y.ravel(), rcond=None)
     res = (y.ravel() - F @ beta).reshape(y.shape)
@@ -146,7 +148,8 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0):
     starts[0] = np.r_[np.log(sd), np.full(p + d_x, np.log(0.5)), np.log(sd * 1e-3)]
     for x0 in starts:
         r = scipy.optimize.minimize(_kron_nlml, x0, args=(Tu, Xu, res), jac=True,
-                                    method="L-BFGS-B", bounds=list(zip(lo, hi)))
+                                    method="L-BFGS-B", bounds=list(zip(lo, hi)),
+                                    callback=None if step is None else (lambda *_: step()))
         if best is None or r.fun < best.fun:
             best = r
     if not lbfgs_converged(best, lo, hi):
@@ -223,7 +226,8 @@ class Emulator:
         return EmulatorPrediction(mean, var)
 
     @single_threaded_blas
-    def implausibility(self, X, theta, z, V, *, rank: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    def implausibility_and_var(self, X, theta, z, V, *,
+                               rank: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Combined implausibility (Eq. 16) of every θ and the emulator variance.
 
         ``I(θ)`` is the ``rank``-th largest over the targets (n, o) of ``|z[n, o] − E[y]| /
@@ -414,9 +418,12 @@ class EmulatorAt:
 
 
 @single_threaded_blas
-def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulator:
+def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
+                 progress: Callable[[float], None] | None = None) -> Emulator:
     """Fit one GP emulator per output to ``y = simulate(X, theta)`` (R, N, n_out): inputs
-    ``X`` (N, d_x), runs ``theta`` (R, p) in ``bounds`` (p, 2); ``n_starts`` L-BFGS-B starts."""
+    ``X`` (N, d_x), runs ``theta`` (R, p) in ``bounds`` (p, 2); ``n_starts`` L-BFGS-B starts.
+    ``progress(fraction)`` after every optimiser iteration; if it raises (e.g.
+    :class:`mdcore.Cancelled`), the fit stops."""
     X = as_float_array(X, "X", ndim=2)
     theta = as_float_array(theta, "theta", ndim=2)
     y = as_float_array(y, "y", ndim=3)
@@ -432,6 +439,8 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None) -> Emulat
     x_span = np.where(np.ptp(X, axis=0) > 0, np.ptp(X, axis=0), 1.0)
     Xu = _unit(X, x_lo, x_span)
     Tu = _unit(theta, bounds[:, 0], bounds[:, 1] - bounds[:, 0])
-    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o)
-                for o in range(y.shape[2]))
+    n_out = y.shape[2]
+    gps = tuple(_fit_one(Tu, Xu, y[..., o], rng, n_starts, o,
+                         None if progress is None else (lambda o=o: progress(o / n_out)))
+                for o in range(n_out))
     return Emulator(X, theta, y, bounds, x_lo, x_span, gps)

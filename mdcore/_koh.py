@@ -11,9 +11,9 @@ Matérn 3/2 GP over x, ``φ = [log σ_f, log ℓ_x…, log σ_n]``; outputs inde
 from the truncated prior); θ | z, φ̂ is sampled by adaptive Metropolis; predictions average
 the Gaussian conditionals of δ* and z* over the kept θ with equal weights.
 
->>> from mdcore import cases
->>> from mdcore.emulator import fit_emulator
->>> case = cases.load("beam-1d")
+>>> import mdcore
+>>> from mdcore import fit_emulator
+>>> case = mdcore.load_case("beam-1d")
 >>> y = case.simulate(case.X_train, case.initial_design)
 >>> em = fit_emulator(case.X_train, case.initial_design, y, case.theta_bounds, seed=0)
 >>> model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
@@ -36,16 +36,16 @@ import scipy.linalg
 import scipy.optimize
 from scipy.special import logsumexp
 
-from . import compiled
-from .discrepancy import DiscrepancyPrediction
-from .emulator import Emulator, EmulatorAt, ThetaTerms
-from .exceptions import ConvergenceWarning, NumericalWarning
-from .hyperfit import default_bounds, lbfgs_advice, lbfgs_converged
-from .kernels import kernel, matern32_and_dlog_ell
-from .linalg import JITTER_LADDER, JitterLog, cholesky, solve_lower_inplace
-from .mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_setup
-from .priors import GaussianPrior, ThetaPrior
-from .validation import as_float_array, as_int, as_outputs, check_bounds
+from . import _compiled as compiled
+from ._discrepancy import DiscrepancyPrediction
+from ._emulator import Emulator, EmulatorAt, ThetaTerms
+from ._exceptions import ConvergenceWarning, NumericalWarning
+from ._hyperfit import default_bounds, lbfgs_advice, lbfgs_converged
+from ._kernels import kernel, matern32_and_dlog_ell
+from ._linalg import JITTER_LADDER, JitterLog, cholesky, solve_lower_inplace
+from ._mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_setup
+from ._priors import GaussianPrior, ThetaPrior
+from ._validation import as_float_array, as_int, as_outputs, check_bounds
 
 __all__ = ["KOHModel", "KOHOptions", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
            "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST", "MAX_CHAIN"]
@@ -61,7 +61,7 @@ LOG_2PI = float(np.log(2 * np.pi))
 
 class SimulatorAt:
     """An exact ``simulate(X, theta)`` at fixed ``X`` (N, d_x), with
-    :class:`mdcore.emulator.EmulatorAt`'s protocol and zero covariance."""
+    :class:`mdcore._emulator.EmulatorAt`'s protocol and zero covariance."""
 
     def __init__(self, simulate: Callable, X: np.ndarray, n_out: int):
         self.simulate, self.X, self.n_out = simulate, X, n_out
@@ -133,7 +133,7 @@ def gaussian_log_likelihood(mean, cov, B, zT, log) -> np.ndarray:
 
 
 def _theta_prior(theta_prior, bounds: np.ndarray) -> ThetaPrior:
-    """The θ prior as a :class:`~mdcore.priors.ThetaPrior` of size p."""
+    """The θ prior as a :class:`~mdcore.ThetaPrior` of size p."""
     if not isinstance(theta_prior, ThetaPrior):
         try:
             mean, var = theta_prior
@@ -230,9 +230,10 @@ def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
                     np.random.default_rng(seed))
 
 
-def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
+def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
     """:func:`fit_phi` from the emulator moments at the prior draws, which stay fixed
-    during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N, N)."""
+    during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N, N). ``progress(f)``
+    after every L-BFGS-B iteration (it may raise to stop the fit)."""
     N, d_x = X.shape
     n_out = z.shape[1]
     P = 2 + d_x
@@ -245,9 +246,10 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng):
     starts[0] = np.clip(np.tile(phi_prior.mean, n_out), lo, hi) if phi_prior is not None \
         else 0.5 * (lo + hi)
     best = None
-    for x0 in starts:
+    for k, x0 in enumerate(starts):
+        step = None if progress is None else (lambda *_, k=k: progress(k / n_starts))
         res = scipy.optimize.minimize(objective, x0, jac=True, method="L-BFGS-B",
-                                      bounds=list(zip(lo, hi)))
+                                      bounds=list(zip(lo, hi)), callback=step)
         if best is None or res.fun < best.fun:
             best = res
     log.warn("KOH empirical Bayes")
@@ -388,8 +390,8 @@ class KOHOptions:
     phi_prior : GaussianPrior of size 2 + d_x, optional
         Hyperprior of :func:`fit_phi` (MAP); None is plain empirical Bayes.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
-        The chain with an emulator: :func:`mdcore.compiled.koh_chain` or the Python loop
-        of :func:`mdcore.mcmc.adaptive_metropolis`; None reads ``MDCORE_BACKEND``.
+        The chain with an emulator: :func:`mdcore._compiled.koh_chain` or the Python loop
+        of :func:`mdcore._mcmc.adaptive_metropolis`; None reads ``MDCORE_BACKEND``.
     """
 
     n_iter: int = N_ITER
@@ -463,7 +465,9 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
     draws = prior.sample_in(bounds, options.n_theta_eb, seed=rng)
     mean, cov = at.moments_at(at.theta_terms(draws))     # for φ̂ and the starting point
     if options.log_phi is None:
-        log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng)
+        log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng,
+                                         None if progress is None
+                                         else (lambda f: progress(0.05 * f)))
     else:
         log_phi, log_evidence = _log_phi(options.log_phi, n_out, d_x), None
     seconds_phi = time.perf_counter() - start

@@ -12,10 +12,10 @@ from typing import NamedTuple
 import numpy as np
 import scipy.linalg
 
-from .kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
-from .linalg import JitterLog, cholesky, chunks, for_each_chunk, gather, solve_lower_inplace
-from .threads import single_threaded_blas
-from .validation import as_float_array, as_log_params
+from ._kernels import cross_cov, matern32_and_dlog_ell, split_log_params, train_cov
+from ._linalg import JitterLog, cholesky, chunks, for_each_chunk, gather, solve_lower_inplace
+from ._threads import single_threaded_blas
+from ._validation import as_float_array, as_log_params
 
 __all__ = ["LOG_2PI", "GPPrediction", "Problem", "check_problem",
            "neg_log_marginal_likelihood", "predict", "nlml_and_gradient"]
@@ -180,7 +180,7 @@ def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
 
 def _check_jitter_log(jitter_log) -> None:
     if jitter_log is not None and not isinstance(jitter_log, JitterLog):
-        raise ValueError(f"jitter_log must be a mdcore.linalg.JitterLog or None; received "
+        raise ValueError(f"jitter_log must be a mdcore._linalg.JitterLog or None; received "
                          f"{type(jitter_log).__name__}.")
 
 

@@ -13,8 +13,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .exceptions import NumericalWarning
-from .threads import run_pieces
+from ._exceptions import NumericalWarning
+from ._threads import run_pieces
 
 __all__ = ["JITTER_LADDER", "CHUNK_BYTES", "JitterLog", "cholesky", "solve_lower_inplace",
            "workspace", "gather", "chunks", "for_each_chunk"]

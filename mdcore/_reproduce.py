@@ -1,7 +1,7 @@
 """End-to-end runs of a case study: history matching, then methods through the pipeline.
 
 This is what ``python -m mdcore reproduce`` runs: the paper's Tables 1–3 for one case.
-Every method goes through :func:`mdcore.pipeline.run_method`, as in the app.
+Every method goes through :func:`mdcore.run_method`, as in the app.
 """
 
 from __future__ import annotations
@@ -14,14 +14,14 @@ from functools import cached_property
 
 import numpy as np
 
-from . import cases as _cases
-from . import compiled
-from .diagnostics import space_removed, theta_delta_split, validate_waves
-from .discrepancy import DiscrepancyModel, check_executor
-from .history_matching import HistoryMatchResult, history_match_case
-from .koh import KOHModel
-from .pipeline import Method, MethodResult, Progress, Settings, run_method
-from .validation import as_seed_int
+from . import _cases as _cases
+from . import _compiled as compiled
+from ._diagnostics import space_removed, theta_delta_split, validate_waves
+from ._discrepancy import DiscrepancyModel, check_executor
+from ._history_matching import HistoryMatchResult, history_match_case
+from ._koh import KOHModel
+from ._pipeline import Method, MethodResult, Progress, Settings, run_method
+from ._validation import as_seed_int
 
 __all__ = ["SCHEMA_VERSION", "CaseRun", "default_methods", "parse_methods", "reproduce",
            "run_case", "run_methods"]
@@ -74,12 +74,12 @@ class CaseRun:
 
     @cached_property
     def validation(self) -> tuple:
-        """Each wave's leave-one-run-out check (:func:`mdcore.diagnostics.validate_waves`)."""
+        """Each wave's leave-one-run-out check (:func:`mdcore.validate_waves`)."""
         return validate_waves(self.hm, warn=False)
 
     @cached_property
     def theta_delta(self) -> dict:
-        """Each decoupled scenario's :class:`~mdcore.diagnostics.ThetaDeltaSplit` at X_test."""
+        """Each decoupled scenario's :class:`~mdcore._diagnostics.ThetaDeltaSplit` at X_test."""
         return {r.method.value: theta_delta_split(r.model, self.case.X_test)
                 for r in self.results if isinstance(r.model, DiscrepancyModel)}
 
@@ -91,11 +91,11 @@ class CaseRun:
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
                              "fit_iterations": s.fit_iterations,
                              "backend": compiled.resolve_backend(s.backend)},
-                "history_matching": {"rule": self.hm.problem.rule,
+                "history_matching": {"rule": self.hm.problem.options.rule,
                                      "cutoff": self.hm.problem.cutoff,
-                                     "V_m_length": self.hm.problem.V_m_length.tolist(),
-                                     "V_m_corr": None if self.hm.problem.V_m_corr is None
-                                     else self.hm.problem.V_m_corr.tolist(),
+                                     "V_m_length": self.hm.problem.options.V_m_length.tolist(),
+                                     "V_m_corr": None if self.hm.problem.options.V_m_corr is None
+                                     else self.hm.problem.options.V_m_corr.tolist(),
                                      "waves": len(self.hm.waves),
                                      "nroy_fraction": self.hm.nroy_fraction,
                                      "theta_map": self.hm.theta_map.tolist(),
@@ -142,7 +142,7 @@ def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed
     Parameters
     ----------
     name : str
-        Case study name (:func:`mdcore.cases.names`).
+        Case study name (:func:`mdcore._cases.names`).
     methods : sequence of {1, 2, 3, "koh"} or Method, optional
         Default :func:`default_methods` (KOH is included for beam-1d).
     settings : Settings, optional
@@ -158,9 +158,9 @@ def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed
         Runs the simulator runs of the history match and the pair chunks of scenarios 2–3
         (see :func:`run_case`); the numbers are identical to the serial run's.
     timeout : float, optional
-        Seconds one simulator run may take (:attr:`mdcore.cases.Case.timeout`).
+        Seconds one simulator run may take (:attr:`mdcore.Case.timeout`).
     history_matching : dict, optional
-        Options of :func:`mdcore.history_matching.setup` (``rule``, ``V_m_length`` …).
+        Options of :func:`mdcore._history_matching.setup` (``rule``, ``V_m_length`` …).
 
     Returns
     -------
@@ -178,8 +178,8 @@ def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
              settings: Settings | None = None, seed=0,
              report: Callable[[str], None] | None = None, progress: Progress | None = None,
              executor: Executor | None = None, **history_matching) -> CaseRun:
-    """History-match any case (built-in or :func:`mdcore.case_file.load_case_file`), then
-    run the methods on it through :func:`mdcore.pipeline.run_method`.
+    """History-match any case (built-in or :func:`mdcore.load_case_file`), then
+    run the methods on it through :func:`mdcore.run_method`.
 
     Parameters
     ----------
@@ -193,11 +193,11 @@ def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
         As in :func:`reproduce`.
     executor : concurrent.futures.Executor, optional
         Runs the history match's simulator runs (one θ per task unless ``batch_size`` is
-        given) and the pair chunks of scenarios 2–3 (:func:`mdcore.pipeline.run_method`),
+        given) and the pair chunks of scenarios 2–3 (:func:`mdcore.run_method`),
         for example a Dask ``Client(...).get_executor()``; the numbers are identical to the
         serial run's. Default: in this process.
     **history_matching
-        Options of :func:`mdcore.history_matching.setup` (``n_runs``, ``convergence_ratio``,
+        Options of :func:`mdcore._history_matching.setup` (``n_runs``, ``convergence_ratio``,
         ``batch_size``, ``timeout`` …).
 
     Returns

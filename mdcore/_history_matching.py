@@ -10,15 +10,15 @@ survivors moved by a few random-walk Metropolis steps whose target is the unifor
 on that set; the walk leaves it invariant, so the NROY fraction of the box is estimated
 without bias by ``f_k = f_{k−1} · P(I_k ≤ T | θ ∈ NROY_{k−1})``.
 
-The multivariate rule (Vernon, Goldstein & Bower 2010; :mod:`mdcore.multivariate`)
+The multivariate rule (Vernon, Goldstein & Bower 2010; :mod:`mdcore._multivariate`)
 scores all targets at once, I_M²(θ) with the full covariance ``V_o + V_m + V_em(θ)``
 (V_m possibly correlated), against a χ² quantile instead of T.
 
 Examples
 --------
->>> from mdcore import cases
->>> from mdcore.history_matching import history_match_case
->>> result = history_match_case(cases.load("beam-1d"), n_candidates=20_000, max_waves=2, seed=0)
+>>> import mdcore
+>>> result = mdcore.history_match_case(mdcore.load_case("beam-1d"), n_candidates=20_000,
+...                                    max_waves=2, seed=0)
 >>> result.status in {"converged", "max_waves"}
 True
 """
@@ -28,20 +28,20 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Executor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields, replace
 from functools import cached_property
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import scipy.optimize
 import scipy.special
 import scipy.stats
 
-from . import multivariate
-from .emulator import Emulator, fit_emulator
-from .runs import run_simulator
-from .threads import single_threaded_blas
-from .validation import (
+from . import _multivariate as multivariate
+from ._emulator import Emulator, fit_emulator
+from ._runs import run_simulator
+from ._threads import single_threaded_blas
+from ._validation import (
     as_float_array,
     as_int,
     as_outputs,
@@ -53,14 +53,14 @@ from .validation import (
     short,
 )
 
-__all__ = ["RULES", "MULTIVARIATE", "RULE_NAMES", "implausibility", "combine", "Score", "Wave",
-           "HistoryMatchProblem", "HistoryMatchResult", "setup", "next_wave", "iter_waves",
-           "history_match", "history_match_case", "case_problem", "replicate_summary",
-           "check_correlation"]
+__all__ = ["RULES", "MULTIVARIATE", "RULE_NAMES", "elementwise_implausibility", "combine",
+           "Score", "Wave", "HistoryMatchOptions", "HistoryMatchProblem", "HistoryMatchResult",
+           "setup", "setup_arguments", "next_wave", "iter_waves", "history_match",
+           "history_match_case", "case_problem", "replicate_summary", "check_correlation"]
 
 #: Combiner rules: the k-th largest implausibility over all targets.
 RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
-#: The multivariate rule: I_M² over all targets against a χ² quantile (issue 43).
+#: The multivariate rule: I_M² over all targets against a χ² quantile (Vernon et al. 2010).
 MULTIVARIATE = "multivariate"
 #: Every rule :func:`setup` accepts.
 RULE_NAMES = (*RULES, MULTIVARIATE)
@@ -74,6 +74,11 @@ MAX_CANDIDATES = 10_000_000
 MAX_RUNS = 10_000
 MAX_WAVES = 100
 MAX_MCMC_STEPS = 1_000
+#: Values (θ rows × observed inputs × outputs) of the emulator's mean and variance held at
+#: once while candidates are scored or weighted: θ go through in chunks of at most this
+#: many values (16 MB per array), so memory does not grow with the number of candidates
+#: times the number of observations.
+CHUNK_VALUES = 2**21
 #: Posterior draws kept per history match, by (n, seed): see ``posterior_samples``.
 POSTERIOR_MEMO = 4
 RULED_OUT_HINT = ("nothing is non-implausible: every candidate θ has I > T. Raise V_m (the "
@@ -83,11 +88,11 @@ RULED_OUT_HINT_MV = ("nothing is non-implausible: every candidate θ has I_M² a
                      "room for a discrepancy that varies faster) or raise chi2_probability.")
 
 
-def implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
+def elementwise_implausibility(z, mean, var, *, V_o, V_m) -> np.ndarray:
     """Elementwise implausibility (Eq. 16), ``|z − mean| / √(V_o + V_m + var)``, of arrays
     that broadcast together (``var``, ``V_o``, ``V_m`` ≥ 0).
 
-    >>> float(implausibility(1.0, 0.0, 0.5, V_o=0.25, V_m=0.25))
+    >>> float(elementwise_implausibility(1.0, 0.0, 0.5, V_o=0.25, V_m=0.25))
     1.0
     """
     z = as_float_array(z, "z", allow_empty=True)
@@ -141,6 +146,71 @@ def replicate_summary(X, z):
 
 
 @dataclass(frozen=True, eq=False)
+class HistoryMatchOptions:
+    """How a history match runs: its rule, sizes, stopping rule and simulator runs.
+
+    :func:`setup` validates them (and fills ``n_runs`` and ``n_candidates``); the keyword
+    arguments of :func:`history_match` and :func:`history_match_case` set them by name.
+
+    Attributes
+    ----------
+    threshold : float, default=3
+        Implausibility cut-off T > 0 (Pukelsheim's 3σ rule).
+    rule : {"max", "2nd max", "3rd max", "multivariate"}, default="max"
+        The k-th largest I_i(θ) against T, or the multivariate I_M²(θ) against a χ²
+        quantile (:mod:`mdcore._multivariate`); θ_MAP and the posterior samples then use
+        its multivariate Gaussian likelihood, and a wave converges when
+        ``V_em(θ) ≼ convergence_ratio · (V_o + V_m)`` at the retained θ.
+    n_runs : int, optional
+        Simulator runs added per wave (default ``max(10, 5 p)``).
+    n_candidates : int, optional
+        Candidates scored per wave (default ``50,000 · p``).
+    max_waves : int, default=5
+    mcmc_steps : int, default=4
+        Uniform-target Metropolis steps that spread candidates through the NROY set.
+    convergence_ratio : float, default=1
+        Converged when the emulator variance at every retained point is below
+        ``convergence_ratio × (V_o + V_m)``; smaller values keep refining.
+    executor : concurrent.futures.Executor, optional
+        Runs the simulator runs of each wave (for example a ``ProcessPoolExecutor`` or a
+        Dask ``Client(...).get_executor()``); the results equal the serial run's.
+    batch_size : int, optional
+        θ per submitted task (default: one per task with an executor, all at once without).
+    timeout : float, optional
+        Seconds after which a batch of runs counts as failed.
+    max_failed_fraction : float, default=0.5
+        Failed runs (raised, timed out, NaN/inf) are dropped and reported on the wave; when
+        more than this share of a wave's runs fail (or all do), the wave is an error that
+        names the first failure.
+    V_m_length : float or ndarray of shape (n_out,), default=0
+        Correlation length ℓ_m of the model discrepancy over x, per output, in X's units:
+        ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps V_m independent. Only
+        the multivariate rule sees the correlation (the max rules use the diagonal).
+    V_m_corr : ndarray of shape (n_out, n_out), optional
+        Correlation matrix of the outputs' discrepancies (symmetric, unit diagonal,
+        positive definite); default independent. Multivariate rule only.
+    chi2_probability : float, default=0.995
+        The multivariate rule rules out θ with I_M² above the χ² quantile of
+        ``N_u · n_out`` degrees of freedom at this probability (Vernon et al. 2010).
+    """
+
+    threshold: float = 3.0
+    rule: str = "max"
+    n_runs: int | None = None
+    n_candidates: int | None = None
+    max_waves: int = 5
+    mcmc_steps: int = 4
+    convergence_ratio: float = 1.0
+    executor: Executor | None = field(default=None, repr=False)
+    batch_size: int | None = None
+    timeout: float | None = None
+    max_failed_fraction: float = MAX_FAILED_FRACTION
+    V_m_length: Any = 0.0
+    V_m_corr: Any = None
+    chi2_probability: float = 0.995
+
+
+@dataclass(frozen=True, eq=False)
 class HistoryMatchProblem:
     """A validated history-matching set-up; build it with :func:`setup`.
 
@@ -154,25 +224,11 @@ class HistoryMatchProblem:
         Observations (replicate means).
     V_o, V_m : ndarray of shape (N_u, n_out)
     bounds : ndarray of shape (p, 2)
-    threshold : float
-    rule : str
-    n_runs, n_candidates, max_waves, mcmc_steps : int
     initial_design : ndarray of shape (R0, p)
     seed : int
-    executor : concurrent.futures.Executor or None
-        Runs the simulator (see :func:`mdcore.runs.run_simulator`); None: in this process.
-    batch_size : int or None
-        θ per submitted batch of simulator runs.
-    timeout : float or None
-        Seconds after which a batch of simulator runs counts as failed.
-    max_failed_fraction : float
-        A wave whose share of failed simulator runs exceeds this is an error.
-    V_m_length : ndarray of shape (n_out,)
-        Correlation length ℓ_m of V_m per output, in X's units (0: independent).
-    V_m_corr : ndarray of shape (n_out, n_out) or None
-        Correlation of the outputs' discrepancies (None: independent).
-    chi2_probability : float
-        The multivariate rule's cut-off is the χ² quantile at this probability.
+    options : HistoryMatchOptions
+        Validated: ``n_runs`` and ``n_candidates`` filled in, ``V_m_length`` of shape
+        (n_out,), ``V_m_corr`` (n_out, n_out) or None.
     """
 
     simulate: Callable = field(repr=False)
@@ -181,22 +237,9 @@ class HistoryMatchProblem:
     V_o: np.ndarray
     V_m: np.ndarray
     bounds: np.ndarray
-    threshold: float
-    rule: str
-    n_runs: int
-    n_candidates: int
-    max_waves: int
     initial_design: np.ndarray
     seed: int
-    mcmc_steps: int = 4
-    convergence_ratio: float = 1.0
-    executor: Executor | None = field(default=None, repr=False)
-    batch_size: int | None = None
-    timeout: float | None = None
-    max_failed_fraction: float = MAX_FAILED_FRACTION
-    V_m_length: np.ndarray = field(default_factory=lambda: np.zeros(1))
-    V_m_corr: np.ndarray | None = None
-    chi2_probability: float = 0.995
+    options: HistoryMatchOptions
 
     @property
     def p(self) -> int:
@@ -206,36 +249,54 @@ class HistoryMatchProblem:
     @cached_property
     def V(self) -> np.ndarray:
         """``V_o + V_m`` over all targets, (n_out · N_u, n_out · N_u), output-major
-        (:func:`mdcore.multivariate.discrepancy_cov`); its diagonal is ``V_o + V_m``."""
+        (:func:`mdcore._multivariate.discrepancy_cov`); its diagonal is ``V_o + V_m``."""
         return np.diag(self.V_o.T.ravel()) + multivariate.discrepancy_cov(
-            self.X, self.V_m, self.V_m_length, self.V_m_corr)
+            self.X, self.V_m, self.options.V_m_length, self.options.V_m_corr)
 
     @property
     def cutoff(self) -> float:
         """The value a combined implausibility is compared with: T for the max rules, the
         χ² quantile of ``N_u · n_out`` degrees of freedom at :attr:`chi2_probability` for
         the multivariate rule (whose implausibility is I_M²)."""
-        if self.rule == MULTIVARIATE:
-            return multivariate.chi2_cutoff(self.z.size, self.chi2_probability)
-        return self.threshold
+        if self.options.rule == MULTIVARIATE:
+            return multivariate.chi2_cutoff(self.z.size, self.options.chi2_probability)
+        return self.options.threshold
 
     def score(self, theta, emulator: Emulator) -> Score:
         """Implausibility (Eq. 16, combined by :attr:`rule`) and emulator variance of
         candidates ``theta`` (M, p) under a wave's ``emulator``
-        (:meth:`mdcore.emulator.Emulator.implausibility`)."""
+        (:meth:`mdcore.Emulator.implausibility_and_var`)."""
         theta = np.atleast_2d(as_float_array(theta, "theta"))
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (M, p) with p = {self.p}; received "
                              f"{theta.shape}.")
-        if self.rule == MULTIVARIATE:     # I_M² over all targets at once
+        if self.options.rule == MULTIVARIATE:     # I_M² over all targets at once
             return Score(*multivariate.multivariate_implausibility(emulator, theta, self.z,
                                                                    self.V))
-        return Score(*emulator.implausibility(self.X, theta, self.z, self.V_o + self.V_m,
-                                              rank=RULES[self.rule]))
+        return Score(*emulator.implausibility_and_var(self.X, theta, self.z,
+                                                      self.V_o + self.V_m,
+                                                      rank=RULES[self.options.rule]))
 
-    def implausibility(self, theta, emulator: Emulator) -> np.ndarray:
-        """Combined implausibility (Eq. 16) of ``theta`` (M, p) under ``emulator``, (M,)."""
-        return self.score(theta, emulator).implausibility
+    def combined_implausibility(self, theta, emulator: Emulator,
+                                progress: Callable[[float], None] | None = None) -> np.ndarray:
+        """Combined implausibility (Eq. 16) of ``theta`` (M, p) under ``emulator``, (M,).
+
+        Scored in chunks of θ (:data:`CHUNK_VALUES`): memory stays bounded for any M.
+        ``progress(fraction)`` is called before each chunk (it may raise to stop).
+        """
+        theta = np.atleast_2d(as_float_array(theta, "theta"))
+        m, out = theta.shape[0], np.empty(theta.shape[0])
+        for rows in self.chunks(m):
+            if progress is not None:
+                progress(rows.start / m)
+            out[rows] = self.score(theta[rows], emulator).implausibility
+        return out
+
+    def chunks(self, m: int) -> list[slice]:
+        """Slices of ``m`` θ rows whose emulator predictions at every observed input and
+        output hold at most :data:`CHUNK_VALUES` values each (at least one row)."""
+        step = max(1, CHUNK_VALUES // self.z.size)
+        return [slice(i, min(i + step, m)) for i in range(0, m, step)]
 
 
 class Score(NamedTuple):
@@ -278,7 +339,7 @@ class Wave:
     seconds : float
     problem : HistoryMatchProblem
         The set-up the wave belongs to.
-    failures : tuple of mdcore.runs.Failure
+    failures : tuple of mdcore._runs.Failure
         Simulator runs of this wave that raised, timed out or returned NaN/inf (θ and
         message); they were dropped, and ``runs_theta`` holds only the runs that succeeded.
     """
@@ -303,7 +364,7 @@ class Wave:
         """Whether the stopping rule ended the history match at this wave."""
         return self.status != "running"
 
-    def implausibility(self, theta) -> np.ndarray:
+    def combined_implausibility(self, theta) -> np.ndarray:
         """Combined implausibility (Eq. 16) of ``theta`` (M, p) under this wave's emulator.
 
         Returns
@@ -312,17 +373,11 @@ class Wave:
             θ with a value ≤ the problem's :attr:`~HistoryMatchProblem.cutoff` is
             non-implausible in this wave.
         """
-        return self.problem.implausibility(theta, self.emulator)
+        return self.problem.combined_implausibility(theta, self.emulator)
 
 
-def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float = 3.0,
-          rule: str = "max", n_runs: int | None = None, n_candidates: int | None = None,
-          max_waves: int = 5, initial_design=None, seed=0,
-          mcmc_steps: int = 4, convergence_ratio: float = 1.0,
-          executor: Executor | None = None, batch_size: int | None = None,
-          timeout: float | None = None,
-          max_failed_fraction: float = MAX_FAILED_FRACTION, V_m_length=0.0,
-          V_m_corr=None, chi2_probability: float = 0.995) -> HistoryMatchProblem:
+def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, initial_design=None, seed=0,
+          options: HistoryMatchOptions | None = None) -> HistoryMatchProblem:
     """Validate and assemble a history-matching problem.
 
     Parameters
@@ -340,50 +395,18 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     V_o : float or ndarray, optional
         Observation variance. Inputs with replicates use the replicate sample variance
         (``V_o`` is required for inputs without replicates).
-    threshold : float, default=3
-        Implausibility cut-off T > 0 (Pukelsheim's 3σ rule).
-    rule : {"max", "2nd max", "3rd max", "multivariate"}, default="max"
-        The k-th largest I_i(θ) against T, or the multivariate I_M²(θ) against a χ²
-        quantile (:mod:`mdcore.multivariate`); θ_MAP and the posterior samples then use
-        its multivariate Gaussian likelihood, and a wave converges when
-        ``V_em(θ) ≼ convergence_ratio · (V_o + V_m)`` at the retained θ.
-    n_runs : int, optional
-        Simulator runs added per wave (default ``max(10, 5 p)``).
-    n_candidates : int, optional
-        Candidates scored per wave (default ``50,000 · p``).
-    max_waves : int, default=5
     initial_design : ndarray of shape (R0, p), optional
         Runs of the first emulator (default: a Latin hypercube of ``max(10 p, n_runs)``).
     seed : int or numpy.random.Generator, default=0
         Seeds every wave (wave k uses ``default_rng([seed, k])``); a Generator is turned
         into an integer seed by one draw.
-    mcmc_steps : int, default=4
-        Uniform-target Metropolis steps that spread candidates through the NROY set.
-    convergence_ratio : float, default=1
-        Converged when the emulator variance at every retained point is below
-        ``convergence_ratio × (V_o + V_m)``; smaller values keep refining.
-    executor : concurrent.futures.Executor, optional
-        Runs the simulator runs of each wave (for example a ``ProcessPoolExecutor`` or a
-        Dask ``Client(...).get_executor()``); the results equal the serial run's.
-    batch_size : int, optional
-        θ per submitted task (default: one per task with an executor, all at once without).
-    timeout : float, optional
-        Seconds after which a batch of runs counts as failed.
-    max_failed_fraction : float, default=0.5
-        Failed runs (raised, timed out, NaN/inf) are dropped and reported on the wave; when
-        more than this share of a wave's runs fail (or all do), the wave is an error that
-        names the first failure.
-    V_m_length : float or ndarray of shape (n_out,), default=0
-        Correlation length ℓ_m of the model discrepancy over x, per output, in X's units:
-        ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps today's independent V_m. Only
-        the multivariate rule sees the correlation (the max rules use the diagonal).
-    V_m_corr : ndarray of shape (n_out, n_out), optional
-        Correlation matrix of the outputs' discrepancies (symmetric, unit diagonal,
-        positive definite); default independent. Multivariate rule only.
-    chi2_probability : float, default=0.995
-        The multivariate rule rules out θ with I_M² above the χ² quantile of
-        ``N_u · n_out`` degrees of freedom at this probability (Vernon et al. 2010).
+    options : HistoryMatchOptions, optional
+        The rule, sizes, stopping rule and simulator runs (default: the paper's).
     """
+    o = HistoryMatchOptions() if options is None else options
+    if not isinstance(o, HistoryMatchOptions):
+        raise ValueError(f"options must be a HistoryMatchOptions; received {type(o).__name__}.")
+    threshold, rule, n_runs, n_candidates = o.threshold, o.rule, o.n_runs, o.n_candidates
     if not callable(simulate):
         raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
                          f"received {type(simulate).__name__}.")
@@ -426,7 +449,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
     n_runs = as_int(max(10, 5 * p) if n_runs is None else n_runs, "n_runs", 1, MAX_RUNS)
     n_candidates = as_int(50_000 * p if n_candidates is None else n_candidates,
                            "n_candidates", 10, MAX_CANDIDATES)
-    max_waves = as_int(max_waves, "max_waves", 1, MAX_WAVES)
+    max_waves = as_int(o.max_waves, "max_waves", 1, MAX_WAVES)
     seed = as_seed_int(seed)
     if initial_design is None:
         lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng([seed, 0]))
@@ -443,39 +466,37 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, threshold: float =
                          f"covariance is runs × runs); received {initial_design.shape[0]:,} + "
                          f"{n_runs:,} × {max_waves - 1} = {total:,}. Lower n_runs or "
                          "max_waves.")
-    convergence_ratio = as_positive_float(convergence_ratio, "convergence_ratio",
+    convergence_ratio = as_positive_float(o.convergence_ratio, "convergence_ratio",
                                           "1 is the paper's rule.")
     try:
-        failed = float(max_failed_fraction)
+        failed = float(o.max_failed_fraction)
     except (TypeError, ValueError):
         failed = float("nan")
     if not 0.0 <= failed < 1.0:
         raise ValueError(f"max_failed_fraction must be in [0, 1); received "
-                         f"{max_failed_fraction!r}.")
-    max_failed_fraction = failed
+                         f"{o.max_failed_fraction!r}.")
     V_m_length, V_m_corr, chi2_probability = check_correlation(
-        V_m_length, V_m_corr, chi2_probability, n_out)
+        o.V_m_length, o.V_m_corr, o.chi2_probability, n_out)
     if V_m_corr is not None or np.any(V_m_length > 0):
         _check_total_cov(np.diag(V_o.T.ravel()) + multivariate.discrepancy_cov(
             Xu, V_m, V_m_length, V_m_corr))
-    if executor is not None and not callable(getattr(executor, "submit", None)):
+    if o.executor is not None and not callable(getattr(o.executor, "submit", None)):
         raise ValueError(f"executor must be a concurrent.futures.Executor (with submit); "
-                         f"received {type(executor).__name__}.")
-    if batch_size is not None:
-        batch_size = as_int(batch_size, "batch_size", 1)
-    if timeout is not None:
-        timeout = as_positive_float(timeout, "timeout", "It is in seconds.")
-    return HistoryMatchProblem(simulate, Xu, zm, V_o, V_m, bounds, threshold, rule, n_runs,
-                               n_candidates, max_waves, initial_design, seed,
-                               as_int(mcmc_steps, "mcmc_steps", 0, MAX_MCMC_STEPS),
-                               convergence_ratio,
-                               executor, batch_size, None if timeout is None else float(timeout),
-                               max_failed_fraction, V_m_length, V_m_corr, chi2_probability)
+                         f"received {type(o.executor).__name__}.")
+    checked = replace(
+        o, threshold=threshold, n_runs=n_runs, n_candidates=n_candidates, max_waves=max_waves,
+        mcmc_steps=as_int(o.mcmc_steps, "mcmc_steps", 0, MAX_MCMC_STEPS),
+        convergence_ratio=convergence_ratio, max_failed_fraction=failed,
+        V_m_length=V_m_length, V_m_corr=V_m_corr, chi2_probability=chi2_probability,
+        batch_size=None if o.batch_size is None else as_int(o.batch_size, "batch_size", 1),
+        timeout=None if o.timeout is None else as_positive_float(o.timeout, "timeout",
+                                                                 "It is in seconds."))
+    return HistoryMatchProblem(simulate, Xu, zm, V_o, V_m, bounds, initial_design, seed, checked)
 
 
 def check_correlation(length, corr, probability, n_out: int):
     """Validated ``V_m_length`` (n_out,), ``V_m_corr`` (n_out, n_out) or None, and the χ²
-    probability of :func:`setup` (also used by :mod:`mdcore.case_file`)."""
+    probability of :func:`setup` (also used by :mod:`mdcore._case_file`)."""
     length = as_float_array(length, "V_m_length")
     if length.size not in (1, n_out) or length.ndim > 1 or np.any(length < 0):
         raise ValueError(f"V_m_length must be one length ≥ 0 or one per output ({n_out}), in "
@@ -517,18 +538,21 @@ def _check_total_cov(V: np.ndarray) -> None:
                          "small to make up for it. Shorten V_m_length or give a positive V_o.")
 
 
-def _in_nroy(problem, waves, theta) -> np.ndarray:
+def _in_nroy(problem, waves, theta, progress=None) -> np.ndarray:
     """Whether each θ (M, p) is inside the box and non-implausible in every wave."""
     b = problem.bounds
     ok = np.all((theta >= b[:, 0]) & (theta <= b[:, 1]), axis=1)
-    for w in waves:
+    for j, w in enumerate(waves):
         idx = np.nonzero(ok)[0]
         if idx.size:
-            ok[idx] = problem.implausibility(theta[idx], w.emulator) <= problem.cutoff
+            ok[idx] = problem.combined_implausibility(
+                theta[idx], w.emulator, None if progress is None
+                else (lambda f, j=j: progress((j + f) / len(waves)))) <= problem.cutoff
     return ok
 
 
-def _uniform_in_nroy(problem, waves, seeds: np.ndarray, n: int, rng) -> np.ndarray:
+def _uniform_in_nroy(problem, waves, seeds: np.ndarray, n: int, rng,
+                     progress=None) -> np.ndarray:
     """``n`` points uniform in the NROY set of ``waves``, from uniform ``seeds`` (K, p).
 
     Resamples the seeds, then runs ``mcmc_steps`` random-walk Metropolis steps with the
@@ -544,9 +568,11 @@ def _uniform_in_nroy(problem, waves, seeds: np.ndarray, n: int, rng) -> np.ndarr
         cov = np.diag((0.05 * span) ** 2)
     cov = cov + np.diag((1e-6 * span) ** 2)
     chol = np.linalg.cholesky(cov)
-    for _ in range(problem.mcmc_steps):
+    steps = problem.options.mcmc_steps
+    for k in range(steps):
         prop = theta + rng.standard_normal((n, p)) @ chol.T
-        accept = _in_nroy(problem, waves, prop)
+        accept = _in_nroy(problem, waves, prop, None if progress is None
+                          else (lambda f, k=k: progress((k + f) / steps)))
         theta[accept] = prop[accept]
     return theta
 
@@ -567,12 +593,18 @@ def _maximin(pool: np.ndarray, existing: np.ndarray, n: int, span: np.ndarray, r
 
 
 @single_threaded_blas
-def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
+def next_wave(problem: HistoryMatchProblem, previous: tuple = (),
+              progress: Callable[[float], None] | None = None) -> Wave:
     """Run the wave after ``previous`` (a tuple of :class:`Wave`, possibly empty).
 
     Deterministic given ``problem.seed`` and the wave index, so stepping one wave at a
-    time and running to the end give identical results.
+    time and running to the end give identical results. ``progress(fraction)`` is called
+    between the steps of the emulator fit, of the candidates' random walk and of their
+    scoring; if it raises (e.g. :class:`mdcore.Cancelled`), the wave stops.
     """
+    def stage(lo: float, hi: float):
+        return None if progress is None else (lambda f: progress(lo + (hi - lo) * f))
+
     t0 = time.perf_counter()
     k = len(previous) + 1
     if previous and previous[-1].done:
@@ -580,6 +612,8 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
                          f"({previous[-1].status}); start a new one to change settings.")
     rng = np.random.default_rng([problem.seed, k])
     span = problem.bounds[:, 1] - problem.bounds[:, 0]
+    n_runs, n_candidates = problem.options.n_runs, problem.options.n_candidates
+    assert n_runs is not None and n_candidates is not None      # filled in by setup
     if k == 1:
         new_runs = problem.initial_design
         old_theta = np.empty((0, problem.p))
@@ -588,57 +622,69 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = ()) -> Wave:
         last = previous[-1]
         em = last.emulator
         old_theta, old_y = em.theta_train, em.y_train
-        new_runs = _maximin(last.nroy, old_theta, problem.n_runs, span, rng)
+        new_runs = _maximin(last.nroy, old_theta, n_runs, span, rng)
     runs = run_simulator(problem.simulate, problem.X, new_runs, problem.z.shape[1],
-                         executor=problem.executor, batch_size=problem.batch_size,
-                         timeout=problem.timeout)
+                         executor=problem.options.executor, batch_size=problem.options.batch_size,
+                         timeout=problem.options.timeout)
     n_failed = len(runs.failures)
     if n_failed and (n_failed == len(new_runs)
-                     or n_failed > problem.max_failed_fraction * len(new_runs)):
+                     or n_failed > problem.options.max_failed_fraction * len(new_runs)):
         first = runs.failures[0]
         raise ValueError(
             f"wave {k}: {n_failed} of {len(new_runs)} simulator runs failed (at most "
-            f"{problem.max_failed_fraction:.0%} may); the first at θ = "
+            f"{problem.options.max_failed_fraction:.0%} may); the first at θ = "
             f"{np.array2string(first.theta, precision=4)}: {first.message}. Fix the simulator "
             "(simulate) or narrow the bounds to where it runs.")
     new_runs, new_y = new_runs[runs.ok], runs.y
     emulator = fit_emulator(problem.X, np.vstack([old_theta, new_runs]),
-                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng)
+                            np.concatenate([old_y, new_y]), problem.bounds, seed=rng,
+                            progress=stage(0.1, 0.4))
     if k == 1:
-        candidates = problem.bounds[:, 0] + span * rng.uniform(size=(problem.n_candidates,
+        candidates = problem.bounds[:, 0] + span * rng.uniform(size=(n_candidates,
                                                                       problem.p))
         base_fraction = 1.0
     else:
         candidates = _uniform_in_nroy(problem, previous, previous[-1].nroy,
-                                      problem.n_candidates, rng)
+                                      n_candidates, rng, stage(0.4, 0.7))
         base_fraction = previous[-1].nroy_fraction
-    I, var = problem.score(candidates, emulator)
+    # Scored in chunks (bounded memory): each chunk's largest emulator variance at its
+    # retained rows, then the largest over the chunks (a maximum: the same values).
+    I = np.empty(candidates.shape[0])
+    chunk_max = []
+    for rows in problem.chunks(candidates.shape[0]):
+        if progress is not None:
+            progress(0.7 + 0.3 * rows.start / candidates.shape[0])
+        I[rows], var = problem.score(candidates[rows], emulator)
+        kept = I[rows] <= problem.cutoff
+        if np.any(kept):
+            # the kept rows of (m, N·n_out), then the max over N: half the time of
+            # np.max(var[kept], axis=(0, 1)) on shear-5's (10⁵, 3, 5), the same values
+            chunk_max.append(var.reshape(len(var), -1)[kept].max(axis=0)
+                             .reshape(var.shape[1:]).max(axis=0))
     keep = I <= problem.cutoff
     nroy = candidates[keep]
     fraction = base_fraction * float(np.mean(keep))       # chain rule, module docstring
-    threshold_var = problem.convergence_ratio * np.min(problem.V_o + problem.V_m, axis=0)
+    threshold_var = problem.options.convergence_ratio * np.min(problem.V_o + problem.V_m, axis=0)
     if nroy.shape[0]:
-        # the kept rows of (M, N·n_out), then the max over N: half the time of
-        # np.max(var[keep], axis=(0, 1)) on shear-5's (10⁵, 3, 5), the same values
-        max_var = var.reshape(len(var), -1)[keep].max(axis=0).reshape(var.shape[1:]).max(axis=0)
+        max_var = np.max(chunk_max, axis=0)
         converged = bool(np.all(max_var < threshold_var))
-        if problem.rule == MULTIVARIATE:  # issue 43: V_em(θ) ≼ ratio · (V_o + V_m) at NROY
+        if problem.options.rule == MULTIVARIATE:  # V_em(θ) ≼ ratio · (V_o + V_m) at NROY
             converged = multivariate.cov_ratio(emulator, nroy, problem.V) \
-                < problem.convergence_ratio
+                < problem.options.convergence_ratio
     else:
         max_var = np.full(problem.z.shape[1], np.nan)
         converged = False
     if not nroy.shape[0]:
         status, message = "ruled_out", f"wave {k}: " + (
-            RULED_OUT_HINT_MV if problem.rule == MULTIVARIATE else RULED_OUT_HINT)
+            RULED_OUT_HINT_MV if problem.options.rule == MULTIVARIATE else RULED_OUT_HINT)
     elif converged:
         status = "converged"
-        what = "covariance" if problem.rule == MULTIVARIATE else "variance"
+        what = "covariance" if problem.options.rule == MULTIVARIATE else "variance"
         message = (f"wave {k}: converged — the emulator {what} is below V_o + V_m at every "
                    f"retained point; NROY is {100 * fraction:.3g}% of the box.")
-    elif k >= problem.max_waves:
+    elif k >= problem.options.max_waves:
         status = "max_waves"
-        message = (f"wave {k}: stopped at max_waves = {problem.max_waves}; NROY is "
+        message = (f"wave {k}: stopped at max_waves = {problem.options.max_waves}; NROY is "
                    f"{100 * fraction:.3g}% of the box (emulator not yet below V_o + V_m).")
     else:
         status = "running"
@@ -705,11 +751,13 @@ class HistoryMatchResult:
                              f"received {theta.shape}.")
         return _in_nroy(self.problem, self.waves, theta)
 
-    def nroy_samples(self, n: int, seed=None) -> np.ndarray:
+    def nroy_samples(self, n: int, seed=None,
+                     progress: Callable[[float], None] | None = None) -> np.ndarray:
         """``n`` samples of θ, uniform in the final NROY set, shape (n, p).
 
         These are not the posterior draws (see :meth:`posterior_samples`): the NROY set is
-        the support of the posterior, and these samples fill it evenly.
+        the support of the posterior, and these samples fill it evenly. ``progress`` as in
+        :func:`next_wave`.
 
         Raises
         ------
@@ -721,9 +769,10 @@ class HistoryMatchResult:
         if last.nroy.shape[0] == 0:
             raise ValueError(f"no θ samples: {last.message}")
         return _uniform_in_nroy(self.problem, self.waves, last.nroy, n,
-                                np.random.default_rng(seed))
+                                np.random.default_rng(seed), progress)
 
-    def posterior_samples(self, n: int, seed=None) -> np.ndarray:
+    def posterior_samples(self, n: int, seed=None,
+                          progress: Callable[[float], None] | None = None) -> np.ndarray:
         """``n`` samples of θ from the posterior ``p(θ | z)`` restricted to NROY, (n, p).
 
         Sampling-importance-resampling: a pool of ``max(20 n, 20,000)`` uniform NROY
@@ -734,6 +783,7 @@ class HistoryMatchResult:
 
         With an integer ``seed`` the draws are kept (a few, the newest) and a repeated call
         returns a copy of them: scenarios 2 and 3 of one run ask for the same θ^(j).
+        ``progress`` as in :func:`next_wave`.
         """
         n = as_int(n, "n", 1, MAX_CANDIDATES // 20)
         key = (n, int(seed)) if isinstance(seed, (int, np.integer)) \
@@ -742,8 +792,10 @@ class HistoryMatchResult:
         if key is not None and key in memo:
             return memo[key].copy()
         rng = np.random.default_rng(seed)
-        pool = self.nroy_samples(max(20 * n, 20_000), seed=rng)
-        ll = self.log_likelihood(pool)
+        pool = self.nroy_samples(max(20 * n, 20_000), seed=rng, progress=None if progress
+                                 is None else (lambda f: progress(0.8 * f)))
+        ll = self.log_likelihood(pool, None if progress is None
+                                 else (lambda f: progress(0.8 + 0.2 * f)))
         w = np.exp(ll - scipy.special.logsumexp(ll))
         draws = pool[rng.choice(pool.shape[0], size=n, p=w / w.sum())]
         if key is not None:
@@ -757,21 +809,29 @@ class HistoryMatchResult:
         """(n, seed) -> the draws of :meth:`posterior_samples` (the newest few)."""
         return {}
 
-    def log_likelihood(self, theta) -> np.ndarray:
+    def log_likelihood(self, theta,
+                       progress: Callable[[float], None] | None = None) -> np.ndarray:
         """Gaussian log-likelihood behind the implausibility measure, shape (M,).
 
         ``log p(z | θ) = −½ Σ_i [(z_i − E[y_i(θ)])² / s_i² + log 2π s_i²]``,
         ``s_i² = V_o,i + V_m,i + V[y_i(θ)]``, with the final wave's emulator: the model that
-        Eq. 16 standardises by. θ (M, p) -> (M,).
+        Eq. 16 standardises by. θ (M, p) -> (M,). In chunks of θ (bounded memory);
+        ``progress`` as in :func:`next_wave`.
         """
         theta = np.atleast_2d(as_float_array(theta, "theta"))
-        if self.problem.rule == MULTIVARIATE:   # the full Gaussian of I_M²
-            return multivariate.log_likelihood(self.waves[-1].emulator, theta, self.problem.z,
-                                               self.problem.V)
-        pred = self.waves[-1].emulator.predict(self.problem.X, theta)
-        s2 = self.problem.V_o + self.problem.V_m + pred.var
-        r2 = (self.problem.z - pred.mean) ** 2 / s2
-        return -0.5 * np.sum(r2 + np.log(2.0 * np.pi * s2), axis=(1, 2))
+        out = np.empty(theta.shape[0])
+        for rows in self.problem.chunks(theta.shape[0]):
+            if progress is not None:
+                progress(rows.start / theta.shape[0])
+            if self.problem.options.rule == MULTIVARIATE:   # the full Gaussian of I_M²
+                out[rows] = multivariate.log_likelihood(self.waves[-1].emulator, theta[rows],
+                                                        self.problem.z, self.problem.V)
+                continue
+            pred = self.waves[-1].emulator.predict(self.problem.X, theta[rows])
+            s2 = self.problem.V_o + self.problem.V_m + pred.var
+            r2 = (self.problem.z - pred.mean) ** 2 / s2
+            out[rows] = -0.5 * np.sum(r2 + np.log(2.0 * np.pi * s2), axis=(1, 2))
+        return out
 
     @cached_property
     def theta_map(self) -> np.ndarray:
@@ -783,8 +843,21 @@ class HistoryMatchResult:
         non-implausible. (The mode of the NROY samples' density would not do: the samples
         are uniform on NROY, so their density has no informative mode.)
         """
-        theta = self.nroy_samples(2000, seed=[self.problem.seed, 10_000])
-        ll = self.log_likelihood(theta)
+        return self._find_theta_map()
+
+    def compute_theta_map(self, progress: Callable[[float], None] | None = None) -> np.ndarray:
+        """:attr:`theta_map`, found now unless it was already; ``progress`` as in
+        :func:`next_wave` (if it raises, nothing is kept)."""
+        if "theta_map" not in self.__dict__:                  # the cached_property's slot
+            self.__dict__["theta_map"] = self._find_theta_map(progress)
+        return self.theta_map
+
+    def _find_theta_map(self, progress=None) -> np.ndarray:
+        def stage(lo, hi):
+            return None if progress is None else (lambda f: progress(lo + (hi - lo) * f))
+
+        theta = self.nroy_samples(2000, seed=[self.problem.seed, 10_000], progress=stage(0, 0.4))
+        ll = self.log_likelihood(theta, stage(0.4, 0.5))
         start = theta[int(np.argmax(ll))]
         b = self.problem.bounds
         span = b[:, 1] - b[:, 0]
@@ -794,26 +867,44 @@ class HistoryMatchResult:
 
         res = scipy.optimize.minimize(objective, (start - b[:, 0]) / span, method="Nelder-Mead",
                                       bounds=[(0.0, 1.0)] * self.problem.p,
-                                      options=dict(xatol=1e-6, fatol=1e-9))
+                                      options=dict(xatol=1e-6, fatol=1e-9),
+                                      callback=None if progress is None
+                                      else (lambda *_: progress(0.5)))
         best = b[:, 0] + span * res.x
         if -res.fun > ll.max() and self.contains(best)[0]:
             return best
         return start
 
 
-def history_match(simulate: Callable, X, z, bounds, **options) -> HistoryMatchResult:
-    """Run waves until converged, ``max_waves``, or everything is ruled out.
+def setup_arguments(overrides: dict) -> dict:
+    """Keyword arguments of :func:`setup` from ``overrides``, with the fields of
+    :class:`HistoryMatchOptions` among them gathered into its ``options``."""
+    names = {f.name for f in fields(HistoryMatchOptions)}
+    direct = {"V_m", "V_o", "initial_design", "seed", "options"}
+    unknown = sorted(set(overrides) - names - direct)
+    if unknown:
+        raise ValueError(f"unknown history-matching option(s) {unknown}; expected some of "
+                         f"{sorted(direct | names)}.")
+    kwargs = {k: v for k, v in overrides.items() if k in direct}
+    chosen = {k: v for k, v in overrides.items() if k in names}
+    if chosen:
+        kwargs["options"] = replace(kwargs.get("options") or HistoryMatchOptions(), **chosen)
+    return kwargs
 
-    Takes the arguments of :func:`setup`. A history match that rules out everything is
-    not an exception: the result's ``status`` is ``"ruled_out"`` and its ``message``
-    suggests raising V_m or T.
+
+def history_match(simulate: Callable, X, z, bounds, **options) -> HistoryMatchResult:
+    """Run waves until the stopping rule ends them (Eq. 16).
+
+    Takes the arguments of :func:`setup`, and the fields of :class:`HistoryMatchOptions` by
+    name. A history match that rules out everything is not an exception: the result's
+    ``status`` is ``"ruled_out"`` and its ``message`` suggests raising V_m or T.
     """
-    problem = setup(simulate, X, z, bounds, **options)
+    problem = setup(simulate, X, z, bounds, **setup_arguments(options))
     return HistoryMatchResult(problem, tuple(iter_waves(problem)))
 
 
 def case_problem(case, **overrides) -> HistoryMatchProblem:
-    """A :class:`HistoryMatchProblem` for a :class:`~mdcore.cases.Case` with its defaults.
+    """A :class:`HistoryMatchProblem` for a :class:`~mdcore.Case` with its defaults.
 
     ``V_o`` defaults to the case's noise variance (replicates use their sample variance),
     ``V_m`` to ``case.V_m`` (its correlation to ``case.V_m_length`` and ``case.V_m_corr``)
@@ -824,8 +915,12 @@ def case_problem(case, **overrides) -> HistoryMatchProblem:
     options = dict(V_o=case.noise_var, V_m=case.V_m, initial_design=case.initial_design,
                    seed=case.seed, batch_size=None if case.timeout is None else 1,
                    V_m_length=case.V_m_length, V_m_corr=case.V_m_corr)
+    if "options" in overrides:        # an options object replaces the case's option defaults
+        for key in ("batch_size", "V_m_length", "V_m_corr"):
+            options.pop(key)
     options.update(overrides)
-    return setup(case.simulate, case.X_train, case.z_train, case.theta_bounds, **options)
+    return setup(case.simulate, case.X_train, case.z_train, case.theta_bounds,
+                 **setup_arguments(options))
 
 
 def history_match_case(case, **overrides) -> HistoryMatchResult:

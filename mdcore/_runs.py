@@ -6,7 +6,7 @@ batches submitted to an executor (serially in this process by default), and retu
 outputs of the runs that succeeded, in their original order, together with the runs that
 failed and why. A batch that raises is re-run one θ at a time, so one bad θ costs only its
 own run. The caller decides how many failures are acceptable (history matching:
-:attr:`mdcore.history_matching.HistoryMatchProblem.max_failed_fraction`).
+:attr:`mdcore._history_matching.HistoryMatchOptions.max_failed_fraction`).
 
 Any ``concurrent.futures.Executor`` works, including a Dask client's ``get_executor()``;
 the numbers do not depend on the executor, because results are assembled in θ order.
@@ -45,7 +45,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .validation import as_float_array, as_int
+from ._validation import as_float_array, as_int
 
 __all__ = ["Failure", "Runs", "SimulatorError", "SimulatorProcess", "call_with_timeout",
            "run_simulator"]

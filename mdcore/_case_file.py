@@ -1,8 +1,8 @@
 """Your own case from files: a TOML case file, a measurements CSV and a simulator function.
 
-A case file names everything :class:`mdcore.cases.Case` needs. Paths are relative to the
+A case file names everything :class:`mdcore.Case` needs. Paths are relative to the
 case file. The simulator is an import path ``package.module:function`` whose function has
-the signature of :meth:`mdcore.cases.Case.simulate`::
+the signature of :meth:`mdcore.Case.simulate`::
 
     simulate(X, theta) -> ndarray of shape (n_theta, N, n_out)
     # X: (N, d_x) inputs in the CSV's input units; theta: (n_theta, p) in the parameters' units
@@ -52,7 +52,7 @@ what was found)::
 Examples
 --------
 >>> from pathlib import Path
->>> from mdcore.case_file import load_case_file
+>>> from mdcore import load_case_file
 >>> examples = Path(__file__).resolve().parent.parent / "examples"
 >>> case = load_case_file(examples / "beam_lab" / "beam_lab.toml")   # doctest: +SKIP
 """
@@ -69,23 +69,29 @@ from typing import Any
 import numpy as np
 import scipy.stats
 
-from .cases import Case, MeasurementsError, parse_measurements, read_measurements
-from .discrepancy import default_phi_prior
-from .priors import ThetaPrior
-from .runs import SimulatorError, SimulatorProcess
-from .validation import as_seed_int, short
+from ._cases import Case, MeasurementsError, parse_measurements, read_measurements
+from ._discrepancy import default_phi_prior
+from ._priors import ThetaPrior
+from ._runs import SimulatorError, SimulatorProcess
+from ._validation import as_seed_int, short
 
-__all__ = ["load_case_file", "CaseFileError", "TEST_COLUMN", "measurements_template",
-           "with_measurements"]
+__all__ = ["load_case_file", "CaseFileError", "MAX_TRAINING_ROWS", "TEST_COLUMN",
+           "measurements_template", "with_measurements"]
 
 #: The column of an uploaded measurements file that marks test rows (1) and training rows (0).
 TEST_COLUMN = "test"
 #: Largest case file read (a case file is a few hundred bytes; its data live in the CSV).
 MAX_CASE_FILE_BYTES = 1_000_000
+#: Most training rows of a case's measurements (case files and uploads; every file also has
+#: at most :data:`mdcore._cases.MAX_ROWS` rows in all). Every discrepancy GP factorises an
+#: N × N matrix of the training rows, per output and per (θ, φ) pair: the work grows as
+#: N³; ``python bench/bench_upload_limits.py`` measures the peak memory and time of the
+#: app's defaults at this limit.
+MAX_TRAINING_ROWS = 300
 
 
 class CaseFileError(ValueError):
-    """A case file, its CSV or its simulator is not as documented (:mod:`mdcore.case_file`)."""
+    """A case file, its CSV or its simulator is not as documented (:mod:`mdcore._case_file`)."""
 
 
 class _Reader:
@@ -183,8 +189,8 @@ def _simulator(path: Path, sim: _Reader) -> SimulatorProcess:
 
 def _split(m, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """X, z and the test-row mask of measurements whose last input column marks test rows:
-    0/1 flags, at least 3 training rows (to fit a GP) and 2 test rows whose outputs differ
-    (the NMSE divides by their variance). Raises MeasurementsError."""
+    0/1 flags, 3 to :data:`MAX_TRAINING_ROWS` training rows (to fit a GP) and 2 test rows
+    whose outputs differ (the NMSE divides by their variance). Raises MeasurementsError."""
     flag, column = m.X[:, -1], m.input_names[-1]
     if not np.all(np.isin(flag, (0.0, 1.0))):
         bad = flag[~np.isin(flag, (0.0, 1.0))][0]
@@ -192,6 +198,10 @@ def _split(m, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
                                  f"(test row) in every row; found {float(bad)!r}."])
     X, z, test = m.X[:, :-1], m.z, flag == 1.0
     n_train, n_test = int((~test).sum()), int(test.sum())
+    if n_train > MAX_TRAINING_ROWS:
+        raise MeasurementsError([f"{source}: {n_train:,} training rows; at most "
+                                 f"{MAX_TRAINING_ROWS:,} are taken (mark more rows as test "
+                                 "rows, keep a subset, or average replicate readings)."])
     if n_train < 3 or n_test < 2:
         raise MeasurementsError([f"{source}: column {column!r} marks {n_train} training row(s) "
                                  f"(0) and {n_test} test row(s) (1); at least 3 training rows "
@@ -207,14 +217,14 @@ def _split(m, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def _pooled_replicate_var(X: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Observation noise variance per output pooled over replicate groups, (n_out,)."""
-    from .history_matching import replicate_summary
+    from ._history_matching import replicate_summary
     _, _, var, counts = replicate_summary(X, z)
     dof = (counts - 1)[:, None]
     return np.sum(np.where(dof > 0, var * dof, 0.0), axis=0) / np.sum(dof)
 
 
 def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Case:
-    """Build a :class:`~mdcore.cases.Case` from a TOML case file (format in the module doc).
+    """Build a :class:`~mdcore.Case` from a TOML case file (format in the module doc).
 
     Parameters
     ----------
@@ -223,14 +233,14 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
     seed : int or Generator, default=0
         Seeds the Latin-hypercube initial design (the data are read, not drawn).
     default_timeout : float, optional
-        :attr:`Case.timeout <mdcore.cases.Case>` when the file sets no ``[simulator]
+        :attr:`Case.timeout <mdcore.Case>` when the file sets no ``[simulator]
         timeout`` (None: no limit). It also bounds the trial run at load.
 
     Returns
     -------
     Case
         ``true_delta`` is unknown (None) for a case read from files. Its simulator runs in
-        a process of its own (:class:`mdcore.runs.SimulatorProcess`), started here: the
+        a process of its own (:class:`mdcore._runs.SimulatorProcess`), started here: the
         simulator's module is imported there, never in this process.
 
     Raises
@@ -338,12 +348,12 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
                 for row in corr)):
             raise hm._fail("V_m_corr", f"a list of {n_out} rows of {n_out} numbers (the "
                            "outputs' correlation matrix)", corr)
-        from .history_matching import check_correlation
+        from ._history_matching import check_correlation
         try:
             corr = check_correlation(length, corr, 0.995, n_out)[1]
         except ValueError as exc:
             raise CaseFileError(f"{path}: [history_matching] {exc}") from None
-    from .history_matching import MAX_RUNS
+    from ._history_matching import MAX_RUNS
     n_design = hm.integer("initial_design", 2, MAX_RUNS) if hm.has("initial_design") \
         else max(10 * p, 10)
     lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng(seed))
@@ -395,9 +405,9 @@ def measurements_template(case: Case) -> str:
 
     Columns: the case's inputs, its outputs, then :data:`TEST_COLUMN` (0 = training row,
     1 = test row); one row per observation, replicates as repeated rows. Plain CSV (no
-    comment lines), written like :mod:`mdcore.export`'s tables.
+    comment lines), written like :mod:`mdcore._export`'s tables.
     """
-    from .export import csv_table
+    from ._export import csv_table
     head = list(case.x_names) + list(case.output_names) + [TEST_COLUMN]
     rows = [[*x_row, *z_row, flag] for X, z, flag in ((case.X_train, case.z_train, 0),
                                                       (case.X_test, case.z_test, 1))

@@ -19,7 +19,7 @@ the symmetric square root: with one ℓ for all outputs this is the separable R 
 ℓ_o = 0, C_o = I and V_m is the independent variance of the max rules. Targets are ordered
 output-major, index ``o · N + n``.
 
-The emulator (:mod:`mdcore.emulator`) is a Kronecker GP, so at its own training inputs its
+The emulator (:mod:`mdcore._emulator`) is a Kronecker GP, so at its own training inputs its
 covariance over the N inputs is diagonal in the eigenbasis Q_o of its x-kernel for every θ:
 V_em,o(θ) = Q_o diag(s_o(θ)) Q_oᵀ (:func:`emulator_cov`). In that basis the total covariance
 is B + diag(s(θ)) with one fixed matrix B = Qᵀ (V_o + V_m) Q, and I_M² needs one Cholesky
@@ -39,9 +39,9 @@ import numpy as np
 import scipy.linalg
 import scipy.stats
 
-from .kernels import matern32, scaled_sq_dist
-from .linalg import chunks, for_each_chunk
-from .validation import as_float_array
+from ._kernels import matern32, scaled_sq_dist
+from ._linalg import chunks, for_each_chunk
+from ._validation import as_float_array
 
 __all__ = ["EmulatorCov", "chi2_cutoff", "discrepancy_cov", "emulator_cov",
            "implausibility_and_logdet", "multivariate_implausibility", "log_likelihood",
@@ -114,7 +114,7 @@ def discrepancy_cov(X, V_m, length=0.0, output_corr=None) -> np.ndarray:
         ℓ_m per output, in X's units (Euclidean distance); 0: uncorrelated in x.
     output_corr : ndarray of shape (n_out, n_out), optional
         Correlation of the outputs' discrepancies (default: independent). Validated by
-        :func:`mdcore.history_matching.setup`.
+        :func:`mdcore._history_matching.setup`.
 
     Returns
     -------
@@ -144,16 +144,16 @@ def emulator_cov(emulator, theta) -> EmulatorCov:
 
     Parameters
     ----------
-    emulator : mdcore.emulator.Emulator
+    emulator : mdcore.Emulator
     theta : ndarray of shape (M, p)
 
     Returns
     -------
     EmulatorCov
-        With ``k_θ`` and ``d(θ) = (k_θ Q_θ)² W`` of :class:`mdcore.emulator.EmulatorAt`
+        With ``k_θ`` and ``d(θ) = (k_θ Q_θ)² W`` of :class:`mdcore._emulator.EmulatorAt`
         and ``μ`` the eigenvalues of ``m32(X, X)``: ``s = σ_f² μ − σ_f⁴ μ² d(θ)``, clipped
-        at 0 as :meth:`~mdcore.emulator.Emulator.predict` clips the variance. Equals
-        ``Q_oᵀ Σ_η(X, X; θ) Q_o`` of :meth:`~mdcore.emulator.EmulatorAt.moments` to rounding.
+        at 0 as :meth:`~mdcore.Emulator.predict` clips the variance. Equals
+        ``Q_oᵀ Σ_η(X, X; θ) Q_o`` of :meth:`~mdcore._emulator.EmulatorAt.moments` to rounding.
     """
     X = emulator.X_train
     at = emulator.at(X)
@@ -292,7 +292,7 @@ def multivariate_implausibility(emulator, theta, z, V) -> tuple[np.ndarray, np.n
 
     Parameters
     ----------
-    emulator : mdcore.emulator.Emulator
+    emulator : mdcore.Emulator
     theta : ndarray of shape (M, p)
     z : ndarray of shape (N, n_out)
         Observations at the emulator's training inputs.
@@ -303,7 +303,7 @@ def multivariate_implausibility(emulator, theta, z, V) -> tuple[np.ndarray, np.n
     -------
     I2 : ndarray of shape (M,)
     var : ndarray of shape (M, N, n_out)
-        The diagonal of ``V_em(θ)``, as :meth:`~mdcore.emulator.Emulator.predict`'s ``var``.
+        The diagonal of ``V_em(θ)``, as :meth:`~mdcore.Emulator.predict`'s ``var``.
     """
     cov = emulator_cov(emulator, theta)
     var = np.stack([cov.s[:, o] @ (Qo * Qo).T for o, Qo in enumerate(cov.basis)], axis=-1)

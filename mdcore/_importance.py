@@ -23,14 +23,13 @@ import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.special import gammaln, logsumexp
 
-from .validation import as_float_array, as_int, as_positive_float
+from ._exceptions import K_HAT_THRESHOLD
+from ._validation import as_float_array, as_int, as_positive_float
 
 __all__ = ["K_HAT_THRESHOLD", "PSIS", "effective_sample_size", "psis",
            "generalized_pareto_fit", "StudentT", "AdaptiveSample", "stage_sizes",
            "adaptive_importance_sampling"]
 
-#: Above this Pareto shape the importance-sampling estimate is unreliable (Vehtari et al.).
-K_HAT_THRESHOLD = 0.7
 
 
 class PSIS(NamedTuple):
@@ -249,7 +248,7 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
 
     ``log_likelihood`` maps ``x`` (S, m, P), row j for group j, to (S, m) (``-inf``
     allowed); ``prior`` has ``sample(n, seed)``, ``logpdf(x)`` and ``var`` (e.g.
-    :class:`mdcore.priors.GaussianPrior`); ``progress`` gets the fraction done after each
+    :class:`mdcore.GaussianPrior`); ``progress`` gets the fraction done after each
     stage and may raise to stop.
     """
     S = as_int(n_groups, "n_groups", 1)

@@ -5,26 +5,19 @@ Usage: python bench/bench_diagnostics.py [--quick]
 Per case (seed 0, case defaults, and 4 waves of 5 runs for beam-1d): the history match
 against each wave's leave-one-run-out check and the space views; each decoupled scenario at
 the paper's sizes (``--quick``: N_s = 200, N_φ = 100) against its θ–δ split at the test
-inputs. Shortest of 3 for the diagnostics.
+inputs. Shortest of 5 for the diagnostics.
 """
 
 import sys
 import time
 import warnings
 
+from bench_speed import best_of
+
 from mdcore import _cases as cases
 from mdcore._diagnostics import space_views, theta_delta_split, validate_waves
 from mdcore._history_matching import history_match_case
 from mdcore._pipeline import Method, Settings, run_method
-
-
-def best(fn, repeat=3):
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return min(times)
 
 
 def main():
@@ -37,8 +30,8 @@ def main():
         t = time.perf_counter()
         hm = history_match_case(case, seed=0, **options)
         t_hm = time.perf_counter() - t
-        t_loo = best(lambda hm=hm: validate_waves(hm, warn=False))
-        t_space = best(lambda hm=hm: space_views(hm))
+        t_loo = best_of(lambda hm=hm: validate_waves(hm, warn=False))
+        t_space = best_of(lambda hm=hm: space_views(hm))
         label = f"{name} {len(hm.waves)} wave(s)"
         print(f"{label:<20} history match {t_hm:6.3f} s | LOO, all waves {t_loo:6.4f} s "
               f"({100 * t_loo / t_hm:4.1f} %) | space views {t_space:6.4f} s "
@@ -51,7 +44,7 @@ def main():
             t = time.perf_counter()
             r = run_method(case, hm, method, settings, seed=0)
             t_m = time.perf_counter() - t
-            t_split = best(lambda r=r, X=case.X_test: theta_delta_split(r.model, X))
+            t_split = best_of(lambda r=r, X=case.X_test: theta_delta_split(r.model, X))
             size = f"{settings.n_s}×{settings.n_phi if method is Method.S3 else 1}"
             print(f"{'':<20} {method.label} {size:>9} {t_m:6.2f} s | θ–δ split {t_split:5.2f} s "
                   f"({100 * t_split / t_m:4.1f} %)")

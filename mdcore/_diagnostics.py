@@ -78,10 +78,9 @@ def emulator_loo(emulator) -> EmulatorLOO:
 
 
 class WaveValidation(NamedTuple):
-    """LOO check of one wave's emulator with runs ``theta`` (R, p) (:func:`validate_wave`):
-    ``loo_implausibility`` and ``simulator_implausibility`` (R,) are each run's combined
-    implausibility without that run and from the simulator itself; ``wrongly_ruled_out``
-    (R,) the first above ``cutoff``, the second not; ``advice`` what to do, or None."""
+    """LOO check of a wave's emulator, runs ``theta`` (R, p) (:func:`validate_wave`): each run's
+    combined ``loo_implausibility`` (without it) and ``simulator_implausibility`` (R,);
+    ``wrongly_ruled_out`` (R,): the first above ``cutoff``, the second not; ``advice`` or None."""
 
     wave: int
     theta: np.ndarray
@@ -138,12 +137,13 @@ def validate_wave(wave, *, warn: bool = True) -> WaveValidation:
                      f"0.3 %, rarely above 4.5; p ≤ {p_value:.1e}), so it is too confident")
     if wrong.any():
         parts.append(f"{int(wrong.sum())} of its {len(wrong)} runs would be ruled out by the "
-                     "emulator without that run although the simulator itself finds them not "
-                     "implausible, so good θ may have been ruled out")
+                     f"emulator without that run (implausibility up to {I_loo[wrong].max():.2f}, "
+                     f"cut-off {problem.cutoff:.3g}) although the simulator itself finds them not "
+                     f"implausible (at most {I_sim[wrong].max():.2f}), good θ may be lost")
     advice = None if not parts else (
-        f"wave {wave.index}: " + "; ".join(parts) + ". Add simulator runs (n_runs) so the "
-        "emulator sees more of the space, raise V_m if the simulator itself is near the "
-        "cut-off, or fit a different mean if the errors follow a trend.")
+        f"wave {wave.index}: " + "; ".join(parts) + ". Add simulator runs (n_runs), raise V_m "
+        "if the simulator itself is near the cut-off, or, if the errors trend with θ (a mean "
+        "the linear one misses), return a smoother output from the simulator (its log, say).")
     if advice and warn:
         warnings.warn(advice, EmulatorWarning, stacklevel=2)
     return WaveValidation(wave.index, em.theta_train, loo, share, p_value, I_loo, I_sim, wrong,

@@ -182,6 +182,8 @@ def test_validation_of_a_too_confident_emulator_warns_and_names_the_wave(rule):
     np.testing.assert_array_equal(v.wrongly_ruled_out, (I_loo > cut) & (I_sim <= cut))
     assert v.wrongly_ruled_out.any()
     assert f"{v.wrongly_ruled_out.sum()} of its 17 runs would be ruled out" in v.advice
+    assert (f"(implausibility up to {I_loo[v.wrongly_ruled_out].max():.2f}, cut-off {cut:.3g})"
+            in v.advice)
     summary = v.as_dict()
     assert summary["wave"] == 1 and summary["runs"] == 17
     assert summary["wrongly_ruled_out"] == int(v.wrongly_ruled_out.sum())

@@ -28,6 +28,7 @@ from ._emulator import Emulator, fit_emulator
 from ._exceptions import Cancelled, ConvergenceWarning, LowESSWarning, NumericalWarning
 from ._export import write_tables
 from ._history_matching import (
+                           HistoryMatchOptions,
                            HistoryMatchProblem,
                            HistoryMatchResult,
                            Wave,

@@ -490,7 +490,8 @@ def _advice(method: Method, settings: Settings, importance, chain) -> tuple:
         switch = " or switch to the adaptive proposal" if importance.proposal == "prior" else ""
         for o, low in enumerate(importance.low):
             if low:
-                out.append(f"{method.label}, output {o + 1}: the importance weights are "
+                where = f", output {o + 1}" if len(importance.low) > 1 else ""
+                out.append(f"{method.label}{where}: the importance weights are "
                            f"unreliable: {importance.ess[o]:.1f} effective (θ, φ) pairs of "
                            f"{importance.n_pairs}, ESS over φ {importance.ess_phi[o]:.1f} of "
                            f"{importance.n_phi}, Pareto k̂ {importance.k_hat[o]:.2f} (reliable: "

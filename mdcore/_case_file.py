@@ -85,9 +85,8 @@ MAX_CASE_FILE_BYTES = 1_000_000
 #: Most training rows of a case's measurements (case files and uploads; every file also has
 #: at most :data:`mdcore._cases.MAX_ROWS` rows in all). Every discrepancy GP factorises an
 #: N × N matrix of the training rows, per output and per (θ, φ) pair: the work grows as
-#: N³. At 300 training rows and 700 test rows, all distinct, the app's defaults (waves to
-#: convergence, then scenarios 1–3) peak at 0.46 GB and take up to 2 minutes (shear-5's
-#: five outputs): ``python bench/bench_upload_limits.py``.
+#: N³; ``python bench/bench_upload_limits.py`` measures the peak memory and time of the
+#: app's defaults at this limit.
 MAX_TRAINING_ROWS = 300
 
 

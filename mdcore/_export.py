@@ -35,8 +35,8 @@ from ._reproduce import CaseRun
 __all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "csv_table", "nroy_csv", "predictions_csv",
            "with_unit", "write_tables"]
 
-#: Most NROY samples written per wave. A wave keeps up to 50,000 p candidates, and the
-#: teaching preset runs 5 waves: all of them were 22 MB for beam-1d. The candidates are
+#: Most NROY samples written per wave (a wave keeps up to 50,000 p candidates, too many
+#: for a file one opens in a spreadsheet). The candidates are
 #: independent draws, uniform in the wave's NROY set, so the first ones retained are a
 #: uniform sample of it too (:meth:`HistoryMatchResult.nroy_samples` draws more).
 NROY_ROWS_PER_WAVE = 10_000

@@ -26,15 +26,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._exceptions import ConvergenceWarning
+from ._exceptions import RELIABLE_TAUS, ConvergenceWarning, chain_advice
 from ._validation import as_float_array, as_int
 
 __all__ = ["Chain", "ChainSetup", "MAX_CHAIN", "RELIABLE_TAUS", "adaptive_metropolis",
            "chain_setup", "draw_blocks", "finish_chain", "integrated_autocorr_time"]
 
-#: A chain is long enough to trust its IAT when it spans this many autocorrelation times
-#: (Foreman-Mackey et al., emcee: "more than 50 τ").
-RELIABLE_TAUS = 50
 #: Longest chain accepted (the kept steps are stored): longer is refused up front.
 MAX_CHAIN = 100_000_000
 #: Steps whose random numbers are drawn at once.
@@ -170,11 +167,8 @@ def finish_chain(setup: ChainSetup, samples: np.ndarray, log_p: np.ndarray,
                   n_iter=setup.n_iter, burn_in=burn_in, adapt_start=setup.t0, seconds=seconds)
     if not chain.reliable:
         tau = float(np.max(chain.iat))
-        warnings.warn(f"adaptive Metropolis: the {kept:,} kept steps are fewer than 50 "
-                      f"autocorrelation times (τ up to {tau:.1f}), so the IAT and ESS are "
-                      f"unreliable; raise n_iter to at least "
-                      f"{int(np.ceil(RELIABLE_TAUS * tau)) + burn_in:,}.",
-                      ConvergenceWarning, stacklevel=3)
+        warnings.warn(chain_advice("adaptive Metropolis", tau, kept, burn_in), ConvergenceWarning,
+                      stacklevel=3)
     return chain
 
 

@@ -1,17 +1,17 @@
 """Priors: of the discrepancy GP's log hyperparameters φ, and of the calibration parameters θ.
 
-Both are independent Gaussians (the second argument of ``N(·, ·)`` in SPEC §7 and §9 is a
-variance), but they live on different scales and are used differently, so they are two
-types:
+Both are independent Gaussians (the second argument of ``N(·, ·)`` is a variance, as in
+docs/method.md §7 and docs/cases.md), but they live on different scales and are used
+differently, so they are two types:
 
-- :class:`GaussianPrior` is over the log-φ vector of SPEC §2 (``[log σ_f, log ℓ…,
+- :class:`GaussianPrior` is over the log-φ vector of docs/method.md §2 (``[log σ_f, log ℓ…,
   log σ_n]``); scenario 3 samples it and the φ̂ fits use it as a hyperprior.
 - :class:`ThetaPrior` is over θ in the parameters' own units and is truncated to the box
-  the emulator was built on (the Kennedy–O'Hagan baseline, SPEC §7).
+  the emulator was built on (the Kennedy–O'Hagan baseline, docs/method.md §7).
 
 Examples
 --------
->>> prior = ThetaPrior(mean=[35.0, 70.0], var=[10.0, 36.0])      # beam-1d, SPEC §7
+>>> prior = ThetaPrior(mean=[35.0, 70.0], var=[10.0, 36.0])      # beam-1d, docs/method.md §7
 >>> prior.sample_in([[0.0, 50.0], [50.0, 90.0]], 3, seed=0).shape
 (3, 2)
 """
@@ -67,14 +67,14 @@ class _DiagonalGaussian:
 
 @dataclass(frozen=True)
 class GaussianPrior(_DiagonalGaussian):
-    """Independent Gaussian prior on the log hyperparameter vector (SPEC §2 layout).
+    """Independent Gaussian prior on the log hyperparameter vector (docs/method.md §2 layout).
 
     Parameters
     ----------
     mean : ndarray of shape (P,)
         Prior means of the log hyperparameters.
     var : ndarray of shape (P,)
-        Prior variances (second argument of ``N(·, ·)`` in SPEC §9 is a variance).
+        Prior variances (second argument of ``N(·, ·)`` in docs/cases.md is a variance).
 
     Examples
     --------
@@ -93,7 +93,7 @@ class GaussianPrior(_DiagonalGaussian):
 
 @dataclass(frozen=True)
 class ThetaPrior(_DiagonalGaussian):
-    """Gaussian prior of the calibration parameters θ, in their own units (SPEC §7).
+    """Gaussian prior of the calibration parameters θ, in their own units (docs/method.md §7).
 
     Parameters
     ----------

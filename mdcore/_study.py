@@ -4,7 +4,7 @@ One seed is one draw of the noise, one history match, one set of θ and φ sampl
 KOH chain (:func:`mdcore.reproduce`). The paper reports a single run; whether its
 *pattern* holds is a statement over seeds. :func:`study` runs the seeds (in parallel with
 any ``concurrent.futures`` executor), and :class:`Study` gives the mean and standard
-deviation of every metric per method, the paper's values (SPEC §10) beside them, and
+deviation of every metric per method, the paper's values (docs/cases.md) beside them, and
 whether each pattern of the paper holds:
 
 - KOH's δ NMSE is at least 10× that of the best decoupled scenario (Table 1);
@@ -38,7 +38,7 @@ from ._validation import MAX_SEED, choose, short
 
 __all__ = ["PAPER", "Study", "study", "parse_seeds"]
 
-#: The paper's published NMSE values (SPEC §10), per case and method, [%].
+#: The paper's published NMSE values (docs/cases.md), per case and method, [%].
 PAPER = {
     "beam-1d": {"nmse_z": {"1": 0.768, "2": 0.765, "3": 0.765, "koh": 0.770},
                 "nmse_delta": {"1": 1.756, "2": 2.288, "3": 1.654, "koh": 39.349}},

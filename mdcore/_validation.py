@@ -163,7 +163,7 @@ def as_outputs(z, n_rows: int, name: str = "z") -> np.ndarray:
 
 
 def as_log_params(log_params, d_y: int, d_x: int) -> np.ndarray:
-    """GP log hyperparameters, shape (..., P) with P = 2 + d_y + d_x (SPEC §2 layout
+    """GP log hyperparameters, shape (..., P) with P = 2 + d_y + d_x (docs/method.md §2 layout
     ``[log σ_f, log ℓ_y×d_y, log ℓ_x×d_x, log σ_n]``), as a finite float64 array."""
     lp = as_float_array(log_params, "log_params", min_ndim=1)
     P = 2 + d_y + d_x

@@ -1,4 +1,4 @@
-"""Tip deflection of a cracked cantilever (SPEC §9 beam-1d/beam-2d, paper Eq. 17).
+"""Tip deflection of a cracked cantilever (docs/cases.md, paper Eq. 17).
 
 Christides–Barr crack stiffness::
 

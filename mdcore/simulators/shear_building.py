@@ -1,4 +1,4 @@
-"""Natural frequencies of a five-storey shear building (SPEC §9 shear-5).
+"""Natural frequencies of a five-storey shear building (docs/cases.md).
 
 Rigid floors (aluminium plates 350 × 250 × 20 mm) on four columns per storey
 (50 mm wide × 10 mm thick in the bending direction, 300 mm high). Storey stiffness with
@@ -24,7 +24,7 @@ __all__ = ["ShearBuilding", "natural_frequencies"]
 
 
 class ShearBuilding:
-    """Geometry of the shear building, in metres (defaults are SPEC §9)."""
+    """Geometry of the shear building, in metres (defaults are docs/cases.md)."""
 
     n_storeys = 5
     plate = (0.350, 0.250, 0.020)       # floor plate, m

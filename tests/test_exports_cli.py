@@ -12,7 +12,7 @@ import pytest
 import mdcore
 from mdcore._cli import main
 from mdcore._export import with_unit
-from mdcore._pipeline import ImportanceDiagnostics, Method, Settings, _advice
+from mdcore._pipeline import ImportanceDiagnostics, _advice
 
 LAB = Path(__file__).resolve().parent.parent / "examples" / "beam_lab" / "beam_lab.toml"
 FAST = ["--methods", "1", "--n-candidates", "2000"]
@@ -76,7 +76,7 @@ def test_advice_names_the_output_only_when_there_are_several(n_out):
     low = ImportanceDiagnostics(ess=(2.0,) * n_out, ess_phi=(1.1,) * n_out,
                                 skipped_mass=(0.0,) * n_out, k_hat=(1.3,) * n_out,
                                 n_pairs=100, n_phi=10, proposal="prior")
-    advice = _advice(Method.S3, Settings(n_s=10, n_phi=10), low, None)
+    advice = _advice(low, None)
     assert len(advice) == n_out and all("k̂ 1.30" in a for a in advice)
     assert [("output" in a) for a in advice] == [n_out > 1] * n_out
     if n_out > 1:

@@ -333,7 +333,7 @@ def make_shear5_measurements(seed: int = 0) -> str:
     z = _shear5_real(X) + SHEAR5_NOISE_SD * rng.standard_normal((X.shape[0], 5))
     out = io.StringIO()
     out.write(f"# SYNTHETIC data, not laboratory measurements. Made by assets/make_shear5_data.py "
-              f"(mdcore._cases.make_shear5_measurements, seed={seed}): 'real' 5-storey shear "
+              f"(make_shear5_measurements in mdcore/_cases.py, seed={seed}): 'real' 5-storey shear "
               "building E=70 GPa nu=0.33 rho=2700 kg/m3, +0.03 kg per floor, rocking spring "
               "2.3e6 N.m/rad, noise sd 0.004 Hz, 10 repeats per mass.\n")
     out.write("mass_kg,repeat," + ",".join(SHEAR5_OUTPUTS) + "\n")

@@ -27,11 +27,11 @@ from ._discrepancy import (
 )
 from ._emulator import Emulator, fit_emulator
 from ._exceptions import (
-                           Cancelled,
-                           ConvergenceWarning,
-                           EmulatorWarning,
-                           LowESSWarning,
-                           NumericalWarning,
+    Cancelled,
+    ConvergenceWarning,
+    EmulatorWarning,
+    LowESSWarning,
+    NumericalWarning,
 )
 from ._export import write_tables
 from ._history_matching import (

@@ -14,6 +14,7 @@ import json
 import sys
 import warnings
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 
@@ -292,15 +293,21 @@ def _print_run(run, args) -> int:
         print("\n! unreliable importance weights or chain:\n"
               + "\n".join(f"  - {w}" for w in notes))
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
+        with open(_made(args.json), "w", encoding="utf-8") as fh:
             json.dump(run.to_dict(), fh, indent=2)
         print(f"\nwrote {args.json}")
     if args.csv:
         for path in write_tables(run, args.csv):
             print(f"wrote {path}")
     if args.out:
-        print(f"wrote {_report_writer()(run, args.out)} (self-contained; opens offline)")
+        print(f"wrote {_report_writer()(run, _made(args.out))} (self-contained; opens offline)")
     return 0
+
+
+def _made(path: str) -> str:
+    """``path`` with its folder created: ``--out results/report.html`` needs no mkdir."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def _report_writer():
@@ -373,7 +380,7 @@ def _cmd_study(args) -> int:
               f"hardest output (largest z NMSE) per scenario: {hardest}; best average z NMSE: "
               f"scenario {pat['best_average_nmse_z']}")
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
+        with open(_made(args.json), "w", encoding="utf-8") as fh:
             json.dump(result.to_dict(), fh, indent=2)
         print(f"\nwrote {args.json}")
     return 0

@@ -96,8 +96,8 @@ def test_run_own_case_file_writes_tables_and_json(tmp_path, capsys):
     assert main(["run", str(tmp_path / "missing.toml")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert main(["run", str(example), "--n-s", "5", "--n-phi", "2", "--scenarios", "1",
-                 "--json", str(tmp_path / "no" / "such" / "dir.json")]) == 1
-    assert "FileNotFoundError" in capsys.readouterr().err
+                 "--json", str(tmp_path / "run.json" / "dir.json")]) == 1   # under a file
+    assert "FileExistsError" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("command", ["cases", "history-match", "reproduce", "run", "study"])

@@ -249,6 +249,24 @@ def _failures(case, hm) -> str:
         if rows else ""
 
 
+def _diagnostics(run) -> str:
+    """Each wave's leave-one-run-out check and each decoupled scenario's θ–δ share
+    (docs/diagnostics.md), with their advice."""
+    check = _table(["wave", "runs", "LOO |e| > 3 %", "p (bound)", "wrongly ruled out"],
+                   [[v.wave, len(v.theta), f"{100 * v.share_beyond_3:.2f}", f"{v.p_value:.2g}",
+                     int(v.wrongly_ruled_out.sum())] for v in run.validation])
+    share = _table(["method", "output", "share of Var(δ) from θ"],
+                   [[LABELS[m], name, f"{split.share[o]:.2f}"]
+                    for m, split in run.theta_delta.items()
+                    for o, name in enumerate(run.case.output_names)])
+    notes = [v.advice for v in run.validation if v.advice] + [
+        t for m, split in run.theta_delta.items()
+        for t in split.advice(LABELS[m], run.case.output_names)]
+    return ("<h3>Emulator check, leaving out each run</h3>" + check
+            + ("<h3>θ–δ trade-off</h3>" + share if run.theta_delta else "")
+            + "".join(f"<p class='warn'>{_esc(t)}</p>" for t in notes))
+
+
 def report_layout(run):
     """The report's Bokeh layout: text, tables, and the figures (see :func:`report_html`)."""
     case, hm, s = run.case, run.hm, run.settings
@@ -270,7 +288,7 @@ def report_layout(run):
                    w.status] for w in hm.waves])
              + _failures(case, hm)
              + f"<p>{_esc(hm.message)}</p><p>θ_MAP: {_esc(theta_map)}; truth in NROY: "
-               f"{_esc(run.truth_in_nroy)}</p>")
+               f"{_esc(run.truth_in_nroy)}</p>" + _diagnostics(run))
     rows = []
     for r in run.results:
         m, imp = r.metrics, r.importance

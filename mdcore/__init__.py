@@ -18,23 +18,31 @@ from ._case_file import CaseFileError, load_case_file, measurements_template, wi
 from ._cases import Case, MeasurementsError
 from ._cases import load as load_case
 from ._cases import names as case_names
+from ._diagnostics import WaveValidation, theta_delta_split, validate_waves
 from ._discrepancy import (
-                           DiscrepancyModel,
-                           DiscrepancyOptions,
-                           DiscrepancyPrediction,
-                           infer_discrepancy,
+    DiscrepancyModel,
+    DiscrepancyOptions,
+    DiscrepancyPrediction,
+    infer_discrepancy,
 )
 from ._emulator import Emulator, fit_emulator
-from ._exceptions import Cancelled, ConvergenceWarning, LowESSWarning, NumericalWarning
+from ._exceptions import (
+    Cancelled,
+    ConvergenceWarning,
+    EmulatorWarning,
+    LowESSWarning,
+    NumericalWarning,
+)
 from ._export import write_tables
 from ._history_matching import (
-                           HistoryMatchProblem,
-                           HistoryMatchResult,
-                           Wave,
-                           case_problem,
-                           history_match,
-                           history_match_case,
-                           next_wave,
+    HistoryMatchOptions,
+    HistoryMatchProblem,
+    HistoryMatchResult,
+    Wave,
+    case_problem,
+    history_match,
+    history_match_case,
+    next_wave,
 )
 from ._hyperfit import FitOptions
 from ._koh import KOHModel, KOHOptions, infer_koh
@@ -52,6 +60,8 @@ __all__ = [
     # history matching
     "HistoryMatchOptions", "HistoryMatchProblem", "HistoryMatchResult", "Wave", "history_match",
     "history_match_case", "case_problem", "next_wave", "Emulator", "fit_emulator",
+    # diagnostics: each wave's leave-one-run-out check, the θ–δ trade-off
+    "validate_waves", "WaveValidation", "theta_delta_split",
     # discrepancy (scenarios 1-3) and the Kennedy-O'Hagan baseline
     "infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions", "DiscrepancyPrediction",
     "infer_koh", "KOHModel", "KOHOptions", "FitOptions", "GaussianPrior", "ThetaPrior",
@@ -61,6 +71,6 @@ __all__ = [
     # metrics
     "nmse", "lpl", "mmd", "coverage",
     # warnings and cancellation
-    "Cancelled", "ConvergenceWarning", "LowESSWarning", "NumericalWarning",
+    "Cancelled", "ConvergenceWarning", "EmulatorWarning", "LowESSWarning", "NumericalWarning",
     "__version__",
 ]

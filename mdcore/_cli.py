@@ -14,12 +14,14 @@ import json
 import sys
 import warnings
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 
 from . import _cases as cases
 from . import _compiled as compiled
 from . import _threads as threads
+from ._diagnostics import space_removed, validate_waves
 from ._export import write_tables
 from ._history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
 from ._koh import BURN_IN, N_ITER
@@ -94,6 +96,28 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
     return HistoryMatchResult(problem, tuple(waves))
 
 
+def _print_checks(case, hm, validation, splits=None) -> None:
+    """Space removed, each wave's LOO check, the θ–δ shares and advice (docs/diagnostics.md)."""
+    print("\nspace removed along each parameter's range: " + ", ".join(
+        f"{n} {100 * r:.0f} %" for n, r in zip(case.theta_names, space_removed(
+            hm.waves[-1].nroy, hm.problem.bounds))))
+    print("\nemulator check, leaving out each run (a calibrated emulator: |e| > 3 for about "
+          "0.3 %):\n" + _table(["wave", "runs", "|e| > 3 %", "p (bound)", "wrongly ruled out"],
+                               [[str(v.wave), str(len(v.theta)), f"{100 * v.share_beyond_3:.2f}",
+                                 f"{v.p_value:.2g}", str(int(v.wrongly_ruled_out.sum()))]
+                                for v in validation]))
+    advice = [v.advice for v in validation if v.advice]
+    if splits:
+        print("\nθ–δ trade-off: the share of δ's predictive variance that comes from θ "
+              "(above 0.5 δ is mostly the θ chosen's)\n" + _table(
+                  ["method", "output", "share from θ"],
+                  [[m, name, f"{t.share[o]:.2f}"] for m, t in splits.items()
+                   for o, name in enumerate(case.output_names)]))
+        advice += [a for m, t in splits.items()
+                   for a in t.advice(Method.parse(m).label, case.output_names)]
+    print("".join(f"! {line}\n" for line in advice), end="")
+
+
 def _print_waves(case, result) -> None:
     rows = [[str(w.index), f"{100 * w.nroy_fraction:.2f}", str(len(w.runs_theta)),
              str(len(w.failures)), f"{np.max(w.max_var / w.var_threshold):.3g}",
@@ -117,6 +141,7 @@ def _cmd_history_match(args) -> int:
     with _executor(args) as executor:
         result = _history_match(case, args, executor)
     _print_waves(case, result)
+    _print_checks(case, result, validate_waves(result, warn=False))
     if result.status != "ruled_out":
         names = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
                           zip(case.theta_names, result.theta_map, case.theta_units))
@@ -252,6 +277,7 @@ def _print_run(run, args) -> int:
              *(metric_text(c, row[c]) for c in shown)]
             for row in metrics_table(run.results, case.output_names)]
     print(_table(header, rows))
+    _print_checks(case, hm, run.validation, run.theta_delta)
     for r in run.results:
         if r.chain is not None:
             c, post = r.chain, r.model.theta
@@ -267,15 +293,21 @@ def _print_run(run, args) -> int:
         print("\n! unreliable importance weights or chain:\n"
               + "\n".join(f"  - {w}" for w in notes))
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
+        with open(_made(args.json), "w", encoding="utf-8") as fh:
             json.dump(run.to_dict(), fh, indent=2)
         print(f"\nwrote {args.json}")
     if args.csv:
         for path in write_tables(run, args.csv):
             print(f"wrote {path}")
     if args.out:
-        print(f"wrote {_report_writer()(run, args.out)} (self-contained; opens offline)")
+        print(f"wrote {_report_writer()(run, _made(args.out))} (self-contained; opens offline)")
     return 0
+
+
+def _made(path: str) -> str:
+    """``path`` with its folder created: ``--out results/report.html`` needs no mkdir."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return path
 
 
 def _report_writer():
@@ -348,7 +380,7 @@ def _cmd_study(args) -> int:
               f"hardest output (largest z NMSE) per scenario: {hardest}; best average z NMSE: "
               f"scenario {pat['best_average_nmse_z']}")
     if args.json:
-        with open(args.json, "w", encoding="utf-8") as fh:
+        with open(_made(args.json), "w", encoding="utf-8") as fh:
             json.dump(result.to_dict(), fh, indent=2)
         print(f"\nwrote {args.json}")
     return 0

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["NumericalWarning", "ConvergenceWarning", "LowESSWarning", "Cancelled"]
+__all__ = ["NumericalWarning", "ConvergenceWarning", "LowESSWarning", "EmulatorWarning",
+           "Cancelled"]
 
 
 class NumericalWarning(RuntimeWarning):
@@ -17,6 +18,10 @@ class ConvergenceWarning(NumericalWarning):
 
 class LowESSWarning(NumericalWarning):
     """Importance weights rest on few samples (small effective sample size)."""
+
+
+class EmulatorWarning(UserWarning):
+    """A wave's emulator fails its leave-one-out check (docs/diagnostics.md §1)."""
 
 
 class Cancelled(Exception):

@@ -24,7 +24,7 @@ from ._history_matching import HistoryMatchResult
 from ._reproduce import CaseRun
 
 __all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "csv_table", "nroy_csv", "predictions_csv",
-           "write_tables"]
+           "with_unit", "write_tables"]
 
 #: Most NROY samples written per wave: the candidates are independent uniform draws, so the
 #: first ones retained are a uniform sample of the NROY set too.
@@ -47,6 +47,17 @@ def csv_cell(value, number: Callable[[float], str] = repr):
     if isinstance(value, (bool, int, np.integer)):
         return str(int(value))
     return number(float(value))
+
+
+def with_unit(name: str, unit: str) -> str:
+    """A column heading: ``name [unit]``, or ``name`` alone when it has no unit or already
+    ends with it ("position_m", "mass (kg)": the unit is not said twice).
+
+    >>> with_unit("E", "GPa"), with_unit("position_m", "m"), with_unit("x [m]", "m")
+    ('E [GPa]', 'position_m', 'x [m]')
+    """
+    said = any(name.endswith(end) for end in (f"_{unit}", f"[{unit}]", f"({unit})", f" {unit}"))
+    return name if not unit or said else f"{name} [{unit}]"
 
 
 def csv_table(header: list, rows: Iterable, number: Callable[[float], str] = repr) -> str:
@@ -101,8 +112,7 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
     p = hm.problem.p
     names = _labels(names, "names", p) or [f"theta_{i + 1}" for i in range(p)]
     units = _labels(units, "units", p) or [""] * p
-    head = ["wave"] + [f"{n} [{u}]" if u else n for n, u in zip(names, units)] \
-        + ["implausibility"]
+    head = ["wave"] + [with_unit(n, u) for n, u in zip(names, units)] + ["implausibility"]
     rows: list = []
     for w in hm.waves:
         keep = _kept(w, hm.problem.options.threshold)
@@ -127,7 +137,7 @@ def predictions_csv(run) -> str:
     _check_run(run)
     case = run.case
     truth = case.true_delta(case.X_test)
-    head = (["method", "output"] + [f"{n} [{u}]" for n, u in zip(case.x_names, case.x_units)]
+    head = (["method", "output"] + [with_unit(n, u) for n, u in zip(case.x_names, case.x_units)]
             + ["z_observed", "z_mean", "z_sd", "delta_mean", "delta_sd", "delta_true"])
     rows = []
     for r in run.results:

@@ -10,11 +10,13 @@ import dataclasses
 from collections.abc import Callable
 from concurrent.futures import Executor
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from . import _cases as _cases
 from . import _compiled as compiled
+from ._diagnostics import space_removed, theta_delta_split, validate_waves
 from ._discrepancy import DiscrepancyModel, check_executor
 from ._history_matching import HistoryMatchResult, history_match_case
 from ._koh import KOHModel
@@ -25,8 +27,9 @@ __all__ = ["SCHEMA_VERSION", "CaseRun", "default_methods", "parse_methods", "rep
            "run_case", "run_methods"]
 
 #: Version of the JSON layout written by :meth:`CaseRun.to_dict` (3: the failed simulator
-#: runs of each wave; 4: the rule, its cut-off and V_m's correlation).
-SCHEMA_VERSION = 4
+#: runs of each wave; 4: the rule, its cut-off and V_m's correlation; 5: each wave's
+#: emulator validation and space removed, each decoupled scenario's θ–δ share).
+SCHEMA_VERSION = 5
 
 
 def default_methods(name: str) -> tuple[Method, ...]:
@@ -69,6 +72,17 @@ class CaseRun:
         t = self.case.theta_true
         return None if t is None else bool(self.hm.contains(t)[0])
 
+    @cached_property
+    def validation(self) -> tuple:
+        """Each wave's leave-one-run-out check (:func:`mdcore.validate_waves`)."""
+        return validate_waves(self.hm, warn=False)
+
+    @cached_property
+    def theta_delta(self) -> dict:
+        """Each decoupled scenario's :class:`~mdcore._diagnostics.ThetaDeltaSplit` at X_test."""
+        return {r.method.value: theta_delta_split(r.model, self.case.X_test)
+                for r in self.results if isinstance(r.model, DiscrepancyModel)}
+
     def to_dict(self) -> dict:
         """The JSON layout of ``reproduce --json`` (see the README), versioned."""
         s = self.settings
@@ -90,8 +104,14 @@ class CaseRun:
                                      "failed_runs": [[{"theta": f.theta.tolist(),
                                                        "message": f.message}
                                                       for f in w.failures]
-                                                     for w in self.hm.waves]},
-                "methods": {r.method.value: _entry(r) for r in self.results}}
+                                                     for w in self.hm.waves],
+                                     "validation": [v.as_dict() for v in self.validation],
+                                     "space_removed": [
+                                         space_removed(w.nroy, self.hm.problem.bounds).tolist()
+                                         for w in self.hm.waves]},
+                "methods": {r.method.value: {**_entry(r), "theta_delta": (
+                    t := self.theta_delta.get(r.method.value)) and t.as_dict()}
+                            for r in self.results}}
 
 
 def _entry(r: MethodResult) -> dict:
@@ -189,6 +209,7 @@ def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
     executor = check_executor(executor)
     settings = Settings.paper(case.name) if settings is None else settings
     hm = history_match_case(case, seed=seed, executor=executor, **history_matching)
+    validate_waves(hm)                          # EmulatorWarning for a wave that fails LOO
     if report:
         report(hm.message)
     results = run_methods(case, hm, chosen, settings, seed=seed, report=report,

@@ -109,7 +109,7 @@ def test_the_worked_example_runs_end_to_end(tmp_path):
     assert all(r.metrics.nmse_z[0] < 1.0 for r in run.results)     # z within 1 % NMSE
     nroy, _, pred, _ = write_tables(run, tmp_path)
     lines = pred.read_text(encoding="utf-8").splitlines()
-    assert lines[0].startswith("method,output,position_m [m],z_observed")
+    assert lines[0].startswith("method,output,position_m,z_observed")     # m said once
     assert len(lines) == 1 + 3 * 9
     assert nroy.read_text(encoding="utf-8").splitlines()[0] == "wave,E [GPa],w0 [mm],implausibility"
 

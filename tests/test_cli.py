@@ -13,7 +13,7 @@ def test_reproduce_writes_the_documented_json(tmp_path, capsys):
     assert main(["reproduce", "beam-1d", "--n-s", "40", "--n-phi", "10", "--n-iter", "3000",
                  "--burn-in", "1000", "--json", str(path)]) == 0
     out = json.loads(path.read_text())
-    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 4
+    assert out["case"] == "beam-1d" and out["seed"] == 0 and out["schema_version"] == 5
     assert out["settings"]["n_s"] == 40 and out["settings"]["n_phi"] == 10
     hm = out["history_matching"]
     assert hm["truth_nroy"] is True and hm["status"] == "converged"
@@ -25,17 +25,32 @@ def test_reproduce_writes_the_documented_json(tmp_path, capsys):
             assert len(e["metrics"][key]) == 1 and np.isfinite(e["metrics"][key][0])
         assert (e["importance"] is None) == (label != "3") and e["seconds"] > 0
         assert (e["chain"] is None) == (label != "koh")
+    (check,) = hm["validation"]                 # one wave: its leave-one-run-out summary
+    assert check["wave"] == 1 and check["runs"] == 25 and check["wrongly_ruled_out"] == 0
+    assert 0 <= check["share_beyond_3"] < 0.05 and not check["too_confident"]
+    assert len(hm["space_removed"]) == 1 and len(hm["space_removed"][0]) == 2
+    for label in ("1", "2", "3"):               # the θ–δ share of each decoupled scenario
+        td = out["methods"][label]["theta_delta"]
+        assert len(td["share"]) == 1 and 0 <= td["share"][0] <= 1
+        assert td["mostly_theta"] == [td["share"][0] > 0.5]
+    assert out["methods"]["1"]["theta_delta"]["share"] == [0.0]
+    assert out["methods"]["koh"]["theta_delta"] is None
     chain = out["methods"]["koh"]["chain"]
     assert chain["n_iter"] == 3000 and chain["burn_in"] == 1000
     assert 0 < chain["acceptance_rate"] < 1 and len(chain["ess"]) == 2
     table = capsys.readouterr().out
     assert "NMSE z %" in table and "tip deflection" in table and "KOH chain" in table
-    header = next(line for line in table.splitlines() if "NMSE z %" in line)
-    rows = [line for line in table.splitlines() if "tip deflection" in line]
+    lines = table.splitlines()
+    start = next(i for i, line in enumerate(lines) if "NMSE z %" in line)
+    header, rows = lines[start], lines[start + 1:lines.index("", start)]
     assert len(rows) == 4 and all(len(r) == len(header) for r in rows)   # aligned columns
     s1 = next(r for r in rows if r.split()[0] == "1")
     assert s1.split()[-3:-1] == ["—", "—"]         # no ESS for scenario 1: a dash, never NaN
     assert "nan" not in table.lower()
+    assert "emulator check, leaving out each run" in table and "wrongly ruled out" in table
+    assert "share from θ" in table and "space removed along each parameter's range" in table
+    if out["methods"]["2"]["theta_delta"]["mostly_theta"][0]:
+        assert "Scenario 2, tip deflection: " in table and "not physics" in table
 
 
 def test_method_choice_and_bad_labels(capsys):
@@ -81,8 +96,8 @@ def test_run_own_case_file_writes_tables_and_json(tmp_path, capsys):
     assert main(["run", str(tmp_path / "missing.toml")]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert main(["run", str(example), "--n-s", "5", "--n-phi", "2", "--scenarios", "1",
-                 "--json", str(tmp_path / "no" / "such" / "dir.json")]) == 1
-    assert "FileNotFoundError" in capsys.readouterr().err
+                 "--json", str(tmp_path / "run.json" / "dir.json")]) == 1   # under a file
+    assert "FileExistsError" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("command", ["cases", "history-match", "reproduce", "run", "study"])
@@ -177,3 +192,25 @@ def test_local_dask_cluster_gives_the_serial_numbers(tmp_path):
     a, b = json.loads(serial.read_text()), json.loads(cluster.read_text())
     assert a["history_matching"] == b["history_matching"]
     assert a["methods"]["1"]["metrics"] == b["methods"]["1"]["metrics"]
+
+
+def test_a_too_confident_emulator_is_reported_once_with_its_advice(capsys, monkeypatch):
+    """history-match prints each wave's LOO check; a wave whose emulator is too confident
+    gets its advice beside the table, not again in the warnings summary."""
+    from test_diagnostics import with_params
+
+    from mdcore import _history_matching as history_matching
+
+    fit = history_matching.fit_emulator
+
+    def too_confident(*args, **kwargs):
+        em = fit(*args, **kwargs)
+        return with_params(em, em.log_params + np.r_[-np.log(1e3), [np.log(1 / 30)] * 3,
+                                                     -np.log(1e3)])
+
+    monkeypatch.setattr(history_matching, "fit_emulator", too_confident)
+    assert main(["history-match", "beam-1d", "--n-candidates", "5000"]) == 0
+    out, err = capsys.readouterr()
+    assert "emulator check, leaving out each run" in out
+    assert "! wave 1: " in out and "too confident" in out and "Add simulator runs" in out
+    assert "wave 1: " not in err

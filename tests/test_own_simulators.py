@@ -114,7 +114,7 @@ def test_runs_past_the_timeout_are_stopped_and_recorded(tmp_path, capsys):
                  "--json", str(out / "run.json"), "--out", str(out / "report.html")]) == 0
     elapsed = time.monotonic() - start
     doc = json.loads((out / "run.json").read_text(encoding="utf-8"))
-    assert doc["schema_version"] == 4
+    assert doc["schema_version"] == 5
     failed = doc["history_matching"]["failed_runs"]
     assert len(failed) == doc["history_matching"]["waves"]
     # The Latin hypercube of 10 runs puts exactly one slope in (1.8, 2]: that run hung.

@@ -44,10 +44,13 @@ def test_your_own_data_commands_run_as_written(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)                      # outputs land here; inputs from ROOT
     run = [str(ROOT / a) if a.startswith("examples/") else a for a in commands[0][3:]]
     assert main(run) == 0
-    assert (tmp_path / "report.html").stat().st_size > 10_000
-    assert json.loads((tmp_path / "run.json").read_text())["case"] == "beam-lab"
+    assert [p.name for p in tmp_path.iterdir()] == ["results"]    # one folder, made by the run
+    assert (tmp_path / "results" / "report.html").stat().st_size > 10_000
+    assert json.loads((tmp_path / "results" / "run.json").read_text())["case"] == "beam-lab"
     assert (tmp_path / "results" / "predictions.csv").exists()
-    assert "wrote report.html" in capsys.readouterr().out
+    assert "wrote results/report.html" in capsys.readouterr().out
+    serve = commands[1]                              # this machine only
+    assert serve[serve.index("--address") + 1] == "127.0.0.1"
 
     pytest.importorskip("panel")
     from mdcore_app import main as app_main

@@ -37,7 +37,9 @@ def test_every_plot_has_data(run):
     assert "KOH: δ tip deflection (±2σ)" in titles and "Final NROY samples" in titles
     text = " ".join(d.text for d in layout.select({"type": Div}))
     for words in ("Settings", "History matching", "Metrics at the test inputs", "Warnings",
-                  "Scenario 3", "KOH", "θ_MAP", "truth in NROY"):
+                  "Scenario 3", "KOH", "θ_MAP", "truth in NROY",
+                  "Emulator check, leaving out each run", "wrongly ruled out",
+                  "θ–δ trade-off", "share of Var(δ) from θ"):
         assert words in text
 
 

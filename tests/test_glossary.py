@@ -1,0 +1,42 @@
+"""The README's Glossary and the app's tooltips are one text (app/glossary.py), every word
+issue 41 names is defined, and nothing cites a SPEC that a clone does not have."""
+
+import re
+from pathlib import Path
+
+from mdcore_app.glossary import GLOSSARY, SECTION, tooltip
+
+ROOT = Path(__file__).resolve().parent.parent
+NAMED = ("NROY", "V_o", "V_m", "T", "θ_MAP", "LPL", "MMD", "NMSE", "k̂", "IAT", "ESS over φ",
+         "scenario 1", "scenario 2", "scenario 3", "KOH")
+
+
+def readme_glossary() -> dict:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text[text.index("## Glossary"):]
+    section = section[:section.index("\n## ", 1)]
+    rows = re.findall(r"^\| (.+?) \| (.+?) \| \[§(\d)\]\(docs/method\.md\) \|$", section, re.M)
+    assert len(rows) == section.count("\n| ") - 1               # every row but the header
+    return {term: (meaning, int(n)) for term, meaning, n in rows}
+
+
+def test_the_readme_glossary_is_the_tooltips_text():
+    readme = readme_glossary()
+    assert set(NAMED) <= set(readme)
+    assert readme == {t: (GLOSSARY[t], SECTION[t]) for t in readme}   # every README term is in
+    assert set(GLOSSARY) == set(SECTION) == set(readme)
+
+
+def test_each_definition_points_to_a_section_that_exists():
+    method = (ROOT / "docs" / "method.md").read_text(encoding="utf-8")
+    for term in GLOSSARY:
+        assert f"\n## {SECTION[term]}. " in method, term
+        assert tooltip(term).endswith(f"(docs/method.md §{SECTION[term]})")
+        assert "|" not in GLOSSARY[term]                          # a table cell stays one cell
+    assert "star" in GLOSSARY["θ_MAP"] and "×" in GLOSSARY["θ_MAP"]
+
+
+def test_no_doc_cites_the_spec():
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        text = path.read_text(encoding="utf-8")
+        assert "SPEC §" not in text and "shared/SPEC.md" not in text, path.name

@@ -238,7 +238,8 @@ def toy_model(scenario, S, n_phi=8, backend="numpy", seed=0):
     z = toy_simulate(X, truth)[0] + 0.3 * np.cos(4 * X) + 0.05 * rng.normal(size=(7, 2))
     theta = truth + 0.1 * rng.normal(size=(S, 2))
     prior = GaussianPrior(mean=[0.0, 0.0, 0.0, -0.5, -2.5], var=[0.3, 0.3, 0.3, 0.3, 0.3])
-    options = DiscrepancyOptions(n_phi=n_phi, phi_prior=prior, prune=0.0, backend=backend)
+    options = DiscrepancyOptions(n_phi=n_phi, phi_prior=prior, prune=0.0, backend=backend,
+                                 proposal="prior")        # the redrawn φ are the prior's
     return infer_discrepancy(toy_simulate, theta, X, z, scenario=scenario, theta_map=truth,
                              options=options, seed=seed)
 

@@ -40,6 +40,7 @@ from .live_figures import (
     figure_pane,
     live_text,
     show_pane,
+    when_shown,
 )
 from .plots import METHOD_COLORS, axis_label
 from .state import ExplorerState, method_order
@@ -140,17 +141,17 @@ class DiscrepancyPanel(LivePanel):
 
     def prebuild_when_shown(self, tabs, index: int) -> None:
         """Build the chosen methods' plots, empty and hidden, whenever tab ``index`` of
-        ``tabs`` (a :class:`mdcore_app.views.ShowingTabs`) is about to show this panel, and
+        ``tabs`` shows this panel, and
         while it shows it (a new case, a method chosen): a run then only fills them.
 
         Raises
         ------
         ValueError
-            If ``(tabs, index)`` is not a ShowingTabs and a tab index ≥ 0.
+            If ``(tabs, index)`` is not a pn.Tabs and a tab index ≥ 0.
         """
         check_shown_in((tabs, index), "(tabs, index)")
         self._ready = lambda: tabs.active == index
-        tabs.before_show.append(lambda active: active == index and self._prebuild())
+        when_shown(tabs, index, self._prebuild)
 
     def _prebuild(self) -> None:
         """Empty, hidden plots of the chosen methods that have none yet (see the module)."""

@@ -33,7 +33,7 @@ from typing import Any
 
 from mdcore._exceptions import Cancelled
 
-__all__ = ["PROGRESS_INTERVAL", "Cancelled", "Job", "JobRunner", "seconds_since_work"]
+__all__ = ["PROGRESS_INTERVAL", "Cancelled", "Job", "JobRunner"]
 
 #: Seconds between progress updates sent to the browser (unless the fraction jumps ≥ 0.1).
 PROGRESS_INTERVAL = 0.25
@@ -48,18 +48,6 @@ log = logging.getLogger(__name__)
 
 def _noop(*_args) -> None:
     return None
-
-
-#: Job threads working now in this process (every session), and when the last one ended.
-_WORKING = [0, time.monotonic()]
-_WORKING_LOCK = threading.Lock()
-
-
-def seconds_since_work() -> float:
-    """Seconds since the last job thread of the process (any session) ended; 0.0 while
-    one works. Background chores (:mod:`mdcore_app.session_pool`) wait for quiet."""
-    with _WORKING_LOCK:
-        return 0.0 if _WORKING[0] else time.monotonic() - _WORKING[1]
 
 
 class Job:
@@ -226,8 +214,6 @@ class JobRunner:
         return report
 
     def _work(self, job: Job, compute: Compute, apply: Callable[[Any], Any]) -> None:
-        with _WORKING_LOCK:
-            _WORKING[0] += 1
         try:
             for partial in compute(self._reporter(job), job.cancel):
                 if not self._live(job):
@@ -236,10 +222,6 @@ class JobRunner:
         except Exception as exc:                          # noqa: BLE001 - every failure ends the job
             self._post(lambda e=exc: self._end(job, e), job)
             return
-        finally:
-            with _WORKING_LOCK:
-                _WORKING[0] -= 1
-                _WORKING[1] = time.monotonic()
         self._post(lambda: self._end(job, None), job)
 
     def _post(self, fn: Callable[[], Any], ending: Job | None = None) -> None:

@@ -96,13 +96,17 @@ SLOT = {"opacity": "1", "visibility": "hidden"}
 
 def check_shown_in(shown_in, name: str) -> None:
     """Raise a ValueError naming ``name`` unless ``shown_in`` is ``(tabs, index)``: a
-    :class:`mdcore_app.views.ShowingTabs` (anything with ``before_show``) and a tab index
-    ≥ 0."""
+    ``pn.Tabs`` and a tab index ≥ 0."""
     if not (isinstance(shown_in, tuple) and len(shown_in) == 2
-            and hasattr(shown_in[0], "before_show") and isinstance(shown_in[1], int)
+            and isinstance(shown_in[0], pn.Tabs) and isinstance(shown_in[1], int)
             and 0 <= shown_in[1]):
-        raise ValueError(f"{name} must be (tabs, index): ShowingTabs and the panel's tab "
+        raise ValueError(f"{name} must be (tabs, index): a pn.Tabs and the panel's tab "
                          f"index ≥ 0; received {shown_in!r}.")
+
+
+def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
+    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes the active one."""
+    tabs.param.watch(lambda event: event.new == index and hook(), "active")
 
 
 class LivePanel(pn.viewable.Viewer):
@@ -146,13 +150,12 @@ class LivePanel(pn.viewable.Viewer):
         return self._layout
 
     def defer_while_hidden(self, tabs, index: int) -> None:
-        """Rebuild for a new case only when tab ``index`` of ``tabs`` (a
-        :class:`mdcore_app.views.ShowingTabs`) shows this panel, just before it is drawn.
+        """Rebuild for a new case only when tab ``index`` of ``tabs`` shows this panel.
         A case switch then builds the figures of the tab in view only (shear-5: the
         History-matching panels were 0.3-0.5 s of a 0.7 s switch made from the Data tab).
         """
         self._shown = lambda: tabs.active == index
-        tabs.before_show.append(lambda active: active == index and self._catch_up())
+        when_shown(tabs, index, self._catch_up)
 
     def _catch_up(self) -> None:
         if self._stale:

@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 from bokeh.document import Document
-from bokeh.embed import file_html
+from bokeh.embed import components
 from bokeh.layouts import column, gridplot
 from bokeh.models import ColumnDataSource, Div, FactorRange, Whisker
 from bokeh.plotting import figure
@@ -211,34 +211,24 @@ def _fmt(v, spec="{:.4g}") -> str:
     return "—" if v is None or (isinstance(v, float) and not np.isfinite(v)) else spec.format(v)
 
 
-class _InlineBokehOnly(Resources):
-    """BokehJS inlined, without other libraries' scripts.
-
-    Bokeh's resources add the ``__javascript__`` of every model class registered in the process,
-    used or not. Once the app has imported Panel that includes a ``static/extensions/...``
-    script tag, which a file opened from disk cannot load. The report holds only Bokeh models.
-    """
-
-    def _collect_external_resources(self, resource_attr):
-        return []
-
-    def clone(self, *, components=None):
-        return _InlineBokehOnly(mode="inline", components=components or list(self.components))
-
-
 def report_html(run) -> str:
     """The report of a :class:`mdcore.CaseRun` as one self-contained HTML page.
 
-    The layout is the one root of a document of its own: ``file_html`` then writes that
-    document. Given bare models, it would make one and copy into it the JS callbacks of
-    Bokeh's global current document, which in a server process can be a session's
+    The layout is the one root of a document of its own, which ``components`` writes.
+    Given bare models, it would make one and copy into it the JS callbacks of Bokeh's
+    global current document, which in a server process can be a session's
     document already destroyed (an ``AttributeError`` on ``_js_event_callbacks``: the
     served app's report download failed).
     """
     layout = report_layout(run)
     Document().add_root(layout)
-    return file_html(layout, resources=_InlineBokehOnly(mode="inline"),
-                     title=f"mdcore report: {run.case.name}")
+    script, div = components(layout)
+    # BokehJS inlined; not file_html's resources, which add the scripts of every model
+    # class registered in the process (Panel's, served from a path a file cannot load).
+    bokeh_js = "".join(f"<script>{code}</script>" for code in Resources(mode="inline").js_raw)
+    title = _esc(f"mdcore report: {run.case.name}")
+    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>{title}</title>{bokeh_js}{script}</head><body>{div}</body></html>\n")
 
 
 def _failures(case, hm) -> str:

@@ -1,6 +1,6 @@
 """Views of the Model Discrepancy Explorer, built from an :class:`ExplorerState`.
 
-The views hold no results: they read the state, draw with :mod:`app.plots` (the Data and
+The views hold no results: they read the state, draw with :mod:`mdcore_app.plots` (the Data and
 Metrics tabs, rebuilt when shown after a change) or with the panels updated in place
 (:mod:`.waves_panel`, :mod:`.calibration_panel`, :mod:`.discrepancy_panel`), and turn
 button presses into calls of the state's methods.
@@ -28,7 +28,7 @@ from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
-from .live_figures import alert_box, figure_pane, live_text
+from .live_figures import alert_box, figure_pane, live_text, when_shown
 from .markup import html_text, markdown_text
 from .report import report_html
 from .session import MAX_UPLOAD_BYTES, megabytes
@@ -101,21 +101,6 @@ def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-class ShowingTabs(pn.Tabs):
-    """Tabs that call each ``before_show(active)`` hook when a tab is about to be drawn,
-    so a stale tab is refreshed before it is drawn (drawn once, with the new content),
-    not drawn stale and then patched."""
-
-    def __init__(self, *objects, **params):
-        self.before_show: list = []
-        super().__init__(*objects, **params)
-
-    def _update_active(self, *events):
-        for hook in self.before_show:
-            hook(self.active)
-        super()._update_active(*events)
-
-
 #: Index of the Discrepancy tab (see :meth:`ExplorerView._fill_tabs`).
 DISCREPANCY_TAB = 2
 
@@ -132,7 +117,7 @@ class ExplorerView(pn.viewable.Viewer):
         # The live panels of a hidden tab are built (for a new session, or rebuilt for a
         # new case) just before their tab is shown: the History-matching ones were half
         # of a new session's 0.6 s of server time, for a tab not yet in view.
-        self._tabs = ShowingTabs(dynamic=True, sizing_mode="stretch_width")
+        self._tabs = pn.Tabs(dynamic=True, sizing_mode="stretch_width")
         self._data = DataPanel(state=self.state, shown_in=(self._tabs, 0))
         self._discrepancy = DiscrepancyPanel(state=self.state)
         self._discrepancy.prebuild_when_shown(self._tabs, DISCREPANCY_TAB)
@@ -547,7 +532,7 @@ class ExplorerView(pn.viewable.Viewer):
                 sizing_mode="stretch_width"))
         return pn.Column(*cards, sizing_mode="stretch_width", max_width=900)
 
-    def _shown_only(self, tabs: ShowingTabs, index: int, view, params: list[str]) -> pn.Column:
+    def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes
         while tab ``index`` is shown, or when that tab is shown after such a change."""
         box = pn.Column(sizing_mode="stretch_width")
@@ -561,7 +546,7 @@ class ExplorerView(pn.viewable.Viewer):
                 stale[0] = True
 
         self.state.param.watch(refresh, params)
-        tabs.before_show.append(lambda active: stale[0] and active == index and refresh())
+        when_shown(tabs, index, lambda: stale[0] and refresh())
         refresh()
         return box
 

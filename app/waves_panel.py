@@ -22,8 +22,6 @@ What is drawn, for the waves 1..k shown (k: the player's wave, default the last)
 
 from __future__ import annotations
 
-from typing import ClassVar
-
 import numpy as np
 import panel as pn
 import param
@@ -80,17 +78,6 @@ PLAYER_HIDDEN = {**SLOT, "opacity": "0", "pointer-events": "none"}
 PLAYER_SHOWN = {**CURRENT, "pointer-events": "auto"}
 #: Most waves a history match can have (the upper bound of the Max waves control).
 MAX_WAVES = ExplorerState.param.max_waves.bounds[1]
-
-
-class WavePlayer(pn.widgets.Player):
-    """The wave player, whose steps the server takes at once.
-
-    Panel defers a browser's change of a widget by 50 ms (``Syncable._debounce``, for
-    typing) unless the property is one of the class's ``_priority_changes``; a step of the
-    player is one click, and its target is 0.3 s from click to pixels.
-    """
-
-    _priority_changes: ClassVar[list[str]] = ["value"]
 
 
 def wave_samples(wave, max_points: int = MAX_POINTS) -> np.ndarray:
@@ -212,7 +199,7 @@ class WavesPanel(LivePanel):
         # One player for the session, kept in the layout: rebuilding it for each wave
         # re-laid-out the page. Kept in its place but not shown until there are two waves
         # to step through (a style: see _show_body).
-        self._player = WavePlayer(label="Wave shown", start=1, end=2, value=1,
+        self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
                                   loop_policy="once", interval=800,
                                   show_loop_controls=False, styles=PLAYER_HIDDEN)
         self._player.param.watch(self._player_moved, "value")

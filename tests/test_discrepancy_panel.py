@@ -323,14 +323,12 @@ def test_showing_the_tab_builds_the_plots_ahead_and_a_run_only_fills_them():
     """The chosen methods' plots are built, empty and hidden, when the tab is shown (a first
     run was mostly building them); the run fills the same figures and shows them. Empty
     plots are never shown, not even dimmed while the first run computes."""
-    from mdcore_app.views import ShowingTabs
-
     s = ExplorerState()
     s.case_name = "beam-1d"
     s.param.update(**SMALL)
     s.run_to_convergence()
     panel = DiscrepancyPanel(state=s)
-    tabs = ShowingTabs(("Data", pn.Column()), ("HM", pn.Column()), ("Discrepancy", panel))
+    tabs = pn.Tabs(("Data", pn.Column()), ("HM", pn.Column()), ("Discrepancy", panel))
     panel.prebuild_when_shown(tabs, 2)
     for bad in [(None, 2), (tabs, -1), (tabs, "2")]:
         with pytest.raises(ValueError, match=r"\(tabs, index\) must be \(tabs, index\)"):

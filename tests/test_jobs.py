@@ -9,13 +9,12 @@ sleeps: every wait is on a condition with a timeout.
 
 import queue
 import threading
-import time
 
 import pytest
 from event_loop import drain
 
 from mdcore._exceptions import Cancelled
-from mdcore_app.jobs import JobRunner, error_message, seconds_since_work
+from mdcore_app.jobs import JobRunner, error_message
 
 TIMEOUT = 30.0
 
@@ -385,24 +384,3 @@ def test_state_cancel_stops_a_running_discrepancy_run():
     drain(inbox, until=lambda: job.wait(0) and not s.busy, timeout=120.0)
     assert job.status == "cancelled" and s.n_errors == 0 and s.results == {}
     assert s.progress_message == ""
-
-
-def test_seconds_since_work_is_zero_while_a_job_works_then_counts_from_its_end():
-    """What the app's background chores wait on (app/session_pool.py): every session's
-    job threads count."""
-    release, started = threading.Event(), threading.Event()
-
-    def compute(report, cancel):
-        started.set()
-        release.wait(30)
-        yield 1
-
-    runner = JobRunner(background=True, schedule=lambda fn: None)
-    runner.submit("work", compute, lambda partial: None)
-    assert started.wait(30)
-    assert seconds_since_work() == 0.0
-    release.set()
-    end = time.monotonic() + 30
-    while seconds_since_work() == 0.0 and time.monotonic() < end:
-        time.sleep(0.01)
-    assert 0.0 < seconds_since_work() < 30.0

@@ -92,7 +92,7 @@ def test_show_pane_and_show_only_show_a_pane_again_and_refuse_bad_arguments():
     with pytest.raises(ValueError, match=r"shown must be a key of panes, one of \[0, 1, 2\]"):
         show_only(panes, 7, parent, attach=False)
     assert panes[0].visible                            # nothing changed
-    for bad in [(), (pn.Tabs(), 0), (object(), 1), ("tabs", -1)]:
+    for bad in [(), (pn.Tabs(), -1), (object(), 1), ("tabs", -1)]:
         with pytest.raises(ValueError, match=r"shown_in must be \(tabs, index\)"):
             LivePanel(shown_in=bad)
 

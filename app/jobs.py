@@ -72,8 +72,9 @@ class Job:
         self.cancel = threading.Event()
         self.status = "running"
         self.error: BaseException | None = None
-        self._snapshot = snapshot
-        self._ended = threading.Event()
+        self.snapshot = snapshot
+        #: Set once the job has ended (done, cancelled, failed or dropped).
+        self.ended = threading.Event()
 
     @property
     def running(self) -> bool:
@@ -85,7 +86,7 @@ class Job:
         In background mode the last state change is delivered through ``schedule``, so
         this returns once that callback has run.
         """
-        return self._ended.wait(timeout)
+        return self.ended.wait(timeout)
 
     def __repr__(self) -> str:
         return f"Job({self.label!r}, status={self.status!r})"
@@ -235,7 +236,7 @@ class JobRunner:
                 if not self._closed:                      # closed while scheduling: expected
                     raise
         if ending is not None:
-            ending._ended.set()
+            ending.ended.set()
 
     # ------------------------------------------------------------------------------
     # Session side (through schedule)
@@ -261,7 +262,7 @@ class JobRunner:
             else:
                 self._fail(job, exc)
         finally:
-            job._ended.set()
+            job.ended.set()
 
     def _fail(self, job: Job, exc: BaseException) -> None:
         job.status, job.error = "failed", exc
@@ -269,7 +270,7 @@ class JobRunner:
         if not isinstance(exc, ValueError):               # ValueErrors are the user's to fix
             log.error("%s failed", job.label, exc_info=exc)
         try:
-            self._restore(job._snapshot)
+            self._restore(job.snapshot)
         except Exception:
             log.exception("restoring the state after %s failed", job.label)
         self._on_finish()

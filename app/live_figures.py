@@ -369,9 +369,10 @@ class BandFigure:
         band = fig.varea("x", "lower", "upper", source=self._band, fill_color=color,
                          fill_alpha=0.25)
         mean = fig.line("x", "mean", source=self._mean, line_color=color, line_width=2)
-        # "±kσ" with k of the Band control, a fixed text: a new legend text re-lays-out
-        # the plot and, in the browser, the page (80 ms per plot on shear-5's twenty).
-        items = [LegendItem(label=f"{label} ±kσ", renderers=[band]),
+        # The band's entry says its k (set by show).
+        self._label = label
+        self._band_item = LegendItem(label=f"{label} band", renderers=[band])
+        items = [self._band_item,
                  LegendItem(label=f"{label} mean", renderers=[mean])]
         for x, y, name, style in points:
             items.append(LegendItem(label=name, renderers=[fig.scatter(
@@ -410,6 +411,9 @@ class BandFigure:
         k = as_int(k, "k", 1)
         sd = k * np.sqrt(check_positive(columns["var"], "var", strict=False))
         replace_data(self._band, {"x": x, "lower": mean - sd, "upper": mean + sd})
+        band_label = f"{self._label} ±{k}σ"
+        if self._band_item.label != band_label:
+            self._band_item.label = band_label
         replace_data(self._mean, {"x": x, "mean": mean})     # a new band keeps the mean
         if self._reference is not None and reference is not None:
             replace_data(self._reference, {"x": x, "y": reference})

@@ -29,7 +29,8 @@ from mdcore import _koh as koh
 from mdcore._case_file import with_measurements
 from mdcore._cases import Case
 from mdcore._history_matching import (
-    RULES,
+    MULTIVARIATE,
+    RULE_NAMES,
     HistoryMatchResult,
     case_problem,
     next_wave,
@@ -117,6 +118,31 @@ def work_problem(case, settings: Settings, methods) -> str | None:
     return None
 
 
+def allowed_values(p: param.Parameter) -> str:
+    """What the parameter ``p`` accepts, in words: "a whole number from 1 to 100", "a
+    number greater than 0", "one of max, 2nd max"."""
+    if isinstance(p, param.Selector):
+        return "one of " + ", ".join(str(o) for o in p.objects)
+    if not isinstance(p, param.Number):
+        return "a value of the field's kind"
+    kind = "a whole number" if isinstance(p, param.Integer) else "a number"
+    lo, hi = p.bounds or (None, None)
+    lo_in, hi_in = getattr(p, "inclusive_bounds", (True, True))
+    hi = hi if hi is not None and hi <= 1e7 else None         # not a limit worth saying
+
+    def num(v) -> str:
+        return f"{int(v):,}" if float(v).is_integer() else f"{v:g}"
+
+    if lo is not None and hi is not None and lo_in and hi_in:
+        return f"{kind} from {num(lo)} to {num(hi)}"
+    parts = []
+    if lo is not None:
+        parts.append(f"{'at least' if lo_in else 'greater than'} {num(lo)}")
+    if hi is not None:
+        parts.append(f"{'at most' if hi_in else 'less than'} {num(hi)}")
+    return kind + (" " + " and ".join(parts) if parts else "")
+
+
 def method_order(method: Method) -> int:
     """Sort key: scenario 1, 2, 3, then KOH."""
     return list(Method).index(method)
@@ -148,6 +174,7 @@ class ProblemKey(NamedTuple):
     case_name: str
     preset: str
     v_m: float
+    v_m_length: float
     threshold: float
     rule: str
     n_runs: int
@@ -166,8 +193,8 @@ class ResultKey(NamedTuple):
 
 
 #: The controls of the history match, restored with a case's results when switching back.
-HM_CONTROLS = ("preset", "v_m", "threshold", "rule", "n_runs", "n_candidates", "max_waves",
-               "convergence_ratio")
+HM_CONTROLS = ("preset", "v_m", "v_m_length", "threshold", "rule", "n_runs", "n_candidates",
+               "max_waves", "convergence_ratio")
 
 
 class Snapshot(NamedTuple):
@@ -224,7 +251,18 @@ class ExplorerState(param.Parameterized):
                            "(shear-5: of ω1; the other modes scale with their mean squared).")
     threshold = param.Number(default=3.0, bounds=(0.0, 1e6), inclusive_bounds=(False, True),
                              softbounds=(1.0, 5.0), label="Threshold T")
-    rule = param.Selector(objects=list(RULES), default="max", label="Implausibility rule")
+    rule = param.Selector(
+        objects=list(RULE_NAMES), default="max", label="Implausibility rule",
+        doc="max / 2nd max / 3rd max: each output and input scored alone, ruled out above T. "
+            f"{MULTIVARIATE}: I_M² = (z − E f)ᵀ (V_o + V_m + V_em)⁻¹ (z − E f) over all points "
+            "at once, ruled out above the χ² quantile at 0.995 (degrees of freedom = points × "
+            "outputs; shown on the map) instead of T; ℓ_m correlates V_m between inputs "
+            "(0: independent).")
+    v_m_length = param.Number(
+        default=0.0, bounds=(0.0, 1e6), label="ℓ_m (V_m correlation length)",
+        doc="Correlation length of the model discrepancy variance over the inputs (Matérn "
+            "3/2, in input units); 0: V_m independent at each input. Used by the "
+            "multivariate rule (the max rules use only V_m's diagonal).")
     n_runs = param.Integer(default=10, bounds=(1, APP_MAX_RUNS), label="Runs per wave")
     n_candidates = param.Integer(default=50_000, bounds=(100, APP_MAX_CANDIDATES),
                                  label="Candidates per wave")
@@ -343,6 +381,7 @@ class ExplorerState(param.Parameterized):
             self.output = case.output_names[0]
             self.grid = plotting_grid(case)
             self.v_m = float(case.V_m[0])
+            self.v_m_length = float(np.max(case.V_m_length))
             self._apply_preset()
             self.n_candidates = min(50_000 * case.p, APP_MAX_CANDIDATES)
             if case.d_x == 2:
@@ -428,15 +467,17 @@ class ExplorerState(param.Parameterized):
                           results=snap.results)
 
     def reject(self, name: str, value, reason: Exception) -> None:
-        """Report a typed value the parameter ``name`` refused (the field reverts); for the
-        app's own limits (:data:`APP_LIMITS`), the range and why."""
+        """Report a typed value the parameter ``name`` refused (the field reverts) in plain
+        words: what is allowed, never param's own message (it names the class, as in
+        ``ExplorerState.v_m``); for the app's own limits (:data:`APP_LIMITS`), also why."""
         p = self.param[name]
         if name in APP_LIMITS and isinstance(value, int) and not isinstance(value, bool) \
                 and value > p.bounds[1]:
             why = (f"{p.label}: {value:,} is not allowed (at most {p.bounds[1]:,}: "
                    f"{APP_LIMITS[name].rstrip('.')}).")
         else:
-            why = f"{p.label}: {value!r} is not allowed ({reason})."
+            shown = "an empty field" if value is None else repr(value)
+            why = f"{p.label}: {shown} is not allowed ({allowed_values(p)})."
         self.report_error(f"{why} The field keeps {getattr(self, name)!r}.")
 
     def report_error(self, message: str) -> None:
@@ -450,7 +491,8 @@ class ExplorerState(param.Parameterized):
     # History matching
 
     def _settings_key(self) -> ProblemKey:
-        return ProblemKey(self.case_name, self.preset, self.v_m, self.threshold, self.rule,
+        return ProblemKey(self.case_name, self.preset, self.v_m, self.v_m_length,
+                          self.threshold, self.rule,
                           self.n_runs,
                           self.n_candidates, self.max_waves, self.convergence_ratio)
 
@@ -460,7 +502,8 @@ class ExplorerState(param.Parameterized):
         if key != self._problem_key:
             design = ({"initial_design": teaching_design(self.case, self.base_case_name())}
                       if self.preset == "teaching" else {})
-            problem = case_problem(self.case, V_m=self.v_m_vector(), threshold=self.threshold,
+            problem = case_problem(self.case, V_m=self.v_m_vector(),
+                                   V_m_length=self.v_m_length, threshold=self.threshold,
                                    rule=self.rule, n_runs=self.n_runs,
                                    n_candidates=self.n_candidates, max_waves=self.max_waves,
                                    convergence_ratio=self.convergence_ratio, seed=0,
@@ -789,7 +832,7 @@ class ExplorerState(param.Parameterized):
     def session_json(self) -> str:
         """The session as JSON (the layout of :mod:`mdcore_app.session`)."""
         own = self._own.get(self.case_name)
-        controls = {k: getattr(self, k) for k in session.CONTROLS}
+        controls = {k: getattr(self, k) for k in (*session.CONTROLS, *session.OPTIONAL_CONTROLS)}
         controls["scenarios"] = [m.value for m in sorted(self.scenarios, key=method_order)]
         run = self.case_run()
         doc = session.session_document(
@@ -800,8 +843,7 @@ class ExplorerState(param.Parameterized):
             run=None if run is None else run.to_dict())
         return json.dumps(doc, indent=1, allow_nan=False)
 
-    @staticmethod
-    def _set_controls(state: ExplorerState, controls: dict, filename: str) -> Settings:
+    def set_controls(self, controls: dict, filename: str) -> Settings:
         """Set a session file's ``controls`` on ``state`` in the file's order (a preset
         first sets what it implies); returns the pipeline settings they make.
 
@@ -810,19 +852,20 @@ class ExplorerState(param.Parameterized):
         SessionError
             Naming the first control outside its parameter's bounds or choices.
         """
-        state._restoring = True
+        self._restoring = True
         try:
             for k, v in controls.items():
                 try:
-                    setattr(state, k, v)
-                except ValueError as exc:                # the parameter's own bounds or choices
+                    setattr(self, k, v)
+                except ValueError:                       # the parameter's own bounds or choices
                     why = f" {APP_LIMITS[k]}" if k in APP_LIMITS else ""
                     raise session.SessionError([
                         f"{filename}: controls.{k} = {v!r} is not allowed for "
-                        f"{state.param[k].label} ({exc}).{why}"]) from None
+                        f"{self.param[k].label} ({allowed_values(self.param[k])}).{why}"]
+                    ) from None
         finally:
-            state._restoring = False
-        return state.method_settings()
+            self._restoring = False
+        return self.method_settings()
 
     def open_session(self, data: bytes, filename: str) -> bool:
         """Restore a saved session: its case (with uploaded data), controls, waves and
@@ -832,14 +875,15 @@ class ExplorerState(param.Parameterized):
         and the session is unchanged (the file is checked in full, its controls on a
         scratch state, before anything of this session changes).
         """
-        before = {k: getattr(self, k) for k in ("case_name", *session.CONTROLS)}
+        before = {k: getattr(self, k)
+                  for k in ("case_name", *session.CONTROLS, *session.OPTIONAL_CONTROLS)}
         try:
             doc = session.parse_session(
                 session.decode_upload(data, filename, kind="session JSON"), filename)
             case = doc["case"]
             controls = dict(doc["controls"])
             controls["scenarios"] = [Method.parse(v) for v in controls["scenarios"]]
-            self._set_controls(ExplorerState(), controls, filename)   # refused before any change
+            ExplorerState().set_controls(controls, filename)   # refused before any change
             own = None
             if case["measurements_csv"] is not None:
                 base = case["based_on"]
@@ -858,7 +902,7 @@ class ExplorerState(param.Parameterized):
                                case["measurements_file"])
             else:
                 self.case_name = case["name"]
-            settings = self._set_controls(self, controls, filename)
+            settings = self.set_controls(controls, filename)
         except ValueError as exc:
             self._restoring = True
             try:

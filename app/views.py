@@ -44,10 +44,6 @@ SHOW_PROGRESS_AFTER = 0.5
 #: Height of the busy line (two lines of text), fixed so that a new message never
 #: changes the page's layout.
 STATUS_HEIGHT = 40
-#: Styles of the progress bar and Cancel button between jobs (hidden, in their place) and
-#: during a long one. Explicit: styles of ``{}`` would leave the browser's "hidden" on.
-HIDDEN = {"visibility": "hidden"}
-SHOWN = {"visibility": "visible"}
 
 
 def _status_html(busy: bool, task: str, detail: str = "") -> str:
@@ -101,7 +97,7 @@ def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-#: Index of the Discrepancy tab (see :meth:`ExplorerView._fill_tabs`).
+#: Index of the Discrepancy tab (the order of the tabs is set where they are filled).
 DISCREPANCY_TAB = 2
 
 
@@ -117,7 +113,7 @@ class ExplorerView(pn.viewable.Viewer):
         # The live panels of a hidden tab are built (for a new session, or rebuilt for a
         # new case) just before their tab is shown: the History-matching ones were half
         # of a new session's 0.6 s of server time, for a tab not yet in view.
-        self._tabs = pn.Tabs(dynamic=True, sizing_mode="stretch_width")
+        self._tabs = pn.Tabs(dynamic=True, sizing_mode="stretch_both")
         self._data = DataPanel(state=self.state, shown_in=(self._tabs, 0))
         self._discrepancy = DiscrepancyPanel(state=self.state)
         self._discrepancy.prebuild_when_shown(self._tabs, DISCREPANCY_TAB)
@@ -156,6 +152,8 @@ class ExplorerView(pn.viewable.Viewer):
             self._number_input("v_m", pn.widgets.FloatInput, step=0.005, format="0.[0000]"),
             self._number_input("threshold", pn.widgets.FloatInput, step=0.5, format="0.[00]"),
             self._choice("rule"),
+            self._number_input("v_m_length", pn.widgets.FloatInput, step=0.05,
+                               format="0.[0000]"),
             self._number_input("n_runs", pn.widgets.IntInput),
             self._number_input("n_candidates", pn.widgets.IntInput, step=10_000),
             pn.Param(s.param, parameters=["max_waves"], show_name=False),
@@ -177,17 +175,32 @@ class ExplorerView(pn.viewable.Viewer):
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
-        # The buttons and the progress line come first, so they stay above the fold of a
-        # 1280×720 projector; the settings follow in cards that can be folded away.
+        # The buttons and the progress line come first; the settings follow in cards (on
+        # the History matching and Discrepancy tabs, that tab's open and the other folded).
+        # The sidebar scrolls on its own, so reaching a control never scrolls the plots
+        # away (a projector's 1280×720).
+        self._cards = {1: pn.Card(hm, title="History matching", sizing_mode="stretch_width",
+                                  css_classes=["hm-controls"]),
+                       DISCREPANCY_TAB: pn.Card(disc, title="Discrepancy",
+                                                sizing_mode="stretch_width",
+                                                css_classes=["disc-controls"])}
+        when_shown(self._tabs, 1, lambda: self._open_card(1))
+        when_shown(self._tabs, DISCREPANCY_TAB, lambda: self._open_card(DISCREPANCY_TAB))
         return pn.Column(
             pn.pane.Markdown("**Model Discrepancy Explorer** · Gardner et al., MSSP 2021: "
                              "history matching, then GP discrepancy (scenarios 1–3), "
                              "against the joint Kennedy–O'Hagan baseline (koh).",
                              styles={"font-size": "0.9em"}),
             w, self._case_info, pn.Row(next_btn, conv_btn), run_btn, self._progress_panel(),
-            pn.Card(hm, title="History matching", sizing_mode="stretch_width"),
-            pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width"),
-            width=SIDEBAR_WIDTH)
+            *self._cards.values(),
+            width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
+            css_classes=["mdcore-sidebar"])
+
+    def _open_card(self, index: int) -> None:
+        """Open the settings card of tab ``index`` and fold the other one."""
+        for i, card in self._cards.items():
+            if card.collapsed != (i != index):
+                card.collapsed = i != index
 
     def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):
         """A button group for the state's parameter ``name``, with its label above it (a
@@ -263,21 +276,19 @@ class ExplorerView(pn.viewable.Viewer):
     def _progress_panel(self):
         """Busy line, progress bar and a Cancel button, updated in place.
 
-        Nothing here changes the page's layout while a job runs: in the browser, any
-        change of a size, a visibility or a CSS class re-lays-out the whole page, which
-        redraws every plot (0.5–0.8 s each time on 2 cores, several times per run). So the
-        line has a fixed height and says busy or idle with a class *inside* its text, and
-        the bar and the Cancel button keep their place, hidden by ``visibility``: of their
-        row (Panel's Progress copies its own styles to its bar once, when drawn, so a bar
-        drawn hidden stayed hidden).
+        The bar and the button are always there (the button disabled between jobs), so a
+        job changes no size, visibility or layout: only the bar's value and the line's
+        text, whose fixed height never moves what is below it. The line names the job
+        once it has run :data:`SHOW_PROGRESS_AFTER` seconds, so short runs do not flash.
         """
         text = pn.pane.HTML(_status_html(False, ""), height=STATUS_HEIGHT,
                             sizing_mode="stretch_width",
                             styles={"overflow": "hidden", "font-size": "0.9em"})
-        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width")
-        cancel = pn.widgets.Button(label="Cancel", color="warning", css_classes=["cancel-job"])
-        row = pn.Row(bar, cancel, sizing_mode="stretch_width", styles=dict(HIDDEN),
-                     css_classes=["job-progress"])
+        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width",
+                                     css_classes=["job-progress-bar"])
+        cancel = pn.widgets.Button(label="Cancel", color="warning", disabled=True,
+                                   css_classes=["cancel-job"])
+        row = pn.Row(bar, cancel, sizing_mode="stretch_width", css_classes=["job-progress"])
         cancel.on_click(lambda _: self.state.cancel())
         since: list[float | None] = [None]          # when the current job started
 
@@ -292,10 +303,9 @@ class ExplorerView(pn.viewable.Viewer):
                     doc.add_timeout_callback(update, int(1000 * SHOW_PROGRESS_AFTER) + 20)
             show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
             text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
-            styles = dict(SHOWN if show else HIDDEN)
-            if row.styles != styles:
-                row.styles = styles
-            bar.value = int(100 * s.progress)
+            if cancel.disabled == s.busy:
+                cancel.disabled = not s.busy
+            bar.value = int(100 * s.progress) if s.busy else 0
 
         self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
         update()
@@ -565,9 +575,12 @@ class ExplorerView(pn.viewable.Viewer):
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
             metrics, sizing_mode="stretch_width")
-        tabs.extend([("Data", self._data), ("History matching", hm_tab),
-                     ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
-                     ("Files", self.files_view()), ("Things to try", self.try_view())])
+        # Each tab scrolls on its own, below its header, beside the sidebar.
+        tabs.extend([(name, pn.Column(view, scroll=True, sizing_mode="stretch_both"))
+                     for name, view in (
+                         ("Data", self._data), ("History matching", hm_tab),
+                         ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
+                         ("Files", self.files_view()), ("Things to try", self.try_view()))])
 
     def __panel__(self):
-        return pn.Row(self._controls(), self._tabs, sizing_mode="stretch_width")
+        return pn.Row(self._controls(), self._tabs, sizing_mode="stretch_both")

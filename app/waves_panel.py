@@ -5,7 +5,7 @@ The figures are built once per case (:mod:`.live_figures`): a new wave, the wave
 new implausibility map only replace the arrays of a few ``ColumnDataSource`` objects (a new
 wave's samples are appended; the player moves a filter of the waves shown), and the
 browser redraws those glyphs; no layout is rebuilt, and nothing changes a layout's
-``visible`` or size (see :meth:`WavesPanel._show_body`). HoloViews rebuilt every plot of
+``visible`` or size (a wave's plots keep their place). HoloViews rebuilt every plot of
 the tab for each wave and each step of the player (shear-5: 922 models, about 1.5 s on the
 server and ten in the browser).
 
@@ -15,7 +15,7 @@ What is drawn, for the waves 1..k shown (k: the player's wave, default the last)
   (p ≥ 2), or stacked histograms (p = 1), with the true θ (black cross or dashed line) and,
   at the last wave, θ_MAP (red star or line);
 * p = 2: wave k's combined implausibility over the θ box, clipped at 3T, with the contour
-  at T;
+  at its cut-off (T, or the χ² quantile of the multivariate rule);
 * the NROY fraction per wave, and the largest emulator variance at the retained points
   ÷ (V_o + V_m) per output (converged below 1).
 """
@@ -39,6 +39,7 @@ from bokeh.models import (
 )
 from bokeh.palettes import Category10_10, Viridis256
 
+from mdcore._history_matching import MULTIVARIATE
 from mdcore._validation import as_float_array, as_int, as_positive_float
 
 from .live_figures import (
@@ -351,7 +352,7 @@ class WavesPanel(LivePanel):
         if c.p == 1:
             self._map_line.location = None if theta_map is None else float(theta_map[0])
         if self._image is not None:
-            self._show_map(s.implausibility_maps.get(upto), hm.problem.options.threshold, upto)
+            self._show_map(s.implausibility_maps.get(upto), hm.problem, upto)
         self._legend_div.text = legend_html(shown, c.theta_true is not None,
                                           theta_map is not None, lines=c.p == 1)
         k = [w.index for w in shown]
@@ -436,8 +437,9 @@ class WavesPanel(LivePanel):
             with pn.io.hold():           # the updates of every plot go as one message
                 self.state.selected_wave = event.new
 
-    def _show_map(self, grid, threshold: float, wave: int) -> None:
-        """Wave ``wave``'s implausibility ``grid`` = (t1, t2, I), or a blank image."""
+    def _show_map(self, grid, problem, wave: int) -> None:
+        """Wave ``wave``'s implausibility ``grid`` = (t1, t2, I), or a blank image; the
+        contour at the problem's cut-off (T, or the χ² quantile of the multivariate rule)."""
         fig = self._image_fig
         if grid is None:
             replace_data(self._image, {"image": []})
@@ -445,11 +447,12 @@ class WavesPanel(LivePanel):
             fig.title.text = f"wave {wave}: no implausibility map"
             return
         t1, t2, I = grid
-        self._mapper.update(low=0.0, high=CLIP * threshold)
-        replace_data(self._image, {"image": [np.minimum(I, CLIP * threshold)]})
-        replace_data(self._contour, contour_lines(t1, t2, I, threshold))
-        fig.title.text = (f"wave {wave}: implausibility (clipped at {CLIP:g}T; contour at "
-                          f"T = {threshold:g})")
+        cutoff = problem.cutoff
+        self._mapper.update(low=0.0, high=CLIP * cutoff)
+        replace_data(self._image, {"image": [np.minimum(I, CLIP * cutoff)]})
+        replace_data(self._contour, contour_lines(t1, t2, I, cutoff))
+        name = ("χ²" if problem.options.rule == MULTIVARIATE else "T")
+        fig.title.text = f"wave {wave}: implausibility, contour at {name} = {cutoff:.3g}"
 
 
 __all__ = ["WavesPanel", "contour_lines", "histogram_columns", "legend_html", "nroy_columns",

@@ -78,10 +78,10 @@ def test_band_change_patches_the_data_of_the_same_figures(beam1d):
                                    4 * np.sqrt(on_grid.z_var[:, 0]), rtol=1e-10)
         truth = source(after["Scenario 2: δ"], "y")
         np.testing.assert_allclose(truth["y"], s.case.true_delta(s.grid)[:, 0])
-        # The legend says "±kσ" (k of the Band control): a new legend text would re-lay-out
-        # every plot in the browser.
+        # The legend says the band's actual k (issue 41: it read "±kσ" whatever the band).
         labels = [item.label for f in after.values() for item in f.legend[0].items]
-        assert "Scenario 2 ±kσ" in str(labels) and "±3σ" not in str(labels)
+        assert "Scenario 2 ±2σ" in str(labels) and "±3σ" not in str(labels)
+        assert "kσ" not in str(labels)
     finally:
         s.band = 3
 

@@ -43,7 +43,8 @@ from .live_figures import (
     when_shown,
 )
 from .plots import METHOD_COLORS, axis_label
-from .state import ExplorerState, method_order
+from .runs import method_order
+from .state import ExplorerState
 
 #: The "Show" choices of a 1-D case and the quantities they show.
 QUANTITIES = {"z and δ": ("z", "delta"), "δ": ("delta",), "z": ("z",)}

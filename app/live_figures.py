@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import panel as pn
+from bokeh.core.properties import value
 from bokeh.models import (
     ColorBar,
     ColumnDataSource,
@@ -411,7 +412,7 @@ class BandFigure:
         k = as_int(k, "k", 1)
         sd = k * np.sqrt(check_positive(columns["var"], "var", strict=False))
         replace_data(self._band, {"x": x, "lower": mean - sd, "upper": mean + sd})
-        band_label = f"{self._label} ±{k}σ"
+        band_label = value(f"{self._label} ±{k}σ")     # a text, not a column's name
         if self._band_item.label != band_label:
             self._band_item.label = band_label
         replace_data(self._mean, {"x": x, "mean": mean})     # a new band keeps the mean

@@ -31,8 +31,9 @@ from .experiments import EXPERIMENTS
 from .live_figures import alert_box, figure_pane, live_text, when_shown
 from .markup import html_text, markdown_text
 from .report import report_html
+from .runs import method_order
 from .session import MAX_UPLOAD_BYTES, megabytes
-from .state import ExplorerState, method_order
+from .state import ExplorerState
 from .upload import FileUpload
 from .waves_panel import WavesPanel
 

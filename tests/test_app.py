@@ -16,6 +16,8 @@ from bokeh.document import Document  # noqa: E402
 from bokeh.models import GlyphRenderer  # noqa: E402
 from event_loop import drain  # noqa: E402
 
+import mdcore_app.history_model as history_module  # noqa: E402
+import mdcore_app.runs as runs_module  # noqa: E402
 import mdcore_app.state as state_module  # noqa: E402
 import mdcore_app.views as views_module  # noqa: E402
 from mdcore._pipeline import Method  # noqa: E402
@@ -135,7 +137,7 @@ def test_toggling_scenarios_or_band_recomputes_nothing(monkeypatch):
     def boom(*a, **k):
         raise AssertionError("infer must not run")
 
-    monkeypatch.setattr(state_module, "run_method", boom)
+    monkeypatch.setattr(runs_module, "run_method", boom)
     s.band = 2
     s.scenarios = [Method.S1, Method.S3]
     assert list(s.results) == [Method.S1, Method.S3]
@@ -155,7 +157,7 @@ def test_changing_n_s_reruns_without_history_matching(monkeypatch):
     def no_waves(*a, **k):
         raise AssertionError("history matching must not re-run")
 
-    monkeypatch.setattr(state_module, "next_wave", no_waves)
+    monkeypatch.setattr(history_module, "next_wave", no_waves)
     s.n_s = 20
     assert s.waves is waves and list(s.results) == S123
     assert s.results[Method.S2].model.theta.shape[0] == 20
@@ -242,7 +244,7 @@ def test_paper_sizes_switch():
     s.paper_sizes = True
     assert (s.n_s, s.n_phi) == (1000, 500)
     s.paper_sizes = False
-    assert (s.n_s, s.n_phi) == (state_module.DEFAULT_N_S, state_module.DEFAULT_N_PHI)
+    assert (s.n_s, s.n_phi) == (runs_module.DEFAULT_N_S, runs_module.DEFAULT_N_PHI)
 
 
 def test_low_ess_becomes_a_notice_not_a_failure():
@@ -321,7 +323,7 @@ def test_koh_is_a_fourth_column(monkeypatch):
     v = ExplorerView(state=s)
     s.run_to_convergence()
     # A short chain keeps the test quick; the app's own default is koh.FAST.
-    monkeypatch.setitem(state_module.KOH_CHAINS, "fast", {"n_iter": 3000, "burn_in": 1000})
+    monkeypatch.setitem(runs_module.KOH_CHAINS, "fast", {"n_iter": 3000, "burn_in": 1000})
     updates = []
     s.param.watch(lambda e: updates.append(list(e.new)), "results")
     s.scenarios = [Method.S1, Method.KOH]
@@ -364,12 +366,12 @@ def test_cache_keys_are_typed_and_hashable():
     s.scenarios = [Method.S1, Method.S3]
     s.run_discrepancy()
     keys = list(s._cache)
-    assert all(isinstance(k, state_module.ResultKey) for k in keys)
+    assert all(isinstance(k, runs_module.ResultKey) for k in keys)
     assert {k.method.method for k in keys} == {Method.S1, Method.S3}
     k3 = next(k for k in keys if k.method.method is Method.S3)
     assert k3.method == s.method_settings().key(Method.S3)
     assert k3.problem.case_name == "beam-1d" and k3.n_waves == len(s.waves) and k3.seed == 0
-    assert hash(k3) == hash(state_module.ResultKey(*k3))
+    assert hash(k3) == hash(runs_module.ResultKey(*k3))
     s.n_phi = 9                                   # scenario 1's key does not hold N_φ …
     assert Method.S1 in s.results and s.results[Method.S3].key.n_phi == 9
 

@@ -80,8 +80,9 @@ def test_band_change_patches_the_data_of_the_same_figures(beam1d):
         np.testing.assert_allclose(truth["y"], s.case.true_delta(s.grid)[:, 0])
         # The legend says the band's actual k (issue 41: it read "±kσ" whatever the band).
         labels = [item.label for f in after.values() for item in f.legend[0].items]
-        assert "Scenario 2 ±2σ" in str(labels) and "±3σ" not in str(labels)
-        assert "kσ" not in str(labels)
+        texts = [getattr(label, "value", None) for label in labels]   # texts, no field names
+        assert "Scenario 2 ±2σ" in texts and None not in texts
+        assert "±3σ" not in str(labels) and "kσ" not in str(labels)
     finally:
         s.band = 3
 

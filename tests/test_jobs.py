@@ -292,14 +292,14 @@ def _fields(s):
 def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monkeypatch):
     """Scenario 1 is applied before KOH starts; KOH then fails: the results go back to what
     they were before the run (not scenario 1 alone), with one notification."""
-    import mdcore_app.state as state_module
+    import mdcore_app.runs as runs_module
     from mdcore._pipeline import Method
     s = _state()
     s.run_to_convergence()
     s.scenarios = [Method.S2]
     s.run_discrepancy()
     before, n = _fields(s), s.n_errors
-    real = state_module.run_method
+    real = runs_module.run_method
     applied = []
     s.param.watch(lambda e: applied.append(list(e.new)), "results")
 
@@ -308,7 +308,7 @@ def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monk
             raise RuntimeError("injected in KOH")
         return real(case, hm, method, *args, **kwargs)
 
-    monkeypatch.setattr(state_module, "run_method", failing)
+    monkeypatch.setattr(runs_module, "run_method", failing)
     s.scenarios = [Method.S1, Method.S2, Method.KOH]   # runs S1 and KOH (S2 is cached)
     assert [Method.S1, Method.S2] in applied           # S1 was shown before KOH failed
     assert not s.busy and s.n_errors == n + 1
@@ -318,11 +318,11 @@ def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monk
 
 
 def test_state_runtime_error_in_a_later_wave_restores_waves_and_status(monkeypatch):
-    import mdcore_app.state as state_module
+    import mdcore_app.history_model as history_module
     s = _state(max_waves=4, convergence_ratio=0.001)
     s.next_wave()
     before, n = _fields(s), s.n_errors
-    real, calls = state_module.next_wave, []
+    real, calls = history_module.next_wave, []
 
     def failing(problem, waves, progress=None):
         calls.append(len(waves))
@@ -330,7 +330,7 @@ def test_state_runtime_error_in_a_later_wave_restores_waves_and_status(monkeypat
             raise RuntimeError("simulator crashed")
         return real(problem, waves, progress)
 
-    monkeypatch.setattr(state_module, "next_wave", failing)
+    monkeypatch.setattr(history_module, "next_wave", failing)
     s.run_to_convergence()                             # wave 2 is applied, wave 3 fails
     assert calls == [1, 2]
     after = _fields(s)

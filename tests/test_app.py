@@ -21,13 +21,9 @@ import mdcore_app.runs as runs_module  # noqa: E402
 import mdcore_app.state as state_module  # noqa: E402
 import mdcore_app.views as views_module  # noqa: E402
 from mdcore._pipeline import Method  # noqa: E402
+from mdcore_app.metrics_view import NOT_APPLICABLE, metrics_frame  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
-from mdcore_app.views import (  # noqa: E402
-    NOT_APPLICABLE,
-    STATUS_HEIGHT,
-    ExplorerView,
-    metrics_frame,
-)
+from mdcore_app.views import STATUS_HEIGHT, ExplorerView  # noqa: E402
 
 hv.extension("bokeh")
 SMALL = {"preset": "paper", "n_candidates": 4000, "n_s": 30, "n_phi": 8}

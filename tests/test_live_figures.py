@@ -8,14 +8,8 @@ pytest.importorskip("bokeh")
 from bokeh.document import Document  # noqa: E402
 from bokeh.models import ColumnDataSource  # noqa: E402
 
-from mdcore_app.live_figures import (  # noqa: E402
-    BandFigure,
-    MapFigure,
-    blank,
-    replace_data,
-    set_range,
-    set_top,
-)
+from mdcore_app.live_figures import BandFigure, MapFigure  # noqa: E402
+from mdcore_app.sources import blank, replace_data, set_range, set_top  # noqa: E402
 
 X = np.linspace(0.0, 1.0, 5)
 GOOD = {"x": X, "mean": X ** 2, "var": np.full(5, 0.01), "k": 2}

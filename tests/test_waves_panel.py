@@ -12,12 +12,8 @@ from bokeh.document import Document  # noqa: E402
 from mdcore_app.live_figures import CURRENT  # noqa: E402
 from mdcore_app.plots import WAVE_COLORS  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
-from mdcore_app.waves_panel import (  # noqa: E402
+from mdcore_app.wave_data import (  # noqa: E402
     MAX_POINTS,
-    MAX_WAVES,
-    PLAYER_HIDDEN,
-    PLAYER_SHOWN,
-    WavesPanel,
     contour_lines,
     histogram_columns,
     nroy_columns,
@@ -25,6 +21,7 @@ from mdcore_app.waves_panel import (  # noqa: E402
     variance_ratios,
     wave_colors,
 )
+from mdcore_app.waves_panel import MAX_WAVES, PLAYER_HIDDEN, PLAYER_SHOWN, WavesPanel  # noqa: E402
 
 
 @pytest.fixture(scope="module")

@@ -37,11 +37,13 @@ from mdcore_app.views import ExplorerView
 # 1.5 s of a scenario toggle's 2.2 s of browser time).
 # The notifications live outside Bokeh's shadow roots, where Panel's font variable
 # (--bokeh-base-font) is not defined: they came out in the browser's serif. A narrower
-# toast also covers less of the plots while it fades.
+# toast also covers less of the plots while it fades; long words (file names) wrap inside it.
 NOTIFICATION_CSS = """
 .notyf__message { font-family: -apple-system, BlinkMacSystemFont, "Segoe UI", Roboto,
-                  "Helvetica Neue", Arial, sans-serif; font-size: 13px; line-height: 1.35; }
+                  "Helvetica Neue", Arial, sans-serif; font-size: 13px; line-height: 1.35;
+                  overflow-wrap: anywhere; min-width: 0; }
 .notyf__toast { max-width: 380px !important; }
+.notyf__wrapper { min-width: 0; }
 """
 pn.extension(notifications=True, raw_css=[NOTIFICATION_CSS])
 hv.extension("bokeh")

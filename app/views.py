@@ -326,12 +326,22 @@ class ExplorerView(pn.viewable.Viewer):
         box = pn.Column(sizing_mode="stretch_width")
         stale = [True]
 
+        def build():
+            stale[0] = False
+            box.objects = [view()]
+
         def refresh(*_):
-            if tabs.active == index:
-                box.objects = [view()]
-                stale[0] = False
-            else:
+            if tabs.active != index:
                 stale[0] = True
+                return
+            doc = pn.state.curdoc
+            if doc is None or doc.session_context is None:
+                build()                                # not served: at once
+                return
+            # Served: say so at once and build on the next tick (shear-5's metrics take
+            # seconds; a blank tab meanwhile looked broken).
+            box.objects = [pn.pane.Markdown("*Updating …*", css_classes=["mdcore-updating"])]
+            pn.state.execute(build, schedule=True)
 
         self.state.param.watch(refresh, params)
         when_shown(tabs, index, lambda: stale[0] and refresh())

@@ -265,8 +265,8 @@ class DiscrepancyPanel(LivePanel):
             if key == 2:
                 return BandFigure(title="", xname=x1, yname=axis_label("δ", unit), color=color,
                                   label=label, reference=None if self._truth is None
-                                  else "true δ", css_class=CSS, **self._linked(key),
-                                  x=np.unique(self.state.grid[:, 0]))
+                                  else "true δ", css_class=CSS, k=self.state.band,
+                                  **self._linked(key), x=np.unique(self.state.grid[:, 0]))
             u1, u2 = np.unique(self.state.grid[:, 0]), np.unique(self.state.grid[:, 1])
             zname = axis_label("δ mean" if key == 0 else "δ sd", unit)
             return MapFigure(title="", xname=x1, yname=x2, zname=zname, u1=u1, u2=u2,
@@ -281,12 +281,13 @@ class DiscrepancyPanel(LivePanel):
                        {"color": "black", "size": 7})]
             return BandFigure(title=f"{label}: z{of} (bias-corrected)", xname=x1,
                               yname=axis_label(name, unit), color=color, label=label,
-                              points=points, css_class=CSS, **self._linked(key),
+                              points=points, css_class=CSS, k=self.state.band, **self._linked(key),
                               x=self.state.grid[:, 0])
         return BandFigure(title=f"{label}: δ{of}",
                           xname=x1, yname=axis_label("δ " + name, unit), color=color,
                           label=label, reference=None if self._truth is None else "true δ",
-                          css_class=CSS, **self._linked(key), x=self.state.grid[:, 0])
+                          css_class=CSS, k=self.state.band, **self._linked(key),
+                          x=self.state.grid[:, 0])
 
     def _draw(self, fig, key, data) -> None:
         """Show ``data`` (result, band k[, slice]) in a cell's figure (k = 0: a map)."""

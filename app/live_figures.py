@@ -262,11 +262,13 @@ class BandFigure:
     x : ndarray of shape (G,), optional
         The inputs :meth:`show` will draw at, when known: the sources start there, blank
         (:func:`blank`), and each result is sent as a patch.
+    k : int, default=3
+        The band's width in sd that the legend says until :meth:`show` draws another.
     """
 
     def __init__(self, *, title: str, xname: str, yname: str, color: str, label: str,
                  points=(), reference: str | None = None, css_class: str = "live-plot",
-                 x_range=None, y_range=None, x=None):
+                 x_range=None, y_range=None, x=None, k: int = 3):
         ranges = {k: v for k, v in (("x_range", x_range), ("y_range", y_range)) if v}
         self.figure = fig = live_figure(title, xname, yname, css_class, **ranges)
         x = np.zeros(0) if x is None else as_float_array(x, "x", ndim=1)
@@ -275,9 +277,10 @@ class BandFigure:
         band = fig.varea("x", "lower", "upper", source=self._band, fill_color=color,
                          fill_alpha=0.25)
         mean = fig.line("x", "mean", source=self._mean, line_color=color, line_width=2)
-        # The band's entry says its k (set by show).
+        # The band's entry says its k (``k`` until show says otherwise: a new text
+        # rebuilds the legend's entries in the browser).
         self._label = label
-        self._band_item = LegendItem(label=f"{label} band", renderers=[band])
+        self._band_item = LegendItem(label=value(f"{label} ±{k}σ"), renderers=[band])
         items = [self._band_item,
                  LegendItem(label=f"{label} mean", renderers=[mean])]
         for x, y, name, style in points:

@@ -118,32 +118,22 @@ class ExplorerView(pn.viewable.Viewer):
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
-        # The buttons and the progress line come first; the settings follow in cards (on
-        # the History matching and Discrepancy tabs, that tab's open and the other folded).
-        # The sidebar scrolls on its own, so reaching a control never scrolls the plots
-        # away (a projector's 1280×720).
-        self._cards = {1: pn.Card(hm, title="History matching", sizing_mode="stretch_width",
-                                  css_classes=["hm-controls"]),
-                       DISCREPANCY_TAB: pn.Card(disc, title="Discrepancy",
-                                                sizing_mode="stretch_width",
-                                                css_classes=["disc-controls"])}
-        when_shown(self._tabs, 1, lambda: self._open_card(1))
-        when_shown(self._tabs, DISCREPANCY_TAB, lambda: self._open_card(DISCREPANCY_TAB))
+        # The buttons and the progress line come first, the settings follow in cards. The
+        # sidebar scrolls on its own, so reaching a control never scrolls the plots away
+        # (a projector's 1280×720). Nothing here changes on a tab switch: folding a card
+        # makes BokehJS lay out the whole page again.
         return pn.Column(
             pn.pane.Markdown("**Model Discrepancy Explorer** · Gardner et al., MSSP 2021: "
                              "history matching, then GP discrepancy (scenarios 1–3), "
                              "against the joint Kennedy–O'Hagan baseline (koh).",
                              styles={"font-size": "0.9em"}),
             w, self._case_info, pn.Row(next_btn, conv_btn), run_btn, self._progress_panel(),
-            *self._cards.values(),
+            pn.Card(hm, title="History matching", sizing_mode="stretch_width",
+                    css_classes=["hm-controls"]),
+            pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width",
+                    css_classes=["disc-controls"]),
             width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
             css_classes=["mdcore-sidebar"])
-
-    def _open_card(self, index: int) -> None:
-        """Open the settings card of tab ``index`` and fold the other one."""
-        for i, card in self._cards.items():
-            if card.collapsed != (i != index):
-                card.collapsed = i != index
 
     def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):
         """A button group for the state's parameter ``name``, with its label above it (a

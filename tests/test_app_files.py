@@ -216,11 +216,15 @@ def edit(path, value):
     (edit(["controls", "v_m"], -0.5), "V_m"),
     (edit(["controls", "n_phi"], 0), "N_φ"),
     (edit(["controls", "rule"], "mean"), "rule"),
+    (edit(["controls", "busy"], True), "controls.busy is not a control of this app"),
+    (edit(["controls", "_cache"], {}), "controls._cache is not a control of this app"),
+    (edit(["controls", "v_m_length"], -1.0), "ℓ_m"),
     (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
     (b'{"schema": ' + b"9" * 5000 + b"}", "more digits than Python reads"),
 ], ids=["not-json", "a-list", "other-schema", "newer-version", "missing-control",
         "wrong-type", "bool-for-int", "negative-waves", "unknown-case", "negative-v_m",
-        "zero-n_phi", "unknown-rule", "deeply-nested", "huge-integer"])
+        "zero-n_phi", "unknown-rule", "a-result-field", "a-private-attribute",
+        "negative-l_m", "deeply-nested", "huge-integer"])
 def test_a_bad_session_file_is_a_notification_and_changes_nothing(data, problem):
     s = small_state(v_m=0.07)
     s.run_to_convergence()

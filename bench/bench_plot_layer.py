@@ -81,6 +81,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=20)
     args = ap.parse_args()
     hv.extension("bokeh")
+    holoviews_plot(), bokeh_plot()               # one-time costs (imports, caches) first
     rows = []
     for name, make in (("HoloViews DynamicMap + Pipe", holoviews_plot),
                        ("BandFigure (Bokeh sources)", bokeh_plot)):

@@ -1,60 +1,10 @@
 """Your own case from files: a TOML case file, a measurements CSV and a simulator function.
 
-A case file names everything :class:`mdcore.Case` needs. Paths are relative to the
-case file. The simulator is an import path ``package.module:function`` whose function has
-the signature of :meth:`mdcore.Case.simulate`::
-
-    simulate(X, theta) -> ndarray of shape (n_theta, N, n_out)
-    # X: (N, d_x) inputs in the CSV's input units; theta: (n_theta, p) in the parameters' units
-
-The format (every key is checked; errors name the file, the key, what was expected and
-what was found)::
-
-    name = "my-beam"                     # letters, digits, "-" and "_"
-    title = "Cracked beam in the lab"    # optional
-    description = "..."                  # optional
-
-    [data]
-    file = "measurements.csv"            # columns named below; '#' lines are comments
-    inputs = ["x_m"]                     # the columns that form X
-    outputs = ["deflection_mm"]          # the columns that form z
-    input_units = ["m"]                  # optional, one per input
-    output_units = ["mm"]                # optional, one per output
-    test_column = "test"                 # 1 = held-out test row, 0 = training row
-    noise_var = [0.001]                  # observation noise variance per output; optional
-                                         # when every training input has replicate rows
-                                         # (default: the pooled replicate variance)
-
-    [simulator]
-    function = "my_simulator:deflection" # module:function
-    path = "."                           # optional folder to import it from
-    timeout = 60.0                       # optional: seconds one run (one θ) may take;
-                                         # a longer run is stopped and counts as failed
-
-    [[parameters]]                       # one table per calibration parameter θ
-    name = "E"
-    unit = "GPa"                         # optional
-    lower = 50.0
-    upper = 90.0
-    prior_mean = 70.0                    # optional (KOH's Gaussian prior);
-    prior_var = 36.0                     #   default: box centre and (width / 4)²
-    true = 68.0                          # optional: the truth, if known (synthetic data)
-
-    [history_matching]
-    V_m = [0.05]                         # model-discrepancy variance per output (units²)
-    initial_design = 20                  # optional: Latin-hypercube runs of wave 1
-    V_m_length = [0.1]                   # optional: correlation length of V_m over the
-                                         # inputs per output, inputs' units (default 0:
-                                         # independent; used by the multivariate rule)
-    V_m_corr = [[1.0]]                   # optional: the outputs' discrepancy correlation
-                                         # matrix, one row per output (default identity)
-
-Examples
---------
->>> from pathlib import Path
->>> from mdcore import load_case_file
->>> examples = Path(__file__).resolve().parent.parent / "examples"
->>> case = load_case_file(examples / "beam_lab" / "beam_lab.toml")   # doctest: +SKIP
+The format, key by key, is in the README ("Your own data"; worked example
+``examples/beam_lab/``). Paths are relative to the case file. The simulator is named
+``package.module:function`` and has the signature of :meth:`mdcore.Case.simulate`:
+``simulate(X, theta) -> (n_theta, N, n_out)``, X (N, d_x) in the CSV's input units and
+theta (n_theta, p) in the parameters' units.
 """
 
 from __future__ import annotations
@@ -71,6 +21,7 @@ import scipy.stats
 
 from ._cases import Case, MeasurementsError, parse_measurements, read_measurements
 from ._discrepancy import default_phi_prior
+from ._history_matching import MAX_RUNS, check_correlation, replicate_summary
 from ._priors import ThetaPrior
 from ._runs import SimulatorError, SimulatorProcess
 from ._validation import as_seed_int, short
@@ -82,12 +33,8 @@ __all__ = ["load_case_file", "CaseFileError", "MAX_TRAINING_ROWS", "TEST_COLUMN"
 TEST_COLUMN = "test"
 #: Largest case file read (a case file is a few hundred bytes; its data live in the CSV).
 MAX_CASE_FILE_BYTES = 1_000_000
-#: Most training rows of a case's measurements (case files and uploads; every file also has
-#: at most :data:`mdcore._cases.MAX_ROWS` rows in all). Every discrepancy GP factorises an
-#: N × N matrix of the training rows, per output and per (θ, φ) pair: the work grows as
-#: N³. At 300 training rows and 700 test rows, all distinct, the app's defaults (waves to
-#: convergence, then scenarios 1–3) peak at 0.46 GB and take up to 2 minutes (shear-5's
-#: five outputs): ``python bench/bench_upload_limits.py``.
+#: Most training rows of a case's measurements (case files and uploads): every discrepancy GP
+#: factorises an N × N matrix of them, so the work grows as N³ (bench/bench_upload_limits.py).
 MAX_TRAINING_ROWS = 300
 
 
@@ -109,10 +56,8 @@ class _Reader:
     def has(self, key: str) -> bool:
         return key in self.table
 
-    def sub(self, key: str, *, required: bool = True) -> _Reader:
+    def sub(self, key: str) -> _Reader:
         value = self.table.get(key)
-        if value is None and not required:
-            return _Reader(self.path, {}, key)
         if not isinstance(value, dict):
             raise self._fail(key, "a table ([" + key + "])", value)
         return _Reader(self.path, value, key)
@@ -189,9 +134,7 @@ def _simulator(path: Path, sim: _Reader) -> SimulatorProcess:
 
 
 def _split(m, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """X, z and the test-row mask of measurements whose last input column marks test rows:
-    0/1 flags, 3 to :data:`MAX_TRAINING_ROWS` training rows (to fit a GP) and 2 test rows
-    whose outputs differ (the NMSE divides by their variance). Raises MeasurementsError."""
+    """X, z and the test-row mask of measurements whose last input column marks test rows."""
     flag, column = m.X[:, -1], m.input_names[-1]
     if not np.all(np.isin(flag, (0.0, 1.0))):
         bad = flag[~np.isin(flag, (0.0, 1.0))][0]
@@ -216,41 +159,40 @@ def _split(m, source: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return X, z, test
 
 
-def _pooled_replicate_var(X: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """Observation noise variance per output pooled over replicate groups, (n_out,)."""
-    from ._history_matching import replicate_summary
+def _pooled_replicate_var(X: np.ndarray, z: np.ndarray) -> np.ndarray | None:
+    """Noise variance per output pooled over replicate groups, (n_out,); None unless every
+    input has replicates."""
     _, _, var, counts = replicate_summary(X, z)
+    if np.any(counts < 2):
+        return None
     dof = (counts - 1)[:, None]
-    return np.sum(np.where(dof > 0, var * dof, 0.0), axis=0) / np.sum(dof)
+    return np.sum(var * dof, axis=0) / np.sum(dof)
 
 
 def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Case:
-    """Build a :class:`~mdcore.Case` from a TOML case file (format in the module doc).
+    """Build a :class:`~mdcore.Case` from a TOML case file (format: the README).
 
     Parameters
     ----------
     path : str or Path
         The case file.
     seed : int or Generator, default=0
-        Seeds the Latin-hypercube initial design (the data are read, not drawn).
+        Seeds the Latin-hypercube initial design.
     default_timeout : float, optional
-        :attr:`Case.timeout <mdcore.Case>` when the file sets no ``[simulator]
-        timeout`` (None: no limit). It also bounds the trial run at load.
+        Seconds per run when the file sets no ``[simulator] timeout`` (None: no limit);
+        it also bounds the trial run at the centre of the box.
 
     Returns
     -------
     Case
-        ``true_delta`` is unknown (None) for a case read from files. Its simulator runs in
-        a process of its own (:class:`mdcore._runs.SimulatorProcess`), started here: the
-        simulator's module is imported there, never in this process.
+        With ``true_delta`` unknown (None); its simulator runs in a process of its own
+        (:class:`mdcore._runs.SimulatorProcess`), which alone imports the module.
 
     Raises
     ------
     CaseFileError (a ValueError)
-        For a missing or malformed file, key, CSV column or value, or a simulator that
-        cannot be imported, fails, times out or returns the wrong shape at the centre of
-        the parameter box; the message names the file and key, and quotes no line of a
-        file that is not a case file or measurements CSV.
+        For a malformed file, key, CSV column or value, or a simulator that cannot be
+        imported, fails, times out or returns the wrong shape at the centre of the box.
     """
     path = Path(path)
     seed = as_seed_int(seed)
@@ -271,8 +213,7 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
         raise CaseFileError(f"{path}: not a case file: its arrays or tables are nested too "
                             "deeply to read (a case file nests two levels).") from None
     top = _Reader(path, doc)
-    # Unknown keys first: a misspelt key (noise_variance, fiel) is named as such, with the
-    # nearest allowed one, instead of being ignored or reported as a missing key.
+    # Unknown keys first, so that a misspelt key is not reported as a missing one.
     top.only("name", "title", "description", "data", "simulator", "parameters",
              "history_matching")
     name = top.text("name", pattern=r"[A-Za-z0-9_-]+")
@@ -296,9 +237,9 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
     n_out = len(outputs)
     x_units = data.texts("input_units", len(inputs), default=["-"] * len(inputs))
     out_units = data.texts("output_units", n_out, default=["-"] * n_out)
-    noise = data.numbers("noise_var", n_out, positive=True) if data.has("noise_var") else None
-    _, counts = np.unique(X[~test], axis=0, return_counts=True)
-    if noise is None and np.any(counts < 2):
+    noise = data.numbers("noise_var", n_out, positive=True) if data.has("noise_var") \
+        else _pooled_replicate_var(X[~test], z[~test])
+    if noise is None:
         raise CaseFileError(f"{path}: [data] noise_var is required: some training inputs have "
                             "a single row, so no replicate variance is available; give the "
                             "observation noise variance per output.")
@@ -349,19 +290,17 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
                 for row in corr)):
             raise hm._fail("V_m_corr", f"a list of {n_out} rows of {n_out} numbers (the "
                            "outputs' correlation matrix)", corr)
-        from ._history_matching import check_correlation
         try:
             corr = check_correlation(length, corr, 0.995, n_out)[1]
         except ValueError as exc:
             raise CaseFileError(f"{path}: [history_matching] {exc}") from None
-    from ._history_matching import MAX_RUNS
     n_design = hm.integer("initial_design", 2, MAX_RUNS) if hm.has("initial_design") \
         else max(10 * p, 10)
     lhs = scipy.stats.qmc.LatinHypercube(d=p, seed=np.random.default_rng(seed))
     design = scipy.stats.qmc.scale(lhs.random(n_design), box[:, 0], box[:, 1])
 
-    # The simulator must run and return (n_theta, N, n_out) at the box centre, within the
-    # timeout (its import included): a simulator that hangs there cannot hang the caller.
+    # A trial run at the box centre, within the timeout (import included): a simulator that
+    # hangs cannot hang the caller.
     centre = box.mean(axis=1)[None]
     n_train = int((~test).sum())
     where = f"{path}: [simulator] function {simulate.module}:{simulate.function}"
@@ -394,7 +333,7 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
         theta_true=None if true[0] is None else np.array(true, dtype=np.float64),
         x_names=inputs, x_units=x_units, output_names=outputs, output_units=out_units,
         X_train=X[~test], z_train=z[~test], X_test=X[test], z_test=z[test],
-        noise_var=noise if noise is not None else _pooled_replicate_var(X[~test], z[~test]),
+        noise_var=noise,
         V_m=V_m, V_m_length=length, V_m_corr=corr,
         phi_prior=phi_prior, theta_prior=ThetaPrior(np.array(mean), np.array(var)),
         initial_design=design, seed=0, _simulator=simulate, _true_delta=None,
@@ -404,9 +343,8 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
 def measurements_template(case: Case) -> str:
     """The CSV layout :func:`with_measurements` reads, filled with ``case``'s own data.
 
-    Columns: the case's inputs, its outputs, then :data:`TEST_COLUMN` (0 = training row,
-    1 = test row); one row per observation, replicates as repeated rows. Plain CSV (no
-    comment lines), written like :mod:`mdcore._export`'s tables.
+    Columns: the inputs, the outputs, then :data:`TEST_COLUMN` (0 = training, 1 = test row);
+    one row per observation, replicates as repeated rows.
     """
     from ._export import csv_table
     head = list(case.x_names) + list(case.output_names) + [TEST_COLUMN]
@@ -417,27 +355,23 @@ def measurements_template(case: Case) -> str:
 
 
 def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
-    """``base``'s simulator, parameters and priors with your own measurements.
-
-    For measurements of the structure a built-in case simulates (your own beam
-    deflections, say). The text is parsed, never evaluated.
+    """``base``'s simulator, parameters and priors with your own measurements (parsed, never
+    evaluated).
 
     Parameters
     ----------
     base : Case
         The built-in case whose simulator, θ box, priors and V_m are kept.
     text : str
-        CSV text in the layout of :func:`measurements_template`: the inputs
-        ``base.x_names``, the outputs ``base.output_names`` and :data:`TEST_COLUMN`.
+        CSV text in the layout of :func:`measurements_template`.
     source : str, default="upload"
         The file name, for messages and the case's name.
 
     Returns
     -------
     Case
-        Named ``"<base name> · <source>"``. The observation noise variance is the
-        pooled replicate variance when every training input has replicates, otherwise
-        ``base.noise_var``. θ_true and the true δ are unknown (None).
+        Named ``"<base name> · <source>"``; its noise variance is pooled over replicates when
+        every training input has some, else ``base.noise_var``; θ_true and δ unknown (None).
 
     Raises
     ------
@@ -462,20 +396,16 @@ def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
                                  f"{row.tolist()}; check the columns' units."])
     X, z, test = _split(m, source)
     n_train = int((~test).sum())
-    _, counts = np.unique(X[~test], axis=0, return_counts=True)
-    noise = (_pooled_replicate_var(X[~test], z[~test]) if np.all(counts >= 2)
-             else np.array(base.noise_var, dtype=np.float64))
-    if np.any(noise <= 0):
-        noise = np.array(base.noise_var, dtype=np.float64)
-    name = f"{base.name} · {Path(source).name}"
-    # replace() keeps the simulator, the θ box and the priors of the base case.
+    pooled = _pooled_replicate_var(X[~test], z[~test])
+    noise = np.array(base.noise_var, dtype=np.float64) if pooled is None or np.any(pooled <= 0) \
+        else pooled
     return dataclasses.replace(
-        base, name=name,
+        base, name=f"{base.name} · {Path(source).name}",
         title=f"{base.title.split(' (')[0]}: your measurements ({Path(source).name})",
         description=(f"Your measurements from {Path(source).name} ({n_train} training and "
                      f"{int(test.sum())} test rows) with the {base.name} simulator, θ box and "
                      f"priors. Noise variance {', '.join(f'{v:.3g}' for v in noise)} "
-                     + ("(pooled over replicates)." if np.all(counts >= 2)
+                     + ("(pooled over replicates)." if pooled is not None
                         else f"(the {base.name} default; add replicate rows to estimate it).")),
         stand_in=False, theta_true=None, X_train=X[~test], z_train=z[~test], X_test=X[test],
         z_test=z[test], noise_var=noise, _true_delta=None)

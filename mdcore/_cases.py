@@ -1,4 +1,4 @@
-"""The three case studies (SPEC §9) and the measurement-file loader.
+"""The three case studies (docs/cases.md) and the measurement-file loader.
 
 Examples
 --------
@@ -70,10 +70,10 @@ class Case:
     V_m : ndarray of shape (n_out,)
         Default model-discrepancy variance for history matching.
     phi_prior : GaussianPrior
-        Prior of each output's discrepancy-GP log hyperparameters (SPEC §2 layout,
+        Prior of each output's discrepancy-GP log hyperparameters (docs/method.md §2 layout,
         ``P = 2 + n_out + d_x``).
     theta_prior : ThetaPrior
-        Gaussian prior of θ for the Kennedy–O'Hagan baseline (SPEC §7), ``mean`` and
+        Gaussian prior of θ for the Kennedy–O'Hagan baseline (docs/method.md §7), ``mean`` and
         ``var`` in ``theta_units`` and their squares.
     initial_design : ndarray of shape (R, p)
         Parameter values of the first emulator's simulator runs.
@@ -200,7 +200,7 @@ BEAM_V_M = 0.05                # mm²
 
 
 def _beam_prior(d_x: int) -> GaussianPrior:
-    """SPEC §9 default φ prior for the beams (not in the paper; documented defaults).
+    """docs/cases.md default φ prior for the beams (not in the paper; documented defaults).
 
     log ℓ_y ~ N(log 1, 1) (mm), log ℓ_x ~ N(log 0.3, 1) (m), log σ_f ~ N(log 2, 1),
     log σ_n² ~ N(log 1e-3, 4)  ->  log σ_n ~ N(½ log 1e-3, 1).
@@ -257,7 +257,7 @@ def _beam1d(seed: int) -> Case:
         X_train=X_train, z_train=z_train, X_test=X_test, z_test=z_test,
         noise_var=np.array([BEAM_NOISE_VAR]), V_m=np.array([BEAM_V_M]),
         phi_prior=_beam_prior(1), initial_design=grid, seed=seed,
-        # SPEC §7: l_cr ~ N(35, 10) mm, E ~ N(70, 36) GPa (second argument a variance).
+        # docs/method.md §7: l_cr ~ N(35, 10) mm, E ~ N(70, 36) GPa (second argument a variance).
         theta_prior=ThetaPrior(mean=np.array([35.0, 70.0]), var=np.array([10.0, 36.0])),
         _simulator=_beam1d_simulator, _true_delta=_beam1d_delta)
 
@@ -333,7 +333,7 @@ def make_shear5_measurements(seed: int = 0) -> str:
     z = _shear5_real(X) + SHEAR5_NOISE_SD * rng.standard_normal((X.shape[0], 5))
     out = io.StringIO()
     out.write(f"# SYNTHETIC data, not laboratory measurements. Made by assets/make_shear5_data.py "
-              f"(mdcore._cases.make_shear5_measurements, seed={seed}): 'real' 5-storey shear "
+              f"(make_shear5_measurements in mdcore/_cases.py, seed={seed}): 'real' 5-storey shear "
               "building E=70 GPa nu=0.33 rho=2700 kg/m3, +0.03 kg per floor, rocking spring "
               "2.3e6 N.m/rad, noise sd 0.004 Hz, 10 repeats per mass.\n")
     out.write("mass_kg,repeat," + ",".join(SHEAR5_OUTPUTS) + "\n")
@@ -563,7 +563,7 @@ def _shear5(seed: int) -> Case:
         output_names=("ω1", "ω2", "ω3", "ω4", "ω5"), output_units=("Hz",) * 5,
         X_train=m.X[train], z_train=z_train, X_test=m.X[~train], z_test=m.z[~train],
         noise_var=np.full(5, SHEAR5_NOISE_SD**2),
-        V_m=(0.03 * z_train.mean(axis=0)) ** 2,   # SPEC §9: V_m,i = (0.03 z̄_i)², per mode
+        V_m=(0.03 * z_train.mean(axis=0)) ** 2,   # docs/cases.md: V_m,i = (0.03 z̄_i)², per mode
         phi_prior=prior, initial_design=design, seed=seed,
         # Not in the paper: nominal values with a 5 % standard deviation (the box is ±3 sd).
         theta_prior=ThetaPrior(mean=SHEAR5_NOMINAL, var=(0.05 * SHEAR5_NOMINAL) ** 2),

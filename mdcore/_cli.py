@@ -20,7 +20,6 @@ import numpy as np
 from . import _cases as cases
 from . import _compiled as compiled
 from . import _threads as threads
-from ._exceptions import LowESSWarning
 from ._export import write_tables
 from ._history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
 from ._koh import BURN_IN, N_ITER
@@ -263,7 +262,7 @@ def _print_run(run, args) -> int:
                   f"{c.acceptance_rate:.3f}, IAT {', '.join(f'{t:.1f}' for t in c.iat)}, "
                   f"ESS {', '.join(f'{e:,.0f}' for e in c.ess)}\nKOH posterior θ: {theta}")
     notes = [w for r in run.results for w in r.warnings]
-    _SHOWN.update(notes)                    # not repeated in the warnings summary
+    args.shown.update(notes)                # not repeated in the warnings summary
     if notes:
         print("\n! unreliable importance weights or chain:\n"
               + "\n".join(f"  - {w}" for w in notes))
@@ -455,9 +454,6 @@ def _add_history_options(p) -> None:
                    help="start a local Dask cluster of N processes for the simulator runs")
 
 
-#: The run's own advice, printed with its table; the warnings summary leaves it out.
-_SHOWN: set[str] = set()
-
 EXIT_CODES = ("exit codes: 0 done; 2 bad input (the message names the option or file and "
               "what to fix, as for a history match that rules out every θ: raise V_m or T); "
               "1 a failure (a file that cannot be written, a simulator or cluster that "
@@ -489,11 +485,11 @@ WARNING_WORDS = {"LowESSWarning": "few effective importance samples",
                  "RuntimeWarning": "numerical"}
 
 
-def _summarise(caught) -> None:
-    """Print each distinct warning once, with how often it came, in words. Low-ESS
-    warnings are left out once the run's own advice (printed with the table) said it."""
+def _summarise(caught, shown: set[str]) -> None:
+    """Print each distinct warning once, with how often it came, in words, leaving out
+    the advice already printed with a run's table (``shown``)."""
     counts = Counter((w.category.__name__, str(w.message)) for w in caught
-                     if not (_SHOWN and issubclass(w.category, LowESSWarning)))
+                     if str(w.message) not in shown)
     if not counts:
         return
     print(f"\n{sum(counts.values())} warning(s) while running, each listed once:",
@@ -559,7 +555,7 @@ def main(argv=None) -> int:
     if args.command in ("reproduce", "run", "study"):
         # Load (or compile) the numba kernels while history matching runs.
         compiled.warm_up_in_background()
-    _SHOWN.clear()
+    args.shown = set()              # advice printed with a run's table
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
@@ -572,7 +568,7 @@ def main(argv=None) -> int:
         except (OSError, RuntimeError) as exc:     # a file that cannot be written, a failure
             print(f"error: {type(exc).__name__}: {exc}", file=sys.stderr)
             code = 1
-    _summarise(caught)
+    _summarise(caught, args.shown)
     return code
 
 

@@ -40,9 +40,16 @@ from scipy.special import logsumexp
 
 from . import _compiled as compiled
 from . import _gp as gp
-from ._exceptions import LowESSWarning, NumericalWarning
+from ._exceptions import (
+    K_HAT_THRESHOLD,
+    LOW_ESS,
+    LowESSWarning,
+    NumericalWarning,
+    weights_advice,
+    where,
+)
 from ._hyperfit import FitOptions, default_bounds, fit_hyperparameters
-from ._importance import K_HAT_THRESHOLD, adaptive_importance_sampling, psis
+from ._importance import adaptive_importance_sampling, psis
 from ._linalg import JitterLog
 from ._priors import GaussianPrior
 from ._threads import single_threaded_blas
@@ -50,12 +57,10 @@ from ._validation import as_float_array, as_int, as_outputs, choose
 
 __all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions",
            "DiscrepancyPrediction", "default_phi_prior", "LowESSWarning", "SCENARIOS",
-           "PROPOSALS", "LOW_ESS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
+           "PROPOSALS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
 
 SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
-#: Scenario 3 warns when an output's effective sample size is below this.
-LOW_ESS = 30.0
 #: Components below ``PRUNE × max`` weight are skipped by the prediction (reported).
 PRUNE = 1e-12
 #: Largest N_s, N_φ and pairs accepted: beyond them the work would not fit in memory.
@@ -673,12 +678,8 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         seconds=time.perf_counter() - start, k_hat=k_hat, backend=options.backend,
         proposal=options.proposal if scenario == 3 else None, phi_draws=draws)
     if scenario == 3:
-        switch = " or use proposal='adaptive'" if options.proposal == "prior" else ""
         for o, (e, k) in enumerate(zip(model.ess, np.asarray(k_hat))):
             if e < LOW_ESS or k > K_HAT_THRESHOLD:
-                warnings.warn(
-                    f"scenario 3, output {o}: the importance weights are unreliable (ESS "
-                    f"{e:.1f} of {S * options.n_phi} pairs, Pareto k̂ = {k:.2f}; reliable "
-                    f"needs ESS ≥ {LOW_ESS:g} and k̂ ≤ {K_HAT_THRESHOLD}). Increase n_phi or "
-                    f"N_s{switch}.", LowESSWarning, stacklevel=2)
+                warnings.warn(weights_advice(where("scenario 3", o, n_out), e, S, options.n_phi,
+                                             k, options.proposal), LowESSWarning, stacklevel=2)
     return model

@@ -1,10 +1,8 @@
 """GP emulator of a simulator over the joint input (x, θ), for history matching and KOH.
 
-One emulator per output: a linear mean ``β₀ + βᵀ[x, θ]`` by least squares plus a zero-mean
-GP on the residuals with kernel ``σ_f² m32(r_θ) m32(r_x) + σ_n² δ`` (inputs scaled to
-[0, 1]). Every run is evaluated at every training input, so the training covariance is
-``σ_f² K_θ ⊗ K_x + σ_n² I``: with the eigenpairs ``K_θ = Q_θ Λ Q_θᵀ``, ``K_x = Q_x M Q_xᵀ``
-the likelihood and predictions cost O(R³ + N³ + R N (R + N)) instead of O(R³ N³).
+Per output, a least-squares linear mean ``β₀ + βᵀ[x, θ]`` plus a GP on the residuals with
+covariance ``σ_f² K_θ ⊗ K_x + σ_n² I`` (Matérn 3/2, inputs scaled to [0, 1]), handled through
+the eigenpairs ``K_θ = Q_θ Λ Q_θᵀ``, ``K_x = Q_x M Q_xᵀ`` (docs/method.md §4).
 """
 
 from __future__ import annotations
@@ -15,11 +13,10 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-import scipy.optimize
 
 from ._exceptions import ConvergenceWarning
 from ._gp import LOG_2PI
-from ._hyperfit import lbfgs_advice, lbfgs_converged
+from ._hyperfit import best_lbfgs, lbfgs_advice, lbfgs_converged
 from ._kernels import matern32, matern32_and_dlog_ell, scaled_sq_dist, separable_matern
 from ._linalg import chunks, for_each_chunk
 from ._threads import single_threaded_blas
@@ -79,6 +76,10 @@ def _unit(A, lo, span):
     return (A - lo) / span
 
 
+def _m32(A, B, log_ell):
+    return matern32(scaled_sq_dist(A, B, np.exp(log_ell)))
+
+
 def _eig(K):
     lam, Q = np.linalg.eigh(K)
     return np.maximum(lam, 0.0), Q
@@ -91,8 +92,8 @@ def _design(Xu, Tu):
 
 
 def _kron_solve(lp, Tu, Xu, res):
-    """Eigen-solve of ``σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N): the factors,
-    their log-ℓ derivatives, eigenpairs, ``σ_f² λ_a μ_b``, ``S`` and ``(Q_θᵀ Res Q_x) / S``."""
+    """Eigen-solve of ``σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N): factors, their
+    log-ℓ derivatives, eigenpairs, ``σ_f² λ_a μ_b``, ``S`` and ``(Q_θᵀ Res Q_x) / S``."""
     p = Tu.shape[1]
     Kt, Dt = matern32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]))
     Kx, Dx = matern32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
@@ -104,14 +105,9 @@ def _kron_solve(lp, Tu, Xu, res):
 
 
 def _kron_nlml(lp, Tu, Xu, res):
-    """NLML of the Kronecker GP and its analytic gradient; ``res`` (R, N) residuals.
-
-    With ``S_ab = σ_f² λ_a μ_b + σ_n²`` and ``P = Q_θᵀ Res Q_x``::
-
-        NLML = ½ Σ P²/S + ½ Σ log S + (RN/2) log 2π
-        ∂NLML/∂φ = ½ tr(K⁻¹ ∂K) − ½ αᵀ ∂K α,   α = vec(Q_θ (P/S) Q_xᵀ)
-
-    """
+    """NLML of the Kronecker GP for residuals ``res`` (R, N) and its gradient: with ``S_ab =
+    σ_f² λ_a μ_b + σ_n²``, ``P = Q_θᵀ Res Q_x``, ``NLML = ½ Σ P²/S + ½ Σ log S + (RN/2) log 2π``
+    and ``∂NLML/∂φ = ½ tr(K⁻¹ ∂K) − ½ αᵀ ∂K α``, ``α = vec(Q_θ (P/S) Q_xᵀ)``."""
     p = Tu.shape[1]
     sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
     Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, Pa = _kron_solve(lp, Tu, Xu, res)
@@ -134,8 +130,8 @@ def _kron_nlml(lp, Tu, Xu, res):
 
 
 def _fit_one(Tu, Xu, y, rng, n_starts, output=0, step=None):
-    """Fit one output: least-squares linear mean, then empirical Bayes for the GP;
-    ``step()`` after every L-BFGS-B iteration (it may raise to stop the fit)."""
+    """Fit one output: least-squares linear mean, then the GP's NLML by L-BFGS-B; ``step()``
+    after every iteration (it may raise to stop the fit)."""
     F = _design(Xu, Tu)
     beta, *_ = np.linalg.lstsq(F, y.ravel(), rcond=None)
     res = (y.ravel() - F @ beta).reshape(y.shape)
@@ -143,15 +139,10 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0, step=None):
     p, d_x = Tu.shape[1], Xu.shape[1]
     lo = np.r_[np.log(sd) - 3, np.full(p + d_x, np.log(0.03)), np.log(sd * 1e-7)]
     hi = np.r_[np.log(sd) + 3, np.full(p + d_x, np.log(30.0)), np.log(sd * 0.3)]
-    best = None
     starts = lo + (hi - lo) * rng.uniform(size=(n_starts, lo.size))
     starts[0] = np.r_[np.log(sd), np.full(p + d_x, np.log(0.5)), np.log(sd * 1e-3)]
-    for x0 in starts:
-        r = scipy.optimize.minimize(_kron_nlml, x0, args=(Tu, Xu, res), jac=True,
-                                    method="L-BFGS-B", bounds=list(zip(lo, hi)),
-                                    callback=None if step is None else (lambda *_: step()))
-        if best is None or r.fun < best.fun:
-            best = r
+    best, _ = best_lbfgs(lambda lp: _kron_nlml(lp, Tu, Xu, res), starts, lo, hi,
+                         progress=None if step is None else (lambda _: step()))
     if not lbfgs_converged(best, lo, hi):
         warnings.warn(f"emulator fit, output {output}: the best of {n_starts} L-BFGS-B runs did "
                       f"not converge ({best.message}; {lbfgs_advice(best)}); its "
@@ -188,6 +179,9 @@ class Emulator:
         """Inputs ``X`` (N, d_x) scaled as the emulator scales them (training range -> [0, 1])."""
         return _unit(np.asarray(X, dtype=np.float64), self._x_lo, self._x_span)
 
+    def _theta_box(self):
+        return self.bounds[:, 0], self.bounds[:, 1] - self.bounds[:, 0]
+
     @property
     def log_params(self) -> np.ndarray:
         """Fitted log hyperparameters, shape (n_out, 2 + p + d_x), unit-scaled inputs."""
@@ -209,19 +203,17 @@ class Emulator:
         (n_theta, p) -> ``mean``, ``var`` (n_theta, N, n_out)."""
         X, theta = self._inputs(X, theta)
         d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
-        t_lo, t_span = self.bounds[:, 0], self.bounds[:, 1] - self.bounds[:, 0]
-        Xu, Xtr = _unit(X, self._x_lo, self._x_span), _unit(self.X_train, self._x_lo, self._x_span)
-        Tu, Ttr = _unit(theta, t_lo, t_span), _unit(self.theta_train, t_lo, t_span)
+        Xu, Xtr = self.unit_x(X), self.unit_x(self.X_train)
+        Tu, Ttr = _unit(theta, *self._theta_box()), _unit(self.theta_train, *self._theta_box())
         mean = np.empty((theta.shape[0], X.shape[0], self.n_out))
         var = np.empty_like(mean)
         for o, g in enumerate(self._gps):
             sf2 = np.exp(2 * g.log_params[0])
-            kt = matern32(scaled_sq_dist(Tu, Ttr, np.exp(g.log_params[1:1 + p])))   # (M, R)
-            kx = matern32(scaled_sq_dist(Xu, Xtr, np.exp(g.log_params[1 + p:-1])))  # (N*, N)
+            kt = _m32(Tu, Ttr, g.log_params[1:1 + p])                        # (M, R)
+            kx = _m32(Xu, Xtr, g.log_params[1 + p:-1])                       # (N*, N)
             lin = g.beta[0] + Xu @ g.beta[1:1 + d_x]
             mean[..., o] = (kt @ g.A @ kx.T) + lin[None, :] + (Tu @ g.beta[1 + d_x:])[:, None]
-            U = (kt @ g.Q_t) ** 2
-            V = (kx @ g.Q_x) ** 2
+            U, V = (kt @ g.Q_t) ** 2, (kx @ g.Q_x) ** 2
             var[..., o] = np.maximum(sf2 - sf2**2 * (U @ g.W @ V.T), 0.0)
         return EmulatorPrediction(mean, var)
 
@@ -272,15 +264,14 @@ class Emulator:
         d_x, p = self.X_train.shape[1], self.theta_train.shape[1]
         if X.shape[1] != d_x:
             raise ValueError(f"X must have shape (N, {d_x}); received {X.shape}.")
-        Xu, Xtr = _unit(X, self._x_lo, self._x_span), _unit(self.X_train, self._x_lo, self._x_span)
+        Xu, Xtr = self.unit_x(X), self.unit_x(self.X_train)
         lin, AK, V, prior = [], [], [], []
         for g in self._gps:
-            kx = matern32(scaled_sq_dist(Xu, Xtr, np.exp(g.log_params[1 + p:-1])))  # (N, N_tr)
+            kx = _m32(Xu, Xtr, g.log_params[1 + p:-1])                         # (N, N_tr)
             lin.append(g.beta[0] + Xu @ g.beta[1:1 + d_x])
             AK.append(g.A @ kx.T)
             V.append(kx @ g.Q_x)
-            prior.append(np.exp(2 * g.log_params[0]) * matern32(
-                scaled_sq_dist(Xu, Xu, np.exp(g.log_params[1 + p:-1]))))
+            prior.append(np.exp(2 * g.log_params[0]) * _m32(Xu, Xu, g.log_params[1 + p:-1]))
         return EmulatorAt(self, X, Xu, np.stack(lin), np.stack(AK), np.stack(V), np.stack(prior))
 
 
@@ -352,19 +343,15 @@ class EmulatorAt:
             theta = np.atleast_2d(as_float_array(theta, "theta"))
             if theta.ndim != 2 or theta.shape[1] != p:
                 raise ValueError(f"theta must have shape (M, {p}); received {theta.shape}.")
-        t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
-        Tu, Ttr = _unit(theta, t_lo, t_span), _unit(em.theta_train, t_lo, t_span)
-        terms = []
-        for g in em._gps:
-            kt = matern32(scaled_sq_dist(Tu, Ttr, np.exp(g.log_params[1:1 + p])))
-            terms.append((kt, (kt @ g.Q_t) ** 2 @ g.W))
-        return ThetaTerms(Tu, tuple(terms))
+        Tu, Ttr = _unit(theta, *em._theta_box()), _unit(em.theta_train, *em._theta_box())
+        kts = [_m32(Tu, Ttr, g.log_params[1:1 + p]) for g in em._gps]
+        return ThetaTerms(Tu, tuple((kt, (kt @ g.Q_t) ** 2 @ g.W) for kt, g in zip(kts, em._gps)))
 
     def arrays(self) -> EmulatorArrays:
         """The fixed pieces, stacked over outputs (for compiled code)."""
         em = self.emulator
         p, d_x = em.theta_train.shape[1], self.X.shape[1]
-        t_lo, t_span = em.bounds[:, 0], em.bounds[:, 1] - em.bounds[:, 0]
+        t_lo, t_span = em._theta_box()
         gps = em.gps
         return EmulatorArrays(
             t_lo=t_lo, t_span=t_span, T_train=_unit(em.theta_train, t_lo, t_span),
@@ -382,8 +369,7 @@ class EmulatorAt:
     def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
         """:meth:`moments` from :meth:`theta_terms`; ``cov`` is None unless ``with_cov``."""
         Tu, per_output = terms
-        d_x = self.X.shape[1]
-        M, (n_out, N) = Tu.shape[0], self._lin.shape
+        d_x, M, (n_out, N) = self.X.shape[1], Tu.shape[0], self._lin.shape
         mean = np.empty((M, n_out, N))
         cov = np.empty((M, n_out, N, N) if with_cov else (0,))
         for o, (g, (kt, d)) in enumerate(zip(self.emulator._gps, per_output)):
@@ -402,15 +388,12 @@ class EmulatorAt:
         """:meth:`cross_cov` from :meth:`theta_terms`."""
         if other.emulator is not self.emulator:
             raise ValueError("other must come from the same emulator (Emulator.at).")
-        per_output = terms.per_output
-        p = self.emulator.theta_train.shape[1]
-        M = terms.unit.shape[0]
+        p, M = self.emulator.theta_train.shape[1], terms.unit.shape[0]
         n_out, N, N_o = self._lin.shape[0], self.X.shape[0], other.X.shape[0]
-        cross = np.empty((M, n_out, N_o, N))
-        diag = np.empty((M, n_out, N_o))
-        for o, (g, (_, d)) in enumerate(zip(self.emulator._gps, per_output)):
+        cross, diag = np.empty((M, n_out, N_o, N)), np.empty((M, n_out, N_o))
+        for o, (g, (_, d)) in enumerate(zip(self.emulator._gps, terms.per_output)):
             sf2 = np.exp(2 * g.log_params[0])
-            kx = matern32(scaled_sq_dist(other._Xu, self._Xu, np.exp(g.log_params[1 + p:-1])))
+            kx = _m32(other._Xu, self._Xu, g.log_params[1 + p:-1])
             Vd = other._V[o] * d[:, None, :]                               # (M, N_o, N_tr)
             cross[:, o] = sf2 * kx - sf2**2 * (Vd @ self._V[o].T)
             diag[:, o] = np.maximum(sf2 - sf2**2 * np.einsum("mij,ij->mi", Vd, other._V[o]), 0.0)
@@ -422,8 +405,7 @@ def fit_emulator(X, theta, y, bounds, *, n_starts: int = 2, seed=None,
                  progress: Callable[[float], None] | None = None) -> Emulator:
     """Fit one GP emulator per output to ``y = simulate(X, theta)`` (R, N, n_out): inputs
     ``X`` (N, d_x), runs ``theta`` (R, p) in ``bounds`` (p, 2); ``n_starts`` L-BFGS-B starts.
-    ``progress(fraction)`` after every optimiser iteration; if it raises (e.g.
-    :class:`mdcore.Cancelled`), the fit stops."""
+    ``progress(fraction)`` after every optimiser iteration; raising from it stops the fit."""
     X = as_float_array(X, "X", ndim=2)
     theta = as_float_array(theta, "theta", ndim=2)
     y = as_float_array(y, "y", ndim=3)

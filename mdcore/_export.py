@@ -1,20 +1,11 @@
-"""Results out as plain files: CSV tables of the history match and of the predictions.
-
-No pickle anywhere: the JSON of a run is :meth:`mdcore.CaseRun.to_dict` (a
-versioned schema). The tables are plain CSV that ``pandas.read_csv`` and a spreadsheet read
-as they are: a header row, then one row per record, written by :mod:`csv`. Where a table
-comes from (the case, T and the rule, each wave's NROY share, the seed) is a JSON sidecar
-beside it (``nroy.json``, ``predictions.json``). A text cell that a spreadsheet would run
-as a formula (starting with ``= + - @``, a tab or a carriage return) is written with a
-leading ``'``; numbers are written as numbers, negative ones included.
+"""Results out as plain CSV tables (a header row, one row per record), each with a JSON
+sidecar saying where it comes from; the JSON of a whole run is :meth:`mdcore.CaseRun.to_dict`.
 
 Examples
 --------
 >>> import mdcore
->>> from mdcore import run_case
->>> from mdcore import Settings
->>> run = run_case(mdcore.load_case("beam-1d"), methods=[1], settings=Settings(n_s=10),
-...                n_candidates=5000)
+>>> run = mdcore.run_case(mdcore.load_case("beam-1d"), methods=[1],
+...                       settings=mdcore.Settings(n_s=10), n_candidates=5000)
 >>> nroy_csv(run.hm, run.case.theta_names, run.case.theta_units).splitlines()[0]
 'wave,l_cr [mm],E [GPa],implausibility'
 """
@@ -35,18 +26,16 @@ from ._reproduce import CaseRun
 __all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "csv_table", "nroy_csv", "predictions_csv",
            "write_tables"]
 
-#: Most NROY samples written per wave. A wave keeps up to 50,000 p candidates, and the
-#: teaching preset runs 5 waves: all of them were 22 MB for beam-1d. The candidates are
-#: independent draws, uniform in the wave's NROY set, so the first ones retained are a
-#: uniform sample of it too (:meth:`HistoryMatchResult.nroy_samples` draws more).
+#: Most NROY samples written per wave: the candidates are independent uniform draws, so the
+#: first ones retained are a uniform sample of the NROY set too.
 NROY_ROWS_PER_WAVE = 10_000
-#: The start of a text cell that a spreadsheet runs (formula injection, OWASP).
+#: The start of a text cell that a spreadsheet runs as a formula (OWASP formula injection).
 _FORMULA = ("=", "+", "-", "@", "\t", "\r")
 
 
 def csv_cell(value, number: Callable[[float], str] = repr):
-    """One CSV cell: text that a spreadsheet would run gets a leading ``'``; a number
-    (int, float, NumPy scalar) is written with ``number`` and never escaped.
+    """One CSV cell: text a spreadsheet would run gets a leading ``'``; numbers go through
+    ``number`` unescaped.
 
     Examples
     --------
@@ -86,12 +75,6 @@ def _check_run(run) -> None:
                          f"received {type(run).__name__}.")
 
 
-def _check_hm(hm) -> None:
-    if not isinstance(hm, HistoryMatchResult):
-        raise ValueError(f"hm must be a HistoryMatchResult (history_match or "
-                         f"history_match_case); received {type(hm).__name__}.")
-
-
 def _kept(wave, threshold: float) -> np.ndarray:
     """Indices of the wave's retained candidates that the table holds (the first ones)."""
     return np.flatnonzero(wave.candidate_implausibility <= threshold)[:NROY_ROWS_PER_WAVE]
@@ -110,10 +93,11 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
     -------
     str
         Columns ``wave``, one per θ component, ``implausibility``; up to
-        :data:`NROY_ROWS_PER_WAVE` rows per wave, uniform in that wave's NROY set, with 7
-        significant digits (the samples are random draws: more digits are noise).
+        :data:`NROY_ROWS_PER_WAVE` rows per wave, 7 significant digits (random draws).
     """
-    _check_hm(hm)
+    if not isinstance(hm, HistoryMatchResult):
+        raise ValueError(f"hm must be a HistoryMatchResult (history_match or "
+                         f"history_match_case); received {type(hm).__name__}.")
     p = hm.problem.p
     names = _labels(names, "names", p) or [f"theta_{i + 1}" for i in range(p)]
     units = _labels(units, "units", p) or [""] * p
@@ -137,9 +121,8 @@ def predictions_csv(run) -> str:
     Returns
     -------
     str
-        One row per (method, output, test input): the inputs, the observation, the
-        predictive mean and sd of z (which includes the noise), of δ, and the true δ where
-        it is known (an empty cell otherwise).
+        One row per (method, output, test input): the inputs, the observation, mean and sd
+        of z (noise included) and of δ, and the true δ where known (else an empty cell).
     """
     _check_run(run)
     case = run.case
@@ -177,11 +160,8 @@ def _predictions_sidecar(run: CaseRun) -> dict:
 
 
 def write_tables(run, folder) -> list[Path]:
-    """Write ``nroy.csv`` and ``predictions.csv`` of a run into ``folder`` (created), each
-    with its JSON sidecar (``nroy.json``, ``predictions.json``: where the table comes from).
-
-    Every table is made before anything is written, so a bad ``run`` leaves no files.
-    """
+    """Write ``nroy.csv``, ``predictions.csv`` and their JSON sidecars into ``folder``
+    (created); every table is made before anything is written. Returns the paths."""
     _check_run(run)
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():

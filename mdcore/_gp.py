@@ -1,8 +1,7 @@
-"""Batched GP regression of ``z`` on ``{y, x}`` (Eqs. 2–9): the implementation of record.
+"""Batched GP regression of ``z`` on ``{y, x}`` (Eqs. 2–9): NLML, its gradient, prediction.
 
-The NLML (Eq. 9) and its gradient, and the predictive moments (Eq. 7). Leading dimensions
-of ``log_params`` (..., P) and ``Y`` (..., N, d_y) broadcast; the work runs in chunks of
-bounded memory on the compute threads.
+Leading dimensions of ``log_params`` (..., P) and ``Y`` (..., N, d_y) broadcast; the work runs
+in chunks of bounded memory on the compute threads.
 """
 
 from __future__ import annotations
@@ -41,6 +40,12 @@ class Problem(NamedTuple):
     batch_shape: tuple
 
 
+def _check_jitter_log(jitter_log) -> None:
+    if jitter_log is not None and not isinstance(jitter_log, JitterLog):
+        raise ValueError(f"jitter_log must be a mdcore._linalg.JitterLog or None; received "
+                         f"{type(jitter_log).__name__}.")
+
+
 def check_problem(log_params, Y, X, z) -> Problem:
     X = as_float_array(X, "X", ndim=2, allow_empty=True)
     if X.shape[0] == 0:
@@ -55,8 +60,7 @@ def check_problem(log_params, Y, X, z) -> Problem:
     if Y.shape[-2] != N:
         raise ValueError(f"Y must have shape (..., N, d_y) with N = {N} rows to match X "
                          f"{X.shape}; received {Y.shape}.")
-    d_y = Y.shape[-1]
-    lp = as_log_params(log_params, d_y, d_x)
+    lp = as_log_params(log_params, Y.shape[-1], d_x)
     try:
         batch = np.broadcast_shapes(lp.shape[:-1], Y.shape[:-2])
     except ValueError:
@@ -82,8 +86,7 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *,
     X : ndarray of shape (N, d_x)
     z : ndarray of shape (N,)
     jitter_log : JitterLog, optional
-        Receives the jitter counts instead of a warning (``catch_warnings`` is not
-        thread-safe).
+        Receives the jitter counts instead of a warning (thread-safe, unlike catch_warnings).
 
     Returns
     -------
@@ -97,8 +100,8 @@ def neg_log_marginal_likelihood(log_params, Y, X, z, *,
     >>> neg_log_marginal_likelihood(lp, Y, X, z).shape
     (2,)
     """
-    prob = check_problem(log_params, Y, X, z)
     _check_jitter_log(jitter_log)
+    prob = check_problem(log_params, Y, X, z)
     N = prob.X.shape[0]
     out = np.empty(int(np.prod(prob.batch_shape, dtype=np.int64)))
     log = JitterLog() if jitter_log is None else jitter_log
@@ -151,9 +154,7 @@ def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
                          f"with log_params/Y ({prob.batch_shape}).") from None
     N, M = prob.X.shape[0], X_star.shape[0]
     total = int(np.prod(batch, dtype=np.int64))
-    mean = np.empty((total, M))
-    var = np.empty((total, M))
-    noise = np.empty(total)
+    mean, var, noise = np.empty((total, M)), np.empty((total, M)), np.empty(total)
     log = JitterLog()
     per_item = 8.0 * (N * (4 * N + 3 * M + 2 * d_y) + 4 * M)
 
@@ -168,9 +169,7 @@ def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
         sf2 = np.exp(2.0 * theta[:, 0])
         var[sl] = np.maximum(sf2[:, None] - np.einsum("bnm,bnm->bm", V, V), 0.0)
         noise[sl] = np.exp(2.0 * theta[:, -1])
-        if not np.all(ok):
-            mean[sl][~ok] = np.nan
-            var[sl][~ok] = np.nan
+        mean[sl][~ok] = var[sl][~ok] = np.nan
 
     for_each_chunk(work, chunks(batch, per_item))
     log.warn("predict")
@@ -178,18 +177,12 @@ def predict(log_params, Y, X, z, Y_star, X_star) -> GPPrediction:
                         noise.reshape(batch))
 
 
-def _check_jitter_log(jitter_log) -> None:
-    if jitter_log is not None and not isinstance(jitter_log, JitterLog):
-        raise ValueError(f"jitter_log must be a mdcore._linalg.JitterLog or None; received "
-                         f"{type(jitter_log).__name__}.")
-
-
 def nlml_and_gradient(log_params, Y, X, z, *, jitter_log: JitterLog | None = None
                       ) -> tuple[float, np.ndarray]:
     """NLML (Eq. 9) and its gradient ``½ tr((K⁻¹ − ααᵀ) ∂K/∂φ)``, ``α = K⁻¹ z``, (P,), for
     one ``log_params`` (P,) and ``Y`` (N, d_y) (Rasmussen & Williams Eq. 5.9)."""
-    prob = check_problem(log_params, Y, X, z)
     _check_jitter_log(jitter_log)
+    prob = check_problem(log_params, Y, X, z)
     if prob.batch_shape != ():
         raise ValueError(f"nlml_and_gradient takes one vector: log_params (P,) and Y (N, d_y); "
                          f"received batch shape {prob.batch_shape}. Use "
@@ -200,9 +193,8 @@ def nlml_and_gradient(log_params, Y, X, z, *, jitter_log: JitterLog | None = Non
     my, dmy = matern32_and_dlog_ell(Y, ly)           # m32 and ∂m32/∂log ℓ per dimension
     mx, dmx = matern32_and_dlog_ell(X, lx)
     Kf = sf**2 * my * mx
-    K = Kf + sn**2 * np.eye(N)
     log = JitterLog() if jitter_log is None else jitter_log
-    L, ok = cholesky(K[None], log)
+    L, ok = cholesky((Kf + sn**2 * np.eye(N))[None], log)
     if jitter_log is None:
         log.warn("nlml_and_gradient")
     if not ok[0]:

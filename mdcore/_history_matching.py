@@ -60,7 +60,7 @@ __all__ = ["RULES", "MULTIVARIATE", "RULE_NAMES", "elementwise_implausibility", 
 
 #: Combiner rules: the k-th largest implausibility over all targets.
 RULES = {"max": 1, "2nd max": 2, "3rd max": 3}
-#: The multivariate rule: I_M² over all targets against a χ² quantile (issue 43).
+#: The multivariate rule: I_M² over all targets against a χ² quantile (Vernon et al. 2010).
 MULTIVARIATE = "multivariate"
 #: Every rule :func:`setup` accepts.
 RULE_NAMES = (*RULES, MULTIVARIATE)
@@ -77,8 +77,7 @@ MAX_MCMC_STEPS = 1_000
 #: Values (θ rows × observed inputs × outputs) of the emulator's mean and variance held at
 #: once while candidates are scored or weighted: θ go through in chunks of at most this
 #: many values (16 MB per array), so memory does not grow with the number of candidates
-#: times the number of observations (150,000 shear-5 candidates at 160 distinct inputs
-#: held 1.8 GB at once).
+#: times the number of observations.
 CHUNK_VALUES = 2**21
 #: Posterior draws kept per history match, by (n, seed): see ``posterior_samples``.
 POSTERIOR_MEMO = 4
@@ -185,7 +184,7 @@ class HistoryMatchOptions:
         names the first failure.
     V_m_length : float or ndarray of shape (n_out,), default=0
         Correlation length ℓ_m of the model discrepancy over x, per output, in X's units:
-        ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps today's independent V_m. Only
+        ``V_m(x, x') = σ_m² m32(‖x − x'‖ / ℓ_m)``; 0 keeps V_m independent. Only
         the multivariate rule sees the correlation (the max rules use the diagonal).
     V_m_corr : ndarray of shape (n_out, n_out), optional
         Correlation matrix of the outputs' discrepancies (symmetric, unit diagonal,
@@ -274,11 +273,12 @@ class HistoryMatchProblem:
         if self.options.rule == MULTIVARIATE:     # I_M² over all targets at once
             return Score(*multivariate.multivariate_implausibility(emulator, theta, self.z,
                                                                    self.V))
-        return Score(*emulator.implausibility_and_var(self.X, theta, self.z, self.V_o + self.V_m,
-                                              rank=RULES[self.options.rule]))
+        return Score(*emulator.implausibility_and_var(self.X, theta, self.z,
+                                                      self.V_o + self.V_m,
+                                                      rank=RULES[self.options.rule]))
 
     def combined_implausibility(self, theta, emulator: Emulator,
-                       progress: Callable[[float], None] | None = None) -> np.ndarray:
+                                progress: Callable[[float], None] | None = None) -> np.ndarray:
         """Combined implausibility (Eq. 16) of ``theta`` (M, p) under ``emulator``, (M,).
 
         Scored in chunks of θ (:data:`CHUNK_VALUES`): memory stays bounded for any M.
@@ -668,7 +668,7 @@ def next_wave(problem: HistoryMatchProblem, previous: tuple = (),
     if nroy.shape[0]:
         max_var = np.max(chunk_max, axis=0)
         converged = bool(np.all(max_var < threshold_var))
-        if problem.options.rule == MULTIVARIATE:  # issue 43: V_em(θ) ≼ ratio · (V_o + V_m) at NROY
+        if problem.options.rule == MULTIVARIATE:  # V_em(θ) ≼ ratio · (V_o + V_m) at NROY
             converged = multivariate.cov_ratio(emulator, nroy, problem.V) \
                 < problem.options.convergence_ratio
     else:

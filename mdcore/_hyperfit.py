@@ -1,10 +1,5 @@
-"""Hyperparameter fitting of the discrepancy GP: empirical Bayes and MAP (Eq. 8).
-
-:func:`fit_hyperparameters` minimises the NLML (Eq. 9), or NLML − log p(φ), over the log
-hyperparameters: the paper's quantum-behaved particle swarm (QPSO, Sun et al. 2004, batched
-over the particles) polished by L-BFGS-B with the analytic gradient, or multi-start
-L-BFGS-B; a fit that does not converge says so (:class:`~mdcore.ConvergenceWarning`).
-"""
+"""Empirical Bayes and MAP fits of the GP hyperparameters (Eq. 8), and the L-BFGS-B runs
+that the emulator and KOH fits share."""
 
 from __future__ import annotations
 
@@ -24,7 +19,7 @@ from ._threads import single_threaded_blas
 from ._validation import as_float_array, as_int, choose
 
 __all__ = ["FitOptions", "HyperFit", "PROJECTED_GRADIENT_TOL", "QPSO_ITERATIONS",
-           "default_bounds", "fit_hyperparameters", "lbfgs_converged"]
+           "default_bounds", "fit_hyperparameters", "lbfgs_converged", "best_lbfgs"]
 
 #: Projected gradient per log hyperparameter below which a stalled L-BFGS-B run counts as
 #: converged: a 1 % change of any hyperparameter then moves the objective by < 1e-4.
@@ -91,10 +86,27 @@ def lbfgs_advice(res: scipy.optimize.OptimizeResult, iterations: str | None = No
             "there, e.g. an ill-conditioned covariance)")
 
 
+def best_lbfgs(fun: Callable, starts, lo: np.ndarray, hi: np.ndarray, *, maxiter: int = 15_000,
+               progress: Callable[[int], None] | None = None):
+    """The best (first of ties) of L-BFGS-B runs from each of ``starts`` (k, P) in the box
+    ``lo``, ``hi`` (P,), and the evaluations of all runs; ``fun(x) -> (f, grad)``.
+    ``progress(k)`` after every iteration of run ``k`` (it may raise to stop)."""
+    best, evals = None, 0
+    for k, x0 in enumerate(starts):
+        res = scipy.optimize.minimize(
+            fun, x0, jac=True, method="L-BFGS-B", bounds=list(zip(lo, hi)),
+            options={"maxiter": maxiter},
+            callback=None if progress is None else (lambda *_, k=k: progress(k)))
+        evals += int(res.nfev)
+        if best is None or res.fun < best.fun:
+            best = res
+    return best, evals
+
+
 def _qpso(objective: Callable, lo: np.ndarray, hi: np.ndarray, rng, n_particles: int,
           n_iterations: int, step: Callable[[float], None] | None = None):
-    """Quantum-behaved PSO (Sun et al. 2004); returns (best x, best f, evals).
-    ``step(fraction)`` before every iteration (it may raise to stop)."""
+    """Quantum-behaved PSO (Sun et al. 2004) -> (best x, best f, evals); ``step(fraction)``
+    before every iteration (it may raise to stop)."""
     P = lo.size
     x = lo + (hi - lo) * rng.uniform(size=(n_particles, P))
     f = objective(x)
@@ -194,8 +206,7 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
     lo, hi = b[:, 0], b[:, 1]
     rng = np.random.default_rng(seed)
 
-    # The trial points' jitter is not reported (a swarm tries ill-posed corners on
-    # purpose); a log, not catch_warnings, which is not safe with fits on several threads.
+    # A swarm tries ill-posed corners on purpose: its jitter goes to a log, unreported.
     trials = JitterLog()
 
     def batch_objective(theta):
@@ -210,7 +221,7 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
             return 1e300, np.zeros_like(theta)
         return f, g
 
-    evals, converged, message = 0, False, "no gradient polish (polish=False)"
+    converged = False
     if options.method == "qpso":
         best, best_f, evals = _qpso(batch_objective, lo, hi, rng, options.n_particles,
                                     options.n_iterations, None if progress is None
@@ -218,24 +229,20 @@ def fit_hyperparameters(Y, X, z, *, log_prior: GaussianPrior | None = None, boun
         starts = [best] if options.polish else []
     else:
         starts = list(lo + (hi - lo) * rng.uniform(size=(options.n_starts, P)))
-        best, best_f = starts[0], np.inf
-    for i, x0 in enumerate(starts):
-        step = None if progress is None else \
-            (lambda *_, i=i: progress(0.5 + 0.5 * i / len(starts)))
-        res = scipy.optimize.minimize(objective_and_grad, x0, jac=True, method="L-BFGS-B",
-                                      bounds=list(zip(lo, hi)),
-                                      options={"maxiter": options.maxiter}, callback=step)
-        evals += int(res.nfev)
-        if i == 0 or res.fun < best_f:          # the run that gave (or kept) the result
-            converged = lbfgs_converged(res, lo, hi)
-            message = f"{res.message}; {lbfgs_advice(res, 'maxiter')}"
+        best, best_f, evals = starts[0], np.inf, 0
+    if starts:
+        res, n = best_lbfgs(objective_and_grad, starts, lo, hi, maxiter=options.maxiter,
+                            progress=None if progress is None
+                            else (lambda i: progress(0.5 + 0.5 * i / len(starts))))
+        evals += n
+        converged = lbfgs_converged(res, lo, hi)
         if res.fun < best_f:
             best, best_f = res.x, float(res.fun)
-    if starts and not converged:
-        warnings.warn(f"fit_hyperparameters: L-BFGS-B did not converge ({message}); the "
-                      "hyperparameters may not be the optimum. Give tighter bounds or a "
-                      "log_prior if raising maxiter does not help.", ConvergenceWarning,
-                      stacklevel=2)
+        if not converged:
+            warnings.warn(f"fit_hyperparameters: L-BFGS-B did not converge ({res.message}; "
+                          f"{lbfgs_advice(res, 'maxiter')}); the hyperparameters may not be "
+                          "the optimum. Give tighter bounds or a log_prior if raising maxiter "
+                          "does not help.", ConvergenceWarning, stacklevel=2)
     nlml = float(batch_objective(best[None])[0]) if log_prior is None else \
         float(neg_log_marginal_likelihood(best, Y, X, z))
     return HyperFit(np.asarray(best, dtype=np.float64), nlml, float(best_f), options.method,

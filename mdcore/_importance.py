@@ -23,14 +23,13 @@ import numpy as np
 from scipy.linalg import solve_triangular
 from scipy.special import gammaln, logsumexp
 
+from ._exceptions import K_HAT_THRESHOLD
 from ._validation import as_float_array, as_int, as_positive_float
 
 __all__ = ["K_HAT_THRESHOLD", "PSIS", "effective_sample_size", "psis",
            "generalized_pareto_fit", "StudentT", "AdaptiveSample", "stage_sizes",
            "adaptive_importance_sampling"]
 
-#: Above this Pareto shape the importance-sampling estimate is unreliable (Vehtari et al.).
-K_HAT_THRESHOLD = 0.7
 
 
 class PSIS(NamedTuple):

@@ -1,12 +1,6 @@
-"""The Matérn 3/2 kernel of the GPs in NumPy (Eq. 3, corrected), written once in
-:func:`separable_matern`::
-
-    k((y, x), (y', x')) = σ_f² · m32(r_y) · m32(r_x),   m32(r) = (1 + √3 r) exp(−√3 r)
-
-The paper prints ``exp(+√3 r)``; the Matérn 3/2 kernel decays. Hyperparameters travel as
-one log vector ``[log σ_f, log ℓ_y (d_y), log ℓ_x (d_x), log σ_n]`` of length
-``P = 2 + d_y + d_x``. :func:`kernel` broadcasts; :func:`train_cov` and :func:`cross_cov`
-are :mod:`mdcore._gp`'s chunk kernels.
+"""The Matérn 3/2 kernel ``σ_f² m32(r_y) m32(r_x)`` in NumPy (Eq. 3 with exp(−√3 r), see
+docs/method.md §3), written once in :func:`separable_matern`. Hyperparameters travel as one
+log vector ``[log σ_f, log ℓ_y (d_y), log ℓ_x (d_x), log σ_n]`` of length P = 2 + d_y + d_x.
 """
 
 from __future__ import annotations
@@ -23,10 +17,9 @@ SQRT3 = np.sqrt(3.0)
 
 
 def separable_matern(log_sf2, ry, rx=None, tmp=None) -> np.ndarray:
-    """``σ_f² m32(r_y) m32(r_x)`` (Eq. 3) from ``a = √3 r_y``, ``b = √3 r_x`` as
-    ``(1 + s + a b) exp(log σ_f² − s)``, ``s = a + b``: one exponential; ``σ_f² m32(r_y)``
-    without ``rx``. Overwrites ``ry`` (full broadcast shape; ``rx`` may broadcast);
-    ``tmp`` is an optional buffer like it."""
+    """``σ_f² m32(r_y) m32(r_x) = (1 + s + a b) exp(log σ_f² − s)`` (Eq. 3), ``s = a + b``,
+    from ``a = √3 r_y`` (``ry``, overwritten) and ``b = √3 r_x`` (``rx``, broadcasts; without
+    it ``σ_f² m32(r_y)``); ``tmp`` is an optional buffer like ``ry``."""
     if rx is None:
         s = np.subtract(log_sf2, ry, out=tmp)
         ry += 1.0
@@ -54,13 +47,11 @@ def matern32(r2) -> np.ndarray:
 def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
     """``Σ_d (a_d − b_d)² / ℓ_d²`` between the rows of ``A`` (..., Na, d) and ``B`` (..., Nb,
     d), ``lengthscale`` (..., d) -> (..., Na, Nb); leading dimensions broadcast."""
-    A = np.asarray(A, dtype=np.float64)
-    B = np.asarray(B, dtype=np.float64)
+    A, B = np.asarray(A, dtype=np.float64), np.asarray(B, dtype=np.float64)
     inv = 1.0 / np.asarray(lengthscale, dtype=np.float64)
-    d = A.shape[-1]
     shape = np.broadcast_shapes(A.shape[:-2], B.shape[:-2], inv.shape[:-1])
     out = np.zeros(shape + (A.shape[-2], B.shape[-2]))
-    for k in range(d):  # loop over dimensions keeps memory at one (..., Na, Nb) array
+    for k in range(A.shape[-1]):  # loop over dimensions keeps memory at one (..., Na, Nb) array
         s = inv[..., k, None]
         diff = (A[..., :, k] * s)[..., :, None] - (B[..., :, k] * s)[..., None, :]
         out += diff * diff
@@ -70,8 +61,7 @@ def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
 def matern32_and_dlog_ell(A, ell) -> tuple[np.ndarray, np.ndarray]:
     """``m32`` (n, n) between the rows of ``A`` (n, d) for lengthscales ``ell`` (d,), and its
     derivatives in each ``log ℓ_d``, ``3 exp(−√3 r) Δ_d² / ℓ_d²`` (d, n, n)."""
-    A = np.asarray(A, dtype=np.float64)
-    ell = np.asarray(ell, dtype=np.float64)
+    A, ell = np.asarray(A, dtype=np.float64), np.asarray(ell, dtype=np.float64)
     r2 = scaled_sq_dist(A, A, ell)
     e = np.exp(-SQRT3 * np.sqrt(r2))
     D = np.stack([3.0 * e * (A[:, None, d] - A[None, :, d]) ** 2 / ell[d] ** 2
@@ -87,7 +77,6 @@ def split_log_params(log_params, d_y: int, d_x: int):
 
 
 def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
-    """The arguments of :func:`kernel` as float arrays whose shapes fit together."""
     Xa = as_float_array(Xa, "Xa", ndim=2, allow_empty=True)
     Xb = as_float_array(Xb, "Xb", ndim=2, allow_empty=True)
     if Xb.shape[1] != Xa.shape[1]:
@@ -102,8 +91,7 @@ def _check_kernel_args(log_params, Ya, Xa, Yb, Xb):
     if Yb.shape[-1] != Ya.shape[-1]:
         raise ValueError(f"Yb must have d_y = {Ya.shape[-1]} columns like Ya {Ya.shape}; "
                          f"received {Yb.shape}.")
-    d_y, d_x = Ya.shape[-1], Xa.shape[1]
-    lp = as_log_params(log_params, d_y, d_x)
+    lp = as_log_params(log_params, Ya.shape[-1], Xa.shape[1])
     try:
         np.broadcast_shapes(lp.shape[:-1], Ya.shape[:-2], Yb.shape[:-2])
     except ValueError:
@@ -118,8 +106,7 @@ def kernel(log_params, Ya, Xa, Yb, Xb) -> np.ndarray:
     ``log_params`` (..., P), ``Ya`` (..., Na, d_y), ``Xa`` (Na, d_x), ``Yb`` (..., Nb, d_y),
     ``Xb`` (Nb, d_x) -> (..., Na, Nb)."""
     log_params, Ya, Xa, Yb, Xb = _check_kernel_args(log_params, Ya, Xa, Yb, Xb)
-    d_y, d_x = Ya.shape[-1], Xa.shape[-1]
-    sf, ly, lx, _ = split_log_params(log_params, d_y, d_x)
+    sf, ly, lx, _ = split_log_params(log_params, Ya.shape[-1], Xa.shape[-1])
     ry = SQRT3 * np.sqrt(scaled_sq_dist(Ya, Yb, ly))
     rx = SQRT3 * np.sqrt(scaled_sq_dist(Xa, Xb, lx))
     return separable_matern(2.0 * np.log(sf)[..., None, None], ry, rx)
@@ -136,13 +123,11 @@ def _scaled_dist(D: np.ndarray, scale: np.ndarray) -> np.ndarray:
 
 
 def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> np.ndarray:
-    """``K = K_ff + σ_n² I`` for a flat chunk: theta (b, P), Y (b, N, d_y) -> (b, N, N),
-    lower triangle only (all the Cholesky reads). With ``border = z`` (N,): the bordered
-    ``[[K, ·], [zᵀ, c]]``, ``c = 2 zᵀz / σ_n² + 1 > zᵀ K⁻¹ z``, whose factor carries
-    ``L⁻¹ z`` in its last row (the NLML needs no separate solve)."""
+    """Lower triangle of ``K = K_ff + σ_n² I`` (b, N, N) for a chunk: theta (b, P), Y (b, N,
+    d_y). With ``border = z`` (N,), the bordered ``[[K, ·], [zᵀ, c]]``, ``c = 2 zᵀz / σ_n² + 1
+    > zᵀ K⁻¹ z``, whose factor's last row is ``L⁻¹ z`` (no separate solve)."""
     b, N, d_y = Y.shape
-    n = N if border is None else N + 1
-    d_x = X.shape[1]
+    n, d_x = N if border is None else N + 1, X.shape[1]
     I, J = np.tril_indices(N)
     ry = _scaled_dist(Y[:, I, :] - Y[:, J, :], SQRT3 * np.exp(-theta[:, 1:1 + d_y]))
     rx = _scaled_dist((X[I] - X[J])[None], SQRT3 * np.exp(-theta[:, 1 + d_y:1 + d_y + d_x]))
@@ -158,8 +143,8 @@ def train_cov(theta: np.ndarray, Y: np.ndarray, X: np.ndarray, border=None) -> n
 
 def _scaled_cross_dist(A: np.ndarray, B: np.ndarray, scale: np.ndarray, out: np.ndarray,
                        tmp: np.ndarray) -> np.ndarray:
-    """``out[b, n, m] = √(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place, for
-    ``A`` (b or 1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d); buffers (b, Na, Nb)."""
+    """``out[b, n, m] = √(Σ_d (scale[b, d] (A[b, n, d] − B[b, m, d]))²)`` in place: ``A`` (b or
+    1, Na, d), ``B`` (b or 1, Nb, d), ``scale`` (b, d), buffers (b, Na, Nb)."""
     d = A.shape[-1]
     if d == 0:
         out[...] = 0.0
@@ -179,12 +164,10 @@ def _scaled_cross_dist(A: np.ndarray, B: np.ndarray, scale: np.ndarray, out: np.
 
 def cross_cov(theta: np.ndarray, Ya: np.ndarray, Xa: np.ndarray, Yb: np.ndarray,
                Xb: np.ndarray) -> np.ndarray:
-    """Flat-chunk cross-covariance: theta (b, P), Ya (b, Na, d_y), Xa (Na, d_x),
-    Yb (b, Nb, d_y), Xb (Nb, d_x) -> (b, Na, Nb); same values as :func:`kernel`.
-
-    The result lives in this thread's workspace: use it before the next call."""
-    b, d_y, d_x = theta.shape[0], Ya.shape[-1], Xa.shape[-1]
-    shape = (b, Ya.shape[-2], Xb.shape[0])
+    """:func:`kernel` for a chunk: theta (b, P), Ya (b, Na, d_y), Xa (Na, d_x), Yb (b, Nb,
+    d_y), Xb (Nb, d_x) -> (b, Na, Nb), in this thread's workspace (use it before the next call)."""
+    d_y, d_x = Ya.shape[-1], Xa.shape[-1]
+    shape = (theta.shape[0], Ya.shape[-2], Xb.shape[0])
     ry, rx, tmp = (workspace(name, shape) for name in ("cross", "cross_x", "cross_tmp"))
     _scaled_cross_dist(Ya, Yb, SQRT3 * np.exp(-theta[:, 1:1 + d_y]), ry, tmp)
     if d_x == 1:                      # |Δx| is shared by the chunk: one scaling pass

@@ -1,15 +1,6 @@
-"""Kennedy–O'Hagan hierarchical Bayesian baseline: θ and δ(x) inferred jointly.
-
-For each output the observations at the N inputs X are modelled, given θ, as
-
-    z | θ, φ ~ N( m_η(X, θ),  Σ_η(X, X; θ) + K_δ(X, X; φ) + σ_n² I )
-
-with ``m_η``, ``Σ_η`` the emulator's posterior mean and full covariance and ``K_δ`` a
-Matérn 3/2 GP over x, ``φ = [log σ_f, log ℓ_x…, log σ_n]``; outputs independent given θ.
-
-φ̂ maximises the prior-averaged marginal likelihood ``log (1/M) Σ_m p(z | θ_m, φ)`` (θ_m
-from the truncated prior); θ | z, φ̂ is sampled by adaptive Metropolis; predictions average
-the Gaussian conditionals of δ* and z* over the kept θ with equal weights.
+"""Kennedy–O'Hagan baseline (docs/method.md §7): θ and δ(x) inferred jointly, each output
+``z | θ, φ ~ N(m_η(X, θ), Σ_η(X, X; θ) + K_δ(X, X; φ) + σ_n² I)``, independent given θ, with
+the emulator's moments ``m_η``, ``Σ_η`` and ``φ = [log σ_f, log ℓ_x…, log σ_n]`` of δ's GP.
 
 >>> import mdcore
 >>> from mdcore import fit_emulator
@@ -33,17 +24,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.linalg
-import scipy.optimize
 from scipy.special import logsumexp
 
 from . import _compiled as compiled
 from ._discrepancy import DiscrepancyPrediction
 from ._emulator import Emulator, EmulatorAt, ThetaTerms
 from ._exceptions import ConvergenceWarning, NumericalWarning
-from ._hyperfit import default_bounds, lbfgs_advice, lbfgs_converged
+from ._gp import LOG_2PI
+from ._hyperfit import best_lbfgs, default_bounds, lbfgs_advice, lbfgs_converged
 from ._kernels import kernel, matern32_and_dlog_ell
 from ._linalg import JITTER_LADDER, JitterLog, cholesky, solve_lower_inplace
-from ._mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_setup
+from ._mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_length, chain_setup
 from ._priors import GaussianPrior, ThetaPrior
 from ._validation import as_float_array, as_int, as_outputs, check_bounds
 
@@ -56,7 +47,6 @@ N_ITER, BURN_IN = 150_000, 50_000
 FAST = {"n_iter": 20_000, "burn_in": 5_000}
 N_THETA_EB = 200
 N_PREDICT = 1000
-LOG_2PI = float(np.log(2 * np.pi))
 
 
 class SimulatorAt:
@@ -88,16 +78,13 @@ class SimulatorAt:
 
 
 def _at(model, X: np.ndarray, n_out: int):
-    if isinstance(model, Emulator):
-        return model.at(X)
-    return SimulatorAt(model, X, n_out)
+    return model.at(X) if isinstance(model, Emulator) else SimulatorAt(model, X, n_out)
 
 
 def _k_delta(log_phi: np.ndarray, Xa: np.ndarray, Xb: np.ndarray) -> np.ndarray:
     """``K_δ = σ_f² m32(r_x)`` per output, (n_out, Na, Nb): the kernel with no y inputs."""
     n_out = log_phi.shape[0]
-    return kernel(log_phi, np.empty((n_out, Xa.shape[0], 0)), Xa,
-                     np.empty((n_out, Xb.shape[0], 0)), Xb)
+    return kernel(log_phi, np.empty((n_out, len(Xa), 0)), Xa, np.empty((n_out, len(Xb), 0)), Xb)
 
 
 def noise_cov(log_phi: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -107,9 +94,7 @@ def noise_cov(log_phi: np.ndarray, X: np.ndarray) -> np.ndarray:
 
 def _chol(C: np.ndarray, log: JitterLog) -> np.ndarray:
     """Batched lower Cholesky with the jitter ladder (NaN where it fails)."""
-    shape = C.shape
-    L, _ = cholesky(C.reshape((-1,) + shape[-2:]), log)
-    return L.reshape(shape)
+    return cholesky(C.reshape((-1,) + C.shape[-2:]), log)[0].reshape(C.shape)
 
 
 def _solve_lower(L: np.ndarray, B: np.ndarray) -> np.ndarray:
@@ -211,6 +196,12 @@ class _EvidenceObjective:
         return float(f), grad.ravel()
 
 
+def _check_phi_prior(phi_prior, d_x: int) -> None:
+    if phi_prior is not None and phi_prior.size != 2 + d_x:
+        raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
+                         f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
+
+
 def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
             n_starts: int = 4, seed=None):
     """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` over the θ prior's
@@ -222,9 +213,7 @@ def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
     if z.shape[0] != X.shape[0] or at.X.shape != X.shape:
         raise ValueError(f"at, X and z must describe the same N inputs: at.X {at.X.shape}, "
                          f"X {X.shape}, z {z.shape} (z is (N, n_out)).")
-    if phi_prior is not None and phi_prior.size != 2 + X.shape[1]:
-        raise ValueError(f"phi_prior must have 2 + d_x = {2 + X.shape[1]} entries; received "
-                         f"{phi_prior.size}.")
+    _check_phi_prior(phi_prior, X.shape[1])
     mean, cov = at.moments_at(at.theta_terms(theta_draws))
     return _fit_phi(mean, cov, X, z, phi_prior, as_int(n_starts, "n_starts", 1),
                     np.random.default_rng(seed))
@@ -234,30 +223,23 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
     """:func:`fit_phi` from the emulator moments at the prior draws, which stay fixed
     during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N, N). ``progress(f)``
     after every L-BFGS-B iteration (it may raise to stop the fit)."""
-    N, d_x = X.shape
     n_out = z.shape[1]
-    P = 2 + d_x
     resid = z.T - mean.mean(axis=0)                                # (n_out, N)
-    boxes = np.stack([default_bounds(np.empty((N, 0)), X, resid[o]) for o in range(n_out)])
+    boxes = np.stack([default_bounds(np.empty((len(X), 0)), X, r) for r in resid])
     lo, hi = boxes[..., 0].ravel(), boxes[..., 1].ravel()
     log = JitterLog()
     objective = _EvidenceObjective(mean, cov, X, z.T, n_out, phi_prior, log)
     starts = lo + (hi - lo) * rng.uniform(size=(n_starts, lo.size))
     starts[0] = np.clip(np.tile(phi_prior.mean, n_out), lo, hi) if phi_prior is not None \
         else 0.5 * (lo + hi)
-    best = None
-    for k, x0 in enumerate(starts):
-        step = None if progress is None else (lambda *_, k=k: progress(k / n_starts))
-        res = scipy.optimize.minimize(objective, x0, jac=True, method="L-BFGS-B",
-                                      bounds=list(zip(lo, hi)), callback=step)
-        if best is None or res.fun < best.fun:
-            best = res
+    best, _ = best_lbfgs(objective, starts, lo, hi, progress=None if progress is None
+                         else (lambda k: progress(k / n_starts)))
     log.warn("KOH empirical Bayes")
     if not lbfgs_converged(best, lo, hi):
         warnings.warn(f"KOH empirical Bayes: the best of {n_starts} L-BFGS-B runs for φ̂ did "
                       f"not converge ({best.message}; {lbfgs_advice(best)}); give "
                       "phi_prior, or log_phi directly.", ConvergenceWarning, stacklevel=3)
-    return best.x.reshape(n_out, P), objective.log_evidence(best.x)
+    return best.x.reshape(n_out, -1), objective.log_evidence(best.x)
 
 
 @dataclass(frozen=True, eq=False)
@@ -402,13 +384,9 @@ class KOHOptions:
     phi_prior: GaussianPrior | None = None
     backend: str = "auto"
 
-    def __post_init__(self):
-        n_iter = as_int(self.n_iter, "n_iter", 2, MAX_CHAIN)
-        burn_in = as_int(self.burn_in, "burn_in", 0, MAX_CHAIN)
-        if burn_in >= n_iter - 1:          # checked before φ̂, not after it
-            raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so "
-                             f"that at least two samples are kept; received burn_in={burn_in}."
-                             " The paper: n_iter = 150,000 with burn_in = 50,000.")
+    def __post_init__(self):                   # the chain's length is checked before φ̂
+        n_iter, burn_in = chain_length(self.n_iter, self.burn_in,
+                                       " The paper: n_iter = 150,000 with burn_in = 50,000.")
         object.__setattr__(self, "n_iter", n_iter)
         object.__setattr__(self, "burn_in", burn_in)
         object.__setattr__(self, "n_theta_eb",
@@ -455,17 +433,14 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
     elif not callable(model):
         raise ValueError("model must be an Emulator or a callable simulate(X, theta); "
                          f"received {type(model).__name__}.")
-    phi_prior = options.phi_prior
-    if phi_prior is not None and phi_prior.size != 2 + d_x:
-        raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
-                         f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
+    _check_phi_prior(options.phi_prior, d_x)
     rng = np.random.default_rng(seed)
     at = _at(model, X, n_out)
 
     draws = prior.sample_in(bounds, options.n_theta_eb, seed=rng)
     mean, cov = at.moments_at(at.theta_terms(draws))     # for φ̂ and the starting point
     if options.log_phi is None:
-        log_phi, log_evidence = _fit_phi(mean, cov, X, z, phi_prior, 4, rng,
+        log_phi, log_evidence = _fit_phi(mean, cov, X, z, options.phi_prior, 4, rng,
                                          None if progress is None
                                          else (lambda f: progress(0.05 * f)))
     else:

@@ -1,15 +1,9 @@
-"""Batched linear algebra and the chunk engine of the GP core.
-
-:func:`cholesky` factors a batch with a jitter ladder per matrix; :class:`JitterLog`
-counts what needed jitter or failed, so a public call warns once. :func:`chunks` splits a
-broadcast batch into pieces of bounded memory, run by :func:`for_each_chunk`.
-"""
+"""Batched Cholesky with a jitter ladder, and the bounded-memory chunks of the GP core."""
 
 from __future__ import annotations
 
 import threading
 import warnings
-from collections.abc import Callable
 
 import numpy as np
 
@@ -26,8 +20,7 @@ CHUNK_BYTES = 4 * 2**20
 
 
 def _raw_cholesky(K: np.ndarray) -> np.ndarray:
-    """Lower factors of (B, n, n) matrices, NaN for those not positive definite: one
-    batched call, halving the batch when it raises (O(failures × log B) calls)."""
+    """Lower factors of (B, n, n) matrices, NaN where not positive definite (bisects on error)."""
     try:
         return np.linalg.cholesky(K)
     except np.linalg.LinAlgError:
@@ -42,9 +35,7 @@ class JitterLog:
     """Counts matrices that needed jitter or failed, to warn once per public call."""
 
     def __init__(self):
-        self.jittered = 0
-        self.failed = 0
-        self.max_jitter = 0.0
+        self.jittered, self.failed, self.max_jitter = 0, 0, 0.0
         self._lock = threading.Lock()
 
     def record(self, jittered: int, failed: int, max_jitter: float):
@@ -76,13 +67,11 @@ class JitterLog:
 
 
 def cholesky(K: np.ndarray, log: JitterLog, n_cov: int | None = None):
-    """Lower Cholesky factors of (B, n, n) matrices with a per-matrix jitter ladder.
+    """Lower factors ``(L, ok)`` of (B, n, n) matrices, NaN where ``ok`` is False.
 
-    The jitter (:data:`JITTER_LADDER` × mean diagonal) is scaled by, and added to, the
-    first ``n_cov`` diagonal entries only (default all), so a bordered matrix
-    ``[[K, z], [zᵀ, c]]`` jitters just its covariance block; ``log`` records the outcome.
-
-    Returns ``(L, ok)``; rows with ``ok == False`` failed every step and hold NaN.
+    A failed matrix retries with :data:`JITTER_LADDER` × the mean of its first ``n_cov``
+    diagonal entries (default all) added to them, so a bordered ``[[K, z], [zᵀ, c]]`` jitters
+    only ``K``; ``log`` records the outcome.
     """
     n_cov = K.shape[-1] if n_cov is None else n_cov
     L = _raw_cholesky(K)
@@ -117,8 +106,8 @@ _local = threading.local()
 
 
 def workspace(name: str, shape: tuple) -> np.ndarray:
-    """A per-thread reusable float64 buffer of ``shape`` (contents undefined): at GP-chunk
-    sizes the page faults of fresh arrays cost more than the arithmetic."""
+    """A per-thread reusable float64 buffer of ``shape``, contents undefined (at chunk sizes,
+    fresh arrays' page faults cost more than the arithmetic)."""
     cache = _local.__dict__.setdefault("buffers", {})
     size = int(np.prod(shape))
     buf = cache.get(name)
@@ -151,7 +140,6 @@ def chunks(batch_shape: tuple, bytes_per_item: float):
     return out
 
 
-def for_each_chunk(work: Callable, pieces: list) -> None:
-    """Run ``work(slice, multi, n)`` on every chunk, on the compute threads (NumPy's loops
-    and LAPACK release the GIL); each chunk writes a disjoint output slice."""
-    run_pieces(work, pieces)
+#: ``for_each_chunk(work, chunks(...))`` runs ``work(slice, multi, n)`` per chunk on the compute
+#: threads (NumPy's loops and LAPACK release the GIL); each writes a disjoint output slice.
+for_each_chunk = run_pieces

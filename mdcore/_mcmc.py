@@ -1,13 +1,9 @@
 """Adaptive Metropolis (Haario, Saksman & Tamminen 2001) and chain diagnostics.
 
-The sampler is a random-walk Metropolis whose Gaussian proposal covariance is, at step t,
-
-    C_t = C_0                                   for t ≤ t_0
-    C_t = s_d Cov(x_0, …, x_{t−1}) + s_d ε I     for t > t_0,      s_d = 2.4² / d
-
-(Haario et al. 2001, Eq. 2.1), updated every step by Welford's recursion.
-:func:`chain_setup`, :func:`draw_blocks` and :func:`finish_chain` are shared with the
-compiled chain (:func:`mdcore._compiled.koh_chain`), so both draw the same random numbers.
+The proposal covariance is ``C_0`` up to step ``t_0``, then ``s_d Cov(x_0, …, x_{t−1}) + s_d ε
+I``, ``s_d = 2.4² / d`` (Haario et al. Eq. 2.1), by Welford's recursion. :func:`chain_setup`,
+:func:`draw_blocks` and :func:`finish_chain` are shared with :func:`mdcore._compiled.koh_chain`,
+so both draw the same random numbers.
 
 >>> import numpy as np
 >>> chain = adaptive_metropolis(lambda x: -0.5 * float(x @ x), np.zeros(2), n_iter=5000,
@@ -26,15 +22,13 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._exceptions import ConvergenceWarning
+from ._exceptions import RELIABLE_TAUS, ConvergenceWarning, chain_advice
 from ._validation import as_float_array, as_int
 
 __all__ = ["Chain", "ChainSetup", "MAX_CHAIN", "RELIABLE_TAUS", "adaptive_metropolis",
-           "chain_setup", "draw_blocks", "finish_chain", "integrated_autocorr_time"]
+           "chain_length", "chain_setup", "draw_blocks", "finish_chain",
+           "integrated_autocorr_time"]
 
-#: A chain is long enough to trust its IAT when it spans this many autocorrelation times
-#: (Foreman-Mackey et al., emcee: "more than 50 τ").
-RELIABLE_TAUS = 50
 #: Longest chain accepted (the kept steps are stored): longer is refused up front.
 MAX_CHAIN = 100_000_000
 #: Steps whose random numbers are drawn at once.
@@ -107,17 +101,23 @@ class ChainSetup(NamedTuple):
     reg: np.ndarray      # (d, d) s_d ε I
 
 
+def chain_length(n_iter, burn_in, hint: str = "") -> tuple[int, int]:
+    """Validated ``(n_iter, burn_in)``: at least two kept samples, at most :data:`MAX_CHAIN`."""
+    n_iter = as_int(n_iter, "n_iter", 2, MAX_CHAIN)
+    burn_in = as_int(burn_in, "burn_in", 0, MAX_CHAIN)
+    if burn_in >= n_iter - 1:
+        raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so that at "
+                         f"least two samples are kept; received burn_in={burn_in}.{hint}")
+    return n_iter, burn_in
+
+
 def chain_setup(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int, burn_in: int,
                 initial_cov=None, adapt_start: int | None = None,
                 epsilon: float = 1e-8) -> ChainSetup:
     """Validate the arguments of :func:`adaptive_metropolis` (which documents them)."""
     x = as_float_array(x0, "x0", ndim=1).copy()
     d = x.size
-    n_iter = as_int(n_iter, "n_iter", 2, MAX_CHAIN)
-    burn_in = as_int(burn_in, "burn_in", 0, MAX_CHAIN)
-    if burn_in >= n_iter - 1:
-        raise ValueError(f"burn_in must be smaller than n_iter − 1 = {n_iter - 1} so that at "
-                         f"least two samples are kept; received burn_in={burn_in}.")
+    n_iter, burn_in = chain_length(n_iter, burn_in)
     C0 = 0.01 * np.eye(d) if initial_cov is None else \
         as_float_array(initial_cov, "initial_cov", ndim=2)
     if C0.shape != (d, d):
@@ -169,11 +169,7 @@ def finish_chain(setup: ChainSetup, samples: np.ndarray, log_p: np.ndarray,
                   proposal_cov=L @ L.T, iat=integrated_autocorr_time(samples),
                   n_iter=setup.n_iter, burn_in=burn_in, adapt_start=setup.t0, seconds=seconds)
     if not chain.reliable:
-        tau = float(np.max(chain.iat))
-        warnings.warn(f"adaptive Metropolis: the {kept:,} kept steps are fewer than 50 "
-                      f"autocorrelation times (τ up to {tau:.1f}), so the IAT and ESS are "
-                      f"unreliable; raise n_iter to at least "
-                      f"{int(np.ceil(RELIABLE_TAUS * tau)) + burn_in:,}.",
+        warnings.warn(chain_advice("adaptive Metropolis", float(np.max(chain.iat)), kept, burn_in),
                       ConvergenceWarning, stacklevel=3)
     return chain
 

@@ -1,4 +1,4 @@
-"""Metrics of SPEC §8: NMSE, MMD, LPL and band coverage.
+"""Metrics of docs/method.md §8: NMSE, MMD, LPL and band coverage.
 
 Every function takes column-wise data: ``(N,)`` for one output or ``(N, n_out)`` for
 several, and returns a float or an ``(n_out,)`` array accordingly.
@@ -43,7 +43,7 @@ def _squeeze(out: np.ndarray, like: np.ndarray):
 
 
 def nmse(target, prediction):
-    """Normalised mean squared error in percent (SPEC §8).
+    """Normalised mean squared error in percent (docs/method.md §8).
 
     ``100 / (N var(t)) Σ (t_i − t̂_i)²`` with the 1/N variance of the targets.
 
@@ -68,7 +68,7 @@ def nmse(target, prediction):
 
 
 def lpl(target, mean, var):
-    """Log predictive likelihood ``Σ_i log N(z_i | E[z*_i], V[z*_i])`` (SPEC §8).
+    """Log predictive likelihood ``Σ_i log N(z_i | E[z*_i], V[z*_i])`` (docs/method.md §8).
 
     Parameters
     ----------
@@ -86,7 +86,7 @@ def lpl(target, mean, var):
 
 
 def coverage(target, mean, var, *, k: float = 3.0):
-    """Fraction of targets inside the ``mean ± k·sd`` band (SPEC §8).
+    """Fraction of targets inside the ``mean ± k·sd`` band (docs/method.md §8).
 
     Parameters
     ----------
@@ -147,14 +147,15 @@ def _mmd_groups(a: np.ndarray, mu: np.ndarray, s2: np.ndarray) -> np.ndarray:
 
 
 def mmd(target, mean, var, *, X=None):
-    """Maximum mean discrepancy between observed repeats and the Gaussian predictive (SPEC §8).
+    """Maximum mean discrepancy between observed repeats and the Gaussian predictive
+    (docs/method.md §8).
 
     Per test input, the biased MMD (its square root) between the ``r`` observed repeats and
     ``N(E[z*], V[z*])`` with the Gaussian kernel ``exp(−(a − b)² / (2ℓ²))``, averaged over
     the test inputs. The predictive side is exact (closed-form Gaussian integrals of the
     kernel). ℓ is the median heuristic over a pooled sample: the repeats plus
     ``max(r, 20)`` evenly spaced quantiles of the predictive (a deterministic stand-in for
-    predictive samples). SPEC §8: the paper's absolute values cannot be reproduced.
+    predictive samples). docs/method.md §8: the paper's absolute values cannot be reproduced.
 
     Parameters
     ----------

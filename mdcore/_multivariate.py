@@ -1,34 +1,12 @@
 """Multivariate implausibility with a correlated model discrepancy (docs/method.md §5).
 
-Vernon, Goldstein & Bower (2010), "Galaxy formation: a Bayesian uncertainty analysis",
-Bayesian Analysis 5(4), 619–670, §4: the second-order implausibility of θ over all N
-observed inputs and n_out outputs together,
-
-    I_M²(θ) = (z − E[f(θ)])ᵀ (V_o + V_m + V_em(θ))⁻¹ (z − E[f(θ)]),
-
-is compared with the χ² quantile of n = N · n_out degrees of freedom at a stated probability
-(default 0.995): if z − f(θ) is Gaussian with that covariance, I_M²(θ) ~ χ²_n at the truth.
-
-The model discrepancy may be correlated in x, and across outputs (:func:`discrepancy_cov`)::
-
-    V_m[(o, x), (o', x')] = σ_o(x) σ_o'(x') R_oo' [C_o^½ C_o'^½](x, x'),
-    C_o(x, x') = m32(‖x − x'‖ / ℓ_o),    m32(r) = (1 + √3 r) exp(−√3 r)
-
-with σ_o(x)² the variance V_m of output o at x, R the outputs' correlation matrix and C^½
-the symmetric square root: with one ℓ for all outputs this is the separable R ⊗ C; with
-ℓ_o = 0, C_o = I and V_m is the independent variance of the max rules. Targets are ordered
-output-major, index ``o · N + n``.
-
-The emulator (:mod:`mdcore._emulator`) is a Kronecker GP, so at its own training inputs its
-covariance over the N inputs is diagonal in the eigenbasis Q_o of its x-kernel for every θ:
-V_em,o(θ) = Q_o diag(s_o(θ)) Q_oᵀ (:func:`emulator_cov`). In that basis the total covariance
-is B + diag(s(θ)) with one fixed matrix B = Qᵀ (V_o + V_m) Q, and I_M² needs one Cholesky
-factor per candidate (:func:`implausibility_and_logdet`). When V_m does not couple outputs,
-a faster route gives the same number: s(θ) is close to a multiple v(θ) of the prior
-variances p = σ_f² μ (exactly so for a noise-free emulator), B + v(θ) diag(p) is diagonal in
-the generalised eigenbasis of (B, diag p), and the rest, e(θ) = s(θ) − v(θ) p ≥ 0, is summed
-as a Neumann series whose k-th term is at most ε^k of the first, ε = max e / λ_min(B)
-(:func:`_series`). Candidates with ε > 0.01 take the Cholesky route.
+Vernon, Goldstein & Bower (2010), Bayesian Analysis 5(4), §4: over all n = N · n_out targets,
+``I_M²(θ) = (z − E[f(θ)])ᵀ (V_o + V_m + V_em(θ))⁻¹ (z − E[f(θ)])`` against the χ²_n quantile.
+Targets are ordered output-major, index ``o · N + n``. At its training inputs the Kronecker
+emulator's covariance is diagonal in the eigenbasis Q_o of its x-kernel,
+``V_em,o(θ) = Q_o diag(s_o(θ)) Q_oᵀ``, so in that basis the total covariance is
+``B + diag s(θ)`` with one fixed ``B = Qᵀ (V_o + V_m) Q``: one Cholesky factor per candidate,
+or, when V_m does not couple outputs, a Neumann series (:func:`_series`, docs/performance.md).
 """
 
 from __future__ import annotations
@@ -54,20 +32,10 @@ SERIES_MAX_EPS = 0.01
 
 
 class EmulatorCov(NamedTuple):
-    """The emulator's joint moments at its training inputs (:func:`emulator_cov`).
-
-    Attributes
-    ----------
-    mean : ndarray of shape (M, n_out, N)
-        ``E[f(θ)]``.
-    basis : ndarray of shape (n_out, N, N)
-        ``Q_o``, the eigenvectors of output o's x-kernel (orthonormal columns).
-    s : ndarray of shape (M, n_out, N)
-        ``V_em,o(θ) = Q_o diag(s[m, o]) Q_oᵀ``, output units squared; outputs are
-        independent (block-diagonal V_em).
-    prior : ndarray of shape (n_out, N)
-        ``σ_f² μ``: ``s`` before conditioning on the simulator runs.
-    """
+    """The emulator's joint moments at its training inputs (:func:`emulator_cov`): ``mean``
+    E[f(θ)] (M, n_out, N); ``basis`` Q_o (n_out, N, N), the orthonormal eigenvectors of
+    output o's x-kernel; ``s`` (M, n_out, N), ``V_em,o(θ) = Q_o diag(s[m, o]) Q_oᵀ`` in
+    output units squared; ``prior`` σ_f² μ (n_out, N), ``s`` before the simulator runs."""
 
     mean: np.ndarray
     basis: np.ndarray
@@ -83,7 +51,6 @@ def chi2_cutoff(n_targets: int, probability: float = 0.995) -> float:
     n_targets : int
         Degrees of freedom, N · n_out.
     probability : float, default=0.995
-        Vernon et al. (2010) use 0.995.
 
     Examples
     --------
@@ -102,7 +69,11 @@ def _correlation_sqrt(X, length: float) -> np.ndarray:
 
 
 def discrepancy_cov(X, V_m, length=0.0, output_corr=None) -> np.ndarray:
-    """The correlated model-discrepancy covariance V_m (module docstring).
+    """The model-discrepancy covariance, correlated in x and across outputs.
+
+    ``V_m[(o, x), (o', x')] = σ_o(x) σ_o'(x') R_oo' [C_o^½ C_o'^½](x, x')`` with
+    ``C_o(x, x') = m32(‖x − x'‖ / ℓ_o)`` and C^½ its symmetric square root (C_o = I for
+    ℓ_o = 0): the separable R ⊗ C for one ℓ, the max rules' independent V_m for ℓ = 0.
 
     Parameters
     ----------
@@ -113,8 +84,7 @@ def discrepancy_cov(X, V_m, length=0.0, output_corr=None) -> np.ndarray:
     length : float or ndarray of shape (n_out,), default=0
         ℓ_m per output, in X's units (Euclidean distance); 0: uncorrelated in x.
     output_corr : ndarray of shape (n_out, n_out), optional
-        Correlation of the outputs' discrepancies (default: independent). Validated by
-        :func:`mdcore._history_matching.setup`.
+        R, validated by :func:`mdcore._history_matching.setup` (default: independent).
 
     Returns
     -------
@@ -150,10 +120,8 @@ def emulator_cov(emulator, theta) -> EmulatorCov:
     Returns
     -------
     EmulatorCov
-        With ``k_θ`` and ``d(θ) = (k_θ Q_θ)² W`` of :class:`mdcore._emulator.EmulatorAt`
-        and ``μ`` the eigenvalues of ``m32(X, X)``: ``s = σ_f² μ − σ_f⁴ μ² d(θ)``, clipped
-        at 0 as :meth:`~mdcore.Emulator.predict` clips the variance. Equals
-        ``Q_oᵀ Σ_η(X, X; θ) Q_o`` of :meth:`~mdcore._emulator.EmulatorAt.moments` to rounding.
+        ``s = σ_f² μ − σ_f⁴ μ² d(θ)`` clipped at 0, with μ the eigenvalues of ``m32(X, X)``
+        and ``d(θ) = (k_θ Q_θ)² W`` of :class:`mdcore._emulator.EmulatorAt`.
     """
     X = emulator.X_train
     at = emulator.at(X)
@@ -210,14 +178,12 @@ def _dense(B, r, s, log_det: bool):
 
 
 def _series(B, p, r, s):
-    """``rᵀ (B + diag s)⁻¹ r`` per row of r, s (M, n), for one output block, by the Neumann
-    series of the module docstring; rows with ε > ``SERIES_MAX_EPS`` get a Cholesky factor
-    each (:func:`_factor_rows`).
+    """``rᵀ (B + diag s)⁻¹ r`` per row of r, s (M, n) of one output block.
 
-    With ``Y`` such that ``Yᵀ B Y = I`` and ``Yᵀ diag(p) Y = diag(γ)``, ``D = I + v γ`` and
-    ``G = D^-½ Yᵀ diag(e) Y D^-½`` (0 ≼ G ≼ ε I)::
-
-        I_M² = Σ_j (−1)^j x₀ᵀ G^j x₀,   x₀ = D^-½ Yᵀ r
+    With ``s = v p + e`` (p the prior variances, e ≥ 0), ``Yᵀ B Y = I``, ``Yᵀ diag(p) Y =
+    diag(γ)``, ``D = I + v γ`` and ``G = D^-½ Yᵀ diag(e) Y D^-½`` (0 ≼ G ≼ ε I,
+    ``ε = max e / λ_min(B)``): ``I_M² = Σ_j (−1)^j x₀ᵀ G^j x₀``, ``x₀ = D^-½ Yᵀ r``. Rows
+    with ε > ``SERIES_MAX_EPS`` get a Cholesky factor each (:func:`_factor_rows`).
     """
     n = B.shape[0]
     Li = scipy.linalg.solve_triangular(np.linalg.cholesky(B), np.eye(n), lower=True)
@@ -320,14 +286,11 @@ def log_likelihood(emulator, theta, z, V) -> np.ndarray:
 
 
 def cov_ratio(emulator, theta, V) -> float:
-    """An upper bound on ``max_θ λ_max(V⁻¹ V_em(θ))`` over ``theta`` (M, p): how large the
-    emulator's covariance still is against ``V = V_o + V_m`` at those θ.
+    """An upper bound r on ``max_θ λ_max(V⁻¹ V_em(θ))`` over ``theta`` (M, p), V = V_o + V_m:
+    a perfect emulator would change no I_M² by more than the factor 1 + r.
 
-    ``diag s(θ) ≼ diag s_max`` (the largest s over the θ, per direction), so every
-    ``λ_max(V⁻¹ V_em(θ))`` is at most the largest eigenvalue of
-    ``diag(√s_max) B⁻¹ diag(√s_max)``, ``B = Qᵀ V Q`` (equal to it for one θ). With the
-    bound r, ``V ≼ V + V_em(θ) ≼ (1 + r) V``: a perfect emulator would change no I_M² by
-    more than the factor 1 + r.
+    ``diag s(θ) ≼ diag s_max`` per direction, so r is the largest eigenvalue of
+    ``diag(√s_max) B⁻¹ diag(√s_max)``, ``B = Qᵀ V Q`` (exact for one θ).
     """
     cov = emulator_cov(emulator, theta)
     Q = scipy.linalg.block_diag(*cov.basis)

@@ -1,10 +1,10 @@
 """One typed pipeline from a history match to a scored method, for the API, the CLI and the app.
 
-SPEC §1: history matching (A) gives θ samples and θ_MAP; a *method* then learns the
-discrepancy (B) and predicts at the case's test inputs, and the prediction is scored
-(SPEC §8). The methods are the decoupled scenarios 1–3 (SPEC §6) and the Kennedy–O'Hagan
-baseline (SPEC §7, "KOH"). :func:`run_method` is the one place that wires a method to a
-case; :func:`mdcore.reproduce` and the app both call it.
+History matching (A) gives θ samples and θ_MAP; a *method* then learns the discrepancy (B)
+and predicts at the case's test inputs, and the prediction is scored (docs/method.md §1, §8).
+The methods are the decoupled scenarios 1–3 (§6) and the Kennedy–O'Hagan baseline (§7,
+"KOH"). :func:`run_method` is the one place that wires a method to a case;
+:func:`mdcore.reproduce` and the app both call it.
 
 Examples
 --------
@@ -34,7 +34,6 @@ from scipy.special import logsumexp
 from . import _compiled as compiled
 from ._cases import Case
 from ._discrepancy import (
-    LOW_ESS,
     MAX_N_PHI,
     MAX_N_S,
     MAX_PAIRS,
@@ -46,10 +45,9 @@ from ._discrepancy import (
     check_executor,
     infer_discrepancy,
 )
-from ._exceptions import Cancelled
+from ._exceptions import K_HAT_THRESHOLD, LOW_ESS, Cancelled, chain_advice, weights_advice, where
 from ._history_matching import HistoryMatchResult
 from ._hyperfit import QPSO_ITERATIONS, FitOptions
-from ._importance import K_HAT_THRESHOLD
 from ._koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
 from ._metrics import coverage, lpl, mmd, nmse
 from ._priors import GaussianPrior
@@ -60,7 +58,7 @@ __all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics"
            "MAX_PAIRS", "MAX_N_ITER", "MAX_FIT_ITERATIONS", "METRIC_COLUMNS", "run_method",
            "scores", "koh_phi_prior", "metrics_table", "metric_text"]
 
-#: The paper's (N_s, N_φ) per case study (SPEC §6).
+#: The paper's (N_s, N_φ) per case study (docs/method.md §6).
 PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
 
 #: Longest KOH chain :class:`Settings` accepts (the sizes of scenarios 2–3 are limited by
@@ -99,8 +97,8 @@ class Method(enum.Enum):
             if m.value == label:
                 return m
         raise ValueError(f"{value!r} is not a valid method. It must be one of "
-                         f"{[m.value for m in cls]} (1–3: the decoupled scenarios of SPEC §6; "
-                         "koh: the Kennedy–O'Hagan baseline of SPEC §7).")
+                         f"{[m.value for m in cls]} (1–3: the decoupled scenarios; koh: the "
+                         "Kennedy–O'Hagan baseline; docs/method.md §6–7).")
 
     @property
     def label(self) -> str:
@@ -140,7 +138,7 @@ class Settings:
     n_phi : int, default=500
         Hyperparameter samples per θ sample (scenario 3).
     n_iter, burn_in : int, default=150,000 and 50,000
-        The KOH chain (SPEC §7).
+        The KOH chain (docs/method.md §7).
     prune : float, default=1e-12
         Scenario 3 skips components whose weight is below ``prune × max`` when predicting
         (the skipped mass is reported in :class:`ImportanceDiagnostics`).
@@ -199,7 +197,7 @@ class Settings:
 
     @classmethod
     def paper(cls, case_name: str) -> Settings:
-        """The paper's sizes for a built-in case (SPEC §6–7); other cases get beam-1d's."""
+        """The paper's sizes for a built-in case (docs/cases.md); other cases get beam-1d's."""
         n_s, n_phi = PAPER_SIZES.get(case_name, PAPER_SIZES["beam-1d"])
         return cls(n_s=n_s, n_phi=n_phi)
 
@@ -207,10 +205,8 @@ class Settings:
     def interactive(cls) -> Settings:
         """Small sizes for the app: N_s = 100, N_φ = 50, the 20,000-step KOH chain, the
         adaptive φ proposal (docs/scenario3.md: it keeps the weights reliable at small N_φ)
-        and a 30-step swarm for φ̂: with the L-BFGS-B polish after it, it reached the
-        120-step optimum in 124 fits on the three cases (θ_MAP and three posterior θ,
-        every output, 3–8 seeds; NLML + prior within 1.2e-6), at a quarter of the cost
-        (beam-2d: 0.51 → 0.14 s)."""
+        and a 30-step swarm for φ̂, which with the L-BFGS-B polish after it reaches the
+        120-step optimum at a quarter of the cost (docs/performance.md)."""
         return cls(n_s=100, n_phi=50, n_iter=FAST["n_iter"], burn_in=FAST["burn_in"],
                    proposal="adaptive", fit_iterations=INTERACTIVE_FIT_ITERATIONS)
 
@@ -229,10 +225,10 @@ class Settings:
 
 @dataclass(frozen=True)
 class Metrics:
-    """SPEC §8 metrics of a prediction at the test inputs; each a tuple over outputs.
+    """docs/method.md §8 metrics of a prediction at the test inputs; each a tuple over outputs.
 
     ``nmse_delta``, ``rmse_delta`` and the δ coverages are None when the true δ is unknown.
-    Beside SPEC §8: ``rmse_delta`` is the δ error in output units (NMSE divides by the
+    Beside docs/method.md §8: ``rmse_delta`` is the δ error in output units (NMSE divides by the
     variance of the true δ over the test inputs, which is nearly zero where δ hardly varies,
     as on shear-5), and ``sd_z``, ``sd_delta`` are the mean predictive standard deviations
     (the band widths, output units).
@@ -286,13 +282,13 @@ class ImportanceDiagnostics:
     @property
     def low(self) -> tuple:
         """Per output, whether the weights are unreliable: ESS over pairs below
-        :data:`mdcore._discrepancy.LOW_ESS` or k̂ above 0.7."""
+        :data:`mdcore._exceptions.LOW_ESS` or k̂ above 0.7."""
         return tuple(e < LOW_ESS or k > K_HAT_THRESHOLD for e, k in zip(self.ess, self.k_hat))
 
 
 @dataclass(frozen=True)
 class ChainDiagnostics:
-    """The KOH chain (SPEC §7): acceptance, autocorrelation and effective sample size.
+    """The KOH chain (docs/method.md §7): acceptance, autocorrelation and effective sample size.
 
     Attributes
     ----------
@@ -400,7 +396,7 @@ def metric_text(heading: str, value) -> str:
 
 
 def scores(case: Case, prediction: DiscrepancyPrediction) -> Metrics:
-    """SPEC §8 metrics of a prediction at ``case.X_test``, per output.
+    """docs/method.md §8 metrics of a prediction at ``case.X_test``, per output.
 
     Parameters
     ----------
@@ -437,7 +433,7 @@ def scores(case: Case, prediction: DiscrepancyPrediction) -> Metrics:
 def koh_phi_prior(case: Case) -> GaussianPrior:
     """The case's discrepancy prior without its ``ℓ_y`` entries: the KOH δ is a GP over x
     only, ``[log σ_f, log ℓ_x…, log σ_n]``. Used as the hyperprior of KOH's φ̂, as
-    scenarios 1–2 use ``case.phi_prior`` for theirs (SPEC §7 leaves it to us)."""
+    scenarios 1–2 use ``case.phi_prior`` for theirs (docs/method.md §7 leaves it to us)."""
     keep = np.r_[0, np.arange(1 + case.n_out, case.phi_prior.size)]
     return GaussianPrior(case.phi_prior.mean[keep], case.phi_prior.var[keep])
 
@@ -483,25 +479,16 @@ def _chain_diagnostics(model: KOHModel) -> ChainDiagnostics:
                             int(chain.burn_in), bool(chain.reliable))
 
 
-def _advice(method: Method, settings: Settings, importance, chain) -> tuple:
+def _advice(importance, chain) -> tuple:
     """The warnings the diagnostics call for, each saying what to change."""
-    out = []
-    if importance is not None:
-        switch = " or switch to the adaptive proposal" if importance.proposal == "prior" else ""
-        for o, low in enumerate(importance.low):
-            if low:
-                out.append(f"{method.label}, output {o + 1}: the importance weights are "
-                           f"unreliable: {importance.ess[o]:.1f} effective (θ, φ) pairs of "
-                           f"{importance.n_pairs}, ESS over φ {importance.ess_phi[o]:.1f} of "
-                           f"{importance.n_phi}, Pareto k̂ {importance.k_hat[o]:.2f} (reliable: "
-                           f"≤ {K_HAT_THRESHOLD}); raise N_φ (now {settings.n_phi}) or N_s "
-                           f"(now {settings.n_s}){switch}.")
+    out = [] if importance is None else [
+        weights_advice(where("scenario 3", o, len(importance.low)), importance.ess[o],
+                       importance.n_pairs // importance.n_phi, importance.n_phi,
+                       importance.k_hat[o], importance.proposal)
+        for o, low in enumerate(importance.low) if low]
     if chain is not None and not chain.reliable:
-        longest = max(chain.iat)
-        out.append(f"KOH: the chain is shorter than 50 autocorrelation times (τ up to "
-                   f"{longest:.1f} with {chain.n_iter - chain.burn_in:,} kept steps), so its "
-                   f"ESS is unreliable; raise n_iter to at least "
-                   f"{int(np.ceil(50 * longest)) + chain.burn_in:,}.")
+        out.append(chain_advice("adaptive Metropolis", max(chain.iat),
+                                chain.n_iter - chain.burn_in, chain.burn_in))
     return tuple(out)
 
 
@@ -530,7 +517,7 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
                X_extra=None, log_params_hat=None, progress: Progress | None = None,
                cancel: threading.Event | None = None,
                executor: Executor | None = None) -> MethodResult:
-    """Learn the discrepancy of ``case`` by one method and score it (SPEC §6–8).
+    """Learn the discrepancy of ``case`` by one method and score it (docs/method.md §6–8).
 
     Parameters
     ----------
@@ -643,5 +630,5 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     chain = _chain_diagnostics(model) if isinstance(model, KOHModel) else None
     return MethodResult(method, settings.key(method), seed, model, on_test, on_extra,
                         scores(case, on_test), importance, chain,
-                        _advice(method, settings, importance, chain),
+                        _advice(importance, chain),
                         time.perf_counter() - start)

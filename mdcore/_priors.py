@@ -1,17 +1,11 @@
-"""Priors: of the discrepancy GP's log hyperparameters φ, and of the calibration parameters θ.
+"""Independent Gaussian priors (``N(mean, var)``, var a variance as in docs/method.md §7).
 
-Both are independent Gaussians (the second argument of ``N(·, ·)`` in SPEC §7 and §9 is a
-variance), but they live on different scales and are used differently, so they are two
-types:
-
-- :class:`GaussianPrior` is over the log-φ vector of SPEC §2 (``[log σ_f, log ℓ…,
-  log σ_n]``); scenario 3 samples it and the φ̂ fits use it as a hyperprior.
-- :class:`ThetaPrior` is over θ in the parameters' own units and is truncated to the box
-  the emulator was built on (the Kennedy–O'Hagan baseline, SPEC §7).
+:class:`GaussianPrior` is over the log-φ vector of docs/method.md §2; :class:`ThetaPrior` is
+over θ in the parameters' units, truncated to the emulator's box (KOH, docs/method.md §7).
 
 Examples
 --------
->>> prior = ThetaPrior(mean=[35.0, 70.0], var=[10.0, 36.0])      # beam-1d, SPEC §7
+>>> prior = ThetaPrior(mean=[35.0, 70.0], var=[10.0, 36.0])      # beam-1d, docs/method.md §7
 >>> prior.sample_in([[0.0, 50.0], [50.0, 90.0]], 3, seed=0).shape
 (3, 2)
 """
@@ -27,6 +21,7 @@ from ._validation import as_float_array, as_int
 __all__ = ["GaussianPrior", "ThetaPrior"]
 
 
+@dataclass(frozen=True)
 class _DiagonalGaussian:
     """Independent Gaussian densities and draws for the two prior types."""
 
@@ -67,24 +62,20 @@ class _DiagonalGaussian:
 
 @dataclass(frozen=True)
 class GaussianPrior(_DiagonalGaussian):
-    """Independent Gaussian prior on the log hyperparameter vector (SPEC §2 layout).
+    """Independent Gaussian prior on the log hyperparameter vector (docs/method.md §2 layout).
 
     Parameters
     ----------
     mean : ndarray of shape (P,)
         Prior means of the log hyperparameters.
     var : ndarray of shape (P,)
-        Prior variances (second argument of ``N(·, ·)`` in SPEC §9 is a variance).
+        Prior variances.
 
     Examples
     --------
-    >>> prior = GaussianPrior(mean=[0.0, 0.0, 0.0, -3.0], var=[1.0, 1.0, 1.0, 1.0])
-    >>> prior.sample(2, seed=0).shape
+    >>> GaussianPrior(mean=[0.0, 0.0, 0.0, -3.0], var=[1.0, 1.0, 1.0, 1.0]).sample(2, seed=0).shape
     (2, 4)
     """
-
-    mean: np.ndarray
-    var: np.ndarray
 
     def __post_init__(self):
         self._check("prior", "Use a small positive variance for a nearly fixed "
@@ -93,19 +84,15 @@ class GaussianPrior(_DiagonalGaussian):
 
 @dataclass(frozen=True)
 class ThetaPrior(_DiagonalGaussian):
-    """Gaussian prior of the calibration parameters θ, in their own units (SPEC §7).
+    """Gaussian prior of the calibration parameters θ, in their own units (docs/method.md §7).
 
     Parameters
     ----------
     mean : ndarray of shape (p,)
         Prior means, in the parameters' units.
     var : ndarray of shape (p,)
-        Prior variances, in the units squared (beam-1d: l_cr ~ N(35, 10) mm, E ~ N(70, 36)
-        GPa).
+        Prior variances, in the units squared.
     """
-
-    mean: np.ndarray
-    var: np.ndarray
 
     def __post_init__(self):
         self._check("theta_prior", "Give a variance per parameter, in its units squared.")

@@ -1,19 +1,9 @@
 """Simulator runs: batched over any ``concurrent.futures`` executor, with failures dropped.
 
-Real simulators are expensive and sometimes fail for part of the parameter box: they raise,
-hang, or return NaN. :func:`run_simulator` runs ``simulate(X, θ)`` for a set of θ, in
-batches submitted to an executor (serially in this process by default), and returns the
-outputs of the runs that succeeded, in their original order, together with the runs that
-failed and why. A batch that raises is re-run one θ at a time, so one bad θ costs only its
-own run. The caller decides how many failures are acceptable (history matching:
-:attr:`mdcore._history_matching.HistoryMatchOptions.max_failed_fraction`).
-
-Any ``concurrent.futures.Executor`` works, including a Dask client's ``get_executor()``;
-the numbers do not depend on the executor, because results are assembled in θ order.
-
-A simulator from a case file runs in a process of its own (:class:`SimulatorProcess`), so a
-run that outlasts its timeout is stopped, not only abandoned, and a simulator that exits or
-crashes is a failed run with a message instead of the end of the program.
+Real simulators raise, hang or return NaN for parts of the parameter box. A batch that
+raises is re-run one θ at a time, so one bad θ costs only its own run; results are assembled
+in θ order, so the numbers do not depend on the executor (a Dask client's ``get_executor()``
+included).
 
 Examples
 --------
@@ -30,6 +20,7 @@ Examples
 from __future__ import annotations
 
 import concurrent.futures
+import contextlib
 import os
 import pickle
 import queue
@@ -45,38 +36,23 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validation import as_float_array, as_int
+from ._validation import as_float_array, as_int, as_positive_float
 
 __all__ = ["Failure", "Runs", "SimulatorError", "SimulatorProcess", "call_with_timeout",
            "run_simulator"]
 
 
 class Failure(NamedTuple):
-    """A simulator run that failed.
-
-    Attributes
-    ----------
-    theta : ndarray of shape (p,)
-    message : str
-        What went wrong ("ValueError: …", "timed out after 5 s", "returned NaN or inf").
-    """
+    """A failed run: ``theta`` (p,) and what went wrong (``"ValueError: …"``, ``"timed out
+    after 5 s"``, ``"returned NaN or inf"``)."""
 
     theta: np.ndarray
     message: str
 
 
 class Runs(NamedTuple):
-    """Result of :func:`run_simulator`.
-
-    Attributes
-    ----------
-    y : ndarray of shape (R_ok, N, n_out)
-        Outputs of the runs that succeeded, in θ order.
-    ok : ndarray of bool, shape (R,)
-        Which θ succeeded.
-    failures : tuple of Failure
-        The runs that failed, in θ order.
-    """
+    """Result of :func:`run_simulator`: outputs ``y`` (R_ok, N, n_out) of the runs that
+    succeeded, which θ did (``ok``, bool (R,)) and the ``failures``, all in θ order."""
 
     y: np.ndarray
     ok: np.ndarray
@@ -93,9 +69,8 @@ def _call(simulate: Callable, X: np.ndarray, theta: np.ndarray) -> np.ndarray:
 
 def call_with_timeout(simulate: Callable, X: np.ndarray, theta: np.ndarray,
                       timeout: float) -> np.ndarray:
-    """One batch on a thread of its own, so that waiting for it can end after ``timeout``
-    seconds with a ``TimeoutError`` (a thread cannot be killed: a run that hangs is
-    abandoned, not stopped; :class:`SimulatorProcess` stops it)."""
+    """One batch on a thread of its own; ``TimeoutError`` after ``timeout`` seconds (the run
+    is abandoned, not stopped: :class:`SimulatorProcess` stops it)."""
     pool = concurrent.futures.ThreadPoolExecutor(max_workers=1)
     try:
         return pool.submit(_call, simulate, X, theta).result(timeout=timeout)
@@ -109,9 +84,8 @@ class SimulatorError(RuntimeError):
     """A simulator run in a :class:`SimulatorProcess` raised, exited or could not start."""
 
 
-#: The worker of :class:`SimulatorProcess`, run as ``python -c``: it imports only the
-#: simulator's module (not mdcore), answers each pickled (X, θ) with a pickled result, and
-#: ends when its parent does.
+#: The worker of :class:`SimulatorProcess` (``python -c``): imports only the simulator's
+#: module, answers each pickled (X, θ) with a pickled result, ends when its parent does.
 _WORKER = r"""
 import os, pickle, sys, threading, time
 out = os.fdopen(os.dup(1), "wb")
@@ -162,18 +136,12 @@ while True:
 class SimulatorProcess:
     """A simulator ``module:function`` imported and run in a child process of its own.
 
-    A call sends ``(X, θ)`` to the process and waits for the result. When ``timeout``
-    runs out, the process is killed (the run is stopped, not abandoned) and the call
-    raises ``TimeoutError``; the next call starts a new process. A simulator that raises,
-    calls ``sys.exit`` or crashes raises :class:`SimulatorError` with what happened, one
-    that cannot be imported ``ImportError``. The process imports the module from
-    ``folder`` (this process never does), so a module that hangs or fails at import cannot
-    stop this one, and it writes no ``__pycache__`` beside the module.
-
-    Calls from several threads take turns (one process). Pickled (to a process pool or a
-    Dask cluster), it travels as the function itself, by value (cloudpickle): the
-    simulator's module and every module imported from its folder need not exist on the
-    workers. There each call runs in the worker, on a thread that a timeout abandons.
+    A call that outlasts ``timeout`` kills the process and raises ``TimeoutError`` (the next
+    call starts another); a simulator that raises, calls ``sys.exit`` or crashes raises
+    :class:`SimulatorError`, one that cannot be imported ``ImportError``. Only the child
+    imports the module, so a hanging import cannot stop this process. Calls from several
+    threads take turns. Pickled (process pool, Dask), it travels as the function by value
+    (cloudpickle), with every module imported from ``folder``.
 
     Parameters
     ----------
@@ -196,8 +164,8 @@ class SimulatorProcess:
         return f"SimulatorProcess({self.module}:{self.function}{where})"
 
     def __call__(self, X, theta, timeout: float | None = None) -> np.ndarray:
-        """``simulate(X, θ)`` in the process; ``timeout`` in seconds (None: no limit),
-        counted from the call (a process that starts includes its import)."""
+        """``simulate(X, θ)`` in the process; ``timeout`` in seconds from the call (None: no
+        limit)."""
         deadline = None if timeout is None else time.monotonic() + timeout
         with self._lock:
             if self._proc is None:
@@ -208,12 +176,10 @@ class SimulatorProcess:
 
     def _send(self, message) -> None:
         stdin = None if self._proc is None else self._proc.stdin
-        try:
-            if stdin is not None:
+        if stdin is not None:
+            with contextlib.suppress(OSError):    # it ended; its answer says how
                 pickle.dump(message, stdin)
                 stdin.flush()
-        except OSError:
-            pass                              # it ended; its answer says how
 
     def _start(self) -> None:
         proc = subprocess.Popen([sys.executable, "-c", _WORKER], stdin=subprocess.PIPE,
@@ -231,12 +197,11 @@ class SimulatorProcess:
             except Exception:                                 # EOF: the process ended
                 answers.put(None)
 
-        # Not "mdcore-…": that names the app's job threads (app/jobs.py), which end.
+        # Not "mdcore-…", which names the app's job threads (app/jobs.py).
         threading.Thread(target=read, daemon=True, name="simulator-reader").start()
 
     def _answer(self, deadline: float | None, timeout: float | None):
-        """The process's next answer: ``ready`` or ``ok`` give their value; an error, an
-        exit or an ended process raise :class:`SimulatorError`, a timeout kills it."""
+        """The process's next value; raises for an error, an exit or an ended process."""
         try:
             answer = self._answers.get(
                 timeout=None if deadline is None else max(deadline - time.monotonic(), 0.0))
@@ -255,9 +220,8 @@ class SimulatorProcess:
         raise SimulatorError(value)
 
     def close(self) -> int | None:
-        """Stop the process (the next call starts another); its exit code. Called from
-        another thread, it ends the running call, which raises :class:`SimulatorError`:
-        this is how a caller cancels a run."""
+        """Stop the process and return its exit code; from another thread this cancels the
+        running call, which raises :class:`SimulatorError`."""
         proc, self._proc = self._proc, None
         return None if proc is None else self._stop()
 
@@ -271,8 +235,7 @@ class SimulatorProcess:
         return cloudpickle.loads, (self._shipped,)
 
     def _function_by_value(self) -> Callable:
-        """The function, imported here, with its module and every module imported from
-        its folder registered with cloudpickle to travel by value."""
+        """The function, its module and those from its folder registered to pickle by value."""
         import cloudpickle
         fn = _import_function(self.module, self.function, self.folder)
         top = sys.modules[self.module.split(".")[0]]
@@ -296,8 +259,7 @@ def _stop(proc: subprocess.Popen) -> int:
 
 
 def _import_function(module: str, function: str, folder: str | None) -> Callable:
-    """``module.function``, imported in this process from ``folder`` (first on the path
-    while it imports)."""
+    """``module.function``, imported in this process with ``folder`` first on the path."""
     import importlib
     path = list(sys.path)
     sys.path[:0] = [folder] if folder else []
@@ -323,13 +285,10 @@ def run_simulator(simulate: Callable, X, theta, n_out: int, *,
     executor : concurrent.futures.Executor, optional
         Runs the batches; default: in this process, one after the other.
     batch_size : int, optional
-        θ per submitted batch (default: all at once without an executor, one per task with
-        one).
+        θ per batch (default: all at once without an executor, one per task with one).
     timeout : float, optional
-        Seconds to wait for one batch; a batch that takes longer is abandoned and its runs
-        count as failed (the work itself may still finish in the background). Without an
-        executor each batch gets a thread of its own; with one, the wait starts when the
-        batch's result is awaited, so give the executor room for a hanging run.
+        Seconds to wait for one batch, after which its runs count as failed (the work may
+        still finish in the background); with an executor, counted from when it is awaited.
 
     Returns
     -------
@@ -338,8 +297,7 @@ def run_simulator(simulate: Callable, X, theta, n_out: int, *,
     Raises
     ------
     ValueError
-        When ``simulate`` returns an array of the wrong shape: that is a wrong simulator,
-        not a failed run.
+        When ``simulate`` returns the wrong shape (a wrong simulator, not a failed run).
     """
     if not callable(simulate):
         raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
@@ -352,10 +310,7 @@ def run_simulator(simulate: Callable, X, theta, n_out: int, *,
         batch_size = max(R, 1) if executor is None else 1
     batch_size = as_int(batch_size, "batch_size", 1)
     if timeout is not None:
-        timeout = float(timeout)
-        if not timeout > 0:
-            raise ValueError(f"timeout must be a positive number of seconds; received "
-                             f"{timeout!r}.")
+        timeout = as_positive_float(timeout, "timeout", "Give seconds per batch of runs.")
     want = (X.shape[0], n_out)
     y = np.empty((R,) + want)
     ok = np.zeros(R, dtype=bool)

@@ -1,17 +1,7 @@
 """Fidelity study: a case reproduced over many seeds, summarised beside the paper's tables.
 
-One seed is one draw of the noise, one history match, one set of θ and φ samples and one
-KOH chain (:func:`mdcore.reproduce`). The paper reports a single run; whether its
-*pattern* holds is a statement over seeds. :func:`study` runs the seeds (in parallel with
-any ``concurrent.futures`` executor), and :class:`Study` gives the mean and standard
-deviation of every metric per method, the paper's values (SPEC §10) beside them, and
-whether each pattern of the paper holds:
-
-- KOH's δ NMSE is at least 10× that of the best decoupled scenario (Table 1);
-- the ±2σ coverage of the true δ does not fall from scenario 1 to 2 to 3;
-- scenario 3's rank on δ NMSE among scenarios 1–3 (the paper: best on beam-1d);
-- Table 3 (shear-5): the hardest output (largest z NMSE), whether the δ band widens
-  from scenario 1 to 3, and which scenario has the best average z NMSE.
+The paper reports a single run; whether its *pattern* holds is a statement over seeds (one
+seed: one noise draw, history match, set of θ and φ samples and KOH chain).
 
 Examples
 --------
@@ -38,7 +28,7 @@ from ._validation import MAX_SEED, choose, short
 
 __all__ = ["PAPER", "Study", "study", "parse_seeds"]
 
-#: The paper's published NMSE values (SPEC §10), per case and method, [%].
+#: The paper's published NMSE values (docs/cases.md), per case and method, [%].
 PAPER = {
     "beam-1d": {"nmse_z": {"1": 0.768, "2": 0.765, "3": 0.765, "koh": 0.770},
                 "nmse_delta": {"1": 1.756, "2": 2.288, "3": 1.654, "koh": 39.349}},
@@ -47,8 +37,6 @@ PAPER = {
 }
 METRICS = ("nmse_z", "nmse_delta", "rmse_delta", "mmd", "lpl", "coverage_z_2sd",
            "coverage_z_3sd", "coverage_delta_2sd", "coverage_delta_3sd", "sd_z", "sd_delta")
-
-
 #: Most seeds one study runs (each seed is a whole reproduce run).
 MAX_SEEDS = 10_000
 
@@ -68,8 +56,7 @@ def parse_seeds(text: str) -> tuple[int, ...]:
                 or int(m.group(2) or m.group(1)) > MAX_SEED:
             raise ValueError(f"seeds must look like '0-9', '0,3,5' or '2' (integers from 0 to "
                              f"2**63 − 1, ranges low-high); received {short(text)}.")
-        lo = int(m.group(1))
-        hi = int(m.group(2) or lo)
+        lo, hi = int(m.group(1)), int(m.group(2) or m.group(1))
         if len(seeds) + hi - lo + 1 > MAX_SEEDS:
             raise ValueError(f"seeds must name at most {MAX_SEEDS:,} seeds (each is a whole "
                              f"reproduce run); received {short(text)}, which names "
@@ -91,16 +78,8 @@ def _one(name: str, seed: int, methods: tuple, settings: Settings,
 
 @dataclass(frozen=True)
 class Study:
-    """The runs of one case over several seeds.
-
-    Attributes
-    ----------
-    case : str
-    seeds : tuple of int
-    settings : Settings
-    runs : tuple of dict
-        Each seed's :meth:`mdcore.CaseRun.to_dict`, in seed order.
-    """
+    """The runs of one ``case`` over ``seeds`` with ``settings``: ``runs`` holds each seed's
+    :meth:`mdcore.CaseRun.to_dict`, in seed order."""
 
     case: str
     seeds: tuple
@@ -140,9 +119,8 @@ class Study:
         return out
 
     def history(self) -> dict:
-        """History matching over the seeds: the rule, the final NROY share (mean and sd over
-        seeds), how many seeds keep the truth in NROY, and θ_MAP's mean absolute error per
-        parameter (None where the truth is unknown)."""
+        """History matching over the seeds: the rule, the final NROY share (mean, sd), how
+        many seeds keep the truth in NROY, θ_MAP's mean absolute error (None: no truth)."""
         hm = [r["history_matching"] for r in self.runs]
         share = np.array([h["nroy_fraction"][-1] for h in hm])
         truth = cases.load(self.case).theta_true
@@ -153,7 +131,12 @@ class Study:
                     [np.abs(np.array(h["theta_map"]) - truth) for h in hm], axis=0).tolist()}
 
     def patterns(self) -> dict:
-        """The paper's patterns over the seeds' means (None where they cannot be judged)."""
+        """The paper's patterns over the seeds' means (None where they cannot be judged).
+
+        KOH's δ NMSE ≥ 10× the best decoupled scenario's (Table 1); δ's ±2σ coverage does not
+        fall from scenario 1 to 3; scenario 3's rank on δ NMSE; Table 3: the hardest output,
+        whether the δ band widens from 1 to 3 and the best average z NMSE.
+        """
         decoupled: list[str] = [m for m in ("1", "2", "3") if m in self.methods]
         nmse_z = {m: np.mean(self._known(m, "nmse_z"), axis=0) for m in decoupled}
         width = [float(np.mean(self._known(m, "sd_delta"))) for m in decoupled]
@@ -204,14 +187,12 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
     settings : Settings, optional
         Default the paper's sizes.
     executor : concurrent.futures.Executor, optional
-        Runs the seeds (for example a ``ProcessPoolExecutor`` or a Dask client's
-        ``get_executor()``); default: one after the other in this process. The numbers do
-        not depend on the executor.
+        Runs the seeds (e.g. a ``ProcessPoolExecutor``); default: serially here. The numbers
+        do not depend on it.
     timeout : float, optional
         Seconds one simulator run may take (:attr:`mdcore.Case.timeout`).
     history : dict, optional
-        History-matching options for every seed (:func:`mdcore._history_matching.setup`:
-        ``rule``, ``V_m_length`` …); default the case's.
+        History-matching options for every seed (``rule``, ``V_m_length`` …).
 
     Returns
     -------

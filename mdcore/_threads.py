@@ -1,11 +1,7 @@
-"""mdcore's one thread policy: one pool of compute threads, and BLAS at one thread.
+"""mdcore's one thread policy: one process-wide pool of compute threads, BLAS at one thread.
 
-The core works on many small matrices (13–100 rows): threads pay over independent pieces
-of work, while a second BLAS thread on such sizes only spins. So :func:`run_pieces` runs
-pieces on one process-wide pool that NumPy chunks and compiled kernels share (concurrent
-sessions take turns piece by piece), and :func:`single_threaded_blas_for_process` sets BLAS
-to one thread for the whole process. It is never undone: undoing a process-wide setting is
-not safe while another thread relies on it.
+On the core's small matrices (13–100 rows) threads pay over independent pieces of work, while
+a second BLAS thread only spins. The BLAS limit is never undone: another thread relies on it.
 """
 
 from __future__ import annotations
@@ -28,13 +24,8 @@ _pool: dict[int, ThreadPoolExecutor] = {}  # the process's pool (by size), made 
 _in_pool = threading.local()
 _blas_modules = -1                         # len(sys.modules) when BLAS was last limited
 
-
-def _forget_pool_after_fork() -> None:
-    _pool.clear()             # a forked child has none of the pool's threads
-
-
-if hasattr(os, "register_at_fork"):
-    os.register_at_fork(after_in_child=_forget_pool_after_fork)
+if hasattr(os, "register_at_fork"):          # a forked child has none of the pool's threads
+    os.register_at_fork(after_in_child=_pool.clear)
 
 
 def cores() -> int:

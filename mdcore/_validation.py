@@ -1,24 +1,19 @@
-"""Input checks shared by the public functions.
-
-Every public function validates at its boundary with these helpers, so that a wrong
-shape, a NaN or a negative variance gives a ``ValueError`` that names the argument,
-what was expected, what was received, and how to fix it.
-"""
+"""Input checks of the public boundary: a ``ValueError`` names the argument, what was
+expected, what was received and how to fix it."""
 
 from __future__ import annotations
 
 import numpy as np
 
 #: Largest magnitude of an observation or input: the method squares values (variances,
-#: kernels), and beyond this they overflow float64 on the way (measured clean to 1e30).
+#: kernels), which overflow float64 beyond it.
 MAX_MAGNITUDE = 1e30
 #: Largest seed: an int64, which any JSON reader and NumPy's seeding take as it is.
 MAX_SEED = 2**63 - 1
 
 
 def short(value, limit: int = 60) -> str:
-    """``repr(value)``, cut in the middle when longer than ``limit`` characters, so that a
-    message never echoes a 5,000-digit number or a whole line of a file."""
+    """``repr(value)``, cut in the middle when longer than ``limit`` characters."""
     text = repr(value)
     if len(text) <= limit:
         return text
@@ -27,21 +22,8 @@ def short(value, limit: int = 60) -> str:
 
 def as_float_array(value, name: str, *, ndim: int | None = None, min_ndim: int | None = None,
                    allow_empty: bool = False, finite: bool = True) -> np.ndarray:
-    """Convert ``value`` to a float64 array and check its rank and values.
-
-    Parameters
-    ----------
-    value : array_like
-        What the caller passed.
-    name : str
-        The argument name used in error messages.
-    ndim, min_ndim : int, optional
-        Required exact or minimum number of dimensions.
-    allow_empty : bool, default=False
-        Whether a zero-size array is acceptable.
-    finite : bool, default=True
-        Whether NaN and inf are rejected.
-    """
+    """``value`` as a float64 array named ``name``, with exactly ``ndim`` or at least
+    ``min_ndim`` dimensions, non-empty unless ``allow_empty``, finite if ``finite``."""
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
@@ -73,11 +55,8 @@ def check_positive(arr: np.ndarray, name: str, *, strict: bool = True) -> np.nda
 
 
 def as_int(value, name: str, minimum: int, maximum: int | None = None) -> int:
-    """Check that ``value`` is an integer (not a bool) ≥ ``minimum``; return it as int.
-
-    With ``maximum``, larger values are refused up front: a size such as ``10**12``
-    samples would otherwise be attempted and fail only when the memory runs out.
-    """
+    """``value`` as an int (not a bool) in [``minimum``, ``maximum``]; ``maximum`` refuses a
+    size such as ``10**12`` samples before the memory runs out."""
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer ≥ {minimum}; received {value!r}.")
     if maximum is not None and value > maximum:
@@ -88,10 +67,7 @@ def as_int(value, name: str, minimum: int, maximum: int | None = None) -> int:
 
 
 def as_positive_float(value, name: str, hint: str = "") -> float:
-    """A finite scalar > 0 as float; anything else (text, None, NaN, inf, ≤ 0) is refused.
-
-    ``hint`` ends the message (what the number means, a usual value).
-    """
+    """A finite scalar > 0 as float; ``hint`` ends the message (meaning, a usual value)."""
     try:
         out = float(value)
     except (TypeError, ValueError):
@@ -127,14 +103,10 @@ def choose(value: str, name: str, options) -> str:
 
 
 def as_seed_int(seed, name: str = "seed") -> int:
-    """An integer seed from an int ≥ 0 or a ``numpy.random.Generator``.
-
-    Some functions derive independent streams from ``[seed, k]`` (a wave, a stage), which
-    needs an integer; a Generator is turned into one by drawing from it, so the result is
-    reproducible from the Generator's state.
-    """
+    """An integer seed (for streams ``[seed, k]``) from an int ≥ 0 or a Generator, drawn from
+    it so that the result is reproducible from the Generator's state."""
     if isinstance(seed, np.random.Generator):
-        return int(seed.integers(0, 2**63 - 1))
+        return int(seed.integers(0, MAX_SEED))
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not \
             0 <= seed <= MAX_SEED:
         raise ValueError(f"{name} must be an integer from 0 to 2**63 − 1 or a "
@@ -144,11 +116,7 @@ def as_seed_int(seed, name: str = "seed") -> int:
 
 
 def as_outputs(z, n_rows: int, name: str = "z") -> np.ndarray:
-    """Observations as an (N, n_out) float array: ``(N,)`` is one output.
-
-    The one place where a vector of observations becomes a column, with the check that it
-    has one row per input.
-    """
+    """Observations as an (N, n_out) float array, one row per input: ``(N,)`` is one output."""
     arr = as_float_array(z, name, min_ndim=1)
     if arr.ndim == 1:
         arr = arr[:, None]
@@ -163,7 +131,7 @@ def as_outputs(z, n_rows: int, name: str = "z") -> np.ndarray:
 
 
 def as_log_params(log_params, d_y: int, d_x: int) -> np.ndarray:
-    """GP log hyperparameters, shape (..., P) with P = 2 + d_y + d_x (SPEC §2 layout
+    """GP log hyperparameters, shape (..., P) with P = 2 + d_y + d_x (docs/method.md §2 layout
     ``[log σ_f, log ℓ_y×d_y, log ℓ_x×d_x, log σ_n]``), as a finite float64 array."""
     lp = as_float_array(log_params, "log_params", min_ndim=1)
     P = 2 + d_y + d_x

@@ -78,7 +78,7 @@ def test_first_screen_is_the_paper_fig1():
 @pytest.mark.parametrize("case", ["beam-1d", "beam-2d", "shear-5"])
 def test_waves_then_scenarios_for_each_case(case):
     s = small_state(case)
-    s.preset = "paper"                       # the paper's design, refined past SPEC §5
+    s.preset = "paper"                       # the paper's design, refined past docs/method.md §5
     s.param.update(max_waves=3, convergence_ratio=0.01)
     v = ExplorerView(state=s)
     s.next_wave()

@@ -69,7 +69,7 @@ def test_shear5_reads_shipped_csv_and_regenerates_exactly():
     assert sorted(set(c.X_train[:, 0].round(6))) == [0.0, 0.3, 0.5]
     assert sorted(set(c.X_test[:, 0].round(6))) == [0.1, 0.2, 0.4]
     assert c.X_train.shape == (30, 1) and c.z_test.shape == (30, 5)
-    # First mode carries the largest discrepancy, about −0.6 Hz (SPEC §9).
+    # First mode carries the largest discrepancy, about −0.6 Hz (docs/cases.md).
     d = c.true_delta(np.array([[0.0]]))[0]
     assert np.argmax(np.abs(d)) == 0 and -0.75 < d[0] < -0.5
     np.testing.assert_allclose(c.V_m, (0.03 * c.z_train.mean(axis=0)) ** 2)
@@ -91,7 +91,7 @@ def test_make_shear5_data_script_regenerates_the_shipped_csv(tmp_path):
 
 
 def test_shear5_truth_is_not_implausible_under_the_spec_v_m():
-    """SPEC §9: with V_m,i = (0.03 z̄_i)² the exact simulator at the true θ has a largest
+    """docs/cases.md: with V_m,i = (0.03 z̄_i)² the exact simulator at the true θ has a largest
     implausibility of 1.7 (with 1 % it was 5.1 and history matching ruled the truth out)."""
     from mdcore._history_matching import elementwise_implausibility, replicate_summary
     c = cases.load("shear-5")

@@ -36,7 +36,7 @@ def toy(rng):
 
 
 def naive_mixture(model, X_star, Ys):
-    """Mixture moments (SPEC §6) by a plain loop over components with the naive GP."""
+    """Mixture moments (docs/method.md §6) by a plain loop over components with the naive GP."""
     S, K = model.log_weights.shape[1:]
     out = np.zeros((4, X_star.shape[0], model.n_out))
     for o in range(model.n_out):
@@ -240,7 +240,7 @@ def test_prior_draws_not_kept_are_drawn_again_bit_for_bit(toy, monkeypatch, seed
 def test_low_ess_warns_with_a_suggestion(toy):
     X, z, theta, _, _ = toy
     far = GaussianPrior(mean=[3.0, 3.0, 3.0, 3.0, -6.0], var=[9.0] * 5)
-    with pytest.warns(LowESSWarning, match="Increase n_phi"):
+    with pytest.warns(LowESSWarning, match=r"raise N_φ \(now 20\) or N_s \(now "):
         infer_discrepancy(toy_simulate, theta, X, z, scenario=3, seed=0,
         options=DiscrepancyOptions(n_phi=20, phi_prior=far))
 

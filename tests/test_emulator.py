@@ -1,4 +1,4 @@
-"""The GP emulator (SPEC §4): the Kronecker solve against the dense core, interpolation of
+"""The GP emulator (docs/method.md §4): the Kronecker solve against the dense core, interpolation of
 the runs, the analytic gradient, a fit that does not converge, and bad input."""
 
 import warnings

@@ -71,7 +71,7 @@ def test_process_pool_pickles_the_chunks(beam, small_chunks, start):
     """Module-level functions on plain arrays: process pools (plain pickle) give the same
     numbers, spawned (fresh interpreters) or forked after the compiled backend's compute
     threads have started in this process (they are not inherited; see
-    ``threads._forget_pool_after_fork``)."""
+    the fork hook of ``mdcore._threads``)."""
     if start not in multiprocessing.get_all_start_methods():
         missing(f"no {start} start method here")
     serial = fit(beam, 3)                     # starts the compute threads here first

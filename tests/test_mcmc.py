@@ -16,7 +16,7 @@ def target(x):
 
 
 def test_a_short_chain_is_flagged_and_a_long_one_is_not():
-    with pytest.warns(ConvergenceWarning, match="fewer than 50 autocorrelation times.*raise "
+    with pytest.warns(ConvergenceWarning, match="shorter than 50 autocorrelation times.*raise "
                                                 "n_iter to at least"):
         short = adaptive_metropolis(target, np.zeros(2), n_iter=60, burn_in=20, seed=0)
     assert not short.reliable

@@ -1,4 +1,4 @@
-"""SPEC §8 metrics on tiny hand-computed cases, and MMD's closed form against quadrature."""
+"""docs/method.md §8 metrics on tiny hand-computed cases, and MMD's closed form against quadrature."""
 
 
 import numpy as np

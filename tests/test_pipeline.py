@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from mdcore import Cancelled
+from mdcore import Cancelled, LowESSWarning
 from mdcore import _cases as cases
 from mdcore._history_matching import history_match_case
 from mdcore._metrics import coverage, lpl, mmd, nmse
@@ -189,9 +189,14 @@ def test_koh_chain_diagnostics_and_advice(beam):
 
 def test_low_ess_gives_advice_in_words(beam):
     case, hm = beam
-    r = quiet(run_method, case, hm, 3, Settings(n_s=2, n_phi=2), seed=0)
+    with pytest.warns(LowESSWarning) as caught:
+        r = run_method(case, hm, 3, Settings(n_s=2, n_phi=2), seed=0)
     assert r.importance.ess[0] < 30
     assert len(r.warnings) == 1 and "raise N_φ (now 2) or N_s (now 2)" in r.warnings[0]
+    # Worded once: the core's warning and the result's advice are the same text, and a
+    # single-output case names no output.
+    assert r.warnings[0] in {str(w.message) for w in caught}
+    assert "output" not in r.warnings[0]
 
 
 def test_progress_and_cancel(beam):

@@ -1,4 +1,4 @@
-"""Simulators against closed forms, independent quadrature and SPEC §9 check values."""
+"""Simulators against closed forms, independent quadrature and docs/cases.md check values."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Tip deflection of a cracked cantilever (SPEC §9 beam-1d/beam-2d, paper Eq. 17).
+"""Tip deflection of a cracked cantilever (docs/cases.md, paper Eq. 17).
 
 Christides–Barr crack stiffness::
 
@@ -11,9 +11,7 @@ Unit-load method for a tip load P::
           = P/(E I₀) [ l³/3 + C (∫₀^{x_c} (l − x)² e^{−β(x_c − x)} dx
                                + ∫_{x_c}^{l} (l − x)² e^{−β(x − x_c)} dx) ],   β = 2α/t
 
-The integral is split at the crack, where |x − x_c| has its kink, and each half is
-integrated in closed form, so the function is exact and vectorised over any number of
-crack locations, crack lengths and moduli.
+Each half, split at the crack (the kink of |x − x_c|), is integrated in closed form.
 """
 
 from __future__ import annotations
@@ -38,11 +36,11 @@ def tip_deflection(crack_location, crack_length, E, *, length: float = 1.0, widt
     E : array_like, Pa
         Young's modulus, positive.
     length, width, thickness : float, m
-        Beam dimensions ``l``, ``w``, ``t`` (defaults 1 m, 0.5 m, 0.1 m).
+        Beam dimensions ``l``, ``w``, ``t``.
     load : float, N
-        Tip load ``P`` (default 10 kN).
+        Tip load ``P``.
     alpha : float
-        Christides–Barr constant (default 0.667).
+        Christides–Barr constant.
 
     Returns
     -------
@@ -54,9 +52,8 @@ def tip_deflection(crack_location, crack_length, E, *, length: float = 1.0, widt
     >>> round(float(tip_deflection(0.5, 0.0, 68e9)), 5)    # uncracked: P l³/(3 E I₀)
     1.17647
     """
-    xc = as_float_array(crack_location, "crack_location", allow_empty=True)
-    lc = as_float_array(crack_length, "crack_length", allow_empty=True)
-    E = as_float_array(E, "E", allow_empty=True)
+    xc, lc, E = (as_float_array(v, name, allow_empty=True) for v, name in
+                 ((crack_location, "crack_location"), (crack_length, "crack_length"), (E, "E")))
     if np.any(E <= 0):
         raise ValueError(f"E must be positive (Pa); received minimum {E.min()!r}.")
     if np.any(lc < 0) or np.any(lc >= thickness):

@@ -25,15 +25,13 @@ from .live_figures import (
     SLOT,
     LivePanel,
     below_legend,
-    blank,
     figure_pane,
     live_figure,
     live_text,
-    replace_data,
-    set_top,
     show_only,
 )
 from .plots import THETA_MAP_COLOR, axis_label, input_span
+from .sources import blank, replace_data, set_top
 from .state import ExplorerState
 
 #: CSS class of the plots (shared with the waves: the browser tests count them together).

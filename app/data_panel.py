@@ -21,10 +21,10 @@ from .live_figures import (
     below_legend,
     figure_pane,
     live_figure,
-    replace_data,
     show_only,
 )
 from .plots import axis_label, input_span
+from .sources import replace_data
 from .state import ExplorerState
 
 #: CSS class of the Data tab's plots (the browser tests and the bench wait for them).

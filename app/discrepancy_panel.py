@@ -1,24 +1,12 @@
-"""The Discrepancy tab, updated in place (issue 17: display-only changes in a blink).
-
-Each plot is a Bokeh figure built once (:mod:`.live_figures`): new results, a new band or a
-new beam-2d slice replace the arrays of the figures they change, and the browser redraws
-those glyphs; no layout is rebuilt. Hiding a method or a quantity only changes a
-visibility (a hidden method keeps its column's, or beam-2d's row's, place, empty: see
-:data:`SLOT`).
-The plots of the chosen methods are built, empty and hidden, when the tab is shown
-(:meth:`DiscrepancyPanel.prebuild_when_shown`), so a run only fills and shows them: building
-them when the first results arrived was most of a first run's time (beam-2d: 0.8 s of
-server time, and the browser's canvases). A method's plots are otherwise built when its
-first result arrives (and a quantity's when it is first shown); everything is rebuilt only
-when the case changes.
-
-While a recompute runs (the results were cleared by a new setting), the earlier plots stay,
-dimmed, until the new results replace them.
+"""The Discrepancy tab, updated in place: new results, a new band or a new beam-2d slice
+replace the arrays of the figures they change (:mod:`.live_figures`); hiding a method only
+changes a visibility (its place stays, empty: :data:`SLOT`). The chosen methods' plots are
+built empty when the tab is shown, so a run only fills them; during a recompute the
+earlier plots stay, dimmed.
 """
 
 from __future__ import annotations
 
-import html
 from typing import Any
 
 import numpy as np
@@ -35,23 +23,23 @@ from .live_figures import (
     BandFigure,
     LivePanel,
     MapFigure,
-    alert_box,
     check_shown_in,
     figure_pane,
     live_text,
     show_pane,
+    warnings_html,
+    when_shown,
 )
 from .plots import METHOD_COLORS, axis_label
-from .state import ExplorerState, method_order
+from .runs import method_order
+from .state import ExplorerState
 
 #: The "Show" choices of a 1-D case and the quantities they show.
 QUANTITIES = {"z and δ": ("z", "delta"), "δ": ("delta",), "z": ("z",)}
 #: CSS class of every plot of the tab (the browser tests find them by it).
 CSS = "disc-plot"
-#: Opacity of the earlier plots while their recompute runs.
+#: Styles of the earlier plots while their recompute runs (see CURRENT and SLOT).
 STALE_OPACITY = "0.45"
-#: Styles of the earlier plots while their recompute runs (CURRENT and SLOT: see
-#: :mod:`.live_figures`).
 STALE = {"opacity": STALE_OPACITY, "visibility": "visible"}
 #: The axes of a band plot hold mean ± this many sd (the widest band offered), so a new
 #: band redraws only the band: the axes, and the plot's layout, stay put.
@@ -67,15 +55,6 @@ KEEP_SPAN = 0.6
 EMPTY_HTML = "Run history matching, then press <b>Run discrepancy</b>."
 
 
-def warnings_html(advice: list[str]) -> str:
-    """The diagnostics' warnings in a warning box (HTML, escaped), each "subject: text"
-    with its subject in bold; '' for none."""
-    if not advice:
-        return ""
-    return alert_box("".join("<p style='margin:4px 0'><b>{}</b>{}{}</p>".format(
-        *(html.escape(part) for part in w.partition(":"))) for w in advice), "warning")
-
-
 class DiscrepancyPanel(LivePanel):
     """Bands of the shown methods: z* and δ* per output (1-D input), or δ maps and a slice
     (beam-2d), one column (1-D) or row (2-D) per method."""
@@ -87,11 +66,8 @@ class DiscrepancyPanel(LivePanel):
 
     def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
-        # One line above the plots, never hidden: what to do while no plot is shown, else
-        # the diagnostics' warnings beside the bands they concern (the notification that
-        # also reports them fades), else nothing. Its text changes, never its ``visible``:
-        # BokehJS lays out the whole page again for that (0.2-0.3 s in Chromium).
-        # A Bokeh Div: see live_figures.live_text.
+        # One line above the plots: what to press while no plot is shown, else the
+        # diagnostics' warnings; its text changes, never its ``visible`` (a page re-layout).
         self._warnings, self._warnings_div = live_text("disc-warnings")
         self._warnings_div.text = EMPTY_HTML
         self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
@@ -122,8 +98,7 @@ class DiscrepancyPanel(LivePanel):
         self._methods.objects = []
         self._show.visible = c.d_x == 1
         # One output at a time (state.output): shear-5's five modes side by side were 20-40
-        # plots of a third of the page each, and every change redrew them all (a scenario
-        # run 4.3 s in Chromium, 75 canvases). Set with its event, so the buttons say so.
+        # plots, all redrawn on every change.
         if c.d_x == 1:
             self._head.objects = []
             self.quantity = "z and δ"
@@ -139,18 +114,12 @@ class DiscrepancyPanel(LivePanel):
         self._update()
 
     def prebuild_when_shown(self, tabs, index: int) -> None:
-        """Build the chosen methods' plots, empty and hidden, whenever tab ``index`` of
-        ``tabs`` (a :class:`mdcore_app.views.ShowingTabs`) is about to show this panel, and
-        while it shows it (a new case, a method chosen): a run then only fills them.
-
-        Raises
-        ------
-        ValueError
-            If ``(tabs, index)`` is not a ShowingTabs and a tab index ≥ 0.
-        """
+        """Build the chosen methods' plots, empty and hidden, when tab ``index`` of ``tabs``
+        shows this panel and while it does: a run then only fills them. A ValueError
+        unless ``(tabs, index)`` is a pn.Tabs and a tab index ≥ 0."""
         check_shown_in((tabs, index), "(tabs, index)")
         self._ready = lambda: tabs.active == index
-        tabs.before_show.append(lambda active: active == index and self._prebuild())
+        when_shown(tabs, index, self._prebuild)
 
     def _prebuild(self) -> None:
         """Empty, hidden plots of the chosen methods that have none yet (see the module)."""
@@ -296,8 +265,8 @@ class DiscrepancyPanel(LivePanel):
             if key == 2:
                 return BandFigure(title="", xname=x1, yname=axis_label("δ", unit), color=color,
                                   label=label, reference=None if self._truth is None
-                                  else "true δ", css_class=CSS, **self._linked(key),
-                                  x=np.unique(self.state.grid[:, 0]))
+                                  else "true δ", css_class=CSS, k=self.state.band,
+                                  **self._linked(key), x=np.unique(self.state.grid[:, 0]))
             u1, u2 = np.unique(self.state.grid[:, 0]), np.unique(self.state.grid[:, 1])
             zname = axis_label("δ mean" if key == 0 else "δ sd", unit)
             return MapFigure(title="", xname=x1, yname=x2, zname=zname, u1=u1, u2=u2,
@@ -312,12 +281,13 @@ class DiscrepancyPanel(LivePanel):
                        {"color": "black", "size": 7})]
             return BandFigure(title=f"{label}: z{of} (bias-corrected)", xname=x1,
                               yname=axis_label(name, unit), color=color, label=label,
-                              points=points, css_class=CSS, **self._linked(key),
+                              points=points, css_class=CSS, k=self.state.band, **self._linked(key),
                               x=self.state.grid[:, 0])
         return BandFigure(title=f"{label}: δ{of}",
                           xname=x1, yname=axis_label("δ " + name, unit), color=color,
                           label=label, reference=None if self._truth is None else "true δ",
-                          css_class=CSS, **self._linked(key), x=self.state.grid[:, 0])
+                          css_class=CSS, k=self.state.band, **self._linked(key),
+                          x=self.state.grid[:, 0])
 
     def _draw(self, fig, key, data) -> None:
         """Show ``data`` (result, band k[, slice]) in a cell's figure (k = 0: a map)."""

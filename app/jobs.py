@@ -33,7 +33,7 @@ from typing import Any
 
 from mdcore._exceptions import Cancelled
 
-__all__ = ["PROGRESS_INTERVAL", "Cancelled", "Job", "JobRunner", "seconds_since_work"]
+__all__ = ["PROGRESS_INTERVAL", "Cancelled", "Job", "JobRunner"]
 
 #: Seconds between progress updates sent to the browser (unless the fraction jumps ≥ 0.1).
 PROGRESS_INTERVAL = 0.25
@@ -48,18 +48,6 @@ log = logging.getLogger(__name__)
 
 def _noop(*_args) -> None:
     return None
-
-
-#: Job threads working now in this process (every session), and when the last one ended.
-_WORKING = [0, time.monotonic()]
-_WORKING_LOCK = threading.Lock()
-
-
-def seconds_since_work() -> float:
-    """Seconds since the last job thread of the process (any session) ended; 0.0 while
-    one works. Background chores (:mod:`mdcore_app.session_pool`) wait for quiet."""
-    with _WORKING_LOCK:
-        return 0.0 if _WORKING[0] else time.monotonic() - _WORKING[1]
 
 
 class Job:
@@ -84,8 +72,9 @@ class Job:
         self.cancel = threading.Event()
         self.status = "running"
         self.error: BaseException | None = None
-        self._snapshot = snapshot
-        self._ended = threading.Event()
+        self.snapshot = snapshot
+        #: Set once the job has ended (done, cancelled, failed or dropped).
+        self.ended = threading.Event()
 
     @property
     def running(self) -> bool:
@@ -97,7 +86,7 @@ class Job:
         In background mode the last state change is delivered through ``schedule``, so
         this returns once that callback has run.
         """
-        return self._ended.wait(timeout)
+        return self.ended.wait(timeout)
 
     def __repr__(self) -> str:
         return f"Job({self.label!r}, status={self.status!r})"
@@ -226,8 +215,6 @@ class JobRunner:
         return report
 
     def _work(self, job: Job, compute: Compute, apply: Callable[[Any], Any]) -> None:
-        with _WORKING_LOCK:
-            _WORKING[0] += 1
         try:
             for partial in compute(self._reporter(job), job.cancel):
                 if not self._live(job):
@@ -236,10 +223,6 @@ class JobRunner:
         except Exception as exc:                          # noqa: BLE001 - every failure ends the job
             self._post(lambda e=exc: self._end(job, e), job)
             return
-        finally:
-            with _WORKING_LOCK:
-                _WORKING[0] -= 1
-                _WORKING[1] = time.monotonic()
         self._post(lambda: self._end(job, None), job)
 
     def _post(self, fn: Callable[[], Any], ending: Job | None = None) -> None:
@@ -253,7 +236,7 @@ class JobRunner:
                 if not self._closed:                      # closed while scheduling: expected
                     raise
         if ending is not None:
-            ending._ended.set()
+            ending.ended.set()
 
     # ------------------------------------------------------------------------------
     # Session side (through schedule)
@@ -279,7 +262,7 @@ class JobRunner:
             else:
                 self._fail(job, exc)
         finally:
-            job._ended.set()
+            job.ended.set()
 
     def _fail(self, job: Job, exc: BaseException) -> None:
         job.status, job.error = "failed", exc
@@ -287,7 +270,7 @@ class JobRunner:
         if not isinstance(exc, ValueError):               # ValueErrors are the user's to fix
             log.error("%s failed", job.label, exc_info=exc)
         try:
-            self._restore(job._snapshot)
+            self._restore(job.snapshot)
         except Exception:
             log.exception("restoring the state after %s failed", job.label)
         self._on_finish()

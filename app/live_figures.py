@@ -8,8 +8,11 @@ the browser redraws and re-ranges the glyphs itself.
 
 from __future__ import annotations
 
+import html
+
 import numpy as np
 import panel as pn
+from bokeh.core.properties import value
 from bokeh.models import (
     ColorBar,
     ColumnDataSource,
@@ -24,6 +27,8 @@ from bokeh.palettes import Magma256, RdBu11
 from bokeh.plotting import figure
 
 from mdcore._validation import as_float_array, as_int, check_positive
+
+from .sources import blank, replace_data
 
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
 
@@ -96,13 +101,17 @@ SLOT = {"opacity": "1", "visibility": "hidden"}
 
 def check_shown_in(shown_in, name: str) -> None:
     """Raise a ValueError naming ``name`` unless ``shown_in`` is ``(tabs, index)``: a
-    :class:`mdcore_app.views.ShowingTabs` (anything with ``before_show``) and a tab index
-    ≥ 0."""
+    ``pn.Tabs`` and a tab index ≥ 0."""
     if not (isinstance(shown_in, tuple) and len(shown_in) == 2
-            and hasattr(shown_in[0], "before_show") and isinstance(shown_in[1], int)
+            and isinstance(shown_in[0], pn.Tabs) and isinstance(shown_in[1], int)
             and 0 <= shown_in[1]):
-        raise ValueError(f"{name} must be (tabs, index): ShowingTabs and the panel's tab "
+        raise ValueError(f"{name} must be (tabs, index): a pn.Tabs and the panel's tab "
                          f"index ≥ 0; received {shown_in!r}.")
+
+
+def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
+    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes the active one."""
+    tabs.param.watch(lambda event: event.new == index and hook(), "active")
 
 
 class LivePanel(pn.viewable.Viewer):
@@ -146,13 +155,12 @@ class LivePanel(pn.viewable.Viewer):
         return self._layout
 
     def defer_while_hidden(self, tabs, index: int) -> None:
-        """Rebuild for a new case only when tab ``index`` of ``tabs`` (a
-        :class:`mdcore_app.views.ShowingTabs`) shows this panel, just before it is drawn.
+        """Rebuild for a new case only when tab ``index`` of ``tabs`` shows this panel.
         A case switch then builds the figures of the tab in view only (shear-5: the
         History-matching panels were 0.3-0.5 s of a 0.7 s switch made from the Data tab).
         """
         self._shown = lambda: tabs.active == index
-        tabs.before_show.append(lambda active: active == index and self._catch_up())
+        when_shown(tabs, index, self._catch_up)
 
     def _catch_up(self) -> None:
         if self._stale:
@@ -199,6 +207,15 @@ def alert_box(inner_html: str, kind: str) -> str:
             f"{inner_html}</div>")
 
 
+def warnings_html(advice: list[str]) -> str:
+    """The diagnostics' warnings in a warning box (HTML, escaped), each "subject: text"
+    with its subject in bold; '' for none."""
+    if not advice:
+        return ""
+    return alert_box("".join("<p style='margin:4px 0'><b>{}</b>{}{}</p>".format(
+        *(html.escape(part) for part in w.partition(":"))) for w in advice), "warning")
+
+
 def live_text(css_class: str, height: int | None = None) -> tuple[pn.pane.Bokeh, Div]:
     """A line of HTML whose text is replaced in place: ``(pane for the layout, Div)``; set
     ``div.text``.
@@ -210,114 +227,6 @@ def live_text(css_class: str, height: int | None = None) -> tuple[pn.pane.Bokeh,
     size = {} if height is None else {"height": as_int(height, "height", 1)}
     div = Div(text="", css_classes=[css_class], sizing_mode="stretch_width", **size)
     return pn.pane.Bokeh(div, sizing_mode="stretch_width", margin=(0, 10)), div
-
-
-def set_range(r, start: float, end: float) -> None:
-    """Give the ``Range1d`` ``r`` these bounds, sending nothing when it has them already.
-
-    For axes the server sets: a range fitted in the browser (``DataRange1d``) is sent back
-    to the server after each change of its data, one round trip each, and warns ("could
-    not set initial ranges") while its plot has no data yet.
-
-    Raises
-    ------
-    ValueError
-        If ``r`` is not a ``Range1d``, or ``start`` and ``end`` are not finite numbers
-        with ``start < end``.
-    """
-    if not isinstance(r, Range1d):
-        raise ValueError(f"r must be a bokeh Range1d (an axis the server sets); received "
-                         f"{type(r).__name__}.")
-    bounds = as_float_array([start, end], "start and end", ndim=1)
-    if not bounds[0] < bounds[1]:
-        raise ValueError(f"start must be below end; received start = {start!r}, "
-                         f"end = {end!r}.")
-    if (r.start, r.end) != (start, end):
-        r.update(start=start, end=end)
-
-
-def set_top(r, top: float, pad: float = 0.05) -> None:
-    """:func:`set_range` from 0 to ``top`` and ``pad`` of it above (0 to 1 when ``top`` is
-    not positive: nothing to show yet). A NaN or infinite ``top`` or a negative ``pad`` is
-    a ValueError."""
-    top, pad = as_float_array([top, pad], "top and pad", ndim=1)
-    if pad < 0:
-        raise ValueError(f"pad must be ≥ 0 (a fraction of top); received {pad!r}.")
-    set_range(r, 0.0, (1.0 + pad) * top if top > 0 else 1.0)
-
-
-def replace_data(source: ColumnDataSource, data: dict) -> None:
-    """Give ``source`` the columns ``data``, sending the browser only what changed.
-
-    Columns already equal are not sent. When the changed ones keep their length and
-    dtype (a band on a fixed grid, a map), their new values go as a *patch* into the
-    source's own arrays; otherwise the source gets a new ``data`` dict (of copies, which
-    later patches may overwrite without touching the caller's arrays, e.g. a cached
-    result's). A patch redraws the glyphs in place. A new ``data`` dict also makes every
-    Bokeh legend whose items reach the source rebuild all its entries, each with a new
-    canvas (with :func:`blank` sources, shear-5's first wave creates 37 canvases, not 347).
-    """
-    old = source.data
-    if old.keys() == data.keys():
-        changed = {k: v for k, v in data.items() if not _same(old[k], v)}
-        if not changed:
-            return
-        if all(_patchable(old[k], v) for k, v in changed.items()):
-            source.patch({k: [(slice(0, v.size), v)] for k, v in changed.items()})
-            return
-    source.data = {k: _own(v) for k, v in data.items()}
-
-
-def blank(n: int, *names: str, **fixed) -> dict:
-    """Source columns: ``names`` as ``n`` NaNs (nothing is drawn), beside ``fixed`` ones.
-
-    A source that starts at its final length takes its first data as a patch
-    (:func:`replace_data`). From empty, the new length changed the source and its view
-    in the browser several times per update, and each change rebuilt every entry of the
-    figure's legend (12 rebuilds of each band figure's legend in beam-2d's first
-    discrepancy run, three canvases each).
-    """
-    n = as_int(n, "n", 0)
-    columns = {k: as_float_array(v, k, ndim=1, allow_empty=True).copy()
-               for k, v in fixed.items()}
-    for k, v in columns.items():
-        if v.size != n:
-            raise ValueError(f"{k} must have n = {n} values like the blank columns; received "
-                             f"{v.size}.")
-    columns.update({k: np.full(n, np.nan) for k in names})
-    return columns
-
-
-def _patchable(old, new) -> bool:
-    """Whether ``new`` can overwrite the column ``old`` in place: ``old`` a writable 1-D
-    numeric array of this source's own (see :func:`_own`), ``new`` an array of the same
-    length and dtype."""
-    return (_numeric_column(old) and old.flags.owndata and old.flags.writeable
-            and isinstance(new, np.ndarray) and new.shape == old.shape
-            and new.dtype == old.dtype)
-
-
-def _numeric_column(column) -> bool:
-    """Whether ``column`` is a 1-D NumPy array of numbers (what a patch can overwrite)."""
-    return isinstance(column, np.ndarray) and column.ndim == 1 and column.dtype.kind in "fiub"
-
-
-def _own(column):
-    """A copy of a 1-D numeric column (patchable later), else the column as given."""
-    return column.copy() if _numeric_column(column) else column
-
-
-def _same(a, b) -> bool:
-    """Whether two columns hold the same values, NaN equal to NaN (a blank row, see
-    :func:`blank`); a ragged column: the same lines."""
-    if len(a) != len(b):
-        return False
-    try:
-        a, b = np.asarray(a), np.asarray(b)
-    except ValueError:                       # ragged (multi_line): compare line by line
-        return all(_same(x, y) for x, y in zip(a, b))
-    numeric = a.dtype.kind in "fc" and b.dtype.kind in "fc"
-    return np.array_equal(a, b, equal_nan=numeric)
 
 
 def below_legend(fig, items, ncols: int = 4) -> Legend:
@@ -353,11 +262,13 @@ class BandFigure:
     x : ndarray of shape (G,), optional
         The inputs :meth:`show` will draw at, when known: the sources start there, blank
         (:func:`blank`), and each result is sent as a patch.
+    k : int, default=3
+        The band's width in sd that the legend says until :meth:`show` draws another.
     """
 
     def __init__(self, *, title: str, xname: str, yname: str, color: str, label: str,
                  points=(), reference: str | None = None, css_class: str = "live-plot",
-                 x_range=None, y_range=None, x=None):
+                 x_range=None, y_range=None, x=None, k: int = 3):
         ranges = {k: v for k, v in (("x_range", x_range), ("y_range", y_range)) if v}
         self.figure = fig = live_figure(title, xname, yname, css_class, **ranges)
         x = np.zeros(0) if x is None else as_float_array(x, "x", ndim=1)
@@ -366,9 +277,11 @@ class BandFigure:
         band = fig.varea("x", "lower", "upper", source=self._band, fill_color=color,
                          fill_alpha=0.25)
         mean = fig.line("x", "mean", source=self._mean, line_color=color, line_width=2)
-        # "±kσ" with k of the Band control, a fixed text: a new legend text re-lays-out
-        # the plot and, in the browser, the page (80 ms per plot on shear-5's twenty).
-        items = [LegendItem(label=f"{label} ±kσ", renderers=[band]),
+        # The band's entry says its k (``k`` until show says otherwise: a new text
+        # rebuilds the legend's entries in the browser).
+        self._label = label
+        self._band_item = LegendItem(label=value(f"{label} ±{k}σ"), renderers=[band])
+        items = [self._band_item,
                  LegendItem(label=f"{label} mean", renderers=[mean])]
         for x, y, name, style in points:
             items.append(LegendItem(label=name, renderers=[fig.scatter(
@@ -407,6 +320,9 @@ class BandFigure:
         k = as_int(k, "k", 1)
         sd = k * np.sqrt(check_positive(columns["var"], "var", strict=False))
         replace_data(self._band, {"x": x, "lower": mean - sd, "upper": mean + sd})
+        band_label = value(f"{self._label} ±{k}σ")     # a text, not a column's name
+        if self._band_item.label != band_label:
+            self._band_item.label = band_label
         replace_data(self._mean, {"x": x, "mean": mean})     # a new band keeps the mean
         if self._reference is not None and reference is not None:
             replace_data(self._reference, {"x": x, "y": reference})

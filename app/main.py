@@ -11,7 +11,6 @@ its results back to the session's event loop.
 """
 
 import argparse
-import gc
 import logging
 import sys
 from concurrent.futures import ThreadPoolExecutor
@@ -20,8 +19,6 @@ from pathlib import Path
 
 import holoviews as hv
 import panel as pn
-from bokeh.core.property.validation import validate
-from bokeh.settings import settings
 from panel.io.resources import LOCAL_DIST
 from panel.io.state import set_curdoc
 from tornado.ioloop import IOLoop
@@ -29,7 +26,7 @@ from tornado.ioloop import IOLoop
 from mdcore import _compiled as compiled
 from mdcore import _threads as threads
 from mdcore._case_file import load_case_file
-from mdcore_app import network, session_pool
+from mdcore_app import network
 from mdcore_app.markup import markdown_text
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
@@ -40,11 +37,13 @@ from mdcore_app.views import ExplorerView
 # 1.5 s of a scenario toggle's 2.2 s of browser time).
 # The notifications live outside Bokeh's shadow roots, where Panel's font variable
 # (--bokeh-base-font) is not defined: they came out in the browser's serif. A narrower
-# toast also covers less of the plots while it fades.
+# toast also covers less of the plots while it fades; long words (file names) wrap inside it.
 NOTIFICATION_CSS = """
 .notyf__message { font-family: -apple-system, BlinkMacSystemFont, "Segoe UI", Roboto,
-                  "Helvetica Neue", Arial, sans-serif; font-size: 13px; line-height: 1.35; }
+                  "Helvetica Neue", Arial, sans-serif; font-size: 13px; line-height: 1.35;
+                  overflow-wrap: anywhere; min-width: 0; }
 .notyf__toast { max-width: 380px !important; }
+.notyf__wrapper { min-width: 0; }
 """
 pn.extension(notifications=True, raw_css=[NOTIFICATION_CSS])
 hv.extension("bokeh")
@@ -74,16 +73,10 @@ CONTENT_SECURITY_POLICY = "; ".join((
     "frame-src 'none'",
     "base-uri 'self'",
     "form-action 'self'"))
-#: Panel's page (a string template extends it) with the policy first in its head, and a
-#: script of ours after BokehJS and before the document is drawn, so that a plot with a
-#: legend is laid out and painted once, not twice (see the file). Inline: no request
-#: (offline).
+#: Panel's page (a string template extends it) with the policy first in its head.
 PAGE_TEMPLATE = (
     "{% block inner_head %}<meta http-equiv=\"Content-Security-Policy\" content=\""
-    + CONTENT_SECURITY_POLICY + "\">{{ super() }}{% endblock %}"
-    "{% block postamble %}{{ super() }}<script>{% raw %}"
-    + Path(__file__).with_name("legend_resize.js").read_text()
-    + "{% endraw %}</script>{% endblock %}")
+    + CONTENT_SECURITY_POLICY + "\">{{ super() }}{% endblock %}")
 log = logging.getLogger("mdcore_app")
 # One BLAS thread for the whole server: a second one only spins between the small calls.
 threads.single_threaded_blas_for_process()
@@ -176,11 +169,6 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
         # default); the session stays for a reconnect, idle.
         doc.on_event("connection_lost", lambda _event: state.cancel())
         doc.on_session_destroyed(lambda _context: state.jobs.close())
-        context = doc.session_context             # (--warm's has no server yet)
-        if session_pool.install() and context.server_context is not None:
-            # the server's first session: build the next visitor's page ahead
-            session_pool.POOL.refill_later(context.server_context.application_context,
-                                           context.request)
     for message in errors:                        # shown once the page is there
         pn.state.onload(lambda m=message: state.report_error(m))
     return view
@@ -198,7 +186,7 @@ def _local_style_sheets(doc) -> None:
     """
     with set_curdoc(doc):
         local = f"{pn.state.rel_path}/{LOCAL_DIST}" if pn.state.rel_path else LOCAL_DIST
-    doc._template_variables.setdefault("dist_url", local)
+    doc.template_variables.setdefault("dist_url", local)
 
 
 def _scheduler(doc):
@@ -220,35 +208,5 @@ def _scheduler(doc):
     return lambda fn: doc.add_next_tick_callback(partial(run, fn))
 
 
-def freeze_startup_objects() -> None:
-    """Hide the objects of the server's imports from the garbage collector, once per server.
-
-    Panel, Bokeh, HoloViews, SciPy and the numba kernels leave about 390,000 objects that
-    live as long as the server. Every full collection walked all of them: 0.22-0.28 s, in
-    one session's page load in three (measured with ``gc.callbacks``, eight pages one
-    after another), or in the middle of any click. Frozen, a full collection walks the
-    sessions' objects only (0.01 s). Sessions' documents are not frozen: a closed
-    session's cycles are still collected.
-    """
-    if not pn.state.cache.get("mdcore-gc-frozen"):
-        gc.collect()
-        gc.freeze()
-        pn.state.cache["mdcore-gc-frozen"] = True
-
-
 if pn.state.served:
-    freeze_startup_objects()
-    # Bokeh checks the integrity of every new session's document once it is built (layout
-    # and model rules; ~70 ms of a page's 0.5-0.8 s of server time, measured in-process).
-    # The page is the same every time: test_every_tab_passes_bokehs_integrity_checks
-    # runs those checks on every tab of every case instead. Process-wide, like Bokeh's
-    # switch; every session of this server is this app's.
-    settings.perform_document_validation.set_value(False)
-    # Bokeh checks every property value of every new model against its type, defaults
-    # included: ~12 % of building a session's ~210 models (0.47 against 0.53-0.69 s,
-    # measured in-process). The same code builds the page with the checks on in the
-    # tests; here, on the page's critical path, they are off: Bokeh's own switch, which
-    # is process-wide, so only for the moment the page is built on the server's thread
-    # (job threads never build or change models; they hand results to that thread).
-    with validate(False):
-        create_app().servable(title="Model Discrepancy Explorer")
+    create_app().servable(title="Model Discrepancy Explorer")

@@ -24,13 +24,16 @@ from pathlib import Path
 
 import numpy as np
 from bokeh.document import Document
-from bokeh.embed import file_html
+from bokeh.embed import components
 from bokeh.layouts import column, gridplot
 from bokeh.models import ColumnDataSource, Div, FactorRange, Whisker
 from bokeh.plotting import figure
 from bokeh.resources import Resources
 
 from mdcore._study import PAPER
+
+from .case_model import plotting_grid
+from .live_figures import BandFigure
 
 __all__ = ["report_html", "report_layout", "write_report", "metric_bars"]
 
@@ -48,37 +51,39 @@ def _esc(text) -> str:
     return _html.escape(str(text))
 
 
-def _band_figure(case, result, o: int, quantity: str, k: float = 2.0):
-    """z or δ at the test inputs of a 1-D case: the ±kσ band, the mean, the data or truth."""
-    x = case.X_test[:, 0]
-    order = np.argsort(x, kind="stable")
-    p = result.on_test
-    mean = (p.z_mean if quantity == "z" else p.delta_mean)[order, o]
-    sd = np.sqrt((p.z_var if quantity == "z" else p.delta_var)[order, o])
-    label = LABELS[result.method.value]
+def _on_grid(result, grid):
+    """Predictions at the dense ``grid`` (G, d_x): the run's own when it made them there
+    (the app's runs predict at its plotting grid), else the fitted model's."""
+    p = result.on_extra
+    if p is not None and p.z_mean.shape[0] == grid.shape[0]:
+        return p
+    return result.model.predict(grid)
+
+
+def _band_figure(case, result, o: int, quantity: str, grid, pred, k: int = 2):
+    """z or δ of a 1-D case on a dense grid of inputs, with the app's figure builder
+    (:class:`~mdcore_app.live_figures.BandFigure`): the ±kσ band, the mean, and the data
+    or the true δ."""
+    label = result.method.label
     yname = case.output_names[o] if quantity == "z" else f"δ {case.output_names[o]}"
-    fig = figure(height=260, sizing_mode="stretch_width",
-                 title=f"{label}: {yname} (±{k:g}σ)",
-                 x_axis_label=_unit(case.x_names[0], case.x_units[0]),
-                 y_axis_label=_unit(yname, case.output_units[o]))
-    src = ColumnDataSource({"x": x[order], "lo": mean - k * sd, "hi": mean + k * sd,
-                            "mean": mean})
-    fig.varea("x", "lo", "hi", source=src, fill_alpha=0.25,
-              fill_color=COLORS[result.method.value], legend_label=f"±{k:g}σ")
-    fig.line("x", "mean", source=src, color=COLORS[result.method.value], legend_label="mean")
+    points, truth = [], None
     if quantity == "z":
-        fig.scatter(case.X_train[:, 0], case.z_train[:, o], color="black", size=5,
-                    legend_label="training data")
-        fig.scatter(x, case.z_test[:, o], color="grey", size=3, alpha=0.6,
-                    legend_label="test data")
+        points = [(case.X_test[:, 0], case.z_test[:, o], "test data",
+                   {"color": "grey", "size": 3, "alpha": 0.6}),
+                  (case.X_train[:, 0], case.z_train[:, o], "training data",
+                   {"color": "black", "size": 5})]
     else:
-        truth = case.true_delta(case.X_test)
-        if truth is not None:
-            fig.line(x[order], truth[order, o], color="black", line_dash="dashed",
-                     legend_label="true δ")
-    fig.legend.location = "top_left"
-    fig.legend.label_text_font_size = "8pt"
-    return fig
+        truth = case.true_delta(grid)
+    band = BandFigure(title=f"{label}: {yname} (±{k:g}σ)",
+                      xname=_unit(case.x_names[0], case.x_units[0]),
+                      yname=_unit(yname, case.output_units[o]), color=COLORS[result.method.value],
+                      label=label, points=points, css_class="report-band",
+                      reference=None if truth is None else "true δ", x=grid[:, 0])
+    mean, var = ((pred.z_mean, pred.z_var) if quantity == "z"
+                 else (pred.delta_mean, pred.delta_var))
+    band.show(grid[:, 0], mean[:, o], var[:, o], k,
+              reference=None if truth is None else truth[:, o])
+    return band.figure
 
 
 def _residual_figure(case, result, o: int):
@@ -211,34 +216,24 @@ def _fmt(v, spec="{:.4g}") -> str:
     return "—" if v is None or (isinstance(v, float) and not np.isfinite(v)) else spec.format(v)
 
 
-class _InlineBokehOnly(Resources):
-    """BokehJS inlined, without other libraries' scripts.
-
-    Bokeh's resources add the ``__javascript__`` of every model class registered in the process,
-    used or not. Once the app has imported Panel that includes a ``static/extensions/...``
-    script tag, which a file opened from disk cannot load. The report holds only Bokeh models.
-    """
-
-    def _collect_external_resources(self, resource_attr):
-        return []
-
-    def clone(self, *, components=None):
-        return _InlineBokehOnly(mode="inline", components=components or list(self.components))
-
-
 def report_html(run) -> str:
     """The report of a :class:`mdcore.CaseRun` as one self-contained HTML page.
 
-    The layout is the one root of a document of its own: ``file_html`` then writes that
-    document. Given bare models, it would make one and copy into it the JS callbacks of
-    Bokeh's global current document, which in a server process can be a session's
+    The layout is the one root of a document of its own, which ``components`` writes.
+    Given bare models, it would make one and copy into it the JS callbacks of Bokeh's
+    global current document, which in a server process can be a session's
     document already destroyed (an ``AttributeError`` on ``_js_event_callbacks``: the
     served app's report download failed).
     """
     layout = report_layout(run)
     Document().add_root(layout)
-    return file_html(layout, resources=_InlineBokehOnly(mode="inline"),
-                     title=f"mdcore report: {run.case.name}")
+    script, div = components(layout)
+    # BokehJS inlined; not file_html's resources, which add the scripts of every model
+    # class registered in the process (Panel's, served from a path a file cannot load).
+    bokeh_js = "".join(f"<script>{code}</script>" for code in Resources(mode="inline").js_raw)
+    title = _esc(f"mdcore report: {run.case.name}")
+    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<title>{title}</title>{bokeh_js}{script}</head><body>{div}</body></html>\n")
 
 
 def _failures(case, hm) -> str:
@@ -314,15 +309,17 @@ def report_layout(run):
         if f is not None:
             figs.append(f)
     bands = []
+    grid = plotting_grid(case)
     for r in run.results:
+        pred = _on_grid(r, grid) if case.d_x == 1 else None
         for o in range(case.n_out):
             if case.d_x == 1:
-                bands += [_band_figure(case, r, o, "z"), _band_figure(case, r, o, "δ")]
+                bands += [_band_figure(case, r, o, q, grid, pred) for q in ("z", "δ")]
             else:
                 bands.append(_residual_figure(case, r, o))
     layout = column(Div(text=intro + metrics + warn, sizing_mode="stretch_width"),
                     gridplot(figs, ncols=2, sizing_mode="stretch_width"),
-                    Div(text="<h2>Bands at the test inputs</h2>"),
+                    Div(text="<h2>Bands</h2>"),
                     gridplot(bands, ncols=2, sizing_mode="stretch_width"),
                     sizing_mode="stretch_width")
     return layout

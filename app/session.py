@@ -31,8 +31,8 @@ from typing import Any
 import mdcore
 from mdcore._pipeline import Method, MethodResult
 
-__all__ = ["CONTROLS", "MAX_UPLOAD_BYTES", "SCHEMA", "SCHEMA_VERSION", "SessionError",
-           "compare_metrics", "decode_upload", "megabytes", "parse_session"]
+__all__ = ["CONTROLS", "MAX_UPLOAD_BYTES", "OPTIONAL_CONTROLS", "SCHEMA", "SCHEMA_VERSION",
+           "SessionError", "compare_metrics", "decode_upload", "megabytes", "parse_session"]
 
 SCHEMA, SCHEMA_VERSION = "mdcore-session", 1
 #: Largest file the app accepts from a browser (bytes): the one cap of the drop areas
@@ -47,6 +47,9 @@ CONTROLS: dict[str, tuple[type, ...]] = {
     "n_candidates": (int,), "max_waves": (int,), "convergence_ratio": (int, float),
     "n_s": (int,), "n_phi": (int,), "scenarios": (list,), "koh_chain": (str,),
     "proposal": (str,), "seed": (int,), "band": (int,)}
+#: Controls a session file may leave out (files saved before they existed), with defaults.
+OPTIONAL_CONTROLS: dict[str, tuple[tuple[type, ...], object]] = {
+    "v_m_length": ((int, float), 0.0)}
 #: Relative difference below which a recomputed metric counts as the saved one.
 RTOL = 1e-9
 
@@ -144,7 +147,13 @@ def parse_session(text: str, filename: str = "session.json") -> dict[str, Any]:
     if not isinstance(controls, dict):
         problems.append(f"{filename}: \"controls\" must be an object; found {controls!r}.")
     else:
-        for k, types in CONTROLS.items():
+        for k in controls.keys() - CONTROLS.keys() - OPTIONAL_CONTROLS.keys():
+            problems.append(f"{filename}: controls.{k} is not a control of this app (it has "
+                            f"{', '.join([*CONTROLS, *OPTIONAL_CONTROLS])}).")
+        for k, (_types, default) in OPTIONAL_CONTROLS.items():
+            controls.setdefault(k, default)
+        kinds = {**CONTROLS, **{k: t for k, (t, _) in OPTIONAL_CONTROLS.items()}}
+        for k, types in kinds.items():
             v = controls.get(k)
             if v is None:
                 problems.append(f"{filename}: controls.{k} is missing.")

@@ -1,6 +1,6 @@
 """Views of the Model Discrepancy Explorer, built from an :class:`ExplorerState`.
 
-The views hold no results: they read the state, draw with :mod:`app.plots` (the Data and
+The views hold no results: they read the state, draw with :mod:`mdcore_app.plots` (the Data and
 Metrics tabs, rebuilt when shown after a change) or with the panels updated in place
 (:mod:`.waves_panel`, :mod:`.calibration_panel`, :mod:`.discrepancy_panel`), and turn
 button presses into calls of the state's methods.
@@ -9,45 +9,29 @@ button presses into calls of the state's methods.
 from __future__ import annotations
 
 import html
-import io
-import re
 import time
 
-import pandas as pd
 import panel as pn
 import param
 
-from mdcore._case_file import MAX_TRAINING_ROWS, TEST_COLUMN, measurements_template
-from mdcore._cases import MAX_ROWS
-from mdcore._export import nroy_csv, predictions_csv
-from mdcore._pipeline import Method, MethodResult
-from mdcore._study import PAPER
-
-from . import plots
 from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
-from .live_figures import alert_box, figure_pane, live_text
+from .files_view import FilesView
+from .live_figures import alert_box, live_text, when_shown
 from .markup import html_text, markdown_text
-from .report import report_html
-from .session import MAX_UPLOAD_BYTES, megabytes
-from .state import ExplorerState, method_order
-from .upload import FileUpload
+from .metrics_view import metrics_panel
+from .state import ExplorerState
 from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
-#: A job's progress bar and Cancel button appear once it has run this long (seconds), so
-#: that runs at the default sizes (a fraction of a second) do not flash them; then they
-#: stay until it ends, whether or not it reports progress (a long wave may not).
+#: The busy line names a job's step once it has run this long (seconds), so that runs at
+#: the default sizes (a fraction of a second) do not flash it.
 SHOW_PROGRESS_AFTER = 0.5
 #: Height of the busy line (two lines of text), fixed so that a new message never
 #: changes the page's layout.
 STATUS_HEIGHT = 40
-#: Styles of the progress bar and Cancel button between jobs (hidden, in their place) and
-#: during a long one. Explicit: styles of ``{}`` would leave the browser's "hidden" on.
-HIDDEN = {"visibility": "hidden"}
-SHOWN = {"visibility": "visible"}
 
 
 def _status_html(busy: bool, task: str, detail: str = "") -> str:
@@ -57,66 +41,6 @@ def _status_html(busy: bool, task: str, detail: str = "") -> str:
         return '<span class="mdcore-idle">Idle.</span>'
     tail = f" {html.escape(detail)}" if detail else ""
     return f'<span class="mdcore-busy">Running <b>{html.escape(task)}</b> …{tail}</span>'
-#: Shown in the metrics table where a diagnostic does not apply to a method.
-NOT_APPLICABLE = "—"
-#: The columns of :func:`metrics_frame` shown in the diagnostics table, not the metrics one.
-DIAGNOSTICS = ("ESS pairs", "ESS φ", "Pareto k", "acceptance", "IAT (max)", "chain ESS (min)")
-
-
-def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
-    """One row per (method, output): the SPEC §8 metrics, the δ RMSE (output units), then
-    the method's diagnostics.
-
-    The importance-sampling diagnostics (ESS over the (θ, φ) pairs, ESS over φ, Pareto k̂,
-    "Pareto k")
-    belong to scenario 3 and the chain diagnostics (acceptance, the largest IAT, the
-    smallest chain ESS over the parameters) to KOH; elsewhere, and for δ metrics where the
-    true δ is unknown, the cell holds :data:`NOT_APPLICABLE`, never NaN.
-    """
-    def per_output(values, o):
-        return NOT_APPLICABLE if values is None else float(values[o])
-
-    rows = []
-    for method in sorted(results, key=method_order):
-        r = results[method]
-        m, imp, chain = r.metrics, r.importance, r.chain
-        for o, name in enumerate(case.output_names):
-            rows.append({
-                "method": method.label, "output": name,
-                "NMSE z [%]": per_output(m.nmse_z, o),
-                "NMSE δ [%]": per_output(m.nmse_delta, o),
-                "RMSE δ": per_output(m.rmse_delta, o),
-                "MMD": per_output(m.mmd, o), "LPL": per_output(m.lpl, o),
-                "cover z ±2σ": per_output(m.coverage_z_2sd, o),
-                "cover z ±3σ": per_output(m.coverage_z_3sd, o),
-                "cover δ ±2σ": per_output(m.coverage_delta_2sd, o),
-                "cover δ ±3σ": per_output(m.coverage_delta_3sd, o),
-                "ESS pairs": per_output(None if imp is None else imp.ess, o),
-                "ESS φ": per_output(None if imp is None else imp.ess_phi, o),
-                "Pareto k": per_output(None if imp is None else imp.k_hat, o),
-                "acceptance": NOT_APPLICABLE if chain is None else chain.acceptance_rate,
-                "IAT (max)": NOT_APPLICABLE if chain is None else max(chain.iat),
-                "chain ESS (min)": NOT_APPLICABLE if chain is None else min(chain.ess),
-                "seconds": r.seconds})
-    return pd.DataFrame(rows)
-
-
-class ShowingTabs(pn.Tabs):
-    """Tabs that call each ``before_show(active)`` hook when a tab is about to be drawn,
-    so a stale tab is refreshed before it is drawn (drawn once, with the new content),
-    not drawn stale and then patched."""
-
-    def __init__(self, *objects, **params):
-        self.before_show: list = []
-        super().__init__(*objects, **params)
-
-    def _update_active(self, *events):
-        for hook in self.before_show:
-            hook(self.active)
-        super()._update_active(*events)
-
-
-#: Index of the Discrepancy tab (see :meth:`ExplorerView._fill_tabs`).
 DISCREPANCY_TAB = 2
 
 
@@ -132,7 +56,7 @@ class ExplorerView(pn.viewable.Viewer):
         # The live panels of a hidden tab are built (for a new session, or rebuilt for a
         # new case) just before their tab is shown: the History-matching ones were half
         # of a new session's 0.6 s of server time, for a tab not yet in view.
-        self._tabs = ShowingTabs(dynamic=True, sizing_mode="stretch_width")
+        self._tabs = pn.Tabs(dynamic=True, sizing_mode="stretch_both")
         self._data = DataPanel(state=self.state, shown_in=(self._tabs, 0))
         self._discrepancy = DiscrepancyPanel(state=self.state)
         self._discrepancy.prebuild_when_shown(self._tabs, DISCREPANCY_TAB)
@@ -171,6 +95,8 @@ class ExplorerView(pn.viewable.Viewer):
             self._number_input("v_m", pn.widgets.FloatInput, step=0.005, format="0.[0000]"),
             self._number_input("threshold", pn.widgets.FloatInput, step=0.5, format="0.[00]"),
             self._choice("rule"),
+            self._number_input("v_m_length", pn.widgets.FloatInput, step=0.05,
+                               format="0.[0000]"),
             self._number_input("n_runs", pn.widgets.IntInput),
             self._number_input("n_candidates", pn.widgets.IntInput, step=10_000),
             pn.Param(s.param, parameters=["max_waves"], show_name=False),
@@ -192,17 +118,22 @@ class ExplorerView(pn.viewable.Viewer):
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
-        # The buttons and the progress line come first, so they stay above the fold of a
-        # 1280×720 projector; the settings follow in cards that can be folded away.
+        # The buttons and the progress line come first, the settings follow in cards. The
+        # sidebar scrolls on its own, so reaching a control never scrolls the plots away
+        # (a projector's 1280×720). Nothing here changes on a tab switch: folding a card
+        # makes BokehJS lay out the whole page again.
         return pn.Column(
             pn.pane.Markdown("**Model Discrepancy Explorer** · Gardner et al., MSSP 2021: "
                              "history matching, then GP discrepancy (scenarios 1–3), "
                              "against the joint Kennedy–O'Hagan baseline (koh).",
                              styles={"font-size": "0.9em"}),
             w, self._case_info, pn.Row(next_btn, conv_btn), run_btn, self._progress_panel(),
-            pn.Card(hm, title="History matching", sizing_mode="stretch_width"),
-            pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width"),
-            width=SIDEBAR_WIDTH)
+            pn.Card(hm, title="History matching", sizing_mode="stretch_width",
+                    css_classes=["hm-controls"]),
+            pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width",
+                    css_classes=["disc-controls"]),
+            width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
+            css_classes=["mdcore-sidebar"])
 
     def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):
         """A button group for the state's parameter ``name``, with its label above it (a
@@ -278,21 +209,19 @@ class ExplorerView(pn.viewable.Viewer):
     def _progress_panel(self):
         """Busy line, progress bar and a Cancel button, updated in place.
 
-        Nothing here changes the page's layout while a job runs: in the browser, any
-        change of a size, a visibility or a CSS class re-lays-out the whole page, which
-        redraws every plot (0.5–0.8 s each time on 2 cores, several times per run). So the
-        line has a fixed height and says busy or idle with a class *inside* its text, and
-        the bar and the Cancel button keep their place, hidden by ``visibility``: of their
-        row (Panel's Progress copies its own styles to its bar once, when drawn, so a bar
-        drawn hidden stayed hidden).
+        The bar and the button are always there (the button disabled between jobs), so a
+        job changes no size, visibility or layout: only the bar's value and the line's
+        text, whose fixed height never moves what is below it. The line names the job
+        once it has run :data:`SHOW_PROGRESS_AFTER` seconds, so short runs do not flash.
         """
         text = pn.pane.HTML(_status_html(False, ""), height=STATUS_HEIGHT,
                             sizing_mode="stretch_width",
                             styles={"overflow": "hidden", "font-size": "0.9em"})
-        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width")
-        cancel = pn.widgets.Button(label="Cancel", color="warning", css_classes=["cancel-job"])
-        row = pn.Row(bar, cancel, sizing_mode="stretch_width", styles=dict(HIDDEN),
-                     css_classes=["job-progress"])
+        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width",
+                                     css_classes=["job-progress-bar"])
+        cancel = pn.widgets.Button(label="Cancel", color="warning", disabled=True,
+                                   css_classes=["cancel-job"])
+        row = pn.Row(bar, cancel, sizing_mode="stretch_width", css_classes=["job-progress"])
         cancel.on_click(lambda _: self.state.cancel())
         since: list[float | None] = [None]          # when the current job started
 
@@ -307,10 +236,9 @@ class ExplorerView(pn.viewable.Viewer):
                     doc.add_timeout_callback(update, int(1000 * SHOW_PROGRESS_AFTER) + 20)
             show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
             text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
-            styles = dict(SHOWN if show else HIDDEN)
-            if row.styles != styles:
-                row.styles = styles
-            bar.value = int(100 * s.progress)
+            if cancel.disabled == s.busy:
+                cancel.disabled = not s.busy
+            bar.value = int(100 * s.progress) if s.busy else 0
 
         self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
         update()
@@ -361,176 +289,11 @@ class ExplorerView(pn.viewable.Viewer):
 
     @param.depends("state.results")              # filtered by the scenarios already
     def metrics_view(self):
-        s = self.state
-        shown = {k: v for k, v in s.results.items() if k in s.scenarios}
-        if not shown:
-            return pn.pane.Markdown("No scenario has run yet.")
-        df = metrics_frame(s.case, shown)
-        chart = figure_pane(plots.metrics_chart(s.case, shown, PAPER.get(s.base_case_name())))
-        table = pn.pane.DataFrame(df.drop(columns=list(DIAGNOSTICS)), index=False,
-                                  float_format="{:.4g}".format, sizing_mode="stretch_width",
-                                  css_classes=["metrics-table"])
-        objs = [chart, table]
-        if Method.S3 in shown or Method.KOH in shown:
-            rows = df["method"].isin([Method.S3.label, Method.KOH.label])
-            objs += [pn.pane.Markdown("Diagnostics: importance weights of scenario 3 (ESS "
-                                      "over the (θ, φ) pairs and over φ, Pareto k̂ ≤ 0.7 is "
-                                      "reliable) and the KOH chain (acceptance, largest "
-                                      "autocorrelation time, smallest ESS)."),
-                     pn.pane.DataFrame(df.loc[rows, ["method", "output", *DIAGNOSTICS]],
-                                       index=False, float_format="{:.4g}".format,
-                                       css_classes=["diagnostics-table"])]
-        if Method.S3 in shown:
-            o = s.output_index
-            phi = plots.phi_posterior(s.case, shown[Method.S3], output=o)
-            objs.append(pn.pane.Markdown(
-                "**Scenario 3: the GP hyperparameters φ, posterior (weighted draws) against "
-                f"prior** (the paper's Figs 6, 9, 16; output "
-                f"{markdown_text(s.case.output_names[o])})."))
-            # Two a row, the legend below: four a row at 1280 px clipped the titles and
-            # axis labels, and a legend inside covered the histogram.
-            for i in range(0, len(phi), 2):
-                objs.append(pn.Row(*[figure_pane(f) for f in phi[i:i + 2]],
-                                   sizing_mode="stretch_width"))
-        if Method.KOH not in shown:
-            return pn.Column(*objs, sizing_mode="stretch_width")
-        r = shown[Method.KOH]
-        m, chain = r.model, r.chain
-        c = s.case
-        theta = markdown_text(", ".join(
-            f"{n} = {mu:.4g} ± {sd:.2g}" + ("" if u in ("", "-") else f" {u}")
-            for n, mu, sd, u in zip(c.theta_names, m.theta.mean(axis=0), m.theta.std(axis=0),
-                                    c.theta_units)))
-        caveat = "" if chain.reliable else (" The chain is shorter than 50 autocorrelation "
-                                            "times, so these are themselves uncertain.")
-        summary = pn.pane.Markdown(
-            f"**KOH chain:** {chain.n_iter:,} iterations ({chain.burn_in:,} burn-in), "
-            f"acceptance {chain.acceptance_rate:.2f}, integrated autocorrelation time "
-            f"{', '.join(f'{t:.1f}' for t in chain.iat)}, ESS "
-            f"{', '.join(f'{e:,.0f}' for e in chain.ess)}.{caveat} Posterior θ: {theta}.",
-            css_classes=["koh-summary"])
-        # One pane per parameter, axes not linked (densities differ in scale): an
-        # hv.Layout of responsive plots in one pane drew each frame with no height.
-        post = pn.GridBox(*[pn.pane.HoloViews(o, sizing_mode="stretch_width",
-                                              height=plots.PLOT["height"], linked_axes=False)
-                            for o in plots.koh_posterior(c, m)],
-                          ncols=3, sizing_mode="stretch_width", css_classes=["koh-plot"])
-        return pn.Column(*objs, summary, post, sizing_mode="stretch_width")
-
-    # --- files: your data in, results out -------------------------------------------------
-    def _slug(self) -> str:
-        return re.sub(r"[^A-Za-z0-9_.-]+", "_", self.state.case_name).strip("_")
-
-    def _dropper(self, accept: str, handler, css: str, prompt: str) -> FileUpload:
-        """A drop area calling ``handler(data, filename) -> bool`` once per file (sent in
-        counted chunks, at most MAX_UPLOAD_BYTES); a file it refuses is marked refused
-        with its first problem (every problem is also a notification)."""
-        s = self.state
-
-        def take(data: bytes, filename: str) -> str | None:
-            problems: list[str] = []
-            watcher = s.param.watch(lambda _: problems.append(s.error), "n_errors")
-            try:
-                taken = handler(data, filename)
-            finally:
-                s.param.unwatch(watcher)
-            if taken:
-                return None
-            more = f" (and {len(problems) - 1} more: see the messages)" if problems[1:] else ""
-            return (problems[0] if problems else "It was not taken.") + more
-
-        return FileUpload(take=take, refuse=s.report_error, accept=accept, prompt=prompt,
-                          max_bytes=MAX_UPLOAD_BYTES, css_classes=[css], margin=(5, 10),
-                          sizing_mode="stretch_width")
-
-    def _download(self, label: str, css: str, make, filename):
-        """A download button whose file is made when pressed; disabled while ``make``
-        has nothing to give (no waves, no results)."""
-        def callback():
-            text = make()
-            return io.BytesIO(b"" if text is None else text.encode("utf-8"))
-
-        button = pn.widgets.FileDownload(callback=callback, filename=filename(), label=label,
-                                         color="primary", variant="outline",
-                                         css_classes=[css], sizing_mode="stretch_width")
-        return button
-
-    @param.depends("state.case")
-    def _upload_help(self):
-        s = self.state
-        c = s.case
-        columns = ", ".join(f"<code>{markdown_text(n)}</code>"
-                            for n in (*c.x_names, *c.output_names, TEST_COLUMN))
-        return pn.pane.Markdown(
-            "#### Your measurements\nA CSV for the simulator of the case selected on the left "
-            f"(now {markdown_text(s.base_case_name())}): a header row with the columns "
-            f"{columns} (`{TEST_COLUMN}`: 1 = held-out test row, 0 = training row), one row per "
-            "observation, replicates as repeated rows, `#` lines as comments. Start from "
-            f"the template. At most {MAX_ROWS:,} data rows, of which at most "
-            f"{MAX_TRAINING_ROWS:,} training rows, and {megabytes(MAX_UPLOAD_BYTES)}; the "
-            "file is only read, never run. It becomes a new case of this session, named "
-            "after the file.",
-            css_classes=["upload-help"])
+        return metrics_panel(self.state)
 
     def files_view(self):
         """The Files tab: your measurements in, a saved session in, results out."""
-        s = self.state
-
-        def nroy():
-            hm = s.history_match
-            return None if hm is None else nroy_csv(hm, s.case.theta_names, s.case.theta_units)
-
-        def predictions():
-            run = s.case_run()
-            return None if run is None else predictions_csv(run)
-
-        def report():
-            run = s.case_run()
-            return None if run is None else report_html(run)
-
-        downloads = {
-            "template": self._download("Template CSV (this case's data)", "dl-template",
-                                       lambda: measurements_template(s.case),
-                                       lambda: f"{self._slug()}_measurements.csv"),
-            "session": self._download("Session (JSON)", "dl-session", s.session_json,
-                                      lambda: f"{self._slug()}_session.json"),
-            "nroy": self._download("NROY samples (CSV)", "dl-nroy", nroy,
-                                   lambda: f"{self._slug()}_nroy.csv"),
-            "predictions": self._download("Predictions and δ bands (CSV)", "dl-predictions",
-                                          predictions, lambda: f"{self._slug()}_predictions.csv"),
-            "report": self._download("Report (HTML, opens offline)", "dl-report", report,
-                                     lambda: f"{self._slug()}_report.html"),
-        }
-
-        def refresh(*_):
-            slug = self._slug()
-            for key, ext in (("template", "_measurements.csv"), ("session", "_session.json"),
-                             ("nroy", "_nroy.csv"), ("predictions", "_predictions.csv"),
-                             ("report", "_report.html")):
-                downloads[key].filename = slug + ext
-            downloads["nroy"].disabled = not s.waves
-            downloads["predictions"].disabled = downloads["report"].disabled = not s.results
-
-        s.param.watch(refresh, ["case_name", "waves", "results"])
-        refresh()
-        return pn.Column(
-            self._upload_help,
-            pn.Row(self._dropper(".csv,text/csv", s.upload_measurements, "upload-csv",
-                                 "Drop your measurements CSV here, or click to choose it."),
-                   downloads["template"], sizing_mode="stretch_width"),
-            pn.pane.Markdown("#### Results out\nCSV tables (every wave's NROY samples with "
-                             "their implausibility; z and δ means and sds per method at the "
-                             "test inputs), a report with the plots that opens offline, and "
-                             "the session: settings and metrics as JSON, no pickle."),
-            pn.Row(downloads["nroy"], downloads["predictions"], sizing_mode="stretch_width"),
-            pn.Row(downloads["report"], downloads["session"], sizing_mode="stretch_width"),
-            pn.pane.Markdown("#### Open session…\nA session JSON saved here. Its case, "
-                             "settings, waves and methods are recomputed (every step is "
-                             "seeded) and checked against the saved metrics; the status line "
-                             "says whether they agree."),
-            self._dropper(".json,application/json", s.open_session, "open-session",
-                          "Drop a session JSON here, or click to choose it."),
-            sizing_mode="stretch_width", max_width=900)
+        return FilesView(state=self.state).__panel__()
 
     def try_view(self):
         """The "Things to try" tab: guided experiments, each a prediction to make and one
@@ -547,21 +310,31 @@ class ExplorerView(pn.viewable.Viewer):
                 sizing_mode="stretch_width"))
         return pn.Column(*cards, sizing_mode="stretch_width", max_width=900)
 
-    def _shown_only(self, tabs: ShowingTabs, index: int, view, params: list[str]) -> pn.Column:
+    def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes
         while tab ``index`` is shown, or when that tab is shown after such a change."""
         box = pn.Column(sizing_mode="stretch_width")
         stale = [True]
 
+        def build():
+            stale[0] = False
+            box.objects = [view()]
+
         def refresh(*_):
-            if tabs.active == index:
-                box.objects = [view()]
-                stale[0] = False
-            else:
+            if tabs.active != index:
                 stale[0] = True
+                return
+            doc = pn.state.curdoc
+            if doc is None or doc.session_context is None:
+                build()                                # not served: at once
+                return
+            # Served: say so at once and build on the next tick (shear-5's metrics take
+            # seconds; a blank tab meanwhile looked broken).
+            box.objects = [pn.pane.Markdown("*Updating …*", css_classes=["mdcore-updating"])]
+            pn.state.execute(build, schedule=True)
 
         self.state.param.watch(refresh, params)
-        tabs.before_show.append(lambda active: stale[0] and active == index and refresh())
+        when_shown(tabs, index, lambda: stale[0] and refresh())
         refresh()
         return box
 
@@ -580,9 +353,12 @@ class ExplorerView(pn.viewable.Viewer):
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
             metrics, sizing_mode="stretch_width")
-        tabs.extend([("Data", self._data), ("History matching", hm_tab),
-                     ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
-                     ("Files", self.files_view()), ("Things to try", self.try_view())])
+        # Each tab scrolls on its own, below its header, beside the sidebar.
+        tabs.extend([(name, pn.Column(view, scroll=True, sizing_mode="stretch_both"))
+                     for name, view in (
+                         ("Data", self._data), ("History matching", hm_tab),
+                         ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
+                         ("Files", self.files_view()), ("Things to try", self.try_view()))])
 
     def __panel__(self):
-        return pn.Row(self._controls(), self._tabs, sizing_mode="stretch_width")
+        return pn.Row(self._controls(), self._tabs, sizing_mode="stretch_both")

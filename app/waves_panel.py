@@ -5,7 +5,7 @@ The figures are built once per case (:mod:`.live_figures`): a new wave, the wave
 new implausibility map only replace the arrays of a few ``ColumnDataSource`` objects (a new
 wave's samples are appended; the player moves a filter of the waves shown), and the
 browser redraws those glyphs; no layout is rebuilt, and nothing changes a layout's
-``visible`` or size (see :meth:`WavesPanel._show_body`). HoloViews rebuilt every plot of
+``visible`` or size (a wave's plots keep their place). HoloViews rebuilt every plot of
 the tab for each wave and each step of the player (shear-5: 922 models, about 1.5 s on the
 server and ten in the browser).
 
@@ -15,14 +15,12 @@ What is drawn, for the waves 1..k shown (k: the player's wave, default the last)
   (p ≥ 2), or stacked histograms (p = 1), with the true θ (black cross or dashed line) and,
   at the last wave, θ_MAP (red star or line);
 * p = 2: wave k's combined implausibility over the θ box, clipped at 3T, with the contour
-  at T;
+  at its cut-off (T, or the χ² quantile of the multivariate rule);
 * the NROY fraction per wave, and the largest emulator variance at the retained points
   ÷ (V_o + V_m) per output (converged below 1).
 """
 
 from __future__ import annotations
-
-from typing import ClassVar
 
 import numpy as np
 import panel as pn
@@ -41,30 +39,34 @@ from bokeh.models import (
 )
 from bokeh.palettes import Category10_10, Viridis256
 
-from mdcore._validation import as_float_array, as_int, as_positive_float
+from mdcore._history_matching import MULTIVARIATE
 
 from .live_figures import (
     CURRENT,
     SLOT,
     LivePanel,
     below_legend,
-    blank,
     figure_pane,
     live_figure,
     live_text,
-    replace_data,
-    set_range,
-    set_top,
 )
-from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, WAVE_COLORS, axis_label
+from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, axis_label
+from .sources import blank, replace_data, set_range, set_top
 from .state import ExplorerState
+from .wave_data import (
+    MAX_WAVES,
+    SHOWN_WAVES_JS,
+    contour_lines,
+    histogram_columns,
+    legend_html,
+    nroy_columns,
+    padded,
+    variance_ratios,
+    wave_colors,
+)
 
 #: CSS class of every plot of the panel (the browser tests find them by it).
 CSS = "hm-plot"
-#: At most this many NROY samples of a wave are drawn.
-MAX_POINTS = 1500
-#: Histogram bins over a single parameter's prior box (p = 1).
-BINS = 40
 #: The implausibility colours stop at this multiple of T.
 CLIP = 3.0
 #: Height of the legend line above the plots (fixed: a new wave changes no layout).
@@ -78,127 +80,6 @@ EMPTY_HTML = "Press <b>Next wave</b> to run the first wave."
 #: and no clicks on it while it is not shown.
 PLAYER_HIDDEN = {**SLOT, "opacity": "0", "pointer-events": "none"}
 PLAYER_SHOWN = {**CURRENT, "pointer-events": "auto"}
-#: Most waves a history match can have (the upper bound of the Max waves control).
-MAX_WAVES = ExplorerState.param.max_waves.bounds[1]
-
-
-class WavePlayer(pn.widgets.Player):
-    """The wave player, whose steps the server takes at once.
-
-    Panel defers a browser's change of a widget by 50 ms (``Syncable._debounce``, for
-    typing) unless the property is one of the class's ``_priority_changes``; a step of the
-    player is one click, and its target is 0.3 s from click to pixels.
-    """
-
-    _priority_changes: ClassVar[list[str]] = ["value"]
-
-
-def wave_samples(wave, max_points: int = MAX_POINTS) -> np.ndarray:
-    """At most ``max_points`` of a wave's NROY samples (n, p): a subset drawn with a seed of
-    the wave's index, so a wave shows the same points whichever wave the player is at."""
-    max_points = as_int(max_points, "max_points", 1)
-    nroy = wave.nroy
-    if nroy.shape[0] > max_points:
-        rng = np.random.default_rng(wave.index)
-        nroy = nroy[np.sort(rng.choice(nroy.shape[0], max_points, replace=False))]
-    return nroy
-
-
-def nroy_columns(waves, p: int, max_points: int = MAX_POINTS) -> dict:
-    """The scatter data of waves (in order, later waves drawn on top): columns ``t0`` …
-    ``t{p-1}`` (θ) and ``wave`` (index, coloured by :func:`wave_colors`)."""
-    p = as_int(p, "p", 1)
-    parts = [(w.index, wave_samples(w, max_points)) for w in waves]
-    theta = np.concatenate([s for _, s in parts]) if parts else np.empty((0, p))
-    index = np.concatenate([np.full(s.shape[0], k, np.int32) for k, s in parts]) if parts \
-        else np.empty(0, np.int32)
-    return {**{f"t{i}": theta[:, i] for i in range(p)}, "wave": index}
-
-
-def histogram_columns(waves, bounds, bins: int = BINS) -> dict:
-    """Per wave, the histogram (counts) of its NROY samples of a single parameter over the
-    prior box: columns ``left``, ``right``, ``top``, ``wave`` (``bins`` rows a wave)."""
-    bins = as_int(bins, "bins", 1)
-    bounds = as_float_array(bounds, "bounds", ndim=2)
-    if bounds.shape[1] != 2 or not bounds[0, 0] < bounds[0, 1]:
-        raise ValueError(f"bounds must have rows (low, high) with low < high; received "
-                         f"{bounds.tolist()}.")
-    edges = np.linspace(bounds[0, 0], bounds[0, 1], bins + 1)
-    cols: dict[str, list] = {"left": [], "right": [], "top": [], "wave": []}
-    for w in waves:
-        counts, _ = np.histogram(wave_samples(w)[:, 0], bins=edges)
-        cols["left"] += list(edges[:-1])
-        cols["right"] += list(edges[1:])
-        cols["top"] += list(counts.astype(float))
-        cols["wave"] += [w.index] * bins
-    return {k: np.asarray(v, np.int32 if k == "wave" else float) for k, v in cols.items()}
-
-
-def wave_colors() -> dict:
-    """The colour of a row from its ``wave`` column, computed in the browser: wave k gets
-    ``WAVE_COLORS[(k − 1) mod 10]`` (a palette of :data:`MAX_WAVES` colours over
-    [0.5, MAX_WAVES + 0.5], one per integer). Sending colour names instead was a string
-    per sample, half of a wave's message."""
-    palette = [WAVE_COLORS[k % len(WAVE_COLORS)] for k in range(MAX_WAVES)]
-    return {"field": "wave", "transform": LinearColorMapper(
-        palette=palette, low=0.5, high=MAX_WAVES + 0.5)}
-
-
-#: The rows of waves 1..``upto`` (CustomJSFilter code): the player moves ``upto`` only.
-SHOWN_WAVES_JS = """
-const w = source.data.wave;
-const shown = new Array(w.length);
-for (let i = 0; i < w.length; i++) shown[i] = w[i] <= upto;
-return shown;
-"""
-
-
-def contour_lines(t1, t2, I, level: float) -> dict:
-    """The contour of ``I`` (n2, n1) at ``level`` on the grid (t1, t2): columns ``xs``,
-    ``ys`` (one list of points per line) for a ``multi_line`` glyph."""
-    from contourpy import contour_generator
-    t1, t2 = as_float_array(t1, "t1", ndim=1), as_float_array(t2, "t2", ndim=1)
-    I = as_float_array(I, "I", ndim=2)
-    if I.shape != (t2.size, t1.size):
-        raise ValueError(f"I must have shape (len(t2), len(t1)) = ({t2.size}, {t1.size}); "
-                         f"received {I.shape}.")
-    level = as_positive_float(level, "level", "(the threshold T, e.g. 3)")
-    if I.min() > level or I.max() < level:
-        return {"xs": [], "ys": []}
-    lines = contour_generator(t1, t2, I).lines(level)
-    return {"xs": [ln[:, 0] for ln in lines], "ys": [ln[:, 1] for ln in lines]}
-
-
-def variance_ratios(waves, n_out: int) -> np.ndarray:
-    """(n_out, n_waves): the largest emulator variance at retained points ÷ (V_o + V_m)."""
-    return np.array([[w.max_var[o] / w.var_threshold[o] for w in waves]
-                     for o in range(n_out)], dtype=float).reshape(n_out, len(waves))
-
-
-def padded(values, n: int) -> np.ndarray:
-    """``values`` (1-D) followed by NaNs (not drawn) up to length ``n``, as floats. A
-    non-finite value is kept (a ratio without a threshold is a gap in its line)."""
-    n = as_int(n, "n", 0)
-    values = as_float_array(values, "values", ndim=1, allow_empty=True, finite=False)
-    if values.size > n:
-        raise ValueError(f"values must have at most n = {n} entries; received {values.size}.")
-    out = np.full(n, np.nan)
-    out[:values.size] = values
-    return out
-
-
-def legend_html(waves, truth: bool, theta_map: bool, lines: bool = False) -> str:
-    """A legend line: a swatch per wave shown, then the true θ and θ_MAP markers (a cross
-    and a star, or for ``lines`` (p = 1) a dashed and a solid vertical line)."""
-    items = [f'<span style="color:{WAVE_COLORS[(w.index - 1) % len(WAVE_COLORS)]}">■</span> '
-             f"wave {w.index}" for w in waves]
-    if truth:
-        items.append("<b>┆</b> true θ" if lines else "<b>×</b> true θ")
-    if theta_map:
-        mark = "│" if lines else "★"
-        items.append(f'<span style="color:{THETA_MAP_COLOR}"><b>{mark}</b></span> θ_MAP '
-                     "(last wave)")
-    return " &nbsp; ".join(items)
 
 
 class WavesPanel(LivePanel):
@@ -212,7 +93,7 @@ class WavesPanel(LivePanel):
         # One player for the session, kept in the layout: rebuilding it for each wave
         # re-laid-out the page. Kept in its place but not shown until there are two waves
         # to step through (a style: see _show_body).
-        self._player = WavePlayer(label="Wave shown", start=1, end=2, value=1,
+        self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
                                   loop_policy="once", interval=800,
                                   show_loop_controls=False, styles=PLAYER_HIDDEN)
         self._player.param.watch(self._player_moved, "value")
@@ -364,7 +245,7 @@ class WavesPanel(LivePanel):
         if c.p == 1:
             self._map_line.location = None if theta_map is None else float(theta_map[0])
         if self._image is not None:
-            self._show_map(s.implausibility_maps.get(upto), hm.problem.options.threshold, upto)
+            self._show_map(s.implausibility_maps.get(upto), hm.problem, upto)
         self._legend_div.text = legend_html(shown, c.theta_true is not None,
                                           theta_map is not None, lines=c.p == 1)
         k = [w.index for w in shown]
@@ -449,8 +330,9 @@ class WavesPanel(LivePanel):
             with pn.io.hold():           # the updates of every plot go as one message
                 self.state.selected_wave = event.new
 
-    def _show_map(self, grid, threshold: float, wave: int) -> None:
-        """Wave ``wave``'s implausibility ``grid`` = (t1, t2, I), or a blank image."""
+    def _show_map(self, grid, problem, wave: int) -> None:
+        """Wave ``wave``'s implausibility ``grid`` = (t1, t2, I), or a blank image; the
+        contour at the problem's cut-off (T, or the χ² quantile of the multivariate rule)."""
         fig = self._image_fig
         if grid is None:
             replace_data(self._image, {"image": []})
@@ -458,12 +340,12 @@ class WavesPanel(LivePanel):
             fig.title.text = f"wave {wave}: no implausibility map"
             return
         t1, t2, I = grid
-        self._mapper.update(low=0.0, high=CLIP * threshold)
-        replace_data(self._image, {"image": [np.minimum(I, CLIP * threshold)]})
-        replace_data(self._contour, contour_lines(t1, t2, I, threshold))
-        fig.title.text = (f"wave {wave}: implausibility (clipped at {CLIP:g}T; contour at "
-                          f"T = {threshold:g})")
+        cutoff = problem.cutoff
+        self._mapper.update(low=0.0, high=CLIP * cutoff)
+        replace_data(self._image, {"image": [np.minimum(I, CLIP * cutoff)]})
+        replace_data(self._contour, contour_lines(t1, t2, I, cutoff))
+        name = ("χ²" if problem.options.rule == MULTIVARIATE else "T")
+        fig.title.text = f"wave {wave}: implausibility, contour at {name} = {cutoff:.3g}"
 
 
-__all__ = ["WavesPanel", "contour_lines", "histogram_columns", "legend_html", "nroy_columns",
-           "variance_ratios", "wave_samples"]
+__all__ = ["MAX_WAVES", "WavesPanel"]

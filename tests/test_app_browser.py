@@ -8,7 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
-from browser import PageLog, ServerLog, chromium, files_only, require_browser, serve_app, tab
+from browser import PageLog, chromium, files_only, require_browser, serve_app, tab
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 ROOT = Path(__file__).resolve().parent.parent
@@ -159,43 +159,6 @@ def test_two_sessions_do_not_share_results(browser, server):
     b.close()
 
 
-def _wait_for_log(log: ServerLog, text: str, count: int = 1, timeout: float = 90.0) -> None:
-    """Wait until ``text`` has appeared ``count`` times in the server's output."""
-    end = time.monotonic() + timeout
-    while log.text().count(text) < count:
-        if time.monotonic() > end:
-            raise AssertionError(f"the server never said {text!r} {count} time(s):\n"
-                                 + log.text()[-3000:])
-        time.sleep(0.2)
-
-
-def test_a_page_from_a_session_built_ahead_is_a_whole_session_of_its_own(browser):
-    """The server builds the next visitor's session while it is idle (app/session_pool.py)
-    and serves the next page from it: that page draws, talks to its own session (a case
-    switch there leaves the first page alone), and the server builds the next one."""
-    proc, url, log = serve_app()
-    try:
-        a, log_a = open_page(browser, url)
-        _wait_for_log(log, "built a session ahead")
-        b, log_b = open_page(browser, url)
-        _wait_for_log(log, "page served from a session built ahead")
-        assert_drawn(b, ".data-plot", 2)
-        b.locator("select").first.select_option("shear-5")        # the server answers:
-        b.wait_for_selector("text=/SYNTHETIC stand-in/", timeout=90_000)   # shear-5's data
-        assert_drawn(b, ".data-plot", 2)
-        _wait_for_log(log, "built a session ahead", count=2)   # refilled after b's page
-        assert a.locator("text=/SYNTHETIC stand-in/").count() == 0
-        assert a.locator("select").first.input_value() == "beam-1d"
-        assert b.locator("select").first.input_value() == "shear-5"
-        assert log_a.errors == [] and log_b.errors == []
-        assert log_b.hosts == {"127.0.0.1"}
-        a.close()
-        b.close()
-    finally:
-        proc.terminate()
-        proc.wait(timeout=10)
-
-
 def assert_drawn(page, selector, n):
     """At least ``n`` canvases under ``selector``, each with a size and with pixels beyond
     its background: a collapsed or empty plot fails (issue 17)."""
@@ -230,46 +193,6 @@ def _count_drawn(canvases, np, Image, BytesIO) -> int:
         if 1.0 - counts.max() / counts.sum() > 0.02:     # > 2 % not the background colour
             drawn += 1
     return drawn
-
-
-#: Counts each plot's paints, by plot (its CSS classes and id), installed before BokehJS runs.
-COUNT_PAINTS = """
-window.__paints = {};
-document.addEventListener('DOMContentLoaded', () => {
-  if (!window.Bokeh) return;                      // a frame without BokehJS
-  const view = Bokeh.require('models/plots/plot_canvas').PlotView.prototype;
-  if (view.__counted) return;                     // DOMContentLoaded can come twice
-  view.__counted = true;
-  const paint = view._actual_paint;
-  view._actual_paint = function (...args) {
-    const key = `${this.model.css_classes} ${this.model.id}`;
-    window.__paints[key] = (window.__paints[key] || 0) + 1;
-    return paint.apply(this, args);
-  };
-});
-"""
-
-
-def test_a_plot_with_a_legend_is_painted_once_when_it_is_first_shown(browser, server):
-    """BokehJS's legend observes its own size and re-lays-out its plot when the observer
-    first reports, at the size the plot was laid out with: a second layout and paint of
-    every plot when it is first shown. ``legend_resize.js`` skips that report; a legend whose
-    size really changes still gets its layout (the legend entries must fit)."""
-    page = browser.new_page(viewport={"width": 1280, "height": 720})
-    page.add_init_script(COUNT_PAINTS)
-    log = PageLog(page)
-    page.goto(server)
-    assert_drawn(page, ".data-plot", 2)
-    page.wait_for_timeout(1_000)                      # a second paint would come by now
-    paints = page.evaluate("window.__paints")
-    data = {k: n for k, n in paints.items() if "data-plot" in k}
-    assert len(data) == 2 and all(n == 1 for n in data.values()), paints
-    assert page.evaluate("window.mdcoreLegendResize") is True
-    legend = page.locator(".data-plot .bk-Legend").first  # laid out below the plot area,
-    box, plot = legend.bounding_box(), page.locator(".data-plot").first.bounding_box()
-    assert box["height"] > 10 and box["y"] + box["height"] <= plot["y"] + plot["height"] + 1
-    assert log.errors == []
-    page.close()
 
 
 #: Counts the page's requestAnimationFrame calls (installed before any script runs).

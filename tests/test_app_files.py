@@ -216,11 +216,15 @@ def edit(path, value):
     (edit(["controls", "v_m"], -0.5), "V_m"),
     (edit(["controls", "n_phi"], 0), "N_φ"),
     (edit(["controls", "rule"], "mean"), "rule"),
+    (edit(["controls", "busy"], True), "controls.busy is not a control of this app"),
+    (edit(["controls", "_cache"], {}), "controls._cache is not a control of this app"),
+    (edit(["controls", "v_m_length"], -1.0), "ℓ_m"),
     (b"[" * 100_000 + b"]" * 100_000, "nested too deeply"),
     (b'{"schema": ' + b"9" * 5000 + b"}", "more digits than Python reads"),
 ], ids=["not-json", "a-list", "other-schema", "newer-version", "missing-control",
         "wrong-type", "bool-for-int", "negative-waves", "unknown-case", "negative-v_m",
-        "zero-n_phi", "unknown-rule", "deeply-nested", "huge-integer"])
+        "zero-n_phi", "unknown-rule", "a-result-field", "a-private-attribute",
+        "negative-l_m", "deeply-nested", "huge-integer"])
 def test_a_bad_session_file_is_a_notification_and_changes_nothing(data, problem):
     s = small_state(v_m=0.07)
     s.run_to_convergence()
@@ -357,7 +361,8 @@ def test_the_app_refuses_more_work_than_its_limits_and_says_why(name, value, wor
     """The fields refuse values beyond the app's limits (the library takes 10⁷ candidates,
     10⁴ runs, 10⁵ × 10⁵ pairs) with a notification that says the limit and why; the
     session keeps its value. The limits themselves are accepted."""
-    from mdcore_app.state import APP_MAX_CANDIDATES, APP_MAX_N_PHI, APP_MAX_N_S, KOH_CHAINS
+    from mdcore_app.runs import KOH_CHAINS
+    from mdcore_app.session_model import APP_MAX_CANDIDATES, APP_MAX_N_PHI, APP_MAX_N_S
     s = ExplorerState()
     view = ExplorerView(state=s)
     fields = {w.label: w for w in view._controls().select(pn.widgets.Widget)
@@ -386,7 +391,7 @@ def test_scenario_3_and_koh_on_many_training_rows_are_refused_before_they_run():
     covariance per output: on 300 training rows, the app refuses what would take it
     minutes to hours, at once and with what to change; the built-in cases run at the
     paper's sizes and chain."""
-    from mdcore_app.state import work_problem
+    from mdcore_app.session_model import work_problem
     lines = ["crack location,tip deflection,test"]
     rng = np.random.default_rng(0)
     lines += [f"{x:.6f},{1.0 + 0.01 * rng.standard_normal():.6f},0"

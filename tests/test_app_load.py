@@ -266,8 +266,8 @@ def cpu_by_thread(duration: float) -> tuple[float, str]:
 def expected_session(threshold: float, seed: int):
     """(status line, {method label: metrics row}) of a session with these settings after
     "Run to convergence" and "Run discrepancy" at the defaults."""
+    from mdcore_app.metrics_view import metrics_frame
     from mdcore_app.state import ExplorerState
-    from mdcore_app.views import metrics_frame
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

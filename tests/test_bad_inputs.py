@@ -803,7 +803,7 @@ def test_app_fields_refuse_bad_values_and_keep_the_session(app_state, monkeypatc
                                                            value):
     s = app_state
     before, errors = app_snapshot(s), s.n_errors
-    guard(monkeypatch, "mdcore_app.state:run_method", "mdcore_app.state:next_wave")
+    guard(monkeypatch, "mdcore_app.runs:run_method", "mdcore_app.history_model:next_wave")
     accepted = type_into(s, field, value)
     assert not accepted, f"{field} = {value!r} was accepted"
     assert s.n_errors == errors + 1
@@ -829,7 +829,7 @@ def test_app_wave_on_settings_that_cannot_work_is_one_error_and_keeps_the_result
     s.param.update(**settings)
     before, errors = app_snapshot(s), s.n_errors
     if "n_candidates" in settings:                 # must be refused before any wave runs
-        guard(monkeypatch, "mdcore_app.state:next_wave")
+        guard(monkeypatch, "mdcore_app.history_model:next_wave")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         s.next_wave()

@@ -78,10 +78,11 @@ def test_band_change_patches_the_data_of_the_same_figures(beam1d):
                                    4 * np.sqrt(on_grid.z_var[:, 0]), rtol=1e-10)
         truth = source(after["Scenario 2: δ"], "y")
         np.testing.assert_allclose(truth["y"], s.case.true_delta(s.grid)[:, 0])
-        # The legend says "±kσ" (k of the Band control): a new legend text would re-lay-out
-        # every plot in the browser.
+        # The legend says the band's actual k (issue 41: it read "±kσ" whatever the band).
         labels = [item.label for f in after.values() for item in f.legend[0].items]
-        assert "Scenario 2 ±kσ" in str(labels) and "±3σ" not in str(labels)
+        texts = [getattr(label, "value", None) for label in labels]   # texts, no field names
+        assert "Scenario 2 ±2σ" in texts and None not in texts
+        assert "±3σ" not in str(labels) and "kσ" not in str(labels)
     finally:
         s.band = 3
 
@@ -323,14 +324,12 @@ def test_showing_the_tab_builds_the_plots_ahead_and_a_run_only_fills_them():
     """The chosen methods' plots are built, empty and hidden, when the tab is shown (a first
     run was mostly building them); the run fills the same figures and shows them. Empty
     plots are never shown, not even dimmed while the first run computes."""
-    from mdcore_app.views import ShowingTabs
-
     s = ExplorerState()
     s.case_name = "beam-1d"
     s.param.update(**SMALL)
     s.run_to_convergence()
     panel = DiscrepancyPanel(state=s)
-    tabs = ShowingTabs(("Data", pn.Column()), ("HM", pn.Column()), ("Discrepancy", panel))
+    tabs = pn.Tabs(("Data", pn.Column()), ("HM", pn.Column()), ("Discrepancy", panel))
     panel.prebuild_when_shown(tabs, 2)
     for bad in [(None, 2), (tabs, -1), (tabs, "2")]:
         with pytest.raises(ValueError, match=r"\(tabs, index\) must be \(tabs, index\)"):

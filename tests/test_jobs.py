@@ -9,13 +9,12 @@ sleeps: every wait is on a condition with a timeout.
 
 import queue
 import threading
-import time
 
 import pytest
 from event_loop import drain
 
 from mdcore._exceptions import Cancelled
-from mdcore_app.jobs import JobRunner, error_message, seconds_since_work
+from mdcore_app.jobs import JobRunner, error_message
 
 TIMEOUT = 30.0
 
@@ -293,14 +292,14 @@ def _fields(s):
 def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monkeypatch):
     """Scenario 1 is applied before KOH starts; KOH then fails: the results go back to what
     they were before the run (not scenario 1 alone), with one notification."""
-    import mdcore_app.state as state_module
+    import mdcore_app.runs as runs_module
     from mdcore._pipeline import Method
     s = _state()
     s.run_to_convergence()
     s.scenarios = [Method.S2]
     s.run_discrepancy()
     before, n = _fields(s), s.n_errors
-    real = state_module.run_method
+    real = runs_module.run_method
     applied = []
     s.param.watch(lambda e: applied.append(list(e.new)), "results")
 
@@ -309,7 +308,7 @@ def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monk
             raise RuntimeError("injected in KOH")
         return real(case, hm, method, *args, **kwargs)
 
-    monkeypatch.setattr(state_module, "run_method", failing)
+    monkeypatch.setattr(runs_module, "run_method", failing)
     s.scenarios = [Method.S1, Method.S2, Method.KOH]   # runs S1 and KOH (S2 is cached)
     assert [Method.S1, Method.S2] in applied           # S1 was shown before KOH failed
     assert not s.busy and s.n_errors == n + 1
@@ -319,11 +318,11 @@ def test_state_runtime_error_in_a_later_method_restores_the_earlier_results(monk
 
 
 def test_state_runtime_error_in_a_later_wave_restores_waves_and_status(monkeypatch):
-    import mdcore_app.state as state_module
+    import mdcore_app.history_model as history_module
     s = _state(max_waves=4, convergence_ratio=0.001)
     s.next_wave()
     before, n = _fields(s), s.n_errors
-    real, calls = state_module.next_wave, []
+    real, calls = history_module.next_wave, []
 
     def failing(problem, waves, progress=None):
         calls.append(len(waves))
@@ -331,7 +330,7 @@ def test_state_runtime_error_in_a_later_wave_restores_waves_and_status(monkeypat
             raise RuntimeError("simulator crashed")
         return real(problem, waves, progress)
 
-    monkeypatch.setattr(state_module, "next_wave", failing)
+    monkeypatch.setattr(history_module, "next_wave", failing)
     s.run_to_convergence()                             # wave 2 is applied, wave 3 fails
     assert calls == [1, 2]
     after = _fields(s)
@@ -385,24 +384,3 @@ def test_state_cancel_stops_a_running_discrepancy_run():
     drain(inbox, until=lambda: job.wait(0) and not s.busy, timeout=120.0)
     assert job.status == "cancelled" and s.n_errors == 0 and s.results == {}
     assert s.progress_message == ""
-
-
-def test_seconds_since_work_is_zero_while_a_job_works_then_counts_from_its_end():
-    """What the app's background chores wait on (app/session_pool.py): every session's
-    job threads count."""
-    release, started = threading.Event(), threading.Event()
-
-    def compute(report, cancel):
-        started.set()
-        release.wait(30)
-        yield 1
-
-    runner = JobRunner(background=True, schedule=lambda fn: None)
-    runner.submit("work", compute, lambda partial: None)
-    assert started.wait(30)
-    assert seconds_since_work() == 0.0
-    release.set()
-    end = time.monotonic() + 30
-    while seconds_since_work() == 0.0 and time.monotonic() < end:
-        time.sleep(0.01)
-    assert 0.0 < seconds_since_work() < 30.0

@@ -8,14 +8,8 @@ pytest.importorskip("bokeh")
 from bokeh.document import Document  # noqa: E402
 from bokeh.models import ColumnDataSource  # noqa: E402
 
-from mdcore_app.live_figures import (  # noqa: E402
-    BandFigure,
-    MapFigure,
-    blank,
-    replace_data,
-    set_range,
-    set_top,
-)
+from mdcore_app.live_figures import BandFigure, MapFigure  # noqa: E402
+from mdcore_app.sources import blank, replace_data, set_range, set_top  # noqa: E402
 
 X = np.linspace(0.0, 1.0, 5)
 GOOD = {"x": X, "mean": X ** 2, "var": np.full(5, 0.01), "k": 2}
@@ -92,7 +86,7 @@ def test_show_pane_and_show_only_show_a_pane_again_and_refuse_bad_arguments():
     with pytest.raises(ValueError, match=r"shown must be a key of panes, one of \[0, 1, 2\]"):
         show_only(panes, 7, parent, attach=False)
     assert panes[0].visible                            # nothing changed
-    for bad in [(), (pn.Tabs(), 0), (object(), 1), ("tabs", -1)]:
+    for bad in [(), (pn.Tabs(), -1), (object(), 1), ("tabs", -1)]:
         with pytest.raises(ValueError, match=r"shown_in must be \(tabs, index\)"):
             LivePanel(shown_in=bad)
 

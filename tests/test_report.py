@@ -97,3 +97,28 @@ def test_the_report_does_not_depend_on_bokehs_current_document(run):
     finally:
         set_curdoc(before)
     assert "Cracked cantilever" in html and html.count("<script") >= 2
+
+
+def test_bands_are_drawn_on_a_dense_grid_of_inputs_as_in_the_app(run):
+    """Issue 39/41: the report joined only the test inputs with straight lines (a tent on
+    beam-lab). Its bands are the app's BandFigure on the app's plotting grid."""
+    from bokeh.models import VArea
+
+    from mdcore_app.case_model import GRID_1D, plotting_grid
+
+    layout = report_layout(run)
+    bands = [r for r in layout.select({"type": GlyphRenderer}) if isinstance(r.glyph, VArea)]
+    assert len(bands) == 2 * len(run.results)                  # z and δ per method
+    grid = plotting_grid(run.case)[:, 0]
+    for r in bands:
+        x = np.asarray(r.data_source.data["x"])
+        assert x.size == GRID_1D and np.allclose(x, grid)
+        assert np.all(np.isfinite(r.data_source.data["lower"]))
+    s1 = next(r for r in run.results if r.method.value == "1")
+    expected = s1.model.predict(plotting_grid(run.case))
+    (fig,) = [f for f in layout.select({"type": Plot})
+              if f.title is not None and f.title.text == "Scenario 1: tip deflection (±2σ)"]
+    (band,) = [r for r in fig.renderers if isinstance(r.glyph, VArea)]
+    data = band.data_source.data
+    np.testing.assert_allclose(data["upper"] - data["lower"],
+                               4 * np.sqrt(expected.z_var[:, 0]), rtol=1e-8)

@@ -12,12 +12,8 @@ from bokeh.document import Document  # noqa: E402
 from mdcore_app.live_figures import CURRENT  # noqa: E402
 from mdcore_app.plots import WAVE_COLORS  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
-from mdcore_app.waves_panel import (  # noqa: E402
+from mdcore_app.wave_data import (  # noqa: E402
     MAX_POINTS,
-    MAX_WAVES,
-    PLAYER_HIDDEN,
-    PLAYER_SHOWN,
-    WavesPanel,
     contour_lines,
     histogram_columns,
     nroy_columns,
@@ -25,6 +21,7 @@ from mdcore_app.waves_panel import (  # noqa: E402
     variance_ratios,
     wave_colors,
 )
+from mdcore_app.waves_panel import MAX_WAVES, PLAYER_HIDDEN, PLAYER_SHOWN, WavesPanel  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -214,3 +211,27 @@ def test_padded_fills_with_nan_and_refuses_what_does_not_fit():
                             (np.zeros((2, 2)), 4, "values"), ([1.0], -1, "n")):
         with pytest.raises(ValueError, match=name):
             padded(values, n)
+
+
+def test_the_multivariate_rule_draws_its_map_against_the_chi2_cutoff():
+    """Issue 43 item 5: the rule selector offers "multivariate"; its implausibility is I_M²,
+    so the map's contour and colour clip are at ``problem.cutoff`` (the χ² quantile), not
+    T, and the title says which. ℓ_m reaches the problem."""
+    from mdcore._history_matching import RULE_NAMES
+    from mdcore._multivariate import chi2_cutoff
+
+    s = ExplorerState()
+    assert list(s.param.rule.objects) == list(RULE_NAMES) and "multivariate" in RULE_NAMES
+    assert "χ²" in s.param.rule.doc and "ℓ_m" in s.param.rule.doc
+    s.param.update(preset="paper", n_candidates=4000, rule="multivariate", v_m_length=0.1)
+    panel = WavesPanel(state=s)
+    pn.panel(panel).get_root(Document())
+    s.next_wave()
+    problem = s.history_match.problem
+    assert problem.options.rule == "multivariate"
+    np.testing.assert_allclose(problem.options.V_m_length, 0.1)
+    cutoff = chi2_cutoff(s.case.z_train.size, 0.995)
+    assert problem.cutoff == pytest.approx(cutoff) and cutoff > 3 * s.threshold
+    t1, t2, I = s.implausibility_maps[1]
+    np.testing.assert_array_equal(panel._image.data["image"][0], np.minimum(I, 3 * cutoff))
+    assert f"χ² = {cutoff:.3g}" in panel._image_fig.title.text

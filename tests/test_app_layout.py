@@ -1,0 +1,168 @@
+"""The app for a class at a projector's size (issues 39 and 41), in Debian's Chromium.
+
+Each test fails on something found by going through the app at 1280×720 and 1920×1080:
+plots scrolled away to reach a control, a progress bar hidden during a long run, a band
+legend that did not say its band (or said "Invalid field"), a refused number that named
+the state's class, and a tab that was blank before its first run.
+"""
+
+import time
+
+import pytest
+from browser import PageLog, chromium, require_browser, serve_app, tab
+
+SIZES = [(1280, 720), (1920, 1080)]
+
+
+@pytest.fixture(scope="module")
+def server():
+    require_browser()
+    proc, url, _log = serve_app()
+    yield url
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def browser(server):
+    yield from chromium()
+
+
+def open_page(browser, url, size=(1280, 720)):
+    page = browser.new_page(viewport={"width": size[0], "height": size[1]})
+    log = PageLog(page)
+    page.goto(url)
+    page.wait_for_selector(".data-plot canvas", timeout=60_000)
+    return page, log
+
+
+def wait_idle(page, timeout=120_000):
+    page.wait_for_timeout(300)
+    page.locator(".mdcore-idle").wait_for(state="attached", timeout=timeout)
+
+
+def in_view(page, locator) -> bool:
+    """Whether the element is wholly inside the window."""
+    box = locator.bounding_box()
+    size = page.viewport_size
+    return (box is not None and box["width"] > 0 and box["y"] >= 0 and box["x"] >= 0
+            and box["y"] + box["height"] <= size["height"] + 1
+            and box["x"] + box["width"] <= size["width"] + 1)
+
+
+#: Scroll every scrolling box that holds an element of class ``cls`` to its end (across
+#: shadow roots); returns how many it scrolled.
+SCROLL_BOX_OF = """(cls) => {
+  let n = 0;
+  const walk = root => { for (const e of root.querySelectorAll('*')) {
+    if (e.classList.contains(cls) && e.scrollHeight > e.clientHeight) {
+      e.scrollTop = e.scrollHeight; n++; }
+    if (e.shadowRoot) walk(e.shadowRoot); } };
+  walk(document);
+  return n;
+}"""
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
+def test_a_control_and_its_plots_are_seen_together(browser, server, size):
+    """Issue 41 item 4: the page itself never scrolls; the sidebar scrolls on its own, so
+    the band and seed controls at its end are reached with the plots still in place."""
+    page, log = open_page(browser, server, size)
+    page.get_by_role("button", name="Run discrepancy").click()
+    tab(page, "Discrepancy")
+    wait_idle(page)
+    plot = page.locator(".disc-plot").first
+    plot.wait_for(timeout=60_000)
+    before = plot.bounding_box()
+    assert in_view(page, plot)
+    scrolling = page.evaluate("() => document.scrollingElement.scrollHeight")
+    assert scrolling <= size[1] + 1, "the whole page scrolls"
+    page.evaluate(SCROLL_BOX_OF, "mdcore-sidebar")
+    page.wait_for_timeout(300)
+    seed = page.get_by_label("Seed", exact=True)
+    band = page.locator(".bk-btn-group").filter(has_text="2").filter(has_text="3").last
+    assert in_view(page, seed) and in_view(page, band)
+    assert plot.bounding_box() == before and in_view(page, plot)
+    assert log.errors == []
+    page.close()
+
+
+def test_the_progress_bar_shows_during_a_long_run(browser, server):
+    """Issue 41 item 2: the bar was ``visibility: hidden`` for the whole of a long run."""
+    page, log = open_page(browser, server)
+    page.locator(".bk-Checkbox", has_text="Paper sizes").locator("input").check()
+    page.get_by_role("button", name="Run discrepancy").click()
+    page.locator(".mdcore-busy").wait_for(state="attached", timeout=30_000)
+    bar = page.locator(".job-progress progress")
+    end, seen = time.monotonic() + 90, []
+    while time.monotonic() < end and page.locator(".mdcore-busy").count():
+        if bar.is_visible():
+            seen.append(bar.evaluate("e => [getComputedStyle(e).visibility, e.value]"))
+        page.wait_for_timeout(250)
+    assert seen, "no visible progress bar during the run"
+    assert all(v == "visible" for v, _ in seen) and max(x for _, x in seen) > 0
+    if page.locator(".mdcore-busy").count():
+        page.locator(".cancel-job button").click(timeout=5_000)
+    wait_idle(page)
+    assert log.errors == []
+    page.close()
+
+
+def test_the_band_legend_says_its_band(browser, server):
+    """Issue 41 item 10: the legend read "±kσ" whatever the band; set as a field name,
+    Bokeh drew "Invalid field"."""
+    page, log = open_page(browser, server)
+    page.get_by_role("button", name="Run discrepancy").click()
+    tab(page, "Discrepancy")
+    wait_idle(page)
+    def labels():          # the legends' labels as the browser holds them (drawn on canvas)
+        return page.evaluate("""() => { const out = [];
+          for (const d of Bokeh.documents) for (const m of d.all_models)
+            if (m.constructor.__name__ === "LegendItem") out.push(JSON.stringify(m.label));
+          return out; }""")
+
+    page.locator(".disc-plot canvas").first.wait_for(timeout=60_000)
+    texts = " ".join(labels())
+    assert "Scenario 1 ±3σ" in texts and "kσ" not in texts
+    assert '"field"' not in texts                     # drawn as "Invalid field"
+    group = page.locator(".bk-btn-group").filter(has_text="2").filter(has_text="3").last
+    group.get_by_role("button", name="2", exact=True).click()
+    page.wait_for_function("""() => { for (const d of Bokeh.documents) for (const m of d.all_models)
+        if (m.constructor.__name__ === "LegendItem"
+            && JSON.stringify(m.label).includes("Scenario 1 ±2σ")) return true;
+      return false; }""", timeout=30_000)
+    assert "Scenario 1 ±3σ" not in " ".join(labels())
+    assert log.errors == []
+    page.close()
+
+
+def test_a_refused_number_says_what_is_allowed_in_plain_words(browser, server):
+    """Issue 41 item 10: the toast named ``ExplorerState.v_m``, and its text overflowed."""
+    page, log = open_page(browser, server)
+    field = page.get_by_label("V_m", exact=True)
+    field.fill("-1")
+    field.press("Enter")
+    toast = page.locator(".notyf__toast", has_text="V_m").first
+    toast.wait_for(timeout=30_000)
+    text = toast.inner_text()
+    assert "is not allowed" in text and "greater than 0" in text
+    assert "ExplorerState" not in text and "v_m" not in text
+    message = page.locator(".notyf__message").first
+    fits = message.evaluate("e => e.scrollWidth <= e.clientWidth + 1")
+    box, outer = message.bounding_box(), toast.bounding_box()
+    assert fits and box["x"] + box["width"] <= outer["x"] + outer["width"] + 1
+    page.close()
+
+
+@pytest.mark.parametrize("name, words", [("History matching", "Press Next wave"),
+                                         ("Discrepancy", "press Run discrepancy"),
+                                         ("Metrics", "press Run discrepancy")])
+def test_no_tab_is_blank_before_its_first_run(browser, server, name, words):
+    """Issue 41 item 9: before any run a tab says what to press, within half a second."""
+    page, log = open_page(browser, server)
+    tab(page, name)
+    start = time.monotonic()
+    page.get_by_text(words).first.wait_for(timeout=30_000)
+    assert time.monotonic() - start < 0.5 + 0.5          # 0.5 s, with the test's own wait
+    assert log.errors == []
+    page.close()

@@ -110,8 +110,27 @@ def check_shown_in(shown_in, name: str) -> None:
 
 
 def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
-    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes the active one."""
-    tabs.param.watch(lambda event: event.new == index and hook(), "active")
+    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes the active one.
+
+    In a served session the hook runs on the next tick of the session's event loop, under
+    Panel's ``hold``, not inside the handler of the tab's own event: raw Bokeh models
+    changed there were refused now and then ("_pending_writes should be non-None"), and
+    the tab stayed blank.
+    """
+    def shown(event) -> None:
+        if event.new != index:
+            return
+        doc = pn.state.curdoc
+        if doc is None or doc.session_context is None:
+            hook()
+            return
+
+        def run() -> None:
+            with pn.io.hold(doc):
+                hook()
+        doc.add_next_tick_callback(run)
+
+    tabs.param.watch(shown, "active")
 
 
 class LivePanel(pn.viewable.Viewer):

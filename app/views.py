@@ -16,6 +16,7 @@ import param
 
 from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
+from .diagnostics_view import DiagnosticsView
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .files_view import FilesView
@@ -344,6 +345,7 @@ class ExplorerView(pn.viewable.Viewer):
         # else when it is next shown: Panel keeps updating a dynamic tab once it has been
         # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.
         metrics = self._shown_only(tabs, 3, self.metrics_view, ["results", "output"])
+        self._diagnostics = DiagnosticsView(self.state, tabs, 4)       # issue 42
         hm_tab = pn.Column(self.status_view, self.waves_view,
                            self.calibration_view, sizing_mode="stretch_width")
         metrics_tab = pn.Column(
@@ -358,6 +360,7 @@ class ExplorerView(pn.viewable.Viewer):
                      for name, view in (
                          ("Data", self._data), ("History matching", hm_tab),
                          ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
+                         ("Diagnostics", self._diagnostics),
                          ("Files", self.files_view()), ("Things to try", self.try_view()))])
 
     def __panel__(self):

@@ -14,10 +14,10 @@ from typing import NamedTuple
 import numpy as np
 import param
 
-from mdcore import _koh as koh
 from mdcore._pipeline import PAPER_SIZES, Method, MethodKey, MethodResult, Settings, run_method
 
-from . import session
+from . import experiments, session
+from .experiments import KOH_CHAINS
 from .history_model import HistoryModel, Note, ProblemKey, WaveDone
 from .session_model import APP_MAX_N_PHI, APP_MAX_N_S, work_problem
 
@@ -27,9 +27,6 @@ DEFAULT_N_S, DEFAULT_N_PHI = _INTERACTIVE.n_s, _INTERACTIVE.n_phi
 #: The columns of the Discrepancy tab, in order: decoupled scenarios 1–3 and the KOH
 #: baseline. The keys are the labels of the scenario buttons.
 METHODS = {"1": Method.S1, "2": Method.S2, "3": Method.S3, "koh": Method.KOH}
-#: KOH chain settings: the app's short chain and the paper's (SPEC §7); the app runs no
-#: longer chain (the library takes up to mdcore._mcmc.MAX_CHAIN = 10⁸ steps).
-KOH_CHAINS = {"fast": dict(koh.FAST), "paper": {"n_iter": koh.N_ITER, "burn_in": koh.BURN_IN}}
 
 def method_order(method: Method) -> int:
     """Sort key: scenario 1, 2, 3, then KOH."""
@@ -173,9 +170,7 @@ class DiscrepancyModel(HistoryModel):
 
     def method_settings(self) -> Settings:
         """The pipeline settings of the current controls (validated)."""
-        return Settings(n_s=self.n_s, n_phi=self.n_phi, proposal=self.proposal,
-                        fit_iterations=_INTERACTIVE.fit_iterations,
-                        **KOH_CHAINS[self.koh_chain])
+        return experiments.method_settings(self.param.values())
 
     def _key(self, method: Method, settings: Settings | None = None, *,
              problem_key: ProblemKey | None = None, n_waves: int | None = None) -> ResultKey:

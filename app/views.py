@@ -300,7 +300,7 @@ class ExplorerView(pn.viewable.Viewer):
         button that sets the controls."""
         cards = []
         for exp in EXPERIMENTS:
-            button = pn.widgets.Button(label="Set it up", color="primary",
+            button = pn.widgets.Button(label="Run it", color="primary",
                                        css_classes=[f"try-{exp.key}"], width=120)
             button.on_click(lambda _, k=exp.key: self.state.try_experiment(k))
             cards.append(pn.Column(

@@ -482,7 +482,7 @@ def test_things_to_try_set_the_controls_and_say_what_to_press():
         assert s.case_name == exp.settings["case_name"] and s.error == ""
         for name, value in exp.settings.items():
             assert getattr(s, name) == value, (exp.key, name)
-        assert s.status.endswith(exp.then)
+        assert s.status.endswith(exp.look)
     s.try_experiment("rule-out")
     s.run_to_convergence()                 # the experiment does what it says
     assert "nothing is non-implausible" in s.error or not s.history_match.contains(

@@ -18,6 +18,7 @@ from mdcore._history_matching import (
 )
 
 from .case_model import CaseModel
+from .glossary import tooltip
 from .session_model import APP_MAX_CANDIDATES, APP_MAX_RUNS
 from .teaching import PRESETS, preset_controls, teaching_design
 
@@ -81,13 +82,14 @@ class HistoryModel(CaseModel):
         objects=list(PRESETS), default="teaching", label="Preset",
         doc="teaching: a wave-1 design of a few runs and a strict convergence rule, so you "
             "can watch 3–5 waves shrink the non-implausible set; paper: the paper's design "
-            "(SPEC §5), which converges after one wave.")
+            "(docs/method.md §5), which converges after one wave.")
     v_m = param.Number(default=0.05, bounds=(0.0, 1e12), inclusive_bounds=(False, True),
                        softbounds=(0.001, 0.2), label="V_m",
-                       doc="Model-discrepancy variance in the case's output units squared "
-                           "(shear-5: of ω1; the other modes scale with their mean squared).")
+                       doc=tooltip("V_m") + " In the case's output units squared (shear-5: "
+                           "of ω1; the other modes scale with their mean squared).")
     threshold = param.Number(default=3.0, bounds=(0.0, 1e6), inclusive_bounds=(False, True),
-                             softbounds=(1.0, 5.0), label="Threshold T")
+                             softbounds=(1.0, 5.0), label="Threshold T",
+                             doc=tooltip("T"))
     rule = param.Selector(
         objects=list(RULE_NAMES), default="max", label="Implausibility rule",
         doc="max / 2nd max / 3rd max: each output and input scored alone, ruled out above T. "
@@ -106,8 +108,8 @@ class HistoryModel(CaseModel):
     max_waves = param.Integer(default=5, bounds=(1, 20), label="Max waves")
     convergence_ratio = param.Number(
         default=1.0, bounds=(0.001, 1.0), label="Convergence ratio",
-        doc="Stop when the emulator variance is below this × (V_o + V_m); 1 is SPEC §5. "
-            "Lower it to keep refining after the SPEC rule has converged.")
+        doc="Stop when the emulator variance is below this × (V_o + V_m); 1 is the rule of "
+            "docs/method.md §5. Lower it to keep refining after that rule has converged.")
     selected_wave = param.Integer(default=0, bounds=(0, None), label="Wave shown")
 
     waves = param.Parameter(default=(), doc="Tuple of the completed waves of the current match.")

@@ -18,6 +18,7 @@ from mdcore._pipeline import PAPER_SIZES, Method, MethodKey, MethodResult, Setti
 
 from . import experiments, session
 from .experiments import KOH_CHAINS
+from .glossary import tooltip
 from .history_model import HistoryModel, Note, ProblemKey, WaveDone
 from .session_model import APP_MAX_N_PHI, APP_MAX_N_S, work_problem
 
@@ -133,14 +134,15 @@ def methods_for(plan: RunPlan, waves: tuple, report, cancel):
 class DiscrepancyModel(HistoryModel):
     """Discrepancy settings, the cache of computed results and the ones shown."""
 
-    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, APP_MAX_N_S), label="N_s (θ samples)")
+    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, APP_MAX_N_S), label="N_s (θ samples)",
+                        doc=tooltip("N_s, N_φ"))
     n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, APP_MAX_N_PHI),
-                          label="N_φ (φ per θ)")
+                          label="N_φ (φ per θ)", doc=tooltip("N_s, N_φ"))
     paper_sizes = param.Boolean(default=False, label="Paper sizes")
     scenarios = param.ListSelector(default=[Method.S1, Method.S2, Method.S3],
                                    objects=METHODS, label="Scenarios",
-                                   doc="Decoupled scenarios 1–3 and the Kennedy–O'Hagan "
-                                       "baseline (koh), which calibrates θ and δ jointly.")
+                                   doc=" ".join(f"{t[0].upper()}{t[1:]}: {tooltip(t)}" for t in (
+                                       "scenario 1", "scenario 2", "scenario 3", "KOH")))
     koh_chain = param.Selector(objects=list(KOH_CHAINS), default="fast", label="KOH chain",
                                doc="fast: 20,000 iterations (5,000 burn-in); paper: 150,000 "
                                    "(50,000 burn-in), 0.4–1.2 s on beam-1d (compiled; "

@@ -19,6 +19,7 @@ from .data_panel import DataPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .files_view import FilesView
+from .glossary import tooltip
 from .live_figures import alert_box, live_text, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
@@ -42,6 +43,16 @@ def _status_html(busy: bool, task: str, detail: str = "") -> str:
     tail = f" {html.escape(detail)}" if detail else ""
     return f'<span class="mdcore-busy">Running <b>{html.escape(task)}</b> …{tail}</span>'
 DISCREPANCY_TAB = 2
+
+
+def terms(*words: str) -> pn.pane.HTML:
+    """A line naming the glossary's ``words`` of a tab, each with its definition as a
+    tooltip (app/glossary.py)."""
+    spans = " · ".join(f'<abbr title="{html.escape(tooltip(w))}">{html.escape(w)}</abbr>'
+                       for w in words)
+    return pn.pane.HTML(f"Words on this tab (hover for their meaning): {spans}",
+                        css_classes=["glossary-terms"], sizing_mode="stretch_width",
+                        styles={"font-size": "0.85em"})
 
 
 class ExplorerView(pn.viewable.Viewer):
@@ -344,11 +355,13 @@ class ExplorerView(pn.viewable.Viewer):
         # else when it is next shown: Panel keeps updating a dynamic tab once it has been
         # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.
         metrics = self._shown_only(tabs, 3, self.metrics_view, ["results", "output"])
-        hm_tab = pn.Column(self.status_view, self.waves_view,
+        hm_tab = pn.Column(terms("NROY", "V_o", "V_m", "T", "θ_MAP", "implausibility", "wave"),
+                           self.status_view, self.waves_view,
                            self.calibration_view, sizing_mode="stretch_width")
         metrics_tab = pn.Column(
-            pn.pane.Markdown("SPEC §8 metrics at the test inputs. NMSE in percent; RMSE δ "
-                             "in the output's units (NMSE δ divides by the variance of the "
+            terms("NMSE", "RMSE δ", "MMD", "LPL", "ESS", "ESS over φ", "k̂", "IAT", "KOH"),
+            pn.pane.Markdown("Metrics at the test inputs (docs/method.md §8). NMSE in percent; "
+                             "RMSE δ in the output's units (NMSE δ divides by the variance of the "
                              "true δ, which is tiny where δ hardly varies, as on shear-5); "
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
@@ -356,8 +369,11 @@ class ExplorerView(pn.viewable.Viewer):
         # Each tab scrolls on its own, below its header, beside the sidebar.
         tabs.extend([(name, pn.Column(view, scroll=True, sizing_mode="stretch_both"))
                      for name, view in (
-                         ("Data", self._data), ("History matching", hm_tab),
-                         ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
+                         ("Data", pn.Column(terms("V_o", "V_m", "θ"), self._data)),
+                         ("History matching", hm_tab),
+                         ("Discrepancy", pn.Column(terms(
+                             "δ", "scenario 1", "scenario 2", "scenario 3", "KOH", "N_s, N_φ"),
+                             self._discrepancy)), ("Metrics", metrics_tab),
                          ("Files", self.files_view()), ("Things to try", self.try_view()))])
 
     def __panel__(self):

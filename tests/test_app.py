@@ -535,7 +535,7 @@ def test_hidden_tabs_are_rebuilt_when_shown_not_on_every_change():
     page = pn.panel(ExplorerView(state=s))
     page.get_root(Document())
     (tabs,) = page.select(pn.Tabs)
-    metrics_box = tabs[3][0][1]                            # (in its scrolling column)
+    metrics_box = tabs[3][0][2]         # (in its scrolling column, after two lines)
     s.run_to_convergence()
     s.run_discrepancy()
     assert metrics_box.objects == []                       # never shown: nothing built

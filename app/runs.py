@@ -20,7 +20,7 @@ from . import experiments, session
 from .experiments import KOH_CHAINS
 from .glossary import tooltip
 from .history_model import HistoryModel, Note, ProblemKey, WaveDone
-from .session_model import APP_MAX_N_PHI, APP_MAX_N_S, work_problem
+from .session_model import APP_MAX_N_PHI, APP_MAX_N_S, estimate_seconds, work_problem
 
 _INTERACTIVE = Settings.interactive()
 #: Defaults sized for a sub-second scenario 1–3 update on beam-1d (see bench/bench_app.py).
@@ -145,8 +145,8 @@ class DiscrepancyModel(HistoryModel):
                                        "scenario 1", "scenario 2", "scenario 3", "KOH")))
     koh_chain = param.Selector(objects=list(KOH_CHAINS), default="fast", label="KOH chain",
                                doc="fast: 20,000 iterations (5,000 burn-in); paper: 150,000 "
-                                   "(50,000 burn-in), 0.4–1.2 s on beam-1d (compiled; "
-                                   "10–50 s on the NumPy backend), by machine.")
+                                   "(50,000 burn-in). The time grows with chain steps × "
+                                   "outputs × training rows³.")
     proposal = param.Selector(objects=["adaptive", "prior"], default=_INTERACTIVE.proposal,
                               label="φ proposal (scenario 3)",
                               doc="adaptive: importance sampling that adapts a Student-t to the "
@@ -173,6 +173,15 @@ class DiscrepancyModel(HistoryModel):
     def method_settings(self) -> Settings:
         """The pipeline settings of the current controls (validated)."""
         return experiments.method_settings(self.param.values())
+
+    def run_seconds(self, chain: str | None = None) -> float:
+        """Estimated seconds of running the chosen methods (:func:`estimate_seconds`), with
+        the KOH chain ``chain`` (default: the chosen one) if KOH is chosen."""
+        c, steps = self.case, KOH_CHAINS[chain or self.koh_chain]["n_iter"]
+        return estimate_seconds(c.X_train.shape[0], c.n_out,
+                                koh_steps=steps if Method.KOH in self.scenarios else 0,
+                                s3_pairs=self.n_s * self.n_phi if Method.S3 in self.scenarios
+                                else 0)
 
     def _key(self, method: Method, settings: Settings | None = None, *,
              problem_key: ProblemKey | None = None, n_waves: int | None = None) -> ResultKey:

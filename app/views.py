@@ -17,12 +17,13 @@ import param
 from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
 from .discrepancy_panel import DiscrepancyPanel
-from .experiments import EXPERIMENTS
+from .experiments import EXPERIMENTS, KOH_CHAINS
 from .files_view import FilesView
 from .glossary import tooltip
 from .live_figures import alert_box, live_text, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
+from .session_model import ANNOUNCE_SECONDS, estimate_seconds
 from .state import ExplorerState
 from .waves_panel import WavesPanel
 
@@ -117,15 +118,17 @@ class ExplorerView(pn.viewable.Viewer):
         conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
         next_btn.on_click(lambda _: s.next_wave())
         conv_btn.on_click(lambda _: s.run_to_convergence())
+        koh = self._choice("koh_chain")
         disc = pn.Column(
             self._number_input("n_s", pn.widgets.IntInput),
             self._number_input("n_phi", pn.widgets.IntInput),
             pn.Param(s.param, parameters=["paper_sizes"], show_name=False),
             self._choice("scenarios", pn.widgets.CheckButtonGroup),
-            self._choice("proposal"), self._choice("koh_chain"), self._choice("band"),
+            self._choice("proposal"), koh, self._choice("band"),
             self._number_input("seed", pn.widgets.IntInput))
         run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
         run_btn.on_click(lambda _: s.run_discrepancy())
+        self._announce(run_btn, koh.select(pn.widgets.TooltipIcon)[0])
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
@@ -145,6 +148,26 @@ class ExplorerView(pn.viewable.Viewer):
                     css_classes=["disc-controls"]),
             width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
             css_classes=["mdcore-sidebar"])
+
+    def _announce(self, run_btn, koh_icon) -> None:
+        """Say the estimated time of the next run on ``run_btn`` when it is over
+        :data:`ANNOUNCE_SECONDS`, and KOH's for both chains on this case in ``koh_icon``."""
+        s = self.state
+
+        def show(*_):
+            t = s.run_seconds()
+            run_btn.label = "Run discrepancy" + (f" (≈ {t:.0f} s)" if t > ANNOUNCE_SECONDS
+                                                 else "")
+            run_btn.description = f"Estimated {t:.1f} s for the chosen methods."
+            koh = [estimate_seconds(s.case.X_train.shape[0], s.case.n_out,
+                                    koh_steps=KOH_CHAINS[c]["n_iter"]) for c in KOH_CHAINS]
+            koh_icon.value = (f"{s.param.koh_chain.doc} Estimated for KOH on {s.case.name}: "
+                              + ", ".join(f"{c} ≈ {t:.1f} s" for c, t in zip(KOH_CHAINS, koh))
+                              + (" (over 3 s: the run button says so)."
+                                 if max(koh) > ANNOUNCE_SECONDS else "."))
+
+        s.param.watch(show, ["case", "scenarios", "koh_chain", "n_s", "n_phi"])
+        show()
 
     def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):
         """A button group for the state's parameter ``name``, with its label above it (a

@@ -19,7 +19,7 @@ from .data_panel import DataPanel
 from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS, KOH_CHAINS
 from .files_view import FilesView
-from .glossary import tooltip
+from .glossary import terms_html
 from .live_figures import alert_box, live_text, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
@@ -47,13 +47,9 @@ DISCREPANCY_TAB = 2
 
 
 def terms(*words: str) -> pn.pane.HTML:
-    """A line naming the glossary's ``words`` of a tab, each with its definition as a
-    tooltip (app/glossary.py)."""
-    spans = " · ".join(f'<abbr title="{html.escape(tooltip(w))}">{html.escape(w)}</abbr>'
-                       for w in words)
-    return pn.pane.HTML(f"Words on this tab (hover for their meaning): {spans}",
-                        css_classes=["glossary-terms"], sizing_mode="stretch_width",
-                        styles={"font-size": "0.85em"})
+    """The line of a tab naming its ``words``, their definitions as tooltips."""
+    return pn.pane.HTML(terms_html(*words), css_classes=["glossary-terms"],
+                        sizing_mode="stretch_width", styles={"font-size": "0.85em"})
 
 
 class ExplorerView(pn.viewable.Viewer):

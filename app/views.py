@@ -327,7 +327,7 @@ class ExplorerView(pn.viewable.Viewer):
 
     def try_view(self):
         """The "Things to try" tab: guided experiments, each a prediction to make and one
-        button that sets the controls."""
+        button that sets its controls and runs it."""
         cards = []
         for exp in EXPERIMENTS:
             button = pn.widgets.Button(label="Run it", color="primary",

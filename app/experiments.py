@@ -3,13 +3,14 @@ pressing, every control it depends on, what to press and where to look, and the 
 promises, which tests/test_experiments.py checks through mdcore's API.
 
 Each experiment is data; :meth:`mdcore_app.state.ExplorerState.try_experiment` applies
-its settings and puts :attr:`Experiment.then` in the status line. Nothing runs until the
-user presses the button it names, so the prediction comes first.
+its settings, runs what its ``expect`` needs (the history match; the methods too for the
+facts in :data:`METHOD_FACTS`) and puts :attr:`Experiment.look` in the status line. The
+card shows its question above its button, so the prediction comes first.
 
 Fields (the first five are the original shape; the others were added after them):
 
 key, title, predict, then
-    Identifier (CSS class ``try-<key>``), title, the question, what to press.
+    Identifier (CSS class ``try-<key>``), title, the question, what to do after the run.
 settings : dict
     EVERY control the card depends on, so the cards work in any order: the app's defaults
     (:func:`controls`) with the card's own values over them. Apply ``case_name`` first,
@@ -47,12 +48,14 @@ from mdcore._pipeline import Method
 
 from .teaching import preset_controls, teaching_design
 
-__all__ = ["EXPERIMENTS", "Experiment", "KOH_CHAINS", "controls", "history_options",
-           "method_settings"]
+__all__ = ["EXPERIMENTS", "Experiment", "KOH_CHAINS", "METHOD_FACTS", "controls",
+           "history_options", "method_settings"]
 
 _INTERACTIVE = Settings.interactive()
 #: The KOH chain lengths of the app's "KOH chain" control.
 KOH_CHAINS = {"fast": dict(FAST), "paper": {"n_iter": N_ITER, "burn_in": BURN_IN}}
+#: The ``expect`` facts about the discrepancy methods: a card with one runs them too.
+METHOD_FACTS = frozenset({"wider_band", "covers_better", "ess_phi_grows", "delta_worse"})
 
 
 class Experiment(NamedTuple):
@@ -111,7 +114,7 @@ EXPERIMENTS = (
         "Each wave adds a few simulator runs where θ is still plausible. Will the "
         "non-implausible share of the box fall by the same amount at every wave?",
         controls("beam-1d"),
-        "Press “Next wave” a few times and watch NROY % per wave (History matching tab).",
+        "Step “Wave shown” back through the waves and watch NROY % per wave.",
         look="History matching tab: NROY % per wave, and the non-implausible θ closing in "
              "on the truth ×.",
         promise="NROY falls at every wave, by less each time (34.8, 25.3, 23.4, 21.7, "
@@ -123,7 +126,7 @@ EXPERIMENTS = (
         "less than the real discrepancy needs, what happens to NROY, and to the true θ "
         "(the ×)?",
         controls("beam-1d", v_m=0.014),
-        "Press “Run to convergence”; then raise V_m back to 0.05 and compare.",
+        "Raise V_m back to 0.05, press “Run to convergence” and compare.",
         look="History matching tab: the non-implausible θ against the truth × and θ_MAP "
              "(the star).",
         promise="A small NROY set (0.37 % of the box) survives, but the truth × is "
@@ -136,7 +139,7 @@ EXPERIMENTS = (
         "scenario 2 also averages over θ. Which band is wider near x = 0.1, at the edge of "
         "the data, and which one covers the true δ?",
         controls("beam-1d", scenarios=[Method.S1, Method.S2], band=2),
-        "Press “Run discrepancy” and look at the δ row of the Discrepancy tab.",
+        "Compare the bands near x = 0.1 and where they miss the true δ.",
         look="Discrepancy tab, δ row: the ±2σ bands of scenarios 1 and 2 against the true δ.",
         promise="Scenario 2's band is wider near x = 0.1 (sd 0.11 against 0.017 mm for "
                 "x ≤ 0.2) and covers all of the true δ, scenario 1's 70 %.",
@@ -147,7 +150,7 @@ EXPERIMENTS = (
         "Scenario 3 weights (θ, φ) pairs drawn from the prior. With N_φ = 10, how many "
         "effective samples do you expect, and what happens at N_φ = 200?",
         controls("beam-1d", scenarios=[Method.S3], proposal="prior", n_phi=10),
-        "Press “Run discrepancy”, read ESS φ and k̂ (Metrics tab), then set N_φ to 200.",
+        "Read ESS φ and k̂ (Metrics tab), then set N_φ to 200 and read them again.",
         look="Metrics tab: ESS φ and k̂ of scenario 3.",
         promise="ESS over φ grows with N_φ: about 1 effective φ per θ at N_φ = 10 (the "
                 "weights are unreliable, k̂ > 0.7), about 4 at 200.",
@@ -157,7 +160,7 @@ EXPERIMENTS = (
         "Kennedy–O'Hagan learns θ and δ together. Will its θ land on the truth, and will "
         "its δ be as good as scenario 1's?",
         controls("beam-1d", scenarios=[Method.S1, Method.KOH]),
-        "Press “Run discrepancy”; compare the δ bands and the KOH θ posterior (Metrics).",
+        "Compare the δ bands and the KOH θ posterior (Metrics).",
         look="Discrepancy tab, δ row; Metrics tab: NMSE δ % of scenario 1 and KOH.",
         promise="KOH predicts z as well, but its δ NMSE is many times scenario 1's (32×: "
                 "64 against 2.0 %; the paper's Table 1: 22×): θ and δ trade off when learnt "
@@ -168,7 +171,7 @@ EXPERIMENTS = (
         "The frequencies depend on E and ρ mostly through E/ρ. Predict the shape of the "
         "non-implausible set in the (E, ρ) plane.",
         controls("shear-5", preset="paper"),
-        "Press “Run to convergence” and look at the E–ρ panel (History matching tab).",
+        "Add KOH under Scenarios, press “Run discrepancy”, and compare its E and ρ.",
         look="History matching tab, the E–ρ panel: NROY, the truth × and θ_MAP (the star).",
         promise="NROY is a diagonal band: every E and every ρ of the box survives, but only "
                 "in pairs whose E/ρ lies in about half of its range (E and ρ correlate at "

@@ -7,7 +7,9 @@ two; ``SECTION`` maps it to the section of docs/method.md that says more.
 
 from __future__ import annotations
 
-__all__ = ["GLOSSARY", "SECTION", "tooltip"]
+import html
+
+__all__ = ["GLOSSARY", "SECTION", "terms_html", "tooltip"]
 
 GLOSSARY = {
     "θ": "The simulator's calibration parameters, e.g. crack length l_cr and Young's "
@@ -64,3 +66,10 @@ SECTION = {"θ": 1, "δ": 1, "V_o": 5, "V_m": 5, "implausibility": 5, "T": 5, "N
 def tooltip(term: str) -> str:
     """The definition of ``term`` with where to read more, for a tooltip."""
     return f"{GLOSSARY[term]} (docs/method.md §{SECTION[term]})"
+
+
+def terms_html(*words: str) -> str:
+    """HTML naming ``words``, each an ``<abbr>`` whose title is its :func:`tooltip`."""
+    spans = " · ".join(f'<abbr title="{html.escape(tooltip(w))}">{html.escape(w)}</abbr>'
+                       for w in words)
+    return f"Words on this tab (hover for their meaning): {spans}"

@@ -8,7 +8,6 @@ from typing import NamedTuple
 
 import numpy as np
 import param
-import scipy.stats
 
 from mdcore._history_matching import (
     MULTIVARIATE,
@@ -19,30 +18,12 @@ from mdcore._history_matching import (
 )
 
 from .case_model import CaseModel
+from .glossary import tooltip
 from .session_model import APP_MAX_CANDIDATES, APP_MAX_RUNS
+from .teaching import PRESETS, preset_controls, teaching_design
 
 #: Resolution of the implausibility map (per axis).
 MAP_RESOLUTION = 60
-#: The teaching preset's wave-1 design and runs per wave: small enough that the waves
-#: visibly shrink NROY (beam-1d: 5 waves, 34.8 → 21.2 %; beam-2d: 3 waves, 54.5 → 37.7 %,
-#: with the true θ non-implausible), then ``TEACHING_RATIO`` × (V_o + V_m) to converge.
-#: shear-5 keeps its own 27-run design (None): its data pin only E/ρ, so NROY stays about
-#: 65 % whatever the design, and a 4-run emulator wrongly ruled out a sixth of the box.
-TEACHING = {"beam-1d": (4, 3), "beam-2d": (2, 1), "shear-5": (None, 15)}
-TEACHING_RATIO, TEACHING_MAX_WAVES = 0.1, 6
-
-
-def teaching_design(case, base_name: str) -> np.ndarray:
-    """The teaching preset's wave-1 design: a seeded Latin hypercube of a few runs, or the
-    case's own design where :data:`TEACHING` says None; shape (R0, p)."""
-    r0 = TEACHING.get(base_name, (case.p + 2, case.p))[0]
-    if r0 is None:
-        return case.initial_design
-    lhs = scipy.stats.qmc.LatinHypercube(d=case.p, seed=np.random.default_rng(0))
-    b = case.theta_bounds
-    return scipy.stats.qmc.scale(lhs.random(r0), b[:, 0], b[:, 1])
-
-
 class ProblemKey(NamedTuple):
     """The settings that define a history-matching problem; a change starts a new match."""
 
@@ -98,16 +79,17 @@ class HistoryModel(CaseModel):
     """History-matching settings and the waves of the current match."""
 
     preset = param.Selector(
-        objects=["teaching", "paper"], default="teaching", label="Preset",
+        objects=list(PRESETS), default="teaching", label="Preset",
         doc="teaching: a wave-1 design of a few runs and a strict convergence rule, so you "
             "can watch 3–5 waves shrink the non-implausible set; paper: the paper's design "
-            "(SPEC §5), which converges after one wave.")
+            "(docs/method.md §5), which converges after one wave.")
     v_m = param.Number(default=0.05, bounds=(0.0, 1e12), inclusive_bounds=(False, True),
                        softbounds=(0.001, 0.2), label="V_m",
-                       doc="Model-discrepancy variance in the case's output units squared "
-                           "(shear-5: of ω1; the other modes scale with their mean squared).")
+                       doc=tooltip("V_m") + " In the case's output units squared (shear-5: "
+                           "of ω1; the other modes scale with their mean squared).")
     threshold = param.Number(default=3.0, bounds=(0.0, 1e6), inclusive_bounds=(False, True),
-                             softbounds=(1.0, 5.0), label="Threshold T")
+                             softbounds=(1.0, 5.0), label="Threshold T",
+                             doc=tooltip("T"))
     rule = param.Selector(
         objects=list(RULE_NAMES), default="max", label="Implausibility rule",
         doc="max / 2nd max / 3rd max: each output and input scored alone, ruled out above T. "
@@ -126,8 +108,8 @@ class HistoryModel(CaseModel):
     max_waves = param.Integer(default=5, bounds=(1, 20), label="Max waves")
     convergence_ratio = param.Number(
         default=1.0, bounds=(0.001, 1.0), label="Convergence ratio",
-        doc="Stop when the emulator variance is below this × (V_o + V_m); 1 is SPEC §5. "
-            "Lower it to keep refining after the SPEC rule has converged.")
+        doc="Stop when the emulator variance is below this × (V_o + V_m); 1 is the rule of "
+            "docs/method.md §5. Lower it to keep refining after that rule has converged.")
     selected_wave = param.Integer(default=0, bounds=(0, None), label="Wave shown")
 
     waves = param.Parameter(default=(), doc="Tuple of the completed waves of the current match.")
@@ -144,13 +126,7 @@ class HistoryModel(CaseModel):
     def _apply_preset(self):
         """Runs per wave, convergence ratio and max waves of the preset (the wave-1
         design follows the preset in :meth:`_current_problem`)."""
-        if self.preset == "teaching":
-            runs = TEACHING.get(self.base_case_name(), (0, self.case.p))[1]
-            self.param.update(n_runs=runs, convergence_ratio=TEACHING_RATIO,
-                              max_waves=TEACHING_MAX_WAVES)
-        else:
-            self.param.update(n_runs=max(10, 5 * self.case.p), convergence_ratio=1.0,
-                              max_waves=5)
+        self.param.update(**preset_controls(self.case, self.base_case_name(), self.preset))
 
     def v_m_vector(self) -> np.ndarray:
         """V_m per output: ``v_m`` for output 1, scaled by (z̄_i / z̄_1)² for the others."""

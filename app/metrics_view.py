@@ -1,4 +1,5 @@
-"""The Metrics tab: SPEC §8 metrics, diagnostics and posteriors of the shown results."""
+"""The Metrics tab: the metrics (docs/method.md §8), diagnostics and posteriors of the
+shown results."""
 
 from __future__ import annotations
 
@@ -20,8 +21,8 @@ DIAGNOSTICS = ("ESS pairs", "ESS φ", "Pareto k", "acceptance", "IAT (max)", "ch
 
 
 def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
-    """One row per (method, output): the SPEC §8 metrics, the δ RMSE (output units), then
-    the method's diagnostics.
+    """One row per (method, output): the metrics (docs/method.md §8), the δ RMSE (output
+    units), then the method's diagnostics.
 
     The importance-sampling diagnostics (ESS over the (θ, φ) pairs, ESS over φ, Pareto k̂,
     "Pareto k")

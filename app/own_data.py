@@ -12,6 +12,8 @@ from mdcore._pipeline import Method, Settings
 
 from . import session
 from .case_model import OwnCase
+from .experiments import EXPERIMENTS, METHOD_FACTS
+from .history_model import Note
 from .runs import DiscrepancyModel, discrepancy_job, method_order
 from .session_model import APP_LIMITS, allowed_values
 
@@ -167,17 +169,28 @@ class OwnDataModel(DiscrepancyModel):
         return True
 
     def try_experiment(self, key: str) -> None:
-        """Set the controls of the guided experiment ``key`` (see
-        :mod:`mdcore_app.experiments`) and say in the status line what to press next."""
-        from .experiments import EXPERIMENTS
+        """Run the guided experiment ``key`` (see :mod:`mdcore_app.experiments`) as a
+        script: set every control of the card (the case first, then the preset and paper
+        sizes, then the rest, so earlier cards never matter), run the history match, and
+        the discrepancy methods when its promise is about them, then say in the status
+        line where to look."""
         exp = next((e for e in EXPERIMENTS if e.key == key), None)
         if exp is None:
             self.report_error(f"Unknown experiment {key!r}; choose one of "
                               f"{[e.key for e in EXPERIMENTS]}.")
             return
-        settings = dict(exp.settings)
-        self.case_name = settings.pop("case_name", self.case_name)
-        if "preset" in settings:
-            self.preset = settings.pop("preset")        # sets runs per wave etc. first
-        self.param.update(**settings)
-        self.status = f"{exp.title}: {exp.then}"
+        settings = self.set_controls(exp.settings, f"the card {exp.title!r}")
+        if exp.expect.keys() & METHOD_FACTS:
+            label, compute = "discrepancy", partial(discrepancy_job, self._plan(settings))
+        else:
+            label, compute = "waves", partial(self._wave_job, True)
+        self._jobs.submit(label, _then_say(compute, f"{exp.title} — look at: {exp.look}"),
+                          self._apply)
+
+
+def _then_say(compute, text: str):
+    """The job ``compute``, then ``text`` in the status line when it is done."""
+    def job(report, cancel):
+        yield from compute(report, cancel)
+        yield Note(text)
+    return job

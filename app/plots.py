@@ -72,7 +72,7 @@ def koh_posterior(case, model) -> list:
 # --- the metrics chart (issue 17, "the missing views").
 
 def phi_names(n_out: int, d_x: int) -> list[str]:
-    """Names of the discrepancy GP's log hyperparameters in the SPEC §2 layout.
+    """Names of the discrepancy GP's log hyperparameters in the layout of docs/method.md §2.
 
     Parameters
     ----------
@@ -113,7 +113,7 @@ def _phi_meaning(case, c: int) -> str:
 def phi_posterior(case, result, *, output: int | None = None, bins: int = 30) -> list:
     """Scenario 3's hyperparameter posterior against its prior (the paper's Figs 6, 9, 16).
 
-    Scenario 3 draws φ^(j,k) (SPEC §2 layout, log scale) and weights each (θ^(j), φ^(j,k))
+    Scenario 3 draws φ^(j,k) (docs/method.md §2 layout, log scale) and weights each (θ^(j), φ^(j,k))
     pair by its marginal likelihood (Eq. 15). The φ posterior of output o is the histogram
     of all drawn φ weighted by the normalised pair weights ``w_jk`` (they sum to 1 per
     output); the prior is the Gaussian the draws came from.

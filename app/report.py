@@ -144,7 +144,7 @@ def _theta_figure(run):
 def metric_bars(case, results, metric: str, paper: dict | None = None) -> list[tuple]:
     """One metric per method and output, beside the paper's value where it has one.
 
-    The one place that pairs this run's metrics with the paper's (SPEC §10): the report's
+    The one place that pairs this run's metrics with the paper's (mdcore._study.PAPER): the report's
     metrics figures and :func:`mdcore_app.plots.metrics_chart` both draw from it.
 
     Parameters

@@ -14,12 +14,13 @@ from typing import NamedTuple
 import numpy as np
 import param
 
-from mdcore import _koh as koh
 from mdcore._pipeline import PAPER_SIZES, Method, MethodKey, MethodResult, Settings, run_method
 
-from . import session
+from . import experiments, session
+from .experiments import KOH_CHAINS
+from .glossary import tooltip
 from .history_model import HistoryModel, Note, ProblemKey, WaveDone
-from .session_model import APP_MAX_N_PHI, APP_MAX_N_S, work_problem
+from .session_model import APP_MAX_N_PHI, APP_MAX_N_S, estimate_seconds, work_problem
 
 _INTERACTIVE = Settings.interactive()
 #: Defaults sized for a sub-second scenario 1–3 update on beam-1d (see bench/bench_app.py).
@@ -27,9 +28,6 @@ DEFAULT_N_S, DEFAULT_N_PHI = _INTERACTIVE.n_s, _INTERACTIVE.n_phi
 #: The columns of the Discrepancy tab, in order: decoupled scenarios 1–3 and the KOH
 #: baseline. The keys are the labels of the scenario buttons.
 METHODS = {"1": Method.S1, "2": Method.S2, "3": Method.S3, "koh": Method.KOH}
-#: KOH chain settings: the app's short chain and the paper's (SPEC §7); the app runs no
-#: longer chain (the library takes up to mdcore._mcmc.MAX_CHAIN = 10⁸ steps).
-KOH_CHAINS = {"fast": dict(koh.FAST), "paper": {"n_iter": koh.N_ITER, "burn_in": koh.BURN_IN}}
 
 def method_order(method: Method) -> int:
     """Sort key: scenario 1, 2, 3, then KOH."""
@@ -136,18 +134,19 @@ def methods_for(plan: RunPlan, waves: tuple, report, cancel):
 class DiscrepancyModel(HistoryModel):
     """Discrepancy settings, the cache of computed results and the ones shown."""
 
-    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, APP_MAX_N_S), label="N_s (θ samples)")
+    n_s = param.Integer(default=DEFAULT_N_S, bounds=(1, APP_MAX_N_S), label="N_s (θ samples)",
+                        doc=tooltip("N_s, N_φ"))
     n_phi = param.Integer(default=DEFAULT_N_PHI, bounds=(1, APP_MAX_N_PHI),
-                          label="N_φ (φ per θ)")
+                          label="N_φ (φ per θ)", doc=tooltip("N_s, N_φ"))
     paper_sizes = param.Boolean(default=False, label="Paper sizes")
     scenarios = param.ListSelector(default=[Method.S1, Method.S2, Method.S3],
                                    objects=METHODS, label="Scenarios",
-                                   doc="Decoupled scenarios 1–3 and the Kennedy–O'Hagan "
-                                       "baseline (koh), which calibrates θ and δ jointly.")
+                                   doc=" ".join(f"{t[0].upper()}{t[1:]}: {tooltip(t)}" for t in (
+                                       "scenario 1", "scenario 2", "scenario 3", "KOH")))
     koh_chain = param.Selector(objects=list(KOH_CHAINS), default="fast", label="KOH chain",
                                doc="fast: 20,000 iterations (5,000 burn-in); paper: 150,000 "
-                                   "(50,000 burn-in), 0.4–1.2 s on beam-1d (compiled; "
-                                   "10–50 s on the NumPy backend), by machine.")
+                                   "(50,000 burn-in). The time grows with chain steps × "
+                                   "outputs × training rows³.")
     proposal = param.Selector(objects=["adaptive", "prior"], default=_INTERACTIVE.proposal,
                               label="φ proposal (scenario 3)",
                               doc="adaptive (default, as on the command line): importance "
@@ -173,9 +172,16 @@ class DiscrepancyModel(HistoryModel):
 
     def method_settings(self) -> Settings:
         """The pipeline settings of the current controls (validated)."""
-        return Settings(n_s=self.n_s, n_phi=self.n_phi, proposal=self.proposal,
-                        fit_iterations=_INTERACTIVE.fit_iterations,
-                        **KOH_CHAINS[self.koh_chain])
+        return experiments.method_settings(self.param.values())
+
+    def run_seconds(self, chain: str | None = None) -> float:
+        """Estimated seconds of running the chosen methods (:func:`estimate_seconds`), with
+        the KOH chain ``chain`` (default: the chosen one) if KOH is chosen."""
+        c, steps = self.case, KOH_CHAINS[chain or self.koh_chain]["n_iter"]
+        return estimate_seconds(c.X_train.shape[0], c.n_out,
+                                koh_steps=steps if Method.KOH in self.scenarios else 0,
+                                s3_pairs=self.n_s * self.n_phi if Method.S3 in self.scenarios
+                                else 0)
 
     def _key(self, method: Method, settings: Settings | None = None, *,
              problem_key: ProblemKey | None = None, n_waves: int | None = None) -> ResultKey:

@@ -42,8 +42,22 @@ APP_LIMITS = {
            "(10⁶ pairs, the paper's largest; a minute or so); the command line takes more.",
 }
 APP_LIMITS["n_phi"] = APP_LIMITS["n_s"]
+#: Seconds per unit of work (above) of a KOH chain step and of a scenario-3 (θ, φ) pair,
+#: and a run's fixed cost: fitted to the app's runs on the built-in cases (paired timings
+#: in tests/test_app.py::test_estimate_seconds_matches_measured_runs).
+SECONDS_PER_KOH_WORK, SECONDS_PER_S3_WORK, SECONDS_FIXED = 1.3e-9, 5e-10, 0.4
+#: A run estimated longer than this says so on its button before it starts.
+ANNOUNCE_SECONDS = 3.0
 
 
+def estimate_seconds(n_train: int, n_out: int, *, koh_steps: int = 0,
+                     s3_pairs: int = 0) -> float:
+    """Rough seconds of a discrepancy run: each KOH chain step and each scenario-3 pair
+    factorises an ``n_train`` × ``n_train`` covariance per output (cubic in ``n_train``);
+    scenarios 1 and 2 are in the fixed cost. Within about a factor of 2."""
+    per = n_out * float(n_train) ** 3
+    return SECONDS_FIXED + per * (SECONDS_PER_KOH_WORK * koh_steps
+                                  + SECONDS_PER_S3_WORK * s3_pairs)
 
 
 def work_problem(case, settings: Settings, methods) -> str | None:

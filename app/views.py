@@ -1,10 +1,5 @@
-"""Views of the Model Discrepancy Explorer, built from an :class:`ExplorerState`.
-
-The views hold no results: they read the state, draw with :mod:`mdcore_app.plots` (the Data and
-Metrics tabs, rebuilt when shown after a change) or with the panels updated in place
-(:mod:`.waves_panel`, :mod:`.calibration_panel`, :mod:`.discrepancy_panel`), and turn
-button presses into calls of the state's methods.
-"""
+"""Views of the Model Discrepancy Explorer: they read an :class:`ExplorerState`, draw it
+(tabs rebuilt when shown, or panels updated in place) and turn presses into state calls."""
 
 from __future__ import annotations
 
@@ -18,11 +13,13 @@ from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
 from .diagnostics_view import DiagnosticsView
 from .discrepancy_panel import DiscrepancyPanel
-from .experiments import EXPERIMENTS
+from .experiments import EXPERIMENTS, KOH_CHAINS
 from .files_view import FilesView
+from .glossary import terms_html
 from .live_figures import alert_box, live_text, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
+from .session_model import ANNOUNCE_SECONDS, estimate_seconds
 from .state import ExplorerState
 from .waves_panel import WavesPanel
 
@@ -43,6 +40,12 @@ def _status_html(busy: bool, task: str, detail: str = "") -> str:
     tail = f" {html.escape(detail)}" if detail else ""
     return f'<span class="mdcore-busy">Running <b>{html.escape(task)}</b> …{tail}</span>'
 DISCREPANCY_TAB = 2
+
+
+def terms(*words: str) -> pn.pane.HTML:
+    """The line of a tab naming its ``words``, their definitions as tooltips."""
+    return pn.pane.HTML(terms_html(*words), css_classes=["glossary-terms"],
+                        sizing_mode="stretch_width", styles={"font-size": "0.85em"})
 
 
 class ExplorerView(pn.viewable.Viewer):
@@ -107,15 +110,17 @@ class ExplorerView(pn.viewable.Viewer):
         conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
         next_btn.on_click(lambda _: s.next_wave())
         conv_btn.on_click(lambda _: s.run_to_convergence())
+        koh = self._choice("koh_chain")
         disc = pn.Column(
             self._number_input("n_s", pn.widgets.IntInput),
             self._number_input("n_phi", pn.widgets.IntInput),
             pn.Param(s.param, parameters=["paper_sizes"], show_name=False),
             self._choice("scenarios", pn.widgets.CheckButtonGroup),
-            self._choice("proposal"), self._choice("koh_chain"), self._choice("band"),
+            self._choice("proposal"), koh, self._choice("band"),
             self._number_input("seed", pn.widgets.IntInput))
         run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
         run_btn.on_click(lambda _: s.run_discrepancy())
+        self._announce(run_btn, koh.select(pn.widgets.TooltipIcon)[0])
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
@@ -135,6 +140,26 @@ class ExplorerView(pn.viewable.Viewer):
                     css_classes=["disc-controls"]),
             width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
             css_classes=["mdcore-sidebar"])
+
+    def _announce(self, run_btn, koh_icon) -> None:
+        """Say the estimated time of the next run on ``run_btn`` when it is over
+        :data:`ANNOUNCE_SECONDS`, and KOH's for both chains on this case in ``koh_icon``."""
+        s = self.state
+
+        def show(*_):
+            t = s.run_seconds()
+            run_btn.label = "Run discrepancy" + (f" (≈ {t:.0f} s)" if t > ANNOUNCE_SECONDS
+                                                 else "")
+            run_btn.description = f"Estimated {t:.1f} s for the chosen methods."
+            koh = [estimate_seconds(s.case.X_train.shape[0], s.case.n_out,
+                                    koh_steps=KOH_CHAINS[c]["n_iter"]) for c in KOH_CHAINS]
+            koh_icon.value = (f"{s.param.koh_chain.doc} Estimated for KOH on {s.case.name}: "
+                              + ", ".join(f"{c} ≈ {t:.1f} s" for c, t in zip(KOH_CHAINS, koh))
+                              + (" (over 3 s: the run button says so)."
+                                 if max(koh) > ANNOUNCE_SECONDS else "."))
+
+        s.param.watch(show, ["case", "scenarios", "koh_chain", "n_s", "n_phi"])
+        show()
 
     def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):
         """A button group for the state's parameter ``name``, with its label above it (a
@@ -298,10 +323,10 @@ class ExplorerView(pn.viewable.Viewer):
 
     def try_view(self):
         """The "Things to try" tab: guided experiments, each a prediction to make and one
-        button that sets the controls."""
+        button that sets its controls and runs it."""
         cards = []
         for exp in EXPERIMENTS:
-            button = pn.widgets.Button(label="Set it up", color="primary",
+            button = pn.widgets.Button(label="Run it", color="primary",
                                        css_classes=[f"try-{exp.key}"], width=120)
             button.on_click(lambda _, k=exp.key: self.state.try_experiment(k))
             cards.append(pn.Column(
@@ -345,12 +370,14 @@ class ExplorerView(pn.viewable.Viewer):
         # else when it is next shown: Panel keeps updating a dynamic tab once it has been
         # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.
         metrics = self._shown_only(tabs, 3, self.metrics_view, ["results", "output"])
-        self._diagnostics = DiagnosticsView(self.state, tabs, 4)       # issue 42
-        hm_tab = pn.Column(self.status_view, self.waves_view,
+        self._diagnostics = DiagnosticsView(self.state, tabs, 4)
+        hm_tab = pn.Column(terms("NROY", "V_o", "V_m", "T", "θ_MAP", "implausibility", "wave"),
+                           self.status_view, self.waves_view,
                            self.calibration_view, sizing_mode="stretch_width")
         metrics_tab = pn.Column(
-            pn.pane.Markdown("SPEC §8 metrics at the test inputs. NMSE in percent; RMSE δ "
-                             "in the output's units (NMSE δ divides by the variance of the "
+            terms("NMSE", "RMSE δ", "MMD", "LPL", "ESS", "ESS over φ", "k̂", "IAT", "KOH"),
+            pn.pane.Markdown("Metrics at the test inputs (docs/method.md §8). NMSE in percent; "
+                             "RMSE δ in the output's units (NMSE δ divides by the variance of the "
                              "true δ, which is tiny where δ hardly varies, as on shear-5); "
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
@@ -358,8 +385,11 @@ class ExplorerView(pn.viewable.Viewer):
         # Each tab scrolls on its own, below its header, beside the sidebar.
         tabs.extend([(name, pn.Column(view, scroll=True, sizing_mode="stretch_both"))
                      for name, view in (
-                         ("Data", self._data), ("History matching", hm_tab),
-                         ("Discrepancy", self._discrepancy), ("Metrics", metrics_tab),
+                         ("Data", pn.Column(terms("V_o", "V_m", "θ"), self._data)),
+                         ("History matching", hm_tab),
+                         ("Discrepancy", pn.Column(terms(
+                             "δ", "scenario 1", "scenario 2", "scenario 3", "KOH", "N_s, N_φ"),
+                             self._discrepancy)), ("Metrics", metrics_tab),
                          ("Diagnostics", self._diagnostics),
                          ("Files", self.files_view()), ("Things to try", self.try_view()))])
 

@@ -15,6 +15,7 @@ import mdcore
 from mdcore._pipeline import Method
 from mdcore_app.experiments import (
     EXPERIMENTS,
+    METHOD_FACTS,
     controls,
     history_options,
     method_settings,
@@ -34,12 +35,20 @@ def run(case, hm, settings, method, **over):
 
 
 def check(card, data_seed: int = 0, hm_seed: int = 0) -> dict:
-    """The card's ``expect`` facts, measured: fact -> (holds, the numbers behind it)."""
+    """The card's ``expect`` facts, measured through mdcore's API."""
     s = card.settings
     case, hm = history_match(s, data_seed, seed=hm_seed)
+    results = {m: run(case, hm, s, m) for m in s["scenarios"]} if card.expect.keys() & \
+        METHOD_FACTS else {}
+    return measure(card, case, hm, results,
+                   lambda n_phi: run(case, hm, s, Method.S3, n_phi=n_phi).importance.ess_phi[0])
+
+
+def measure(card, case, hm, results, ess_phi_at) -> dict:
+    """The card's ``expect`` facts on a history match and method results: fact -> (holds,
+    the numbers behind it); ``ess_phi_at(n_phi)`` runs scenario 3 at another N_φ."""
+    s = card.settings
     ruled_out = hm.status == "ruled_out"
-    results = {m: run(case, hm, s, m) for m in s["scenarios"]} if card.expect.keys() & {
-        "wider_band", "covers_better", "ess_phi_grows", "delta_worse"} else {}
     found = {}
     for fact, want in card.expect.items():
         if fact == "truth_in_nroy":
@@ -61,7 +70,7 @@ def check(card, data_seed: int = 0, hm_seed: int = 0) -> dict:
             found[fact] = (cover[want[0]] > cover[want[1]], cover)
         elif fact == "ess_phi_grows":
             few = results[Method.S3].importance.ess_phi[0]
-            many = run(case, hm, s, Method.S3, n_phi=want).importance.ess_phi[0]
+            many = ess_phi_at(want)
             found[fact] = (many > few, (few, many))
         elif fact == "delta_worse":
             method, than, factor = want
@@ -114,13 +123,33 @@ def test_every_card_sets_every_control_and_names_the_marks_right():
         controls("beam-1d", vm=0.01)
 
 
-@pytest.mark.parametrize("order_seed", [0, 1, 2])
-def test_the_cards_leave_the_same_controls_in_any_order(order_seed):
+def shown_effect(state, card) -> dict:
+    """The card's promise as the app's state shows it after the card ran: the same facts
+    as :func:`check`, on the state's own history match and results."""
+    def ess_phi_at(n_phi):
+        state.n_phi = n_phi                  # reruns scenario 3, as a user would
+        return state.results[Method.S3].importance.ess_phi[0]
+    return measure(card, state.case, state.history_match, dict(state.results), ess_phi_at)
+
+
+@pytest.mark.filterwarnings("ignore::mdcore.LowESSWarning")
+@pytest.mark.parametrize("order_seed", [0, 1])
+def test_each_card_runs_and_shows_its_promise_in_any_order(order_seed):
+    """Every card, pressed in a shuffled order on one reused session and on a fresh one,
+    sets every control it names, runs, shows its promise and says where to look."""
     from mdcore_app.state import ExplorerState
-    state = ExplorerState()
-    keys = list(CARDS) * 2
+    reused = ExplorerState()
+    keys = list(CARDS)
     random.Random(order_seed).shuffle(keys)
     for key in keys:
-        state.try_experiment(key)
-        for name, value in CARDS[key].settings.items():
-            assert getattr(state, name) == value, (key, name)
+        for state in (reused, ExplorerState()) if order_seed == 0 else (reused,):
+            card = CARDS[key]
+            state.try_experiment(key)
+            assert state.error == "", (key, state.error)
+            for name, value in card.settings.items():
+                assert getattr(state, name) == value, (key, name)
+            assert state.status.endswith(card.look), (key, state.status)
+            if card.expect.keys() & METHOD_FACTS:
+                assert set(state.results) == set(card.settings["scenarios"]), key
+            found = shown_effect(state, card)
+            assert all(ok for ok, _ in found.values()), (key, found)

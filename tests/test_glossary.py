@@ -40,3 +40,27 @@ def test_no_doc_cites_the_spec():
     for path in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
         text = path.read_text(encoding="utf-8")
         assert "SPEC §" not in text and "shared/SPEC.md" not in text, path.name
+
+
+#: Every word of issue 41's list that the app shows, as the glossary spells it.
+ON_SCREEN = (*NAMED, "RMSE δ", "ESS", "N_s, N_φ")
+
+
+def test_every_word_on_screen_has_its_glossary_tooltip_and_no_spec():
+    """Tooltips of the controls (their description or help icon) and the tabs' word lines
+    hold each word's glossary text; nothing on screen cites SPEC."""
+    import html
+
+    import panel as pn
+
+    from mdcore_app.state import ExplorerState
+    from mdcore_app.views import ExplorerView
+
+    page = ExplorerView(state=ExplorerState()).__panel__()
+    texts = [str(p.object) for p in page.select(pn.pane.PaneBase)]
+    texts += [str(w.value) for w in page.select(pn.widgets.TooltipIcon)]
+    texts += [str(getattr(w, "description", "") or "") for w in page.select(pn.widgets.Widget)]
+    shown = html.unescape(" ".join(texts))
+    for term in ON_SCREEN:
+        assert tooltip(term) in shown, term
+    assert "SPEC" not in shown

@@ -110,13 +110,9 @@ def check_shown_in(shown_in, name: str) -> None:
 
 
 def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
-    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes the active one.
-
-    In a served session the hook runs on the next tick of the session's event loop, under
-    Panel's ``hold``, not inside the handler of the tab's own event: raw Bokeh models
-    changed there were refused now and then ("_pending_writes should be non-None"), and
-    the tab stayed blank.
-    """
+    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes active: served, on the next
+    tick under Panel's ``hold`` (raw Bokeh models changed inside the tab's own event were
+    now and then refused, "_pending_writes should be non-None", leaving the tab blank)."""
     def shown(event) -> None:
         if event.new != index:
             return

@@ -14,6 +14,7 @@ import pytest
 
 pytest.importorskip("holoviews")
 import holoviews as hv  # noqa: E402
+from bokeh.document import Document  # noqa: E402
 from bokeh.model import Model  # noqa: E402
 from bokeh.models import GlyphRenderer  # noqa: E402
 from legends import legend  # noqa: E402
@@ -33,7 +34,10 @@ hv.extension("bokeh")
 def render(obj):
     """The Bokeh figure of ``obj`` (a figure, or a HoloViews element rendered); every glyph
     renderer must have non-empty data."""
-    fig = obj if isinstance(obj, Model) else hv.render(obj)
+    # A document of its own: an in-process server test may leave a closed session's
+    # document as the current one, and HoloViews renders into the current one.
+    fig = obj if isinstance(obj, Model) else \
+        hv.renderer("bokeh").get_plot(obj, doc=Document()).state
     renderers = list(fig.select({"type": GlyphRenderer}))
     assert renderers, "the plot has no glyphs"
     for r in renderers:

@@ -153,7 +153,8 @@ class ExplorerView(pn.viewable.Viewer):
             run_btn.description = f"Estimated {t:.1f} s for the chosen methods."
             koh = [estimate_seconds(s.case.X_train.shape[0], s.case.n_out,
                                     koh_steps=KOH_CHAINS[c]["n_iter"]) for c in KOH_CHAINS]
-            koh_icon.value = (f"{s.param.koh_chain.doc} Estimated for KOH on {s.case.name}: "
+            koh_icon.value = (f"{s.param.koh_chain.doc} Estimated for KOH on "
+                              f"{html_text(s.case.name)}: "
                               + ", ".join(f"{c} ≈ {t:.1f} s" for c, t in zip(KOH_CHAINS, koh))
                               + (" (over 3 s: the run button says so)."
                                  if max(koh) > ANNOUNCE_SECONDS else "."))

@@ -142,6 +142,8 @@ def test_browser_diagnostics_tab_on_beam_1d():
             page.wait_for_selector(".diag-placeholder:has-text('Press')", timeout=2_000)
             page.get_by_role("button", name="Run to convergence").click()
             page.wait_for_selector(".diag-loo-table", timeout=90_000)
+            # A new request supersedes a running one: let the waves finish first.
+            page.wait_for_selector(".mdcore-idle", timeout=90_000)
             page.get_by_role("button", name="Run discrepancy").click()
             page.wait_for_selector(".diag-delta", timeout=90_000)
             rows = page.locator(".diag-loo-table tr").count() - 1

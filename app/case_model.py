@@ -14,12 +14,11 @@ from .session_model import SessionModel
 
 #: Points of the 1-D bands: smooth at a third of the page (a GP band between points 1 % of
 #: the span apart is straight to the eye), and the mixture of scenario 3 predicts at them
-#: as well as at the test inputs (201 were 40 % of shear-5's scenario-3 run).
+#: as well as at the test inputs (its cost: docs/performance.md).
 GRID_1D = 101
 #: Points per axis of the 2-D δ maps: beam-2d's test grid (20 × 20 over the same span), so
 #: the maps show the very predictions the metrics score, and the grid costs no second
-#: prediction (``run_method`` predicts once at inputs that are both; 30 × 30 made
-#: scenario 3's mixture 1,300 points instead of 400, 0.9 s of a 1.5 s run).
+#: prediction (``run_method`` predicts once at inputs that are both; docs/performance.md).
 GRID_2D = 20
 
 

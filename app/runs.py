@@ -128,7 +128,7 @@ def methods_for(plan: RunPlan, waves: tuple, report, cancel):
         if method is Method.S1:
             hat = result.model.log_params_hat
         done.append(result)
-    yield MethodsDone(keys, done, plan.expected)  # few updates: each re-render costs ~0.3 s
+    yield MethodsDone(keys, done, plan.expected)  # few updates: each one re-renders the page
 
 
 class DiscrepancyModel(HistoryModel):

@@ -15,8 +15,9 @@ from mdcore._pipeline import Method, Settings
 from .jobs import JobRunner
 
 # The app's own limits, tighter than the library's (which only refuse what cannot fit in
-# memory): each keeps one click of one session within about a minute and well under 1 GB on
-# the built-in cases, and the command line (python -m mdcore reproduce / run) takes more.
+# memory): each bounds the time and memory of one click of one session (their measured
+# sizes are in docs/performance.md); the command line (python -m mdcore reproduce / run)
+# takes more.
 #: Candidates per wave (library: 10⁷). A wave scores each at every observed input, in
 #: chunks (memory does not grow), and later waves walk them through the earlier waves.
 APP_MAX_CANDIDATES = 1_000_000

@@ -11,9 +11,15 @@ import numpy as np
 import scipy.stats
 from scipy.special import logsumexp
 
+from ._discrepancy import DiscrepancyModel
 from ._emulator import _design
 from ._exceptions import EmulatorWarning
-from ._history_matching import MULTIVARIATE, combine, elementwise_implausibility
+from ._history_matching import (
+    MULTIVARIATE,
+    HistoryMatchResult,
+    combine,
+    elementwise_implausibility,
+)
 from ._multivariate import emulator_cov, implausibility_and_logdet
 from ._validation import as_float_array, as_int
 
@@ -152,6 +158,9 @@ def validate_wave(wave, *, warn: bool = True) -> WaveValidation:
 
 def validate_waves(hm, *, warn: bool = True) -> tuple[WaveValidation, ...]:
     """:func:`validate_wave` for every wave of a history match."""
+    if not isinstance(hm, HistoryMatchResult):
+        raise ValueError(f"hm must be a HistoryMatchResult (mdcore.history_match_case); "
+                         f"received {type(hm).__name__}.")
     return tuple(validate_wave(w, warn=warn) for w in hm.waves)
 
 
@@ -278,6 +287,9 @@ def theta_delta_split(model, X_star, *, n_theta: int = 100) -> ThetaDeltaSplit:
     are picked by systematic resampling (offset ½, so no seed) on the θ weights averaged
     over outputs, and reweighted per output (docs/diagnostics.md §3). Scenario 1 gives 0.
     """
+    if not isinstance(model, DiscrepancyModel):
+        raise ValueError(f"model must be a DiscrepancyModel (MethodResult.model of scenarios "
+                         f"1–3); received {type(model).__name__}.")
     X_star = as_float_array(X_star, "X_star", ndim=2)
     if X_star.shape[1] != model.X.shape[1]:
         raise ValueError(f"X_star must have shape (N*, {model.X.shape[1]}); received "
@@ -305,7 +317,7 @@ def theta_delta_split(model, X_star, *, n_theta: int = 100) -> ThetaDeltaSplit:
         if model.phi_draws is None or model._log_params is not None:
             phi = model.log_params[:, j:j + 1]
         else:                                     # scenario 3's draws, one θ row at a time
-            draws = model.phi_draws.between(j, j + 1, cache)
+            draws = model.phi_draws.between(int(j), int(j) + 1, cache)
             phi = np.broadcast_to(draws, (model.n_out,) + draws.shape)
         one = dataclasses.replace(model, theta=model.theta[j:j + 1], Y=model.Y[j:j + 1],
                                   _log_params=phi, log_weights=lw, phi_draws=None,

@@ -325,6 +325,12 @@ def test_theta_delta_split_subsamples_theta_and_scenario_1_has_no_theta_share():
     assert one.theta.shape == (1, 2) and np.all(one.share == 0.0)
     with pytest.raises(ValueError, match=r"X_star must have shape \(N\*, 1\); received"):
         theta_delta_split(model, np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="X_star contains 1 NaN"):
+        theta_delta_split(model, np.array([[np.nan]]))
+    with pytest.raises(ValueError, match="X_star is empty"):
+        theta_delta_split(model, np.zeros((0, 1)))
+    with pytest.raises(ValueError, match="model must be a DiscrepancyModel .*received str"):
+        theta_delta_split("model", np.zeros((3, 1)))
 
 
 def test_theta_delta_advice_says_when_delta_is_mostly_theta():
@@ -523,3 +529,8 @@ def test_an_own_case_with_six_parameters_and_two_inputs(plume, tmp_path, capsys)
     assert td["n_theta"] == 20 and 0 <= td["share"][0] <= 1
     text = capsys.readouterr().out
     assert "wrongly ruled out" in text and "share from θ" in text and "Q " in text
+
+
+def test_validate_waves_refuses_what_is_not_a_history_match():
+    with pytest.raises(ValueError, match="hm must be a HistoryMatchResult .*received str"):
+        validate_waves("hm")

@@ -296,3 +296,17 @@ def test_scoring_in_chunks_gives_the_same_waves(monkeypatch):
         np.testing.assert_allclose(a.max_var, b.max_var, rtol=1e-10)
         assert a.nroy_fraction == b.nroy_fraction and a.status == b.status
     np.testing.assert_allclose(ll_whole, ll_chunked, rtol=1e-10)
+
+
+def test_options_by_name_are_checked():
+    """Keyword options are split into setup's arguments and HistoryMatchOptions' fields;
+    a name that is neither, or an options object of another type, is refused."""
+    X, z = toy_data()
+    with pytest.raises(ValueError, match=r"unknown history-matching option\(s\) \['tresh'\]"):
+        history_match(toy_simulator, X, z, TOY_BOUNDS, V_o=0.1, V_m=0.1, tresh=3.0)
+    with pytest.raises(ValueError, match="options must be a HistoryMatchOptions; received dict"):
+        hm_setup(toy_simulator, X, z, TOY_BOUNDS, V_o=0.1, V_m=0.1, options={"threshold": 3})
+    with pytest.raises(ValueError, match="threshold T must be a positive number; received nan"):
+        setup(toy_simulator, X, z, TOY_BOUNDS, V_o=0.1, V_m=0.1, threshold=float("nan"))
+    kwargs = setup_arguments({"V_m": 0.1, "max_waves": 2})
+    assert kwargs["V_m"] == 0.1 and kwargs["options"].max_waves == 2

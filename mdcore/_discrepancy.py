@@ -45,8 +45,8 @@ from ._exceptions import (
     LOW_ESS,
     LowESSWarning,
     NumericalWarning,
+    output_label,
     weights_advice,
-    where,
 )
 from ._hyperfit import FitOptions, default_bounds, fit_hyperparameters
 from ._importance import adaptive_importance_sampling, psis, resample
@@ -702,6 +702,7 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     if scenario == 3:
         for o, (e, k) in enumerate(zip(model.ess, np.asarray(k_hat))):
             if e < LOW_ESS or k > K_HAT_THRESHOLD:
-                warnings.warn(weights_advice(where("scenario 3", o, n_out), e, S, options.n_phi,
-                                             k, options.proposal), LowESSWarning, stacklevel=2)
+                place = output_label("scenario 3", o, n_out)
+                warnings.warn(weights_advice(place, e, S, options.n_phi, k, options.proposal),
+                              LowESSWarning, stacklevel=2)
     return model

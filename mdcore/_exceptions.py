@@ -38,7 +38,7 @@ K_HAT_THRESHOLD = 0.7
 RELIABLE_TAUS = 50
 
 
-def where(label: str, output: int, n_out: int) -> str:
+def output_label(label: str, output: int, n_out: int) -> str:
     """``label``, with the 1-based output named only when there are several."""
     return f"{label}, output {output + 1}" if n_out > 1 else label
 

@@ -45,7 +45,14 @@ from ._discrepancy import (
     check_executor,
     infer_discrepancy,
 )
-from ._exceptions import K_HAT_THRESHOLD, LOW_ESS, Cancelled, chain_advice, weights_advice, where
+from ._exceptions import (
+    K_HAT_THRESHOLD,
+    LOW_ESS,
+    Cancelled,
+    chain_advice,
+    output_label,
+    weights_advice,
+)
 from ._history_matching import HistoryMatchResult
 from ._hyperfit import QPSO_ITERATIONS, FitOptions
 from ._koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
@@ -481,7 +488,7 @@ def _chain_diagnostics(model: KOHModel) -> ChainDiagnostics:
 def _advice(importance, chain) -> tuple:
     """The warnings the diagnostics call for, each saying what to change."""
     out = [] if importance is None else [
-        weights_advice(where("scenario 3", o, len(importance.low)), importance.ess[o],
+        weights_advice(output_label("scenario 3", o, len(importance.low)), importance.ess[o],
                        importance.n_pairs // importance.n_phi, importance.n_phi,
                        importance.k_hat[o], importance.proposal)
         for o, low in enumerate(importance.low) if low]

@@ -34,9 +34,6 @@ from ._validation import (
 )
 from .simulators import natural_frequencies, tip_deflection
 
-__all__ = ["Case", "MAX_ROWS", "Measurements", "MeasurementsError", "load", "names",
-           "parse_measurements", "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
-
 #: The shipped synthetic shear-5 measurements, package data (a ``Traversable``; regenerate
 #: in a checkout with ``python assets/make_shear5_data.py``).
 SHEAR5_CSV = importlib.resources.files("mdcore").joinpath("data", "shear5_measurements.csv")

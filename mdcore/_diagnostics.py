@@ -23,10 +23,6 @@ from ._history_matching import (
 from ._multivariate import emulator_cov, implausibility_and_logdet
 from ._validation import as_float_array, as_int
 
-__all__ = ["EmulatorLOO", "WaveValidation", "SpaceViews", "ThetaDeltaSplit", "emulator_loo",
-           "loo_p_value", "validate_wave", "validate_waves", "space_views", "space_removed",
-           "theta_delta_split"]
-
 #: P(|e| > 3) for a standard normal e: the share of LOO errors a calibrated emulator has.
 P_BEYOND_3 = float(2.0 * scipy.stats.norm.sf(3.0))
 #: A wave's errors are "clearly too large" when :func:`loo_p_value` is below this.

@@ -55,10 +55,6 @@ from ._priors import GaussianPrior
 from ._threads import single_threaded_blas
 from ._validation import as_float_array, as_int, as_outputs, choose
 
-__all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions",
-           "DiscrepancyPrediction", "default_phi_prior", "LowESSWarning", "SCENARIOS",
-           "PROPOSALS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
-
 SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
 #: Components below ``PRUNE × max`` weight are skipped by the prediction (reported).

@@ -23,9 +23,6 @@ import numpy as np
 from ._history_matching import HistoryMatchResult
 from ._reproduce import CaseRun
 
-__all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "csv_table", "nroy_csv", "predictions_csv",
-           "with_unit", "write_tables"]
-
 #: Most NROY samples written per wave: the candidates are independent uniform draws, so the
 #: first ones retained are a uniform sample of the NROY set too.
 NROY_ROWS_PER_WAVE = 10_000

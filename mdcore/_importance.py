@@ -24,12 +24,7 @@ import scipy.optimize
 from scipy.linalg import solve_triangular
 from scipy.special import gammaln, logsumexp
 
-from ._exceptions import K_HAT_THRESHOLD
 from ._validation import as_float_array, as_int, as_positive_float
-
-__all__ = ["K_HAT_THRESHOLD", "PSIS", "psis", "generalized_pareto_fit", "resample",
-           "StudentT", "AdaptiveSample", "stage_sizes", "adaptive_importance_sampling"]
-
 
 
 class PSIS(NamedTuple):

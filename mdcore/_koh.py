@@ -38,9 +38,6 @@ from ._mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_length, chain_se
 from ._priors import GaussianPrior, ThetaPrior
 from ._validation import as_float_array, as_int, as_outputs, check_bounds
 
-__all__ = ["KOHModel", "KOHOptions", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
-           "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST", "MAX_CHAIN"]
-
 #: The paper's chain (150,000 steps, 50,000 burn-in), a short one for the app, the prior θ
 #: draws of the empirical-Bayes objective and the θ samples of a prediction.
 N_ITER, BURN_IN = 150_000, 50_000

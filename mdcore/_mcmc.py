@@ -25,10 +25,6 @@ import numpy as np
 from ._exceptions import RELIABLE_TAUS, ConvergenceWarning, chain_advice
 from ._validation import as_float_array, as_int
 
-__all__ = ["Chain", "ChainSetup", "MAX_CHAIN", "RELIABLE_TAUS", "adaptive_metropolis",
-           "chain_length", "chain_setup", "draw_blocks", "finish_chain",
-           "integrated_autocorr_time"]
-
 #: Longest chain accepted (the kept steps are stored): longer is refused up front.
 MAX_CHAIN = 100_000_000
 #: Steps whose random numbers are drawn at once.

@@ -18,8 +18,6 @@ from scipy.stats import norm
 
 from ._validation import as_float_array, as_positive_float, check_positive
 
-__all__ = ["nmse", "lpl", "coverage", "mmd"]
-
 
 def _columns(name: str, value, like: np.ndarray | None = None) -> np.ndarray:
     arr = as_float_array(value, name, min_ndim=1)

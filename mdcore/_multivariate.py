@@ -21,10 +21,6 @@ from ._kernels import matern32, scaled_sq_dist
 from ._linalg import chunks, for_each_chunk
 from ._validation import as_float_array
 
-__all__ = ["EmulatorCov", "chi2_cutoff", "discrepancy_cov", "emulator_cov",
-           "implausibility_and_logdet", "multivariate_implausibility", "log_likelihood",
-           "cov_ratio"]
-
 #: Relative truncation error of the Neumann series (below the Cholesky route's rounding).
 SERIES_TOL = 1e-14
 #: Largest ε = max e / λ_min(B) summed as a series (at most three steps); above it, Cholesky.

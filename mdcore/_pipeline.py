@@ -60,11 +60,6 @@ from ._metrics import coverage, lpl, mmd, nmse
 from ._priors import GaussianPrior
 from ._validation import as_float_array, as_int, as_seed_int, choose
 
-__all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics",
-           "ChainDiagnostics", "MethodResult", "PAPER_SIZES", "MAX_N_S", "MAX_N_PHI",
-           "MAX_PAIRS", "MAX_N_ITER", "MAX_FIT_ITERATIONS", "METRIC_COLUMNS", "run_method",
-           "scores", "koh_phi_prior", "metrics_table", "metric_text"]
-
 #: The paper's (N_s, N_φ) per case study (docs/method.md §6).
 PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
 

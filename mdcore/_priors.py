@@ -18,8 +18,6 @@ import numpy as np
 
 from ._validation import as_float_array, as_int
 
-__all__ = ["GaussianPrior", "ThetaPrior"]
-
 
 @dataclass(frozen=True)
 class _DiagonalGaussian:

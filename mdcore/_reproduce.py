@@ -23,9 +23,6 @@ from ._koh import KOHModel
 from ._pipeline import Method, MethodResult, Progress, Settings, run_method
 from ._validation import as_seed_int
 
-__all__ = ["SCHEMA_VERSION", "CaseRun", "default_methods", "parse_methods", "reproduce",
-           "run_case", "run_methods"]
-
 #: Version of the JSON layout written by :meth:`CaseRun.to_dict` (3: the failed simulator
 #: runs of each wave; 4: the rule, its cut-off and V_m's correlation; 5: each wave's
 #: emulator validation and space removed, each decoupled scenario's θ–δ share).

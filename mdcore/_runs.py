@@ -38,9 +38,6 @@ import numpy as np
 
 from ._validation import as_float_array, as_int, as_positive_float
 
-__all__ = ["Failure", "Runs", "SimulatorError", "SimulatorProcess", "call_with_timeout",
-           "run_simulator"]
-
 
 class Failure(NamedTuple):
     """A failed run: ``theta`` (p,) and what went wrong (``"ValueError: …"``, ``"timed out

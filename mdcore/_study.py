@@ -26,8 +26,6 @@ from ._pipeline import Settings
 from ._reproduce import default_methods, parse_methods, reproduce
 from ._validation import MAX_SEED, choose, short
 
-__all__ = ["PAPER", "Study", "study", "parse_seeds"]
-
 #: The paper's published NMSE values (docs/cases.md), per case and method, [%].
 PAPER = {
     "beam-1d": {"nmse_z": {"1": 0.768, "2": 0.765, "3": 0.765, "koh": 0.770},

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from mdcore._exceptions import K_HAT_THRESHOLD
 from mdcore._importance import (
-    K_HAT_THRESHOLD,
     StudentT,
     generalized_pareto_fit,
     psis,

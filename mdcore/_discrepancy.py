@@ -53,7 +53,7 @@ from ._importance import adaptive_importance_sampling, psis, resample
 from ._linalg import JitterLog
 from ._priors import GaussianPrior
 from ._threads import single_threaded_blas
-from ._validation import as_float_array, as_int, as_outputs, choose
+from ._validation import as_float_array, as_int, as_outputs, check_type, choose
 
 SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
@@ -123,11 +123,10 @@ class DiscrepancyOptions:
 
     def __post_init__(self):
         object.__setattr__(self, "n_phi", as_int(self.n_phi, "n_phi", 1, MAX_N_PHI))
-        if self.phi_prior is not None and not isinstance(self.phi_prior, GaussianPrior):
-            raise ValueError(f"phi_prior must be a GaussianPrior or None; received "
-                             f"{type(self.phi_prior).__name__}.")
+        check_type(self.phi_prior, (GaussianPrior, type(None)), "phi_prior",
+                   "a GaussianPrior or None")
         choose(self.proposal, "proposal", PROPOSALS)
-        object.__setattr__(self, "prune", _prune(self.prune))
+        object.__setattr__(self, "prune", check_prune(self.prune))
         object.__setattr__(self, "backend", compiled.resolve_backend(self.backend))
 
 
@@ -149,7 +148,7 @@ def _scenario(value) -> int:
     return s
 
 
-def _prune(value) -> float:
+def check_prune(value) -> float:
     try:
         p = float(value)
     except (TypeError, ValueError):
@@ -418,7 +417,7 @@ class DiscrepancyModel:
         if X_star.shape[1] != self.X.shape[1]:
             raise ValueError(f"X_star must have shape (N*, d_x) with d_x = {self.X.shape[1]} "
                              f"like the training X; received {X_star.shape}.")
-        prune = None if prune is None else _prune(prune)
+        prune = None if prune is None else check_prune(prune)
         executor = check_executor(executor)
         distinct, inverse = np.unique(X_star, axis=0, return_inverse=True)
         if distinct.shape[0] < X_star.shape[0]:     # replicates: predict each input once
@@ -634,10 +633,8 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         Scenario 3, when an output's ESS is below :data:`LOW_ESS` or k̂ above 0.7.
     """
     start = time.perf_counter()
-    options = DiscrepancyOptions() if options is None else options
-    if not isinstance(options, DiscrepancyOptions):
-        raise ValueError(f"options must be a DiscrepancyOptions; received "
-                         f"{type(options).__name__}.")
+    options = check_type(DiscrepancyOptions() if options is None else options,
+                         DiscrepancyOptions, "options", "a DiscrepancyOptions")
     scenario = _scenario(scenario)
     X = as_float_array(X, "X", ndim=2)
     z = as_outputs(z, X.shape[0])

@@ -22,6 +22,7 @@ import numpy as np
 
 from ._history_matching import HistoryMatchResult
 from ._reproduce import CaseRun
+from ._validation import check_type
 
 #: Most NROY samples written per wave: the candidates are independent uniform draws, so the
 #: first ones retained are a uniform sample of the NROY set too.
@@ -77,12 +78,6 @@ def _labels(values, name: str, p: int) -> list | None:
     return list(values)
 
 
-def _check_run(run) -> None:
-    if not isinstance(run, CaseRun):
-        raise ValueError(f"run must be an mdcore.CaseRun (reproduce or run_case); "
-                         f"received {type(run).__name__}.")
-
-
 def _kept(wave, threshold: float) -> np.ndarray:
     """Indices of the wave's retained candidates that the table holds (the first ones)."""
     return np.flatnonzero(wave.candidate_implausibility <= threshold)[:NROY_ROWS_PER_WAVE]
@@ -103,9 +98,8 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
         Columns ``wave``, one per θ component, ``implausibility``; up to
         :data:`NROY_ROWS_PER_WAVE` rows per wave, 7 significant digits (random draws).
     """
-    if not isinstance(hm, HistoryMatchResult):
-        raise ValueError(f"hm must be a HistoryMatchResult (history_match or "
-                         f"history_match_case); received {type(hm).__name__}.")
+    check_type(hm, HistoryMatchResult, "hm",
+               "a HistoryMatchResult (history_match or history_match_case)")
     p = hm.problem.p
     names = _labels(names, "names", p) or [f"theta_{i + 1}" for i in range(p)]
     units = _labels(units, "units", p) or [""] * p
@@ -131,7 +125,7 @@ def predictions_csv(run) -> str:
         One row per (method, output, test input): the inputs, the observation, mean and sd
         of z (noise included) and of δ, and the true δ where known (else an empty cell).
     """
-    _check_run(run)
+    check_type(run, CaseRun, "run", "an mdcore.CaseRun (reproduce or run_case)")
     case = run.case
     truth = case.true_delta(case.X_test)
     head = (["method", "output"] + [with_unit(n, u) for n, u in zip(case.x_names, case.x_units)]
@@ -169,7 +163,7 @@ def _predictions_sidecar(run: CaseRun) -> dict:
 def write_tables(run, folder) -> list[Path]:
     """Write ``nroy.csv``, ``predictions.csv`` and their JSON sidecars into ``folder``
     (created); every table is made before anything is written. Returns the paths."""
-    _check_run(run)
+    check_type(run, CaseRun, "run", "an mdcore.CaseRun (reproduce or run_case)")
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"folder {str(folder)!r} is a file; give a folder for nroy.csv and "

@@ -36,7 +36,7 @@ from ._kernels import kernel, matern32_and_dlog_ell
 from ._linalg import JITTER_LADDER, JitterLog, cholesky, solve_lower_inplace
 from ._mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_length, chain_setup
 from ._priors import GaussianPrior, ThetaPrior
-from ._validation import as_float_array, as_int, as_outputs, check_bounds
+from ._validation import as_float_array, as_int, as_outputs, check_bounds, check_type
 
 #: The paper's chain (150,000 steps, 50,000 burn-in), a short one for the app, the prior θ
 #: draws of the empirical-Bayes objective and the θ samples of a prediction.
@@ -412,9 +412,8 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
         Fraction done (0–1); raising from it cancels.
     """
     start = time.perf_counter()
-    options = KOHOptions() if options is None else options
-    if not isinstance(options, KOHOptions):
-        raise ValueError(f"options must be a KOHOptions; received {type(options).__name__}.")
+    options = check_type(KOHOptions() if options is None else options, KOHOptions, "options",
+                         "a KOHOptions")
     bounds = check_bounds(bounds)
     p = bounds.shape[0]
     prior = _theta_prior(theta_prior, bounds)

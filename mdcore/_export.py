@@ -35,8 +35,6 @@ def csv_cell(value, number: Callable[[float], str] = repr):
     """One CSV cell: text a spreadsheet would run gets a leading ``'``; numbers go through
     ``number`` unescaped.
 
-    Examples
-    --------
     >>> csv_cell("=1+2"), csv_cell("-x"), csv_cell(-1.5), csv_cell("ω1")
     ("'=1+2", "'-x", '-1.5', 'ω1')
     """
@@ -68,7 +66,7 @@ def csv_table(header: list, rows: Iterable, number: Callable[[float], str] = rep
 
 
 def _labels(values, name: str, p: int) -> list | None:
-    """Column labels: None, or a sequence of ``p`` strings (one per θ component)."""
+    """None, or ``p`` column labels (one per θ component)."""
     if values is None:
         return None
     if isinstance(values, str) or not all(isinstance(v, str) for v in values) \
@@ -84,20 +82,9 @@ def _kept(wave, threshold: float) -> np.ndarray:
 
 
 def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
-    """The non-implausible θ of every wave with their implausibility, as CSV text.
-
-    Parameters
-    ----------
-    hm : HistoryMatchResult
-    names, units : sequence of str, optional
-        Column names of θ (default ``theta_1 …``).
-
-    Returns
-    -------
-    str
-        Columns ``wave``, one per θ component, ``implausibility``; up to
-        :data:`NROY_ROWS_PER_WAVE` rows per wave, 7 significant digits (random draws).
-    """
+    """CSV text of each wave's first :data:`NROY_ROWS_PER_WAVE` non-implausible θ: columns
+    ``wave``, θ (``names`` and ``units``, default ``theta_1 …``) and ``implausibility``, to 7
+    significant digits (random draws)."""
     check_type(hm, HistoryMatchResult, "hm",
                "a HistoryMatchResult (history_match or history_match_case)")
     p = hm.problem.p
@@ -113,18 +100,8 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
 
 
 def predictions_csv(run) -> str:
-    """Predictions and δ bands of every method at the test inputs, as CSV text.
-
-    Parameters
-    ----------
-    run : mdcore.CaseRun
-
-    Returns
-    -------
-    str
-        One row per (method, output, test input): the inputs, the observation, mean and sd
-        of z (noise included) and of δ, and the true δ where known (else an empty cell).
-    """
+    """CSV text with a row per (method, output, test input) of a :class:`mdcore.CaseRun`: the
+    inputs, the observation, mean and sd of z (noise included) and δ, and the true δ (or "")."""
     check_type(run, CaseRun, "run", "an mdcore.CaseRun (reproduce or run_case)")
     case = run.case
     truth = case.true_delta(case.X_test)

@@ -174,22 +174,11 @@ def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter
                         burn_in: int, initial_cov=None, adapt_start: int | None = None,
                         epsilon: float = 1e-8, seed=None,
                         progress: Callable[[float], None] | None = None) -> Chain:
-    """Sample ``exp(log_target)`` by adaptive Metropolis (Haario et al. 2001).
-
-    Parameters
-    ----------
-    log_target : callable
-        ``log_target(x)``, x (d,): the log density up to a constant, ``-inf`` outside.
-    x0 : ndarray of shape (d,)
-        Starting state; ``log_target(x0)`` must be finite.
-    n_iter, burn_in : int
-        Iterations, and the leading ones dropped (0 ≤ burn_in < n_iter − 1).
-    initial_cov : ndarray of shape (d, d), optional
-        ``C_0`` (default ``(0.1)² I``), used up to ``adapt_start`` (default
-        ``min(1000, n_iter // 10)``, at least 2 d); ``epsilon`` is the ε of ``s_d ε I``.
-    progress : callable, optional
-        Fraction done (0–1) about every 1 %; raising from it cancels.
-    """
+    """Sample ``exp(log_target(x))``, x (d,), ``-inf`` outside the support, from ``x0`` where
+    it is finite: ``n_iter`` steps of which the first ``burn_in`` are dropped; proposals
+    ``C_0 = initial_cov`` (default 0.01 I) up to ``adapt_start`` (default ``min(1000, n_iter //
+    10)``, ≥ 2 d), then the module's. ``progress`` gets the fraction done every 1 % (and may
+    raise to cancel)."""
     setup = chain_setup(log_target, x0, n_iter=n_iter, burn_in=burn_in,
                         initial_cov=initial_cov, adapt_start=adapt_start, epsilon=epsilon)
     start = time.perf_counter()

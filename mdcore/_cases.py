@@ -1,14 +1,4 @@
-"""The three case studies (docs/cases.md) and the measurement-file loader.
-
-Examples
---------
->>> import mdcore
->>> mdcore.case_names()
-('beam-1d', 'beam-2d', 'shear-5')
->>> case = mdcore.load_case("beam-1d", seed=0)
->>> case.X_train.shape, case.z_train.shape, case.simulate(case.X_train, case.theta_true).shape
-((13, 1), (13, 1), (1, 13, 1))
-"""
+"""The three case studies (docs/cases.md) and the measurement-file loader."""
 
 from __future__ import annotations
 

@@ -12,16 +12,6 @@ The mixture moments are summed about the heaviest component, so large means do n
 small variances. The (θ, φ) pairs go in chunks that depend on the problem size only, each
 one call of a module-level function, so ``executor=`` (any ``concurrent.futures.Executor``,
 e.g. Dask's) runs them with the serial run's numbers (results reduced in chunk order).
-
->>> import mdcore
->>> from mdcore import infer_discrepancy
->>> case = mdcore.load_case("beam-1d")
->>> theta = case.theta_true + [[0.0, 0.0], [1.0, -0.5], [-1.0, 0.5]]
->>> model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=2,
-...                           theta_map=case.theta_true, seed=0)
->>> pred = model.predict(case.X_test)
->>> pred.delta_mean.shape, round(float(model.ess[0]), 6)
-((200, 1), 3.0)
 """
 
 from __future__ import annotations

@@ -1,13 +1,5 @@
 """Results out as plain CSV tables (a header row, one row per record), each with a JSON
 sidecar saying where it comes from; the JSON of a whole run is :meth:`mdcore.CaseRun.to_dict`.
-
-Examples
---------
->>> import mdcore
->>> run = mdcore.run_case(mdcore.load_case("beam-1d"), methods=[1],
-...                       settings=mdcore.Settings(n_s=10), n_candidates=5000)
->>> nroy_csv(run.hm, run.case.theta_names, run.case.theta_units).splitlines()[0]
-'wave,l_cr [mm],E [GPa],implausibility'
 """
 
 from __future__ import annotations

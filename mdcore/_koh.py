@@ -1,17 +1,6 @@
 """Kennedy–O'Hagan baseline (docs/method.md §7): θ and δ(x) inferred jointly, each output
 ``z | θ, φ ~ N(m_η(X, θ), Σ_η(X, X; θ) + K_δ(X, X; φ) + σ_n² I)``, independent given θ, with
 the emulator's moments ``m_η``, ``Σ_η`` and ``φ = [log σ_f, log ℓ_x…, log σ_n]`` of δ's GP.
-
->>> import mdcore
->>> from mdcore import fit_emulator
->>> case = mdcore.load_case("beam-1d")
->>> y = case.simulate(case.X_train, case.initial_design)
->>> em = fit_emulator(case.X_train, case.initial_design, y, case.theta_bounds, seed=0)
->>> model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
-...                   bounds=case.theta_bounds, seed=0,
-...                   options=KOHOptions(n_iter=3000, burn_in=1000))
->>> model.predict(case.X_test).delta_mean.shape
-(200, 1)
 """
 
 from __future__ import annotations

@@ -4,12 +4,6 @@ The proposal covariance is ``C_0`` up to step ``t_0``, then ``s_d Cov(x_0, …, 
 I``, ``s_d = 2.4² / d`` (Haario et al. Eq. 2.1), by Welford's recursion. :func:`chain_setup`,
 :func:`draw_blocks` and :func:`finish_chain` are shared with :func:`mdcore._compiled.koh_chain`,
 so both draw the same random numbers.
-
->>> import numpy as np
->>> chain = adaptive_metropolis(lambda x: -0.5 * float(x @ x), np.zeros(2), n_iter=5000,
-...                             burn_in=1000, seed=0)
->>> chain.samples.shape, 0.1 < chain.acceptance_rate < 0.9
-((4000, 2), True)
 """
 
 from __future__ import annotations

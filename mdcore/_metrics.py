@@ -2,13 +2,6 @@
 
 Every function takes column-wise data: ``(N,)`` for one output or ``(N, n_out)`` for
 several, and returns a float or an ``(n_out,)`` array accordingly.
-
-Examples
---------
->>> round(nmse([1.0, 2.0, 3.0], [1.0, 2.0, 4.0]), 9)      # 100 · 1 / (3 · 2/3)
-50.0
->>> coverage([0.0, 1.0, 5.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], k=3)
-0.6666666666666666
 """
 
 from __future__ import annotations

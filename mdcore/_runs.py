@@ -4,17 +4,6 @@ Real simulators raise, hang or return NaN for parts of the parameter box. A batc
 raises is re-run one θ at a time, so one bad θ costs only its own run; results are assembled
 in θ order, so the numbers do not depend on the executor (a Dask client's ``get_executor()``
 included).
-
-Examples
---------
->>> import numpy as np
->>> def simulate(X, theta):        # fails where θ < 0
-...     if np.any(theta < 0):
-...         raise ValueError("negative stiffness")
-...     return np.sqrt(theta)[:, None, :] * np.ones((1, len(X), 1))
->>> out = run_simulator(simulate, np.zeros((2, 1)), np.array([[1.0], [-1.0], [4.0]]), 1)
->>> out.ok.tolist(), out.y[:, 0, 0].tolist(), out.failures[0].message
-([True, False, True], [1.0, 2.0], 'ValueError: negative stiffness')
 """
 
 from __future__ import annotations

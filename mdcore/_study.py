@@ -2,14 +2,6 @@
 
 The paper reports a single run; whether its *pattern* holds is a statement over seeds (one
 seed: one noise draw, history match, set of θ and φ samples and KOH chain).
-
-Examples
---------
->>> from mdcore import Settings
->>> from mdcore import study
->>> s = study("beam-2d", [0, 1], methods=[1, 2], settings=Settings(n_s=10, n_phi=2))
->>> s.seeds, sorted(s.summary())
-((0, 1), ['1', '2'])
 """
 
 from __future__ import annotations

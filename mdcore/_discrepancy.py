@@ -149,14 +149,15 @@ def check_prune(value) -> float:
     return p
 
 
-def _simulate(simulate: Callable, X: np.ndarray, theta: np.ndarray, n_out: int) -> np.ndarray:
-    """Run ``simulate`` and check its (n_theta, N, n_out) result."""
+def simulated(simulate: Callable, X: np.ndarray, theta: np.ndarray, n_out: int, *,
+              finite: bool = True) -> np.ndarray:
+    """``simulate(X, theta)``, checked: shape (n_theta, N, n_out), and finite if ``finite``."""
     y = np.asarray(simulate(X, theta), dtype=np.float64)
     want = (theta.shape[0], X.shape[0], n_out)
     if y.shape != want:
         raise ValueError(f"simulate(X, theta) must return shape (n_theta, N, n_out) = {want}; "
                          f"it returned {y.shape}.")
-    if not np.all(np.isfinite(y)):
+    if finite and not np.all(np.isfinite(y)):
         raise ValueError("simulate(X, theta) returned NaN or inf; check the θ samples lie "
                          "inside the simulator's valid range.")
     return y
@@ -413,7 +414,7 @@ class DiscrepancyModel:
         if distinct.shape[0] < X_star.shape[0]:     # replicates: predict each input once
             pred = self.predict(distinct, prune=prune, progress=progress, executor=executor)
             return DiscrepancyPrediction(*(a[inverse.reshape(-1)] for a in pred))
-        Ys = _simulate(self.simulate, X_star, self.theta, self.n_out)     # (S, N*, n_out)
+        Ys = simulated(self.simulate, X_star, self.theta, self.n_out)     # (S, N*, n_out)
         M, K = X_star.shape[0], self.log_weights.shape[2]
         N, d_y, P = self.X.shape[0], self.n_out, 2 + self.n_out + self.X.shape[1]
         if self.backend == "numba":     # pairs per compiled call: ~20 blocks an output
@@ -651,13 +652,13 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     if scenario == 3 and S * options.n_phi > MAX_PAIRS:   # before any simulator run
         raise ValueError(f"N_s × n_phi must be at most {MAX_PAIRS:,} (θ, φ) pairs; received "
                          f"{S:,} × {options.n_phi:,}. Lower N_s or n_phi.")
-    Y = _simulate(simulate, X, theta, n_out)
+    Y = simulated(simulate, X, theta, n_out)
 
     hat, nlml_hat, prior, draws, k_hat, draw_seed = None, None, None, None, None, None
     if scenario in (1, 2):
         # Without θ_MAP (scenario 2 given φ̂) the first θ sample stands in for nlml_hat.
         Y_map = Y[0] if scenario == 1 or theta_map is None else \
-            _simulate(simulate, X, theta_map[None], n_out)[0]
+            simulated(simulate, X, theta_map[None], n_out)[0]
         hat, nlml_hat = _fit_phi_hat(Y_map, X, z, options, rng, progress)
         log_params = np.broadcast_to(hat[:, None, None, :], (n_out, S, 1, P))
         log_weights = np.full((n_out, S, 1), -np.log(S))

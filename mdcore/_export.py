@@ -111,24 +111,6 @@ def predictions_csv(run) -> str:
     return csv_table(head, rows)
 
 
-def _nroy_sidecar(run: CaseRun) -> dict:
-    hm = run.hm
-    return {"table": "nroy.csv", "case": run.case.name, "threshold": hm.problem.options.threshold,
-            "rule": hm.problem.options.rule, "status": hm.status, "message": hm.message,
-            "waves": [{"wave": w.index, "nroy_fraction": w.nroy_fraction,
-                       "candidates": len(w.candidates), "nroy_candidates": len(w.nroy),
-                       "rows": len(_kept(w, hm.problem.options.threshold))} for w in hm.waves],
-            "rows_per_wave": f"the first {NROY_ROWS_PER_WAVE:,} non-implausible candidates "
-                             "of each wave, uniform in its NROY set"}
-
-
-def _predictions_sidecar(run: CaseRun) -> dict:
-    return {"table": "predictions.csv", "case": run.case.name, "seed": run.seed,
-            "methods": [r.method.label for r in run.results],
-            "z_sd": "includes the observation noise",
-            "delta_true": "empty where the true discrepancy is unknown"}
-
-
 def write_tables(run, folder) -> list[Path]:
     """Write ``nroy.csv``, ``predictions.csv`` and their JSON sidecars into ``folder``
     (created); every table is made before anything is written. Returns the paths."""
@@ -137,10 +119,21 @@ def write_tables(run, folder) -> list[Path]:
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"folder {str(folder)!r} is a file; give a folder for nroy.csv and "
                          "predictions.csv.")
-    texts = {"nroy.csv": nroy_csv(run.hm, run.case.theta_names, run.case.theta_units),
-             "nroy.json": json.dumps(_nroy_sidecar(run), indent=1),
-             "predictions.csv": predictions_csv(run),
-             "predictions.json": json.dumps(_predictions_sidecar(run), indent=1)}
+    hm, threshold = run.hm, run.hm.problem.options.threshold
+    nroy = {"table": "nroy.csv", "case": run.case.name, "threshold": threshold,
+            "rule": hm.problem.options.rule, "status": hm.status, "message": hm.message,
+            "waves": [{"wave": w.index, "nroy_fraction": w.nroy_fraction,
+                       "candidates": len(w.candidates), "nroy_candidates": len(w.nroy),
+                       "rows": len(_kept(w, threshold))} for w in hm.waves],
+            "rows_per_wave": f"the first {NROY_ROWS_PER_WAVE:,} non-implausible candidates "
+                             "of each wave, uniform in its NROY set"}
+    predictions = {"table": "predictions.csv", "case": run.case.name, "seed": run.seed,
+                   "methods": [r.method.label for r in run.results],
+                   "z_sd": "includes the observation noise",
+                   "delta_true": "empty where the true discrepancy is unknown"}
+    texts = {"nroy.csv": nroy_csv(hm, run.case.theta_names, run.case.theta_units),
+             "nroy.json": json.dumps(nroy, indent=1), "predictions.csv": predictions_csv(run),
+             "predictions.json": json.dumps(predictions, indent=1)}
     folder.mkdir(parents=True, exist_ok=True)
     for name, text in texts.items():
         (folder / name).write_text(text, encoding="utf-8")

@@ -16,7 +16,7 @@ import scipy.linalg
 from scipy.special import logsumexp
 
 from . import _compiled as compiled
-from ._discrepancy import DiscrepancyPrediction
+from ._discrepancy import DiscrepancyPrediction, simulated
 from ._emulator import Emulator, EmulatorAt, ThetaTerms
 from ._exceptions import ConvergenceWarning, NumericalWarning
 from ._gp import LOG_2PI
@@ -47,12 +47,7 @@ class SimulatorAt:
         return ThetaTerms(theta, ())
 
     def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
-        theta = terms.unit
-        y = np.asarray(self.simulate(self.X, theta), dtype=np.float64)
-        want = (theta.shape[0], self.X.shape[0], self.n_out)
-        if y.shape != want:
-            raise ValueError(f"simulate(X, theta) must return shape (n_theta, N, n_out) = "
-                             f"{want}; it returned {y.shape}.")
+        y = simulated(self.simulate, self.X, terms.unit, self.n_out, finite=False)
         mean = np.ascontiguousarray(np.moveaxis(y, 2, 1))
         cov = np.zeros(mean.shape + (self.X.shape[0],)) if with_cov else None
         return mean, cov

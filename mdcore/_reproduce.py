@@ -109,14 +109,12 @@ class CaseRun:
 
 def _entry(r: MethodResult) -> dict:
     """One method's part of :meth:`CaseRun.to_dict`."""
-    entry: dict = {"metrics": r.metrics.as_dict(), "importance": None, "chain": None,
-                   "warnings": list(r.warnings), "seconds": r.seconds}
-    if r.importance is not None:
-        entry["importance"] = {k: (list(v) if isinstance(v, tuple) else v)
-                               for k, v in r.importance.__dict__.items()}
-    if r.chain is not None and isinstance(r.model, KOHModel):
-        entry["chain"] = {k: (list(v) if isinstance(v, tuple) else v)
-                          for k, v in r.chain.__dict__.items()}
+    entry: dict = {"metrics": r.metrics.as_dict(), **{
+        name: None if d is None else {k: list(v) if isinstance(v, tuple) else v
+                                      for k, v in d.__dict__.items()}
+        for name, d in (("importance", r.importance), ("chain", r.chain))},
+        "warnings": list(r.warnings), "seconds": r.seconds}
+    if isinstance(r.model, KOHModel):
         theta = r.model.theta
         entry["posterior"] = {"theta_mean": theta.mean(axis=0).tolist(),
                               "theta_sd": theta.std(axis=0).tolist(),

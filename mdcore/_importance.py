@@ -131,25 +131,8 @@ class StudentT:
     df: float
     _chol: np.ndarray = field(init=False, repr=False, compare=False)
 
-    def __post_init__(self):
-        mean = as_float_array(self.mean, "mean", ndim=1)
-        scale = as_float_array(self.scale, "scale", ndim=2)
-        if scale.shape != (mean.size, mean.size):
-            raise ValueError(f"scale must have shape (P, P) = ({mean.size}, {mean.size}); "
-                             f"received {scale.shape}.")
-        df = float(self.df)
-        if not df > 2.0 or not np.isfinite(df):
-            raise ValueError(f"df must be a finite number > 2 (finite variance); received "
-                             f"{self.df!r}.")
-        try:
-            chol = np.linalg.cholesky(0.5 * (scale + scale.T))
-        except np.linalg.LinAlgError:
-            raise ValueError("scale must be symmetric positive definite; its Cholesky "
-                             "factorisation failed.") from None
-        object.__setattr__(self, "mean", mean)
-        object.__setattr__(self, "scale", scale)
-        object.__setattr__(self, "df", df)
-        object.__setattr__(self, "_chol", chol)
+    def __post_init__(self):            # built only here, from a floored covariance
+        object.__setattr__(self, "_chol", np.linalg.cholesky(0.5 * (self.scale + self.scale.T)))
 
     @classmethod
     def fit(cls, samples, log_weights, *, df: float = 5.0, inflate: float = 1.0,
@@ -157,19 +140,12 @@ class StudentT:
         """Match the mean and covariance of :data:`FIT_POINTS` draws by weight
         (:func:`resample`) from ``samples`` (n, P), ``floor`` (P,) squared added to its
         variances (keeps a collapsed sample usable), × ``inflate``."""
-        samples = as_float_array(samples, "samples", ndim=2)
-        lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
-        if lw.size != samples.shape[0] or np.any(np.isnan(lw)):
-            raise ValueError(f"log_weights must have one value per sample ({samples.shape[0]}) "
-                             f"and no NaN; received shape {lw.shape}.")
-        if not np.any(np.isfinite(lw)):
-            raise ValueError("every weight is zero; cannot fit a proposal.")
-        idx, counts = resample(lw, FIT_POINTS, seed)
+        idx, counts = resample(log_weights, FIT_POINTS, seed)   # refuses all-zero weights
         x, w = samples[idx], counts / FIT_POINTS
         mean = w @ x
         cov = ((x - mean) * w[:, None]).T @ (x - mean)
         if floor is not None:
-            cov += np.diag(as_float_array(floor, "floor", ndim=1) ** 2)
+            cov += np.diag(np.asarray(floor) ** 2)
         return cls(mean, cov * (float(inflate) * (df - 2.0) / df), df)
 
     @property

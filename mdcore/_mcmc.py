@@ -21,8 +21,9 @@ from ._validation import as_float_array, as_int
 
 #: Longest chain accepted (the kept steps are stored): longer is refused up front.
 MAX_CHAIN = 100_000_000
-#: Steps whose random numbers are drawn at once.
+#: Steps whose random numbers are drawn at once; the ε of the proposal's ``s_d ε I``.
 DRAW_BLOCK = 4096
+EPSILON = 1e-8
 
 
 @dataclass(frozen=True, eq=False)
@@ -101,32 +102,20 @@ def chain_length(n_iter, burn_in, hint: str = "") -> tuple[int, int]:
     return n_iter, burn_in
 
 
-def chain_setup(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int, burn_in: int,
-                initial_cov=None, adapt_start: int | None = None,
-                epsilon: float = 1e-8) -> ChainSetup:
-    """Validate the arguments of :func:`adaptive_metropolis` (which documents them)."""
+def chain_setup(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int,
+                burn_in: int) -> ChainSetup:
+    """The validated start of :func:`adaptive_metropolis` (which documents it)."""
     x = as_float_array(x0, "x0", ndim=1).copy()
     d = x.size
     n_iter, burn_in = chain_length(n_iter, burn_in)
-    C0 = 0.01 * np.eye(d) if initial_cov is None else \
-        as_float_array(initial_cov, "initial_cov", ndim=2)
-    if C0.shape != (d, d):
-        raise ValueError(f"initial_cov must have shape ({d}, {d}); received {C0.shape}.")
-    try:
-        L = np.linalg.cholesky(C0)
-    except np.linalg.LinAlgError:
-        raise ValueError("initial_cov must be symmetric positive definite.") from None
-    t0 = max(min(1000, n_iter // 10), 2 * d) if adapt_start is None else \
-        as_int(adapt_start, "adapt_start", 2)
-    epsilon = float(epsilon)
-    if not (np.isfinite(epsilon) and epsilon > 0):
-        raise ValueError(f"epsilon must be a positive number; received {epsilon!r}.")
+    L = np.linalg.cholesky(0.01 * np.eye(d))
+    t0 = max(min(1000, n_iter // 10), 2 * d)
     lp = float(log_target(x))
     if not np.isfinite(lp):
         raise ValueError(f"log_target(x0) must be finite; it is {lp} at x0 = {x.tolist()}. "
                          "Start the chain inside the support (e.g. at the prior mean).")
     s_d = 2.4**2 / d
-    return ChainSetup(x, lp, L, n_iter, burn_in, t0, s_d, s_d * epsilon * np.eye(d))
+    return ChainSetup(x, lp, L, n_iter, burn_in, t0, s_d, s_d * EPSILON * np.eye(d))
 
 
 def draw_blocks(setup: ChainSetup, seed, progress: Callable[[float], None] | None = None
@@ -165,16 +154,13 @@ def finish_chain(setup: ChainSetup, samples: np.ndarray, log_p: np.ndarray,
 
 
 def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int,
-                        burn_in: int, initial_cov=None, adapt_start: int | None = None,
-                        epsilon: float = 1e-8, seed=None,
+                        burn_in: int, seed=None,
                         progress: Callable[[float], None] | None = None) -> Chain:
     """Sample ``exp(log_target(x))``, x (d,), ``-inf`` outside the support, from ``x0`` where
     it is finite: ``n_iter`` steps of which the first ``burn_in`` are dropped; proposals
-    ``C_0 = initial_cov`` (default 0.01 I) up to ``adapt_start`` (default ``min(1000, n_iter //
-    10)``, ≥ 2 d), then the module's. ``progress`` gets the fraction done every 1 % (and may
-    raise to cancel)."""
-    setup = chain_setup(log_target, x0, n_iter=n_iter, burn_in=burn_in,
-                        initial_cov=initial_cov, adapt_start=adapt_start, epsilon=epsilon)
+    ``C_0 = 0.01 I`` up to ``t_0 = max(min(1000, n_iter // 10), 2 d)``, then the module's.
+    ``progress`` gets the fraction done every 1 % (and may raise to cancel)."""
+    setup = chain_setup(log_target, x0, n_iter=n_iter, burn_in=burn_in)
     start = time.perf_counter()
     x, lp, L = setup.x0.copy(), setup.lp0, setup.L0
     burn_in, s_d, reg, t0 = setup.burn_in, setup.s_d, setup.reg, setup.t0

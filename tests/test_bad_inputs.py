@@ -360,12 +360,6 @@ API = [
      r"log_weights must not contain NaN or \+inf", ()),
     ("importance.psis-r_eff-zero", lambda c: _call(importance.psis, np.zeros(50), r_eff=0.0),
      r"r_eff must be a positive number \(finite, > 0\); received 0\.0", ()),
-    ("importance.StudentT-df-2", lambda c: _call(importance.StudentT, np.zeros(2), np.eye(2),
-                                                 2.0),
-     r"df must be a finite number > 2 \(finite variance\); received 2\.0", ()),
-    ("importance.StudentT-scale-wrong-shape", lambda c: _call(importance.StudentT, np.zeros(2),
-                                                              np.eye(3), 5.0),
-     r"scale must have shape \(P, P\) = \(2, 2\); received \(3, 3\)", ()),
     ("importance.resample-n-zero", lambda c: _call(importance.resample, np.zeros(3), 0),
      r"n must be an integer ≥ 1", ()),
     # --- mdcore._koh --------------------------------------------------------------------

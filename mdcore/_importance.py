@@ -19,7 +19,7 @@ import scipy.optimize
 from scipy.linalg import solve_triangular
 from scipy.special import gammaln, logsumexp
 
-from ._validation import as_float_array, as_int, as_positive_float
+from ._validation import as_float_array, as_int
 
 
 class PSIS(NamedTuple):
@@ -65,19 +65,17 @@ def _gp_quantiles(p: np.ndarray, k: float, sigma: float) -> np.ndarray:
     return sigma * np.expm1(-k * np.log1p(-p)) / k
 
 
-def psis(log_weights, *, r_eff: float = 1.0) -> PSIS:
-    """Pareto-smoothed importance sampling (Vehtari et al. 2024, Algorithm 1) of
-    unnormalised ``log_weights`` (S,) (``-inf``: zero weight); ``r_eff`` is the draws'
-    relative efficiency (1 for independent draws)."""
+def psis(log_weights) -> PSIS:
+    """Pareto-smoothed importance sampling (Vehtari et al. 2024, Algorithm 1) of unnormalised
+    ``log_weights`` (S,) (``-inf``: zero weight) of independent draws."""
     lw = as_float_array(log_weights, "log_weights", ndim=1, finite=False)
     if np.any(np.isnan(lw)) or np.any(lw == np.inf):
         raise ValueError("log_weights must not contain NaN or +inf; a zero weight is -inf.")
     if not np.any(np.isfinite(lw)):
         raise ValueError("every weight is zero (all log_weights are -inf); nothing to smooth.")
-    r_eff = as_positive_float(r_eff, "r_eff", "1 is for independent draws.")
     S = lw.size
     x = lw - np.max(lw)
-    tail = int(np.ceil(min(0.2 * S, 3.0 * np.sqrt(S / float(r_eff)))))
+    tail = int(np.ceil(min(0.2 * S, 3.0 * np.sqrt(S))))
     # the (tail + 1)-th largest weight: a partition, not a sort (10⁶ weights on beam-2d)
     cutoff = max(np.partition(x, S - tail - 1)[S - tail - 1] if tail < S else -np.inf,
                  np.log(np.finfo(float).tiny))

@@ -183,27 +183,11 @@ def _check_phi_prior(phi_prior, d_x: int) -> None:
                          f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
 
 
-def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
-            n_starts: int = 4, seed=None):
-    """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` over the θ prior's
-    ``theta_draws`` (M, p), and that log evidence: ``at`` is the simulator's side at ``X``
-    (N, d_x), ``z`` (N, n_out); ``phi_prior`` makes it MAP; ``n_starts`` L-BFGS-B starts
-    (the first at the hyperprior mean or the box centre)."""
-    X = as_float_array(X, "X", ndim=2)
-    z = as_float_array(z, "z", ndim=2)
-    if z.shape[0] != X.shape[0] or at.X.shape != X.shape:
-        raise ValueError(f"at, X and z must describe the same N inputs: at.X {at.X.shape}, "
-                         f"X {X.shape}, z {z.shape} (z is (N, n_out)).")
-    _check_phi_prior(phi_prior, X.shape[1])
-    mean, cov = at.moments_at(at.theta_terms(theta_draws))
-    return _fit_phi(mean, cov, X, z, phi_prior, as_int(n_starts, "n_starts", 1),
-                    np.random.default_rng(seed))
-
-
 def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
-    """:func:`fit_phi` from the emulator moments at the prior draws, which stay fixed
-    during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N, N). ``progress(f)``
-    after every L-BFGS-B iteration (it may raise to stop the fit)."""
+    """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` (``phi_prior``: MAP) by
+    ``n_starts`` L-BFGS-B runs, and that log evidence, from the simulator side's moments at
+    M prior draws, fixed during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N,
+    N). ``progress(f)`` after every run (it may raise to stop the fit)."""
     n_out = z.shape[1]
     resid = z.T - mean.mean(axis=0)                                # (n_out, N)
     boxes = np.stack([default_bounds(np.empty((len(X), 0)), X, r) for r in resid])
@@ -349,9 +333,9 @@ class KOHOptions:
     n_theta_eb, n_predict : int
         Prior θ draws of the empirical-Bayes objective; θ samples of the prediction.
     log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
-        Fixed discrepancy hyperparameters instead of :func:`fit_phi`'s.
+        Fixed discrepancy hyperparameters instead of the empirical-Bayes φ̂.
     phi_prior : GaussianPrior of size 2 + d_x, optional
-        Hyperprior of :func:`fit_phi` (MAP); None is plain empirical Bayes.
+        Hyperprior of φ̂ (MAP); None is plain empirical Bayes.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
         The chain with an emulator: :func:`mdcore._compiled.koh_chain` or the Python loop
         of :func:`mdcore._mcmc.adaptive_metropolis`; None reads ``MDCORE_BACKEND``.

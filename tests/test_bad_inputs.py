@@ -358,8 +358,6 @@ API = [
     ("importance.psis-log_weights-nan", lambda c: _call(importance.psis,
                                                         with_value(np.zeros(50), 7, np.nan)),
      r"log_weights must not contain NaN or \+inf", ()),
-    ("importance.psis-r_eff-zero", lambda c: _call(importance.psis, np.zeros(50), r_eff=0.0),
-     r"r_eff must be a positive number \(finite, > 0\); received 0\.0", ()),
     ("importance.resample-n-zero", lambda c: _call(importance.resample, np.zeros(3), 0),
      r"n must be an integer ≥ 1", ()),
     # --- mdcore._koh --------------------------------------------------------------------

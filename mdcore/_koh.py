@@ -187,7 +187,7 @@ def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
     """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` (``phi_prior``: MAP) by
     ``n_starts`` L-BFGS-B runs, and that log evidence, from the simulator side's moments at
     M prior draws, fixed during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N,
-    N). ``progress(f)`` after every run (it may raise to stop the fit)."""
+    N). ``progress(f)`` after every L-BFGS-B iteration (it may raise to stop the fit)."""
     n_out = z.shape[1]
     resid = z.T - mean.mean(axis=0)                                # (n_out, N)
     boxes = np.stack([default_bounds(np.empty((len(X), 0)), X, r) for r in resid])

@@ -139,6 +139,7 @@ def _scenario(value) -> int:
 
 
 def check_prune(value) -> float:
+    """``prune`` as a float in [0, 1) (a fraction of the largest weight)."""
     try:
         p = float(value)
     except (TypeError, ValueError):

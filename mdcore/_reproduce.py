@@ -216,8 +216,6 @@ def run_methods(case: _cases.Case, hm: HistoryMatchResult, methods, settings: Se
     """:func:`run_method` of each method in the order 1, 2, 3, KOH, scenario 2 reusing
     scenario 1's φ̂; ``report(line)`` after each, ``progress_for(method)`` gives each one's
     ``progress`` (the command line's bar per method)."""
-    if hm.status == "ruled_out":
-        raise ValueError(f"{case.name}: {hm.message}")
     results: list[MethodResult] = []
     for method in parse_methods(methods):
         hat = next((r.model.log_params_hat for r in results

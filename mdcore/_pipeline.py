@@ -232,18 +232,14 @@ class ImportanceDiagnostics:
 
     Attributes
     ----------
-    ess : tuple of float
-        Effective sample size over the (θ, φ) pairs, ``1 / Σ w_jk²``, out of ``n_pairs``.
-    ess_phi : tuple of float
-        Effective sample size over φ given θ, averaged over θ with the θ marginal weights:
-        ``Σ_j w_j / Σ_k (w_jk / w_j)²``, ``w_j = Σ_k w_jk``; out of ``n_phi``.
-    skipped_mass : tuple of float
-        Weight the prediction skipped (below ``prune × max``).
-    k_hat : tuple of float
-        Pareto shape of the raw weights' tail (Vehtari et al.); above 0.7 unreliable.
+    ess, ess_phi : tuple of float
+        ESS over the (θ, φ) pairs, ``1 / Σ w_jk²`` (of ``n_pairs``), and over φ given θ
+        averaged with the θ weights, ``Σ_j w_j / Σ_k (w_jk / w_j)²`` (of ``n_phi``).
+    skipped_mass, k_hat : tuple of float
+        Weight the prediction skipped (below ``prune × max``); Pareto shape of the raw
+        weights' tail (Vehtari et al.; above 0.7 unreliable).
     n_pairs, n_phi : int
-    proposal : str
-        ``"prior"`` or ``"adaptive"``.
+    proposal : {"prior", "adaptive"}
     """
 
     ess: tuple
@@ -498,10 +494,8 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     cancel : threading.Event, optional
         Checked between chunks of work; when set, the run stops with :class:`Cancelled`.
     executor : concurrent.futures.Executor, optional
-        Runs the chunks of (θ, φ) pairs of scenarios 2–3 (the scenario-3 weights and the
-        mixture prediction; see "Chunks and executors" in :mod:`mdcore._discrepancy`), for
-        example a Dask ``Client(...).get_executor()``. The results are identical to the
-        serial run's. Scenario 1 and KOH run here. Default: in this process.
+        Runs the chunks of (θ, φ) pairs of scenarios 2–3 (:mod:`mdcore._discrepancy`), e.g.
+        a Dask ``Client(...).get_executor()``, with the serial run's numbers. Default: here.
 
     Returns
     -------

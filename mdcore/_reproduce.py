@@ -184,9 +184,7 @@ def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
         As in :func:`reproduce`.
     executor : concurrent.futures.Executor, optional
         Runs the history match's simulator runs (one θ per task unless ``batch_size`` is
-        given) and the pair chunks of scenarios 2–3 (:func:`mdcore.run_method`),
-        for example a Dask ``Client(...).get_executor()``; the numbers are identical to the
-        serial run's. Default: in this process.
+        given) and :func:`mdcore.run_method`'s chunks, with the serial run's numbers.
     **history_matching
         Options of :func:`mdcore._history_matching.setup` (``n_runs``, ``convergence_ratio``,
         ``batch_size``, ``timeout`` …).

@@ -26,9 +26,6 @@ from ._priors import ThetaPrior
 from ._runs import SimulatorError, SimulatorProcess
 from ._validation import as_seed_int, short
 
-__all__ = ["load_case_file", "CaseFileError", "MAX_TRAINING_ROWS", "TEST_COLUMN",
-           "measurements_template", "with_measurements"]
-
 #: The column of an uploaded measurements file that marks test rows (1) and training rows (0).
 TEST_COLUMN = "test"
 #: Largest case file read (a case file is a few hundred bytes; its data live in the CSV).

@@ -1,14 +1,4 @@
-"""The three case studies (docs/cases.md) and the measurement-file loader.
-
-Examples
---------
->>> import mdcore
->>> mdcore.case_names()
-('beam-1d', 'beam-2d', 'shear-5')
->>> case = mdcore.load_case("beam-1d", seed=0)
->>> case.X_train.shape, case.z_train.shape, case.simulate(case.X_train, case.theta_true).shape
-((13, 1), (13, 1), (1, 13, 1))
-"""
+"""The three case studies (docs/cases.md) and the measurement-file loader."""
 
 from __future__ import annotations
 
@@ -33,9 +23,6 @@ from ._validation import (
     short,
 )
 from .simulators import natural_frequencies, tip_deflection
-
-__all__ = ["Case", "MAX_ROWS", "Measurements", "MeasurementsError", "load", "names",
-           "parse_measurements", "read_measurements", "make_shear5_measurements", "SHEAR5_CSV"]
 
 #: The shipped synthetic shear-5 measurements, package data (a ``Traversable``; regenerate
 #: in a checkout with ``python assets/make_shear5_data.py``).
@@ -80,18 +67,13 @@ class Case:
     seed : int
         Seed the noise was drawn with.
     timeout : float or None, default=None
-        Seconds one simulator run (one θ) may take; a call with n θ may take n × timeout.
-        A run past it raises ``TimeoutError``: history matching counts it as a failed run
-        (:func:`~mdcore.case_problem` then sends one θ per call) and the
-        scenarios stop with the error. A case file's simulator runs in a process that the
-        timeout kills (:class:`mdcore._runs.SimulatorProcess`); any other simulator runs on
-        a thread that it abandons (a thread cannot be stopped). Set it on a loaded case
-        with ``dataclasses.replace(case, timeout=30.0)``; None: no limit.
+        Seconds one simulator run (one θ) may take, n × timeout for n θ; past it a run
+        raises ``TimeoutError``: a failed run in history matching, an error in the scenarios.
+        A case file's simulator process is killed, another simulator's thread abandoned.
+        Set it with ``dataclasses.replace(case, timeout=30.0)``; None: no limit.
     V_m_length : ndarray of shape (n_out,), default 0
-        Default correlation length ℓ_m of V_m over x per output, in ``x_units`` (0:
-        independent); only the multivariate rule uses it (:mod:`mdcore._multivariate`). The
-        built-in cases keep 0: on them any ℓ_m > 0 weakened the rule
-        (docs/multivariate_history_matching.md).
+        Correlation length ℓ_m of V_m over x per output, in ``x_units`` (0: independent),
+        for the multivariate rule (docs/multivariate_history_matching.md: 0 on the built-ins).
     V_m_corr : ndarray of shape (n_out, n_out) or None, default None
         Default correlation of the outputs' discrepancies (None: independent).
     """
@@ -152,20 +134,8 @@ class Case:
         return len(self.output_names)
 
     def simulate(self, X, theta) -> np.ndarray:
-        """Run the simulator.
-
-        Parameters
-        ----------
-        X : ndarray of shape (N, d_x)
-            Inputs, in ``x_units``.
-        theta : ndarray of shape (n_theta, p) or (p,)
-            Parameters, in ``theta_units``.
-
-        Returns
-        -------
-        ndarray of shape (n_theta, N, n_out)
-            Simulator outputs, in ``output_units``.
-        """
+        """The simulator at ``X`` (N, d_x) in ``x_units`` and ``theta`` (n_theta, p) or (p,) in
+        ``theta_units``: outputs (n_theta, N, n_out) in ``output_units``."""
         X = as_float_array(X, "X", ndim=2, allow_empty=True)
         if X.shape[1] != self.d_x:
             raise ValueError(f"X must have shape (N, {self.d_x}) for {self.name} "
@@ -200,11 +170,8 @@ BEAM_V_M = 0.05                # mm²
 
 
 def _beam_prior(d_x: int) -> GaussianPrior:
-    """docs/cases.md default φ prior for the beams (not in the paper; documented defaults).
-
-    log ℓ_y ~ N(log 1, 1) (mm), log ℓ_x ~ N(log 0.3, 1) (m), log σ_f ~ N(log 2, 1),
-    log σ_n² ~ N(log 1e-3, 4)  ->  log σ_n ~ N(½ log 1e-3, 1).
-    """
+    """docs/cases.md φ prior of the beams: log σ_f ~ N(log 2, 1), log ℓ_y ~ N(log 1 mm, 1),
+    log ℓ_x ~ N(log 0.3 m, 1), log σ_n² ~ N(log 1e-3, 4), i.e. log σ_n ~ N(½ log 1e-3, 1)."""
     mean = [np.log(2.0), 0.0] + [np.log(0.3)] * d_x + [0.5 * np.log(1e-3)]
     return GaussianPrior(mean=np.array(mean), var=np.ones(3 + d_x))
 
@@ -322,12 +289,8 @@ def _shear5_delta(X):
 
 
 def make_shear5_measurements(seed: int = 0) -> str:
-    """CSV text of the synthetic shear-5 measurements (the shipped file uses ``seed=0``).
-
-    Ten repeats per added mass in {0, 0.1, …, 0.5} kg of the "real" structure's five
-    natural frequencies (E = 70 GPa, ν = 0.33, ρ = 2700 kg/m³, 0.03 kg sensor mass per
-    floor, rocking base spring 2.3e6 N·m/rad) plus Gaussian noise of sd 0.004 Hz.
-    """
+    """CSV text of the synthetic shear-5 measurements (the shipped file: ``seed=0``): ten
+    noisy repeats per added mass of the "real" structure's frequencies (docs/cases.md)."""
     rng = np.random.default_rng(seed)
     X = np.repeat(SHEAR5_MASSES, SHEAR5_REPEATS)[:, None]
     z = _shear5_real(X) + SHEAR5_NOISE_SD * rng.standard_normal((X.shape[0], 5))
@@ -344,16 +307,8 @@ def make_shear5_measurements(seed: int = 0) -> str:
 
 
 class Measurements(NamedTuple):
-    """Observations read from a CSV file by :func:`read_measurements`.
-
-    Attributes
-    ----------
-    X : ndarray of shape (N, d_x)
-    z : ndarray of shape (N, n_out)
-    input_names, output_names : tuple of str
-    comments : tuple of str
-        Leading ``#`` lines (provenance).
-    """
+    """Observations of a CSV file: ``X`` (N, d_x), ``z`` (N, n_out), the column names and the
+    leading ``#`` lines (provenance)."""
 
     X: np.ndarray
     z: np.ndarray
@@ -364,17 +319,13 @@ class Measurements(NamedTuple):
 
 #: Problems listed before a measurements file is given up on (the rest are counted).
 MAX_PROBLEMS = 5
-#: Most data rows a measurements file may have (every reader: uploads, case files,
-#: :func:`read_measurements`); reading stops at the first row beyond. Test rows cost
-#: predictions only; the training rows, which every GP factorises, have their own, lower
-#: limit (:data:`mdcore._case_file.MAX_TRAINING_ROWS`). The built-in cases' templates have
-#: at most 464 rows (beam-2d: 64 training, 400 test).
+#: Most data rows of a measurements file (uploads and case files; beam-2d's template has 464).
+#: Training rows have a lower limit (:data:`mdcore._case_file.MAX_TRAINING_ROWS`).
 MAX_ROWS = 1_000
 
 
 class MeasurementsError(ValueError):
-    """A measurements file that cannot be read; ``problems`` lists what is wrong, one
-    sentence each (the message joins them)."""
+    """A measurements file that cannot be read; ``problems``: one sentence per problem."""
 
     def __init__(self, problems: list[str]):
         self.problems = tuple(problems)
@@ -382,32 +333,7 @@ class MeasurementsError(ValueError):
 
 
 def read_measurements(path, *, inputs, outputs=None, ignore=("repeat",)) -> Measurements:
-    """Read observations from a CSV file with a header row.
-
-    Lines starting with ``#`` before the header are kept as provenance comments. Every
-    data row needs a number in every column.
-
-    Parameters
-    ----------
-    path : str or Path
-    inputs : sequence of str
-        Column names that form ``X``.
-    outputs : sequence of str, optional
-        Column names that form ``z``; default all columns that are neither inputs nor in
-        ``ignore``.
-    ignore : sequence of str, default=("repeat",)
-        Columns to skip when ``outputs`` is not given.
-
-    Returns
-    -------
-    Measurements
-
-    Raises
-    ------
-    MeasurementsError (a ValueError)
-        For a missing file or column, a ragged row, a non-numeric cell or NaN/inf; the
-        message names the file and the line.
-    """
+    """:func:`parse_measurements` of a UTF-8 CSV file."""
     path = Path(path)
     if not path.is_file():
         raise MeasurementsError([f"measurement file {str(path)!r} does not exist."])
@@ -422,30 +348,11 @@ def read_measurements(path, *, inputs, outputs=None, ignore=("repeat",)) -> Meas
 
 def parse_measurements(text: str, *, source: str, inputs, outputs=None,
                        ignore=("repeat",)) -> Measurements:
-    """Parse observations from CSV text (the format of :func:`read_measurements`).
+    """Observations of CSV text with a header row (``#`` lines before it are provenance):
+    columns ``inputs`` form X, ``outputs`` z (default: all but the inputs and ``ignore``).
 
-    Only parses: nothing in the text is evaluated or imported, so it is safe for text
-    uploaded by a browser.
-
-    Parameters
-    ----------
-    text : str
-        The CSV text.
-    source : str
-        Where the text comes from (a file name), used in the messages.
-    inputs, outputs, ignore
-        As in :func:`read_measurements`.
-
-    Returns
-    -------
-    Measurements
-
-    Raises
-    ------
-    MeasurementsError (a ValueError)
-        Listing up to :data:`MAX_PROBLEMS` problems (missing columns, ragged rows,
-        cells that are not finite numbers), each naming the line and the column; or for
-        more than :data:`MAX_ROWS` data rows.
+    It only parses (safe for uploaded text). A :class:`MeasurementsError` lists up to
+    :data:`MAX_PROBLEMS` problems, each naming ``source``, the line and the column.
     """
     lines = text.removeprefix("\ufeff").splitlines()   # a BOM (Excel's UTF-8 CSV)
     comments, header_line = [], None

@@ -1,9 +1,5 @@
-"""Command line: ``python -m mdcore {cases,history-match,reproduce,run,study} ...``.
-
-Exit codes: 0 done, 2 bad input (the message says what to fix; a history match that rules
-out every θ too), 1 a failure (a file that cannot be written, a simulator or cluster that
-fails).
-"""
+"""Command line: ``python -m mdcore {cases,history-match,reproduce,run,study} ...`` (exit codes:
+:data:`EXIT_CODES`)."""
 
 from __future__ import annotations
 
@@ -42,46 +38,39 @@ def _cmd_cases(args) -> int:
 
 
 def _v_m(case, values):
-    """V_m per output from ``--v-m``: one value per output, or one value for output 1 that
-    the other outputs scale by (z̄_i / z̄_1)², as in the app; None keeps the case's."""
+    """``--v-m``: one V_m per output, or output 1's, scaled to the others as in the app."""
     if values is None:
         return None
-    v = np.asarray(values, dtype=np.float64)
-    if v.size == 1:
-        return case.scaled_v_m(v[0])
-    if v.size != case.n_out:
+    if len(values) == 1:
+        return case.scaled_v_m(values[0])
+    if len(values) != case.n_out:
         raise ValueError(f"--v-m takes 1 value or one per output ({case.n_out} for "
-                         f"{case.name}: {', '.join(case.output_names)}); received {v.size}.")
-    return v
+                         f"{case.name}: {', '.join(case.output_names)}); received {len(values)}.")
+    return np.asarray(values, dtype=np.float64)
 
 
 def _v_m_corr(case, values):
-    """The outputs' correlation matrix from ``--v-m-corr``: one ρ for every pair of outputs,
-    or the n_out² entries row by row; None keeps the case's."""
+    """``--v-m-corr``: one ρ for every pair of outputs, or the n_out² entries row by row."""
     if values is None:
         return None
-    v, n = np.asarray(values, dtype=np.float64), case.n_out
-    if v.size == 1:
-        return np.full((n, n), v[0]) + (1.0 - v[0]) * np.eye(n)
-    if v.size != n * n:
+    n = case.n_out
+    if len(values) == 1:
+        return np.full((n, n), values[0]) + (1.0 - values[0]) * np.eye(n)
+    if len(values) != n * n:
         raise ValueError(f"--v-m-corr takes 1 value (ρ for every pair of outputs) or the "
                          f"{n} × {n} = {n * n} entries of the outputs' correlation matrix row "
-                         f"by row ({case.name} has {n} output(s)); received {v.size}.")
-    return v.reshape(n, n)
+                         f"by row ({case.name} has {n} output(s)); received {len(values)}.")
+    return np.reshape(np.asarray(values, dtype=np.float64), (n, n))
 
 
 def _history_options(args, case) -> dict:
     """The history-matching options given on the command line (others: the case's)."""
-    opts = {k: getattr(args, k) for k in ("threshold", "rule", "max_waves", "n_runs",
-                                          "n_candidates", "convergence_ratio",
-                                          "chi2_probability")
-            if getattr(args, k, None) is not None}
-    for key, value in (("V_m", _v_m(case, args.v_m)),
-                       ("V_m_length", args.v_m_length),
-                       ("V_m_corr", _v_m_corr(case, args.v_m_corr))):
-        if value is not None:
-            opts[key] = value
-    return opts
+    opts = {k: getattr(args, k, None) for k in (
+        "threshold", "rule", "max_waves", "n_runs", "n_candidates", "convergence_ratio",
+        "chi2_probability", "v_m_length")}
+    opts.update(V_m=_v_m(case, args.v_m), V_m_length=opts.pop("v_m_length"),
+                V_m_corr=_v_m_corr(case, args.v_m_corr))
+    return {k: v for k, v in opts.items() if v is not None}
 
 
 def _history_match(case, args, executor=None) -> HistoryMatchResult:
@@ -118,7 +107,10 @@ def _print_checks(case, hm, validation, splits=None) -> None:
     print("".join(f"! {line}\n" for line in advice), end="")
 
 
-def _print_waves(case, result) -> None:
+def _cmd_history_match(args) -> int:
+    case = _with_timeout(cases.load(args.case, seed=args.seed), args)
+    with _executor(args) as executor:
+        result = _history_match(case, args, executor)
     rows = [[str(w.index), f"{100 * w.nroy_fraction:.2f}", str(len(w.runs_theta)),
              str(len(w.failures)), f"{np.max(w.max_var / w.var_threshold):.3g}",
              f"{w.seconds:.2f}"] for w in result.waves]
@@ -129,24 +121,21 @@ def _print_waves(case, result) -> None:
         print(f"{len(failed)} simulator run(s) failed and were dropped; the first at θ = "
               f"{np.array2string(failed[0].theta, precision=4)}: {failed[0].message}")
     print(result.message)
+    _print_checks(case, result, validate_waves(result, warn=False))
+    if result.status == "ruled_out":
+        return 2                                          # bad input: raise V_m or T
+    print(f"θ_MAP: {_theta_text(case, result.theta_map)}")
+    return 0
+
+
+def _theta_text(case, theta) -> str:
+    return ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
+                     zip(case.theta_names, theta, case.theta_units))
 
 
 def _with_timeout(case, args):
     """The case with ``--timeout`` as its simulator timeout, when given."""
     return case if args.timeout is None else dataclasses.replace(case, timeout=args.timeout)
-
-
-def _cmd_history_match(args) -> int:
-    case = _with_timeout(cases.load(args.case, seed=args.seed), args)
-    with _executor(args) as executor:
-        result = _history_match(case, args, executor)
-    _print_waves(case, result)
-    _print_checks(case, result, validate_waves(result, warn=False))
-    if result.status != "ruled_out":
-        names = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
-                          zip(case.theta_names, result.theta_map, case.theta_units))
-        print(f"θ_MAP: {names}")
-    return 0 if result.status != "ruled_out" else 2      # bad input: raise V_m or T
 
 
 def _table(header: list[str], rows: list[list[str]]) -> str:
@@ -157,43 +146,34 @@ def _table(header: list[str], rows: list[list[str]]) -> str:
 
 
 class _Bar:
-    """A progress bar with ETA on stderr when it is a terminal (tqdm); silent otherwise.
-
-    ``update_to(done, message)`` moves it to ``done`` of ``total``; :meth:`fraction` takes
-    the pipeline's ``progress(fraction, message)``.
-    """
+    """A tqdm progress bar with ETA on stderr when it is a terminal; silent otherwise."""
 
     def __init__(self, label: str, total: float, unit: str):
-        self.label, self.total, self.unit = label, total, unit
-        self._bar = None
+        from tqdm import tqdm
+        self.total = total
+        self._bar = tqdm(total=total, desc=label, unit=unit, leave=False, file=sys.stderr,
+                         dynamic_ncols=True, disable=not sys.stderr.isatty())
 
     def __enter__(self):
-        if sys.stderr.isatty():
-            from tqdm import tqdm
-            self._bar = tqdm(total=self.total, desc=self.label, unit=self.unit, leave=False,
-                             file=sys.stderr, dynamic_ncols=True)
         return self
 
     def update_to(self, done: float, message: str = "") -> None:
-        if self._bar is not None:
-            self._bar.n = min(done, self.total)
-            if message:
-                self._bar.set_postfix_str(message, refresh=False)
-            self._bar.refresh()
+        self._bar.n = min(done, self.total)
+        if message:
+            self._bar.set_postfix_str(message, refresh=False)
+        self._bar.refresh()
 
     def fraction(self, f: float, message: str = "") -> None:
+        """The pipeline's ``progress(fraction, message)``."""
         self.update_to(int(round(f * self.total)), message)
 
     def __exit__(self, *exc):
-        if self._bar is not None:
-            self._bar.close()
-        return False
+        self._bar.close()
 
 
 @contextlib.contextmanager
 def _executor(args):
-    """The executor of ``--dask ADDRESS`` or ``--workers N`` (a local Dask cluster), or
-    None (serial) when neither is given."""
+    """The executor of ``--dask ADDRESS`` or ``--workers N`` (a local Dask cluster); None."""
     address, workers = getattr(args, "dask", None), getattr(args, "dask_workers", None)
     if address is None and workers is None:
         yield None
@@ -245,8 +225,7 @@ def _run(case, args, methods, settings_name: str) -> int:
 
             results = run_methods(case, hm, methods, settings, seed=args.seed, report=report,
                                   progress_for=bar_for, executor=executor)
-    run = CaseRun(case, hm, settings, as_seed_int(args.seed), results)
-    return _print_run(run, args)
+    return _print_run(CaseRun(case, hm, settings, as_seed_int(args.seed), results), args)
 
 
 def _cmd_reproduce(args) -> int:
@@ -264,19 +243,16 @@ def _cmd_run(args) -> int:
 def _print_run(run, args) -> int:
     """The metrics table of a run, its warnings, and the files asked for."""
     case, hm, settings = run.case, run.hm, run.settings
-    theta = ", ".join(f"{n} = {v:.4g} {u}" for n, v, u in
-                      zip(case.theta_names, hm.theta_map, case.theta_units))
     print(f"\n{case.title}\nhistory matching: {len(hm.waves)} wave(s), NROY "
-          f"{100 * hm.nroy_fraction[-1]:.2f} %, θ_MAP: {theta}, truth in NROY: "
-          f"{run.truth_in_nroy}\nN_s = {settings.n_s}, N_φ = {settings.n_phi}, seed "
-          f"{run.seed}\n")
+          f"{100 * hm.nroy_fraction[-1]:.2f} %, θ_MAP: {_theta_text(case, hm.theta_map)}, "
+          f"truth in NROY: {run.truth_in_nroy}\nN_s = {settings.n_s}, N_φ = {settings.n_phi}, "
+          f"seed {run.seed}\n")
     shown = ("NMSE z %", "NMSE δ %", "RMSE δ", "MMD", "LPL", "cover z ±3σ", "cover δ ±3σ",
              "ESS pairs", "ESS φ", "k̂", "seconds")
-    header = ["method", "output", *shown]
-    rows = [[row["method"].value + ("!" if row["unreliable"] else ""), row["output"],
-             *(metric_text(c, row[c]) for c in shown)]
-            for row in metrics_table(run.results, case.output_names)]
-    print(_table(header, rows))
+    print(_table(["method", "output", *shown],
+                 [[row["method"].value + ("!" if row["unreliable"] else ""), row["output"],
+                   *(metric_text(c, row[c]) for c in shown)]
+                  for row in metrics_table(run.results, case.output_names)]))
     _print_checks(case, hm, run.validation, run.theta_delta)
     for r in run.results:
         if r.chain is not None:
@@ -292,16 +268,20 @@ def _print_run(run, args) -> int:
     if notes:
         print("\n! unreliable importance weights or chain:\n"
               + "\n".join(f"  - {w}" for w in notes))
-    if args.json:
-        with open(_made(args.json), "w", encoding="utf-8") as fh:
-            json.dump(run.to_dict(), fh, indent=2)
-        print(f"\nwrote {args.json}")
+    _write_json(args.json, run.to_dict)
     if args.csv:
         for path in write_tables(run, args.csv):
             print(f"wrote {path}")
     if args.out:
         print(f"wrote {_report_writer()(run, _made(args.out))} (self-contained; opens offline)")
     return 0
+
+
+def _write_json(path: str | None, to_dict) -> None:
+    if path:
+        with open(_made(path), "w", encoding="utf-8") as fh:
+            json.dump(to_dict(), fh, indent=2)
+        print(f"\nwrote {path}")
 
 
 def _made(path: str) -> str:
@@ -311,8 +291,8 @@ def _made(path: str) -> str:
 
 
 def _report_writer():
-    """The HTML report's writer, ``write(run, path) -> path``: plotting is not the core's,
-    so a package registers it under the ``mdcore.report`` entry point (the app does)."""
+    """The HTML report's ``write(run, path) -> path``: plotting is not the core's, so a
+    package registers it under the ``mdcore.report`` entry point (the app does)."""
     from importlib.metadata import entry_points
     found = entry_points(group="mdcore.report", name="html")
     if not found:
@@ -328,20 +308,17 @@ def _cmd_study(args) -> int:
     settings = _settings(args, args.case)
     workers = as_int(args.workers, "--workers", 1, 1024)
     history = _history_options(args, cases.load(args.case))
-    if args.dask is not None:
-        with _executor(args) as executor:
-            result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                           executor=executor, timeout=args.timeout, history=history)
-    elif workers == 1:
+    with contextlib.ExitStack() as stack:
+        executor = None
+        if args.dask is not None:
+            executor = stack.enter_context(_executor(args))
+        elif workers > 1:
+            # Fresh interpreters, not forks: a fork copies the locks that this process's
+            # threads (the kernels' background warm-up, BLAS) hold, and its children hang.
+            executor = stack.enter_context(ProcessPoolExecutor(
+                max_workers=workers, mp_context=multiprocessing.get_context("spawn")))
         result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                       timeout=args.timeout, history=history)
-    else:
-        # Fresh interpreters, not forks: a fork copies the locks that this process's
-        # threads (the kernels' background warm-up, BLAS) hold, and its children hang.
-        with ProcessPoolExecutor(max_workers=workers,
-                                 mp_context=multiprocessing.get_context("spawn")) as pool:
-            result = study(args.case, args.seeds, methods=args.scenarios, settings=settings,
-                           executor=pool, timeout=args.timeout, history=history)
+                       executor=executor, timeout=args.timeout, history=history)
     summary, paper, hm = result.summary(), PAPER.get(args.case, {}), result.history()
     print(f"{args.case}: seeds {', '.join(map(str, result.seeds))}; N_s = {settings.n_s}, "
           f"N_φ = {settings.n_phi}; mean ± sd over seeds (paper in brackets)\n")
@@ -357,14 +334,11 @@ def _cmd_study(args) -> int:
         for o in range(n_out):
             cells = []
             for metric in shown:
-                v = entry[metric]
-                if v is None:
-                    cells.append("—".rjust(24))
-                    continue
-                ref = paper.get(metric, {}).get(method)
+                v, ref = entry[metric], paper.get(metric, {}).get(method)
                 tail = f" [{ref:g}]" if ref is not None and n_out == 1 else ""
-                cells.append(f"{v['mean'][o]:.3f} ± {v['sd'][o]:.3f}{tail}".rjust(24))
-            print(f"{method:>6} {o + 1:>6} " + " ".join(cells))
+                cells.append("—" if v is None
+                             else f"{v['mean'][o]:.3f} ± {v['sd'][o]:.3f}{tail}")
+            print(f"{method:>6} {o + 1:>6} " + " ".join(c.rjust(24) for c in cells))
     pat = result.patterns()
     if pat["koh_delta_ratio"] is not None:
         print(f"\nKOH δ NMSE / best decoupled: {pat['koh_delta_ratio']:.1f}× "
@@ -379,33 +353,8 @@ def _cmd_study(args) -> int:
               f"{', '.join(f'{w:.4g}' for w in pat['sd_delta'])}; widens: {pat['band_widens']}\n"
               f"hardest output (largest z NMSE) per scenario: {hardest}; best average z NMSE: "
               f"scenario {pat['best_average_nmse_z']}")
-    if args.json:
-        with open(_made(args.json), "w", encoding="utf-8") as fh:
-            json.dump(result.to_dict(), fh, indent=2)
-        print(f"\nwrote {args.json}")
+    _write_json(args.json, result.to_dict)
     return 0
-
-
-def _add_method_options(p) -> None:
-    """The options that choose the methods and their sizes (reproduce, run and study)."""
-    p.add_argument("--methods", "--scenarios", dest="scenarios", nargs="+",
-                   choices=[m.value for m in Method], default=None,
-                   help="decoupled scenarios 1–3 and/or koh, the Kennedy–O'Hagan baseline "
-                   "(default: 1 2 3, plus koh for beam-1d)")
-    p.add_argument("--n-s", type=int, default=None, help="θ samples (default: paper's 1000)")
-    p.add_argument("--n-phi", type=int, default=None,
-                   help="hyperparameter samples per θ (default: paper's 500; beam-2d 1000)")
-    p.add_argument("--n-iter", type=int, default=N_ITER,
-                   help=f"KOH chain length (default: paper's {N_ITER:,})")
-    p.add_argument("--burn-in", type=int, default=BURN_IN,
-                   help=f"KOH burn-in (default: paper's {BURN_IN:,})")
-    p.add_argument("--proposal", choices=["adaptive", "prior"], default=Settings.proposal,
-                   help="scenario 3's φ proposal: adaptive importance sampling (default; "
-                   "reliable weights) or the paper's prior draws (same budget)")
-    p.add_argument("--backend", choices=list(compiled.BACKENDS), default="auto",
-                   help="GP kernels of scenarios 1–3: numba (compiled, fast) or numpy (the "
-                   "reference); auto = numba when installed. Same numbers to ~1e-12")
-    p.add_argument("--json", default=None, metavar="PATH", help="also write the numbers here")
 
 
 def _seed(text: str) -> int:
@@ -431,59 +380,81 @@ def _timeout(text: str) -> float:
             f"{short(text)}. For example --timeout 60.") from None
 
 
-def _add_output_options(p) -> None:
-    """The seed and the files a single run writes (reproduce and run)."""
-    p.add_argument("--seed", type=_seed, default=0,
-                   help="seeds every random step (default 0): the same seed, the same numbers")
-    p.add_argument("--csv", default=None, metavar="DIR",
-                   help="also write nroy.csv and predictions.csv into this folder")
-    p.add_argument("--out", default=None, metavar="REPORT.html",
-                   help="also write a self-contained HTML report")
+SEED_HELP = "seeds every random step (default 0): the same seed, the same numbers"
+#: The options of each command (flags, add_argument keywords), table-driven.
+METHOD_OPTIONS = [
+    (("--methods", "--scenarios"), dict(
+        dest="scenarios", nargs="+", choices=[m.value for m in Method],
+        help="decoupled scenarios 1–3 and/or koh, the Kennedy–O'Hagan baseline (default: 1 2 "
+        "3, plus koh for beam-1d)")),
+    (("--n-s",), dict(type=int, help="θ samples (default: paper's 1000)")),
+    (("--n-phi",), dict(type=int, help="hyperparameter samples per θ (default: paper's 500; "
+                        "beam-2d 1000)")),
+    (("--n-iter",), dict(type=int, default=N_ITER,
+                         help=f"KOH chain length (default: paper's {N_ITER:,})")),
+    (("--burn-in",), dict(type=int, default=BURN_IN,
+                          help=f"KOH burn-in (default: paper's {BURN_IN:,})")),
+    (("--proposal",), dict(choices=["adaptive", "prior"], default=Settings.proposal,
+                           help="scenario 3's φ proposal: adaptive importance sampling "
+                           "(default; reliable weights) or the paper's prior draws (same "
+                           "budget)")),
+    (("--backend",), dict(choices=list(compiled.BACKENDS), default="auto",
+                          help="GP kernels of scenarios 1–3: numba (compiled, fast) or numpy "
+                          "(the reference); auto = numba when installed. Same numbers to "
+                          "~1e-12")),
+    (("--json",), dict(metavar="PATH", help="also write the numbers here"))]
+OUTPUT_OPTIONS = [
+    (("--seed",), dict(type=_seed, default=0, help=SEED_HELP)),
+    (("--csv",), dict(metavar="DIR", help="also write nroy.csv and predictions.csv into this "
+                      "folder")),
+    (("--out",), dict(metavar="REPORT.html", help="also write a self-contained HTML report"))]
+RULE_OPTIONS = [
+    (("--v-m",), dict(type=float, nargs="+", metavar="V", help="model-discrepancy variance "
+                      "(output units²): one per output, or one for output 1 that the others "
+                      "scale by (z̄_i / z̄_1)², as in the app")),
+    (("--threshold",), dict(type=float, metavar="T", help="implausibility threshold T of the "
+                            "max rules (default 3)")),
+    (("--rule",), dict(choices=list(RULE_NAMES), help="how the targets' implausibilities "
+                       "combine (default max); multivariate: I_M² over all targets with the "
+                       "full covariance, against a χ² quantile")),
+    (("--v-m-length",), dict(type=float, nargs="+", metavar="L", help="correlation length ℓ_m "
+                             "of V_m over the inputs (inputs' units), one or one per output; "
+                             "0: independent. Used by the multivariate rule (default: the "
+                             "case's)")),
+    (("--v-m-corr",), dict(type=float, nargs="+", metavar="RHO", help="correlation of the "
+                           "outputs' discrepancies: one ρ for every pair, or the n_out × n_out "
+                           "matrix row by row (multivariate rule; default none)")),
+    (("--chi2-probability",), dict(type=float, metavar="P", help="the multivariate rule's "
+                                   "cut-off is the χ² quantile at P (default 0.995)"))]
+RUN_OPTIONS = [
+    (("--max-waves",), dict(type=int, help="at most this many waves")),
+    (("--n-runs",), dict(type=int, help="simulator runs added per wave (default max(10, 5 p))")),
+    (("--n-candidates",), dict(type=int, help="candidate θ scored per wave (default 50,000 p)")),
+    (("--convergence-ratio",), dict(type=float, metavar="R", help="stop when the emulator "
+                                    "variance < R (V_o + V_m) (default 1)")),
+    (("--timeout",), dict(type=_timeout, metavar="SECONDS", help="seconds one simulator run "
+                          "may take; a longer run is stopped and counts as failed (default: "
+                          "the case file's [simulator] timeout, or none)"))]
+DASK_OPTIONS = [
+    (("--dask",), dict(metavar="ADDRESS", help="run simulator batches on the Dask scheduler at "
+                       "ADDRESS, e.g. tcp://10.0.0.5:8786; the numbers equal a serial run's")),
+    (("--workers",), dict(dest="dask_workers", type=int, metavar="N", help="start a local Dask "
+                          "cluster of N processes for the simulator runs"))]
+STUDY_OPTIONS = [
+    (("--seeds",), dict(default="0-9", help="seeds, e.g. 0-9 or 0,3,5 (default 0-9)")),
+    (("--workers",), dict(type=int, default=2, help="processes running seeds in parallel "
+                          "(default 2; 1 runs in this one)")),
+    (("--dask",), dict(metavar="ADDRESS", help="run the seeds on the Dask scheduler at ADDRESS "
+                       "instead")),
+    (("--timeout",), dict(type=_timeout, metavar="SECONDS", help="seconds one simulator run may "
+                          "take (default: no limit)"))]
+HISTORY_GROUP = "history matching (default: the case's settings)"
+DASK_GROUP = "simulator runs on a cluster (default: in this process)"
 
 
-def _add_rule_options(g) -> None:
-    """How implausibility is measured (history-match, reproduce, run and study)."""
-    g.add_argument("--v-m", type=float, nargs="+", default=None, metavar="V",
-                   help="model-discrepancy variance (output units²): one per output, or one "
-                   "for output 1 that the others scale by (z̄_i / z̄_1)², as in the app")
-    g.add_argument("--threshold", type=float, default=None, metavar="T",
-                   help="implausibility threshold T of the max rules (default 3)")
-    g.add_argument("--rule", default=None, choices=list(RULE_NAMES),
-                   help="how the targets' implausibilities combine (default max); "
-                   "multivariate: I_M² over all targets with the full covariance, against a "
-                   "χ² quantile")
-    g.add_argument("--v-m-length", type=float, nargs="+", default=None, metavar="L",
-                   help="correlation length ℓ_m of V_m over the inputs (inputs' units), one "
-                   "or one per output; 0: independent. Used by the multivariate rule "
-                   "(default: the case's)")
-    g.add_argument("--v-m-corr", type=float, nargs="+", default=None, metavar="RHO",
-                   help="correlation of the outputs' discrepancies: one ρ for every pair, or "
-                   "the n_out × n_out matrix row by row (multivariate rule; default none)")
-    g.add_argument("--chi2-probability", type=float, default=None, metavar="P",
-                   help="the multivariate rule's cut-off is the χ² quantile at P (default "
-                   "0.995)")
-
-
-def _add_history_options(p) -> None:
-    """History-matching options (history-match, reproduce and run); default: the case's."""
-    g = p.add_argument_group("history matching (default: the case's settings)")
-    _add_rule_options(g)
-    g.add_argument("--max-waves", type=int, default=None, help="at most this many waves")
-    g.add_argument("--n-runs", type=int, default=None,
-                   help="simulator runs added per wave (default max(10, 5 p))")
-    g.add_argument("--n-candidates", type=int, default=None,
-                   help="candidate θ scored per wave (default 50,000 p)")
-    g.add_argument("--convergence-ratio", type=float, default=None, metavar="R",
-                   help="stop when the emulator variance < R (V_o + V_m) (default 1)")
-    g.add_argument("--timeout", type=_timeout, default=None, metavar="SECONDS",
-                   help="seconds one simulator run may take; a longer run is stopped and "
-                   "counts as failed (default: the case file's [simulator] timeout, or none)")
-    d = p.add_argument_group("simulator runs on a cluster (default: in this process)")
-    d.add_argument("--dask", default=None, metavar="ADDRESS",
-                   help="run simulator batches on the Dask scheduler at ADDRESS, e.g. "
-                   "tcp://10.0.0.5:8786; the numbers equal a serial run's")
-    d.add_argument("--workers", dest="dask_workers", type=int, default=None, metavar="N",
-                   help="start a local Dask cluster of N processes for the simulator runs")
+def _add(parser, options) -> None:
+    for flags, kwargs in options:
+        parser.add_argument(*flags, **kwargs)
 
 
 EXIT_CODES = ("exit codes: 0 done; 2 bad input (the message names the option or file and "
@@ -509,7 +480,6 @@ EXAMPLES = {
              "--json study.json",
 }
 
-
 #: Warning classes in words, for the summary.
 WARNING_WORDS = {"LowESSWarning": "few effective importance samples",
                  "ConvergenceWarning": "did not converge",
@@ -532,9 +502,8 @@ def _summarise(caught, shown: set[str]) -> None:
 
 
 def console_main() -> int:
-    """``python -m mdcore`` and the ``mdcore`` script: :func:`main` in a process of its own,
-    so BLAS is limited to one thread for the whole process first (see
-    :func:`mdcore._threads.single_threaded_blas_for_process`)."""
+    """``python -m mdcore`` and the ``mdcore`` script: :func:`main` with BLAS limited to one
+    thread for the whole process (:func:`mdcore._threads.single_threaded_blas_for_process`)."""
     threads.single_threaded_blas_for_process()
     return main()
 
@@ -546,43 +515,30 @@ def main(argv=None) -> int:
         "discrepancy scenarios 1–3 and the Kennedy–O'Hagan baseline.",
         epilog="\n\n".join([EXAMPLES["reproduce"], EXAMPLES["run"], EXIT_CODES]))
     sub = parser.add_subparsers(dest="command", required=True)
-
-    def command(name: str, text: str):
-        return sub.add_parser(name, help=text, description=text, epilog=EXAMPLES[name] + "\n\n"
-                              + EXIT_CODES, formatter_class=argparse.RawDescriptionHelpFormatter)
-
-    command("cases", "list the case studies")
-    hm = command("history-match", "run Bayesian history matching on a case (waves until "
-                 "converged) and print each wave's NROY share and θ_MAP")
-    hm.add_argument("case", choices=cases.names())
-    hm.add_argument("--seed", type=_seed, default=0,
-                    help="seeds every random step (default 0): the same seed, the same numbers")
-    _add_history_options(hm)
-    rp = command("reproduce", "history matching + discrepancy scenarios + metrics (the "
-                 "paper's Tables 1–3)")
-    rp.add_argument("case", choices=cases.names())
-    _add_method_options(rp)
-    _add_output_options(rp)
-    _add_history_options(rp)
-    rn = command("run", "your own case: history matching + methods on a TOML case file (see "
-                 "the README, 'Your own data')")
-    rn.add_argument("case_file", help="the TOML case file")
-    _add_method_options(rn)
-    _add_output_options(rn)
-    _add_history_options(rn)
-    st = command("study", "reproduce a case over many seeds: mean ± sd of every metric "
-                 "beside the paper's values, and whether its patterns hold")
-    st.add_argument("case", choices=cases.names())
-    _add_method_options(st)
-    st.add_argument("--seeds", default="0-9", help="seeds, e.g. 0-9 or 0,3,5 (default 0-9)")
-    st.add_argument("--workers", type=int, default=2,
-                    help="processes running seeds in parallel (default 2; 1 runs in this one)")
-    st.add_argument("--dask", default=None, metavar="ADDRESS",
-                    help="run the seeds on the Dask scheduler at ADDRESS instead")
-    st.add_argument("--timeout", type=_timeout, default=None, metavar="SECONDS",
-                    help="seconds one simulator run may take (default: no limit)")
-    _add_rule_options(st.add_argument_group("history matching (default: the case's "
-                                            "settings)"))
+    commands = {
+        "cases": ("list the case studies", [], []),
+        "history-match": ("run Bayesian history matching on a case (waves until converged) and "
+                          "print each wave's NROY share and θ_MAP", [OUTPUT_OPTIONS[0]],
+                          [RULE_OPTIONS + RUN_OPTIONS, DASK_OPTIONS]),
+        "reproduce": ("history matching + discrepancy scenarios + metrics (the paper's Tables "
+                      "1–3)", METHOD_OPTIONS + OUTPUT_OPTIONS,
+                      [RULE_OPTIONS + RUN_OPTIONS, DASK_OPTIONS]),
+        "run": ("your own case: history matching + methods on a TOML case file (see the "
+                "README, 'Your own data')", METHOD_OPTIONS + OUTPUT_OPTIONS,
+                [RULE_OPTIONS + RUN_OPTIONS, DASK_OPTIONS]),
+        "study": ("reproduce a case over many seeds: mean ± sd of every metric beside the "
+                  "paper's values, and whether its patterns hold", METHOD_OPTIONS + STUDY_OPTIONS,
+                  [RULE_OPTIONS])}
+    for name, (text, options, groups) in commands.items():
+        p = sub.add_parser(name, help=text, description=text, epilog=EXAMPLES[name] + "\n\n"
+                           + EXIT_CODES, formatter_class=argparse.RawDescriptionHelpFormatter)
+        if name == "run":
+            p.add_argument("case_file", help="the TOML case file")
+        elif name != "cases":
+            p.add_argument("case", choices=cases.names())
+        _add(p, options)
+        for title, group in zip((HISTORY_GROUP, DASK_GROUP), groups):
+            _add(p.add_argument_group(title), group)
     args = parser.parse_args(argv)
     if args.command in ("reproduce", "run", "study"):
         # Load (or compile) the numba kernels while history matching runs.

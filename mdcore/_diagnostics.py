@@ -21,11 +21,7 @@ from ._history_matching import (
     elementwise_implausibility,
 )
 from ._multivariate import emulator_cov, implausibility_and_logdet
-from ._validation import as_float_array, as_int
-
-__all__ = ["EmulatorLOO", "WaveValidation", "SpaceViews", "ThetaDeltaSplit", "emulator_loo",
-           "loo_p_value", "validate_wave", "validate_waves", "space_views", "space_removed",
-           "theta_delta_split"]
+from ._validation import as_float_array, as_int, check_type
 
 #: P(|e| > 3) for a standard normal e: the share of LOO errors a calibrated emulator has.
 P_BEYOND_3 = float(2.0 * scipy.stats.norm.sf(3.0))
@@ -158,9 +154,7 @@ def validate_wave(wave, *, warn: bool = True) -> WaveValidation:
 
 def validate_waves(hm, *, warn: bool = True) -> tuple[WaveValidation, ...]:
     """:func:`validate_wave` for every wave of a history match."""
-    if not isinstance(hm, HistoryMatchResult):
-        raise ValueError(f"hm must be a HistoryMatchResult (mdcore.history_match_case); "
-                         f"received {type(hm).__name__}.")
+    check_type(hm, HistoryMatchResult, "hm", "a HistoryMatchResult (mdcore.history_match_case)")
     return tuple(validate_wave(w, warn=warn) for w in hm.waves)
 
 
@@ -287,9 +281,8 @@ def theta_delta_split(model, X_star, *, n_theta: int = 100) -> ThetaDeltaSplit:
     are picked by systematic resampling (offset ½, so no seed) on the θ weights averaged
     over outputs, and reweighted per output (docs/diagnostics.md §3). Scenario 1 gives 0.
     """
-    if not isinstance(model, DiscrepancyModel):
-        raise ValueError(f"model must be a DiscrepancyModel (MethodResult.model of scenarios "
-                         f"1–3); received {type(model).__name__}.")
+    check_type(model, DiscrepancyModel, "model",
+               "a DiscrepancyModel (MethodResult.model of scenarios 1–3)")
     X_star = as_float_array(X_star, "X_star", ndim=2)
     if X_star.shape[1] != model.X.shape[1]:
         raise ValueError(f"X_star must have shape (N*, {model.X.shape[1]}); received "

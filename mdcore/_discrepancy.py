@@ -12,16 +12,6 @@ The mixture moments are summed about the heaviest component, so large means do n
 small variances. The (θ, φ) pairs go in chunks that depend on the problem size only, each
 one call of a module-level function, so ``executor=`` (any ``concurrent.futures.Executor``,
 e.g. Dask's) runs them with the serial run's numbers (results reduced in chunk order).
-
->>> import mdcore
->>> from mdcore import infer_discrepancy
->>> case = mdcore.load_case("beam-1d")
->>> theta = case.theta_true + [[0.0, 0.0], [1.0, -0.5], [-1.0, 0.5]]
->>> model = infer_discrepancy(case.simulate, theta, case.X_train, case.z_train, scenario=2,
-...                           theta_map=case.theta_true, seed=0)
->>> pred = model.predict(case.X_test)
->>> pred.delta_mean.shape, round(float(model.ess[0]), 6)
-((200, 1), 3.0)
 """
 
 from __future__ import annotations
@@ -53,11 +43,7 @@ from ._importance import adaptive_importance_sampling, psis, resample
 from ._linalg import JitterLog
 from ._priors import GaussianPrior
 from ._threads import single_threaded_blas
-from ._validation import as_float_array, as_int, as_outputs, choose
-
-__all__ = ["infer_discrepancy", "DiscrepancyModel", "DiscrepancyOptions",
-           "DiscrepancyPrediction", "default_phi_prior", "LowESSWarning", "SCENARIOS",
-           "PROPOSALS", "MAX_N_S", "MAX_N_PHI", "MAX_PAIRS", "check_executor"]
+from ._validation import as_float_array, as_int, as_outputs, check_type, choose
 
 SCENARIOS = (1, 2, 3)
 PROPOSALS = ("prior", "adaptive")
@@ -127,11 +113,10 @@ class DiscrepancyOptions:
 
     def __post_init__(self):
         object.__setattr__(self, "n_phi", as_int(self.n_phi, "n_phi", 1, MAX_N_PHI))
-        if self.phi_prior is not None and not isinstance(self.phi_prior, GaussianPrior):
-            raise ValueError(f"phi_prior must be a GaussianPrior or None; received "
-                             f"{type(self.phi_prior).__name__}.")
+        check_type(self.phi_prior, (GaussianPrior, type(None)), "phi_prior",
+                   "a GaussianPrior or None")
         choose(self.proposal, "proposal", PROPOSALS)
-        object.__setattr__(self, "prune", _prune(self.prune))
+        object.__setattr__(self, "prune", check_prune(self.prune))
         object.__setattr__(self, "backend", compiled.resolve_backend(self.backend))
 
 
@@ -153,7 +138,8 @@ def _scenario(value) -> int:
     return s
 
 
-def _prune(value) -> float:
+def check_prune(value) -> float:
+    """``prune`` as a float in [0, 1) (a fraction of the largest weight)."""
     try:
         p = float(value)
     except (TypeError, ValueError):
@@ -164,14 +150,15 @@ def _prune(value) -> float:
     return p
 
 
-def _simulate(simulate: Callable, X: np.ndarray, theta: np.ndarray, n_out: int) -> np.ndarray:
-    """Run ``simulate`` and check its (n_theta, N, n_out) result."""
+def simulated(simulate: Callable, X: np.ndarray, theta: np.ndarray, n_out: int, *,
+              finite: bool = True) -> np.ndarray:
+    """``simulate(X, theta)``, checked: shape (n_theta, N, n_out), and finite if ``finite``."""
     y = np.asarray(simulate(X, theta), dtype=np.float64)
     want = (theta.shape[0], X.shape[0], n_out)
     if y.shape != want:
         raise ValueError(f"simulate(X, theta) must return shape (n_theta, N, n_out) = {want}; "
                          f"it returned {y.shape}.")
-    if not np.all(np.isfinite(y)):
+    if finite and not np.all(np.isfinite(y)):
         raise ValueError("simulate(X, theta) returned NaN or inf; check the θ samples lie "
                          "inside the simulator's valid range.")
     return y
@@ -422,13 +409,13 @@ class DiscrepancyModel:
         if X_star.shape[1] != self.X.shape[1]:
             raise ValueError(f"X_star must have shape (N*, d_x) with d_x = {self.X.shape[1]} "
                              f"like the training X; received {X_star.shape}.")
-        prune = None if prune is None else _prune(prune)
+        prune = None if prune is None else check_prune(prune)
         executor = check_executor(executor)
         distinct, inverse = np.unique(X_star, axis=0, return_inverse=True)
         if distinct.shape[0] < X_star.shape[0]:     # replicates: predict each input once
             pred = self.predict(distinct, prune=prune, progress=progress, executor=executor)
             return DiscrepancyPrediction(*(a[inverse.reshape(-1)] for a in pred))
-        Ys = _simulate(self.simulate, X_star, self.theta, self.n_out)     # (S, N*, n_out)
+        Ys = simulated(self.simulate, X_star, self.theta, self.n_out)     # (S, N*, n_out)
         M, K = X_star.shape[0], self.log_weights.shape[2]
         N, d_y, P = self.X.shape[0], self.n_out, 2 + self.n_out + self.X.shape[1]
         if self.backend == "numba":     # pairs per compiled call: ~20 blocks an output
@@ -638,10 +625,8 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
         Scenario 3, when an output's ESS is below :data:`LOW_ESS` or k̂ above 0.7.
     """
     start = time.perf_counter()
-    options = DiscrepancyOptions() if options is None else options
-    if not isinstance(options, DiscrepancyOptions):
-        raise ValueError(f"options must be a DiscrepancyOptions; received "
-                         f"{type(options).__name__}.")
+    options = check_type(DiscrepancyOptions() if options is None else options,
+                         DiscrepancyOptions, "options", "a DiscrepancyOptions")
     scenario = _scenario(scenario)
     X = as_float_array(X, "X", ndim=2)
     z = as_outputs(z, X.shape[0])
@@ -668,13 +653,13 @@ def infer_discrepancy(simulate: Callable, theta_samples, X, z, *, scenario, thet
     if scenario == 3 and S * options.n_phi > MAX_PAIRS:   # before any simulator run
         raise ValueError(f"N_s × n_phi must be at most {MAX_PAIRS:,} (θ, φ) pairs; received "
                          f"{S:,} × {options.n_phi:,}. Lower N_s or n_phi.")
-    Y = _simulate(simulate, X, theta, n_out)
+    Y = simulated(simulate, X, theta, n_out)
 
     hat, nlml_hat, prior, draws, k_hat, draw_seed = None, None, None, None, None, None
     if scenario in (1, 2):
         # Without θ_MAP (scenario 2 given φ̂) the first θ sample stands in for nlml_hat.
         Y_map = Y[0] if scenario == 1 or theta_map is None else \
-            _simulate(simulate, X, theta_map[None], n_out)[0]
+            simulated(simulate, X, theta_map[None], n_out)[0]
         hat, nlml_hat = _fit_phi_hat(Y_map, X, z, options, rng, progress)
         log_params = np.broadcast_to(hat[:, None, None, :], (n_out, S, 1, P))
         log_weights = np.full((n_out, S, 1), -np.log(S))

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import math
 
-__all__ = ["NumericalWarning", "ConvergenceWarning", "LowESSWarning", "EmulatorWarning",
-           "Cancelled"]
-
 
 class NumericalWarning(RuntimeWarning):
     """A numerical fallback was used (jitter, clipped variance, low effective sample size)."""

@@ -1,13 +1,5 @@
 """Results out as plain CSV tables (a header row, one row per record), each with a JSON
 sidecar saying where it comes from; the JSON of a whole run is :meth:`mdcore.CaseRun.to_dict`.
-
-Examples
---------
->>> import mdcore
->>> run = mdcore.run_case(mdcore.load_case("beam-1d"), methods=[1],
-...                       settings=mdcore.Settings(n_s=10), n_candidates=5000)
->>> nroy_csv(run.hm, run.case.theta_names, run.case.theta_units).splitlines()[0]
-'wave,l_cr [mm],E [GPa],implausibility'
 """
 
 from __future__ import annotations
@@ -22,9 +14,7 @@ import numpy as np
 
 from ._history_matching import HistoryMatchResult
 from ._reproduce import CaseRun
-
-__all__ = ["NROY_ROWS_PER_WAVE", "csv_cell", "csv_table", "nroy_csv", "predictions_csv",
-           "with_unit", "write_tables"]
+from ._validation import check_type
 
 #: Most NROY samples written per wave: the candidates are independent uniform draws, so the
 #: first ones retained are a uniform sample of the NROY set too.
@@ -37,8 +27,6 @@ def csv_cell(value, number: Callable[[float], str] = repr):
     """One CSV cell: text a spreadsheet would run gets a leading ``'``; numbers go through
     ``number`` unescaped.
 
-    Examples
-    --------
     >>> csv_cell("=1+2"), csv_cell("-x"), csv_cell(-1.5), csv_cell("ω1")
     ("'=1+2", "'-x", '-1.5', 'ω1')
     """
@@ -70,7 +58,7 @@ def csv_table(header: list, rows: Iterable, number: Callable[[float], str] = rep
 
 
 def _labels(values, name: str, p: int) -> list | None:
-    """Column labels: None, or a sequence of ``p`` strings (one per θ component)."""
+    """None, or ``p`` column labels (one per θ component)."""
     if values is None:
         return None
     if isinstance(values, str) or not all(isinstance(v, str) for v in values) \
@@ -80,35 +68,17 @@ def _labels(values, name: str, p: int) -> list | None:
     return list(values)
 
 
-def _check_run(run) -> None:
-    if not isinstance(run, CaseRun):
-        raise ValueError(f"run must be an mdcore.CaseRun (reproduce or run_case); "
-                         f"received {type(run).__name__}.")
-
-
 def _kept(wave, threshold: float) -> np.ndarray:
     """Indices of the wave's retained candidates that the table holds (the first ones)."""
     return np.flatnonzero(wave.candidate_implausibility <= threshold)[:NROY_ROWS_PER_WAVE]
 
 
 def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
-    """The non-implausible θ of every wave with their implausibility, as CSV text.
-
-    Parameters
-    ----------
-    hm : HistoryMatchResult
-    names, units : sequence of str, optional
-        Column names of θ (default ``theta_1 …``).
-
-    Returns
-    -------
-    str
-        Columns ``wave``, one per θ component, ``implausibility``; up to
-        :data:`NROY_ROWS_PER_WAVE` rows per wave, 7 significant digits (random draws).
-    """
-    if not isinstance(hm, HistoryMatchResult):
-        raise ValueError(f"hm must be a HistoryMatchResult (history_match or "
-                         f"history_match_case); received {type(hm).__name__}.")
+    """CSV text of each wave's first :data:`NROY_ROWS_PER_WAVE` non-implausible θ: columns
+    ``wave``, θ (``names`` and ``units``, default ``theta_1 …``) and ``implausibility``, to 7
+    significant digits (random draws)."""
+    check_type(hm, HistoryMatchResult, "hm",
+               "a HistoryMatchResult (history_match or history_match_case)")
     p = hm.problem.p
     names = _labels(names, "names", p) or [f"theta_{i + 1}" for i in range(p)]
     units = _labels(units, "units", p) or [""] * p
@@ -122,19 +92,9 @@ def nroy_csv(hm: HistoryMatchResult, names=None, units=None) -> str:
 
 
 def predictions_csv(run) -> str:
-    """Predictions and δ bands of every method at the test inputs, as CSV text.
-
-    Parameters
-    ----------
-    run : mdcore.CaseRun
-
-    Returns
-    -------
-    str
-        One row per (method, output, test input): the inputs, the observation, mean and sd
-        of z (noise included) and of δ, and the true δ where known (else an empty cell).
-    """
-    _check_run(run)
+    """CSV text with a row per (method, output, test input) of a :class:`mdcore.CaseRun`: the
+    inputs, the observation, mean and sd of z (noise included) and δ, and the true δ (or "")."""
+    check_type(run, CaseRun, "run", "an mdcore.CaseRun (reproduce or run_case)")
     case = run.case
     truth = case.true_delta(case.X_test)
     head = (["method", "output"] + [with_unit(n, u) for n, u in zip(case.x_names, case.x_units)]
@@ -151,36 +111,29 @@ def predictions_csv(run) -> str:
     return csv_table(head, rows)
 
 
-def _nroy_sidecar(run: CaseRun) -> dict:
-    hm = run.hm
-    return {"table": "nroy.csv", "case": run.case.name, "threshold": hm.problem.options.threshold,
-            "rule": hm.problem.options.rule, "status": hm.status, "message": hm.message,
-            "waves": [{"wave": w.index, "nroy_fraction": w.nroy_fraction,
-                       "candidates": len(w.candidates), "nroy_candidates": len(w.nroy),
-                       "rows": len(_kept(w, hm.problem.options.threshold))} for w in hm.waves],
-            "rows_per_wave": f"the first {NROY_ROWS_PER_WAVE:,} non-implausible candidates "
-                             "of each wave, uniform in its NROY set"}
-
-
-def _predictions_sidecar(run: CaseRun) -> dict:
-    return {"table": "predictions.csv", "case": run.case.name, "seed": run.seed,
-            "methods": [r.method.label for r in run.results],
-            "z_sd": "includes the observation noise",
-            "delta_true": "empty where the true discrepancy is unknown"}
-
-
 def write_tables(run, folder) -> list[Path]:
     """Write ``nroy.csv``, ``predictions.csv`` and their JSON sidecars into ``folder``
     (created); every table is made before anything is written. Returns the paths."""
-    _check_run(run)
+    check_type(run, CaseRun, "run", "an mdcore.CaseRun (reproduce or run_case)")
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
         raise ValueError(f"folder {str(folder)!r} is a file; give a folder for nroy.csv and "
                          "predictions.csv.")
-    texts = {"nroy.csv": nroy_csv(run.hm, run.case.theta_names, run.case.theta_units),
-             "nroy.json": json.dumps(_nroy_sidecar(run), indent=1),
-             "predictions.csv": predictions_csv(run),
-             "predictions.json": json.dumps(_predictions_sidecar(run), indent=1)}
+    hm, threshold = run.hm, run.hm.problem.options.threshold
+    nroy = {"table": "nroy.csv", "case": run.case.name, "threshold": threshold,
+            "rule": hm.problem.options.rule, "status": hm.status, "message": hm.message,
+            "waves": [{"wave": w.index, "nroy_fraction": w.nroy_fraction,
+                       "candidates": len(w.candidates), "nroy_candidates": len(w.nroy),
+                       "rows": len(_kept(w, threshold))} for w in hm.waves],
+            "rows_per_wave": f"the first {NROY_ROWS_PER_WAVE:,} non-implausible candidates "
+                             "of each wave, uniform in its NROY set"}
+    predictions = {"table": "predictions.csv", "case": run.case.name, "seed": run.seed,
+                   "methods": [r.method.label for r in run.results],
+                   "z_sd": "includes the observation noise",
+                   "delta_true": "empty where the true discrepancy is unknown"}
+    texts = {"nroy.csv": nroy_csv(hm, run.case.theta_names, run.case.theta_units),
+             "nroy.json": json.dumps(nroy, indent=1), "predictions.csv": predictions_csv(run),
+             "predictions.json": json.dumps(predictions, indent=1)}
     folder.mkdir(parents=True, exist_ok=True)
     for name, text in texts.items():
         (folder / name).write_text(text, encoding="utf-8")

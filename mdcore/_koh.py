@@ -1,17 +1,6 @@
 """Kennedy–O'Hagan baseline (docs/method.md §7): θ and δ(x) inferred jointly, each output
 ``z | θ, φ ~ N(m_η(X, θ), Σ_η(X, X; θ) + K_δ(X, X; φ) + σ_n² I)``, independent given θ, with
 the emulator's moments ``m_η``, ``Σ_η`` and ``φ = [log σ_f, log ℓ_x…, log σ_n]`` of δ's GP.
-
->>> import mdcore
->>> from mdcore import fit_emulator
->>> case = mdcore.load_case("beam-1d")
->>> y = case.simulate(case.X_train, case.initial_design)
->>> em = fit_emulator(case.X_train, case.initial_design, y, case.theta_bounds, seed=0)
->>> model = infer_koh(em, case.X_train, case.z_train, theta_prior=case.theta_prior,
-...                   bounds=case.theta_bounds, seed=0,
-...                   options=KOHOptions(n_iter=3000, burn_in=1000))
->>> model.predict(case.X_test).delta_mean.shape
-(200, 1)
 """
 
 from __future__ import annotations
@@ -27,7 +16,7 @@ import scipy.linalg
 from scipy.special import logsumexp
 
 from . import _compiled as compiled
-from ._discrepancy import DiscrepancyPrediction
+from ._discrepancy import DiscrepancyPrediction, simulated
 from ._emulator import Emulator, EmulatorAt, ThetaTerms
 from ._exceptions import ConvergenceWarning, NumericalWarning
 from ._gp import LOG_2PI
@@ -36,10 +25,7 @@ from ._kernels import kernel, matern32_and_dlog_ell
 from ._linalg import JITTER_LADDER, JitterLog, cholesky, solve_lower_inplace
 from ._mcmc import MAX_CHAIN, Chain, adaptive_metropolis, chain_length, chain_setup
 from ._priors import GaussianPrior, ThetaPrior
-from ._validation import as_float_array, as_int, as_outputs, check_bounds
-
-__all__ = ["KOHModel", "KOHOptions", "SimulatorAt", "infer_koh", "fit_phi", "noise_cov",
-           "gaussian_log_likelihood", "N_ITER", "BURN_IN", "FAST", "MAX_CHAIN"]
+from ._validation import as_float_array, as_int, as_outputs, check_bounds, check_type
 
 #: The paper's chain (150,000 steps, 50,000 burn-in), a short one for the app, the prior θ
 #: draws of the empirical-Bayes objective and the θ samples of a prediction.
@@ -61,12 +47,7 @@ class SimulatorAt:
         return ThetaTerms(theta, ())
 
     def moments_at(self, terms: ThetaTerms, *, with_cov: bool = True):
-        theta = terms.unit
-        y = np.asarray(self.simulate(self.X, theta), dtype=np.float64)
-        want = (theta.shape[0], self.X.shape[0], self.n_out)
-        if y.shape != want:
-            raise ValueError(f"simulate(X, theta) must return shape (n_theta, N, n_out) = "
-                             f"{want}; it returned {y.shape}.")
+        y = simulated(self.simulate, self.X, terms.unit, self.n_out, finite=False)
         mean = np.ascontiguousarray(np.moveaxis(y, 2, 1))
         cov = np.zeros(mean.shape + (self.X.shape[0],)) if with_cov else None
         return mean, cov
@@ -202,27 +183,11 @@ def _check_phi_prior(phi_prior, d_x: int) -> None:
                          f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
 
 
-def fit_phi(at, X, z, theta_draws, *, phi_prior: GaussianPrior | None = None,
-            n_starts: int = 4, seed=None):
-    """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` over the θ prior's
-    ``theta_draws`` (M, p), and that log evidence: ``at`` is the simulator's side at ``X``
-    (N, d_x), ``z`` (N, n_out); ``phi_prior`` makes it MAP; ``n_starts`` L-BFGS-B starts
-    (the first at the hyperprior mean or the box centre)."""
-    X = as_float_array(X, "X", ndim=2)
-    z = as_float_array(z, "z", ndim=2)
-    if z.shape[0] != X.shape[0] or at.X.shape != X.shape:
-        raise ValueError(f"at, X and z must describe the same N inputs: at.X {at.X.shape}, "
-                         f"X {X.shape}, z {z.shape} (z is (N, n_out)).")
-    _check_phi_prior(phi_prior, X.shape[1])
-    mean, cov = at.moments_at(at.theta_terms(theta_draws))
-    return _fit_phi(mean, cov, X, z, phi_prior, as_int(n_starts, "n_starts", 1),
-                    np.random.default_rng(seed))
-
-
 def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
-    """:func:`fit_phi` from the emulator moments at the prior draws, which stay fixed
-    during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N, N). ``progress(f)``
-    after every L-BFGS-B iteration (it may raise to stop the fit)."""
+    """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` (``phi_prior``: MAP) by
+    ``n_starts`` L-BFGS-B runs, and that log evidence, from the simulator side's moments at
+    M prior draws, fixed during the search: ``mean`` (M, n_out, N), ``cov`` (M, n_out, N,
+    N). ``progress(f)`` after every L-BFGS-B iteration (it may raise to stop the fit)."""
     n_out = z.shape[1]
     resid = z.T - mean.mean(axis=0)                                # (n_out, N)
     boxes = np.stack([default_bounds(np.empty((len(X), 0)), X, r) for r in resid])
@@ -368,9 +333,9 @@ class KOHOptions:
     n_theta_eb, n_predict : int
         Prior θ draws of the empirical-Bayes objective; θ samples of the prediction.
     log_phi : ndarray of shape (2 + d_x,) or (n_out, 2 + d_x), optional
-        Fixed discrepancy hyperparameters instead of :func:`fit_phi`'s.
+        Fixed discrepancy hyperparameters instead of the empirical-Bayes φ̂.
     phi_prior : GaussianPrior of size 2 + d_x, optional
-        Hyperprior of :func:`fit_phi` (MAP); None is plain empirical Bayes.
+        Hyperprior of φ̂ (MAP); None is plain empirical Bayes.
     backend : {"auto", "numpy", "numba"} or None, default="auto"
         The chain with an emulator: :func:`mdcore._compiled.koh_chain` or the Python loop
         of :func:`mdcore._mcmc.adaptive_metropolis`; None reads ``MDCORE_BACKEND``.
@@ -415,9 +380,8 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
         Fraction done (0–1); raising from it cancels.
     """
     start = time.perf_counter()
-    options = KOHOptions() if options is None else options
-    if not isinstance(options, KOHOptions):
-        raise ValueError(f"options must be a KOHOptions; received {type(options).__name__}.")
+    options = check_type(KOHOptions() if options is None else options, KOHOptions, "options",
+                         "a KOHOptions")
     bounds = check_bounds(bounds)
     p = bounds.shape[0]
     prior = _theta_prior(theta_prior, bounds)

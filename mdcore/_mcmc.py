@@ -4,12 +4,6 @@ The proposal covariance is ``C_0`` up to step ``t_0``, then ``s_d Cov(x_0, …, 
 I``, ``s_d = 2.4² / d`` (Haario et al. Eq. 2.1), by Welford's recursion. :func:`chain_setup`,
 :func:`draw_blocks` and :func:`finish_chain` are shared with :func:`mdcore._compiled.koh_chain`,
 so both draw the same random numbers.
-
->>> import numpy as np
->>> chain = adaptive_metropolis(lambda x: -0.5 * float(x @ x), np.zeros(2), n_iter=5000,
-...                             burn_in=1000, seed=0)
->>> chain.samples.shape, 0.1 < chain.acceptance_rate < 0.9
-((4000, 2), True)
 """
 
 from __future__ import annotations
@@ -25,14 +19,11 @@ import numpy as np
 from ._exceptions import RELIABLE_TAUS, ConvergenceWarning, chain_advice
 from ._validation import as_float_array, as_int
 
-__all__ = ["Chain", "ChainSetup", "MAX_CHAIN", "RELIABLE_TAUS", "adaptive_metropolis",
-           "chain_length", "chain_setup", "draw_blocks", "finish_chain",
-           "integrated_autocorr_time"]
-
 #: Longest chain accepted (the kept steps are stored): longer is refused up front.
 MAX_CHAIN = 100_000_000
-#: Steps whose random numbers are drawn at once.
+#: Steps whose random numbers are drawn at once; the ε of the proposal's ``s_d ε I``.
 DRAW_BLOCK = 4096
+EPSILON = 1e-8
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,32 +102,20 @@ def chain_length(n_iter, burn_in, hint: str = "") -> tuple[int, int]:
     return n_iter, burn_in
 
 
-def chain_setup(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int, burn_in: int,
-                initial_cov=None, adapt_start: int | None = None,
-                epsilon: float = 1e-8) -> ChainSetup:
-    """Validate the arguments of :func:`adaptive_metropolis` (which documents them)."""
+def chain_setup(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int,
+                burn_in: int) -> ChainSetup:
+    """The validated start of :func:`adaptive_metropolis` (which documents it)."""
     x = as_float_array(x0, "x0", ndim=1).copy()
     d = x.size
     n_iter, burn_in = chain_length(n_iter, burn_in)
-    C0 = 0.01 * np.eye(d) if initial_cov is None else \
-        as_float_array(initial_cov, "initial_cov", ndim=2)
-    if C0.shape != (d, d):
-        raise ValueError(f"initial_cov must have shape ({d}, {d}); received {C0.shape}.")
-    try:
-        L = np.linalg.cholesky(C0)
-    except np.linalg.LinAlgError:
-        raise ValueError("initial_cov must be symmetric positive definite.") from None
-    t0 = max(min(1000, n_iter // 10), 2 * d) if adapt_start is None else \
-        as_int(adapt_start, "adapt_start", 2)
-    epsilon = float(epsilon)
-    if not (np.isfinite(epsilon) and epsilon > 0):
-        raise ValueError(f"epsilon must be a positive number; received {epsilon!r}.")
+    L = np.linalg.cholesky(0.01 * np.eye(d))
+    t0 = max(min(1000, n_iter // 10), 2 * d)
     lp = float(log_target(x))
     if not np.isfinite(lp):
         raise ValueError(f"log_target(x0) must be finite; it is {lp} at x0 = {x.tolist()}. "
                          "Start the chain inside the support (e.g. at the prior mean).")
     s_d = 2.4**2 / d
-    return ChainSetup(x, lp, L, n_iter, burn_in, t0, s_d, s_d * epsilon * np.eye(d))
+    return ChainSetup(x, lp, L, n_iter, burn_in, t0, s_d, s_d * EPSILON * np.eye(d))
 
 
 def draw_blocks(setup: ChainSetup, seed, progress: Callable[[float], None] | None = None
@@ -175,27 +154,13 @@ def finish_chain(setup: ChainSetup, samples: np.ndarray, log_p: np.ndarray,
 
 
 def adaptive_metropolis(log_target: Callable[[np.ndarray], float], x0, *, n_iter: int,
-                        burn_in: int, initial_cov=None, adapt_start: int | None = None,
-                        epsilon: float = 1e-8, seed=None,
+                        burn_in: int, seed=None,
                         progress: Callable[[float], None] | None = None) -> Chain:
-    """Sample ``exp(log_target)`` by adaptive Metropolis (Haario et al. 2001).
-
-    Parameters
-    ----------
-    log_target : callable
-        ``log_target(x)``, x (d,): the log density up to a constant, ``-inf`` outside.
-    x0 : ndarray of shape (d,)
-        Starting state; ``log_target(x0)`` must be finite.
-    n_iter, burn_in : int
-        Iterations, and the leading ones dropped (0 ≤ burn_in < n_iter − 1).
-    initial_cov : ndarray of shape (d, d), optional
-        ``C_0`` (default ``(0.1)² I``), used up to ``adapt_start`` (default
-        ``min(1000, n_iter // 10)``, at least 2 d); ``epsilon`` is the ε of ``s_d ε I``.
-    progress : callable, optional
-        Fraction done (0–1) about every 1 %; raising from it cancels.
-    """
-    setup = chain_setup(log_target, x0, n_iter=n_iter, burn_in=burn_in,
-                        initial_cov=initial_cov, adapt_start=adapt_start, epsilon=epsilon)
+    """Sample ``exp(log_target(x))``, x (d,), ``-inf`` outside the support, from ``x0`` where
+    it is finite: ``n_iter`` steps of which the first ``burn_in`` are dropped; proposals
+    ``C_0 = 0.01 I`` up to ``t_0 = max(min(1000, n_iter // 10), 2 d)``, then the module's.
+    ``progress`` gets the fraction done every 1 % (and may raise to cancel)."""
+    setup = chain_setup(log_target, x0, n_iter=n_iter, burn_in=burn_in)
     start = time.perf_counter()
     x, lp, L = setup.x0.copy(), setup.lp0, setup.L0
     burn_in, s_d, reg, t0 = setup.burn_in, setup.s_d, setup.reg, setup.t0

@@ -2,13 +2,6 @@
 
 Every function takes column-wise data: ``(N,)`` for one output or ``(N, n_out)`` for
 several, and returns a float or an ``(n_out,)`` array accordingly.
-
-Examples
---------
->>> round(nmse([1.0, 2.0, 3.0], [1.0, 2.0, 4.0]), 9)      # 100 · 1 / (3 · 2/3)
-50.0
->>> coverage([0.0, 1.0, 5.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0], k=3)
-0.6666666666666666
 """
 
 from __future__ import annotations
@@ -17,8 +10,6 @@ import numpy as np
 from scipy.stats import norm
 
 from ._validation import as_float_array, as_positive_float, check_positive
-
-__all__ = ["nmse", "lpl", "coverage", "mmd"]
 
 
 def _columns(name: str, value, like: np.ndarray | None = None) -> np.ndarray:

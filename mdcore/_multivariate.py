@@ -21,10 +21,6 @@ from ._kernels import matern32, scaled_sq_dist
 from ._linalg import chunks, for_each_chunk
 from ._validation import as_float_array
 
-__all__ = ["EmulatorCov", "chi2_cutoff", "discrepancy_cov", "emulator_cov",
-           "implausibility_and_logdet", "multivariate_implausibility", "log_likelihood",
-           "cov_ratio"]
-
 #: Relative truncation error of the Neumann series (below the Cholesky route's rounding).
 SERIES_TOL = 1e-14
 #: Largest ε = max e / λ_min(B) summed as a series (at most three steps); above it, Cholesky.
@@ -44,19 +40,8 @@ class EmulatorCov(NamedTuple):
 
 
 def chi2_cutoff(n_targets: int, probability: float = 0.995) -> float:
-    """The χ² quantile the multivariate implausibility I_M² is compared with.
-
-    Parameters
-    ----------
-    n_targets : int
-        Degrees of freedom, N · n_out.
-    probability : float, default=0.995
-
-    Examples
-    --------
-    >>> round(chi2_cutoff(13), 2)
-    29.82
-    """
+    """The χ² quantile at ``probability`` with N · n_out degrees of freedom that I_M² is
+    compared with."""
     return float(scipy.stats.chi2.ppf(probability, n_targets))
 
 
@@ -75,21 +60,9 @@ def discrepancy_cov(X, V_m, length=0.0, output_corr=None) -> np.ndarray:
     ``C_o(x, x') = m32(‖x − x'‖ / ℓ_o)`` and C^½ its symmetric square root (C_o = I for
     ℓ_o = 0): the separable R ⊗ C for one ℓ, the max rules' independent V_m for ℓ = 0.
 
-    Parameters
-    ----------
-    X : ndarray of shape (N, d_x)
-        Distinct observed inputs, in the case's units.
-    V_m : ndarray of shape (N, n_out)
-        Marginal variance of each target (output units squared), > 0.
-    length : float or ndarray of shape (n_out,), default=0
-        ℓ_m per output, in X's units (Euclidean distance); 0: uncorrelated in x.
-    output_corr : ndarray of shape (n_out, n_out), optional
-        R, validated by :func:`mdcore._history_matching.setup` (default: independent).
-
-    Returns
-    -------
-    ndarray of shape (n_out · N, n_out · N)
-        Output-major; its diagonal is ``V_m.T.ravel()``.
+    ``X`` (N, d_x) are the distinct inputs, ``V_m`` (N, n_out) the targets' variances,
+    ``length`` ℓ_m per output in X's units and ``output_corr`` R (n_out, n_out; validated by
+    :func:`mdcore._history_matching.setup`). Returns (n_out · N, n_out · N), output-major.
     """
     X = as_float_array(X, "X", ndim=2)
     V_m = as_float_array(V_m, "V_m", ndim=2)
@@ -110,19 +83,9 @@ def discrepancy_cov(X, V_m, length=0.0, output_corr=None) -> np.ndarray:
 
 
 def emulator_cov(emulator, theta) -> EmulatorCov:
-    """Mean and covariance of the emulated simulator at its training inputs, per θ.
-
-    Parameters
-    ----------
-    emulator : mdcore.Emulator
-    theta : ndarray of shape (M, p)
-
-    Returns
-    -------
-    EmulatorCov
-        ``s = σ_f² μ − σ_f⁴ μ² d(θ)`` clipped at 0, with μ the eigenvalues of ``m32(X, X)``
-        and ``d(θ) = (k_θ Q_θ)² W`` of :class:`mdcore._emulator.EmulatorAt`.
-    """
+    """The emulator's moments at its training inputs for ``theta`` (M, p): ``s = σ_f² μ −
+    σ_f⁴ μ² d(θ)`` clipped at 0, μ the eigenvalues of ``m32(X, X)`` and ``d(θ) = (k_θ Q_θ)²
+    W`` of :class:`mdcore._emulator.EmulatorAt`."""
     X = emulator.X_train
     at = emulator.at(X)
     terms = at.theta_terms(theta)
@@ -222,24 +185,8 @@ def _series(B, p, r, s):
 
 
 def implausibility_and_logdet(cov: EmulatorCov, z, V, *, log_det: bool = False):
-    """I_M²(θ) and, optionally, ``log det(V + V_em(θ))`` per candidate.
-
-    Parameters
-    ----------
-    cov : EmulatorCov
-        :func:`emulator_cov` at the candidates (M of them).
-    z : ndarray of shape (N, n_out)
-        Observations.
-    V : ndarray of shape (n_out · N, n_out · N)
-        ``V_o + V_m`` (output-major, :func:`discrepancy_cov`), positive definite.
-    log_det : bool, default=False
-        Also return the log-determinant (Cholesky route for every candidate).
-
-    Returns
-    -------
-    I2 : ndarray of shape (M,)
-    logdet : ndarray of shape (M,) or None
-    """
+    """I_M²(θ) (M,) of the M candidates of ``cov`` given ``z`` (N, n_out) and ``V`` = V_o + V_m
+    (:func:`discrepancy_cov`), and with ``log_det`` ``log det(V + V_em(θ))`` (M,), else None."""
     B, r, s = _rotated(cov, z, V)
     n_out, N = cov.s.shape[1:]
     coupled = any(np.any(B[o * N:(o + 1) * N, q * N:(q + 1) * N])
@@ -254,23 +201,8 @@ def implausibility_and_logdet(cov: EmulatorCov, z, V, *, log_det: bool = False):
 
 
 def multivariate_implausibility(emulator, theta, z, V) -> tuple[np.ndarray, np.ndarray]:
-    """I_M²(θ) of candidates under ``emulator``, and the emulator variance.
-
-    Parameters
-    ----------
-    emulator : mdcore.Emulator
-    theta : ndarray of shape (M, p)
-    z : ndarray of shape (N, n_out)
-        Observations at the emulator's training inputs.
-    V : ndarray of shape (n_out · N, n_out · N)
-        ``V_o + V_m``, output-major.
-
-    Returns
-    -------
-    I2 : ndarray of shape (M,)
-    var : ndarray of shape (M, N, n_out)
-        The diagonal of ``V_em(θ)``, as :meth:`~mdcore.Emulator.predict`'s ``var``.
-    """
+    """I_M²(θ) (M,) of ``theta`` (M, p) given ``z`` at the training inputs and ``V``, and
+    the diagonal of ``V_em(θ)`` (M, N, n_out), as :meth:`~mdcore.Emulator.predict`'s var."""
     cov = emulator_cov(emulator, theta)
     var = np.stack([cov.s[:, o] @ (Qo * Qo).T for o, Qo in enumerate(cov.basis)], axis=-1)
     return implausibility_and_logdet(cov, z, V)[0], var

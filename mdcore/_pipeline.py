@@ -1,22 +1,5 @@
-"""One typed pipeline from a history match to a scored method, for the API, the CLI and the app.
-
-History matching (A) gives θ samples and θ_MAP; a *method* then learns the discrepancy (B)
-and predicts at the case's test inputs, and the prediction is scored (docs/method.md §1, §8).
-The methods are the decoupled scenarios 1–3 (§6) and the Kennedy–O'Hagan baseline (§7,
-"KOH"). :func:`run_method` is the one place that wires a method to a case;
-:func:`mdcore.reproduce` and the app both call it.
-
-Examples
---------
->>> import mdcore
->>> from mdcore import history_match_case
->>> from mdcore import Method, Settings, run_method
->>> case = mdcore.load_case("beam-1d", seed=0)
->>> hm = history_match_case(case, n_candidates=20_000)
->>> result = run_method(case, hm, Method.S2, Settings(n_s=50), seed=0)
->>> result.method.label, result.importance is None, len(result.metrics.nmse_z)
-('Scenario 2', True, 1)
-"""
+"""From a history match to a scored method (docs/method.md §6–8): :func:`run_method` is the
+one place that wires a method (scenarios 1–3 or KOH) to a case, for the API, CLI and app."""
 
 from __future__ import annotations
 
@@ -43,6 +26,7 @@ from ._discrepancy import (
     DiscrepancyOptions,
     DiscrepancyPrediction,
     check_executor,
+    check_prune,
     infer_discrepancy,
 )
 from ._exceptions import (
@@ -58,19 +42,11 @@ from ._hyperfit import QPSO_ITERATIONS, FitOptions
 from ._koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
 from ._metrics import coverage, lpl, mmd, nmse
 from ._priors import GaussianPrior
-from ._validation import as_float_array, as_int, as_seed_int, choose
-
-__all__ = ["Method", "Settings", "MethodKey", "Metrics", "ImportanceDiagnostics",
-           "ChainDiagnostics", "MethodResult", "PAPER_SIZES", "MAX_N_S", "MAX_N_PHI",
-           "MAX_PAIRS", "MAX_N_ITER", "MAX_FIT_ITERATIONS", "METRIC_COLUMNS", "run_method",
-           "scores", "koh_phi_prior", "metrics_table", "metric_text"]
+from ._validation import as_float_array, as_int, as_seed_int, check_type, choose
 
 #: The paper's (N_s, N_φ) per case study (docs/method.md §6).
 PAPER_SIZES = {"beam-1d": (1000, 500), "beam-2d": (1000, 1000), "shear-5": (1000, 500)}
 
-#: Longest KOH chain :class:`Settings` accepts (the sizes of scenarios 2–3 are limited by
-#: :data:`mdcore._discrepancy.MAX_N_S`, ``MAX_N_PHI`` and ``MAX_PAIRS``).
-MAX_N_ITER = MAX_CHAIN
 #: Most swarm steps of the φ̂ fit (10× the default; more only costs time).
 MAX_FIT_ITERATIONS = 10 * QPSO_ITERATIONS
 #: The app's swarm steps (:meth:`Settings.interactive`).
@@ -179,7 +155,7 @@ class Settings:
 
     def __post_init__(self):
         for name, minimum, maximum in (("n_s", 1, MAX_N_S), ("n_phi", 1, MAX_N_PHI),
-                                       ("n_iter", 2, MAX_N_ITER), ("burn_in", 0, MAX_N_ITER),
+                                       ("n_iter", 2, MAX_CHAIN), ("burn_in", 0, MAX_CHAIN),
                                        ("fit_iterations", 1, MAX_FIT_ITERATIONS)):
             object.__setattr__(self, name, as_int(getattr(self, name), name, minimum, maximum))
         if self.n_s * self.n_phi > MAX_PAIRS:
@@ -191,14 +167,7 @@ class Settings:
             raise ValueError(f"burn_in must be smaller than n_iter; received burn_in = "
                              f"{self.burn_in}, n_iter = {self.n_iter}. Raise n_iter or lower "
                              "burn_in (the paper: 150,000 and 50,000).")
-        try:
-            prune = float(self.prune)
-        except (TypeError, ValueError):
-            prune = np.nan
-        if not 0.0 <= prune < 1.0:
-            raise ValueError(f"prune must be in [0, 1) (a fraction of the largest weight; 0 "
-                             f"keeps every component); received {self.prune!r}.")
-        object.__setattr__(self, "prune", prune)
+        object.__setattr__(self, "prune", check_prune(self.prune))
         choose(self.proposal, "proposal", PROPOSALS)
         compiled.resolve_backend(choose(self.backend, "backend", compiled.BACKENDS))
 
@@ -263,18 +232,14 @@ class ImportanceDiagnostics:
 
     Attributes
     ----------
-    ess : tuple of float
-        Effective sample size over the (θ, φ) pairs, ``1 / Σ w_jk²``, out of ``n_pairs``.
-    ess_phi : tuple of float
-        Effective sample size over φ given θ, averaged over θ with the θ marginal weights:
-        ``Σ_j w_j / Σ_k (w_jk / w_j)²``, ``w_j = Σ_k w_jk``; out of ``n_phi``.
-    skipped_mass : tuple of float
-        Weight the prediction skipped (below ``prune × max``).
-    k_hat : tuple of float
-        Pareto shape of the raw weights' tail (Vehtari et al.); above 0.7 unreliable.
+    ess, ess_phi : tuple of float
+        ESS over the (θ, φ) pairs, ``1 / Σ w_jk²`` (of ``n_pairs``), and over φ given θ
+        averaged with the θ weights, ``Σ_j w_j / Σ_k (w_jk / w_j)²`` (of ``n_phi``).
+    skipped_mass, k_hat : tuple of float
+        Weight the prediction skipped (below ``prune × max``); Pareto shape of the raw
+        weights' tail (Vehtari et al.; above 0.7 unreliable).
     n_pairs, n_phi : int
-    proposal : str
-        ``"prior"`` or ``"adaptive"``.
+    proposal : {"prior", "adaptive"}
     """
 
     ess: tuple
@@ -402,14 +367,7 @@ def metric_text(heading: str, value) -> str:
 
 
 def scores(case: Case, prediction: DiscrepancyPrediction) -> Metrics:
-    """docs/method.md §8 metrics of a prediction at ``case.X_test``, per output.
-
-    Parameters
-    ----------
-    case : Case
-    prediction : DiscrepancyPrediction
-        At ``case.X_test``; each field (N_test, n_out).
-    """
+    """docs/method.md §8 metrics, per output, of a prediction at ``case.X_test``."""
     z = case.z_test
     if prediction.z_mean.shape != z.shape:
         raise ValueError(f"prediction must be at case.X_test: z_mean has shape "
@@ -444,16 +402,12 @@ def koh_phi_prior(case: Case) -> GaussianPrior:
     return GaussianPrior(case.phi_prior.mean[keep], case.phi_prior.var[keep])
 
 
-#: θ rows per block of :func:`importance_diagnostics` (bounds its temporaries).
 DIAGNOSTIC_ROWS = 1000
 
 
 def importance_diagnostics(model: DiscrepancyModel) -> ImportanceDiagnostics:
-    """ESS over pairs and over φ of a scenario-3 model's normalised log weights (n_out, S, K).
-
-    The per-θ sums run over blocks of :data:`DIAGNOSTIC_ROWS` θ rows, so the temporaries
-    stay at a few (n_out, 1000, K) arrays however large N_s is.
-    """
+    """ESS over pairs and over φ of a scenario-3 model's log weights (n_out, S, K), in blocks
+    of :data:`DIAGNOSTIC_ROWS` θ rows so that the temporaries stay small."""
     lw_all = model.log_weights
     n_out, S, K = lw_all.shape
     lw_theta = np.empty((n_out, S))                                    # log w_j
@@ -499,17 +453,9 @@ def _advice(importance, chain) -> tuple:
 
 
 def _union(X_extra: np.ndarray, X_test: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The inputs to predict at: the rows of ``X_extra`` that are not rows of ``X_test``,
-    then ``X_test``; and the row of every ``X_extra`` row in them.
-
-    A plotting grid that contains the test inputs (beam-2d's 20 × 20 grid is its test
-    grid) costs no second prediction there: every point's prediction is its own.
-
-    Returns
-    -------
-    X_all : ndarray of shape (M_new + N*, d_x)
-    rows : int ndarray of shape (M,)
-    """
+    """The rows of ``X_extra`` not in ``X_test``, then ``X_test`` (M_new + N*, d_x), and each
+    ``X_extra`` row's index there (M,): a grid holding the test inputs (beam-2d's) costs no
+    second prediction."""
     at = {row.tobytes(): i for i, row in enumerate(X_test)}
     where = np.fromiter((at.get(row.tobytes(), -1) for row in X_extra), dtype=np.int64,
                         count=X_extra.shape[0])
@@ -548,10 +494,8 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     cancel : threading.Event, optional
         Checked between chunks of work; when set, the run stops with :class:`Cancelled`.
     executor : concurrent.futures.Executor, optional
-        Runs the chunks of (θ, φ) pairs of scenarios 2–3 (the scenario-3 weights and the
-        mixture prediction; see "Chunks and executors" in :mod:`mdcore._discrepancy`), for
-        example a Dask ``Client(...).get_executor()``. The results are identical to the
-        serial run's. Scenario 1 and KOH run here. Default: in this process.
+        Runs the chunks of (θ, φ) pairs of scenarios 2–3 (:mod:`mdcore._discrepancy`), e.g.
+        a Dask ``Client(...).get_executor()``, with the serial run's numbers. Default: here.
 
     Returns
     -------
@@ -565,15 +509,9 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
         When ``cancel`` is set.
     """
     start = time.perf_counter()
-    if not isinstance(case, Case):
-        raise ValueError(f"case must be an mdcore Case (mdcore._cases.load); received "
-                         f"{type(case).__name__}.")
-    if not isinstance(hm, HistoryMatchResult):
-        raise ValueError(f"hm must be a HistoryMatchResult (history_match_case); received "
-                         f"{type(hm).__name__}.")
-    if not isinstance(settings, Settings):
-        raise ValueError(f"settings must be a pipeline.Settings; received "
-                         f"{type(settings).__name__}.")
+    check_type(case, Case, "case", "an mdcore Case (mdcore.load_case)")
+    check_type(hm, HistoryMatchResult, "hm", "a HistoryMatchResult (history_match_case)")
+    check_type(settings, Settings, "settings", "a pipeline.Settings")
     method = Method.parse(method)
     executor = check_executor(executor)
     if hm.problem.p != case.p or hm.problem.X.shape[1] != case.d_x:

@@ -2,12 +2,6 @@
 
 :class:`GaussianPrior` is over the log-φ vector of docs/method.md §2; :class:`ThetaPrior` is
 over θ in the parameters' units, truncated to the emulator's box (KOH, docs/method.md §7).
-
-Examples
---------
->>> prior = ThetaPrior(mean=[35.0, 70.0], var=[10.0, 36.0])      # beam-1d, docs/method.md §7
->>> prior.sample_in([[0.0, 50.0], [50.0, 90.0]], 3, seed=0).shape
-(3, 2)
 """
 
 from __future__ import annotations
@@ -17,8 +11,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validation import as_float_array, as_int
-
-__all__ = ["GaussianPrior", "ThetaPrior"]
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,5 @@
-"""End-to-end runs of a case study: history matching, then methods through the pipeline.
-
-This is what ``python -m mdcore reproduce`` runs: the paper's Tables 1–3 for one case.
-Every method goes through :func:`mdcore.run_method`, as in the app.
-"""
+"""End-to-end runs of a case (``python -m mdcore reproduce``, the paper's Tables 1–3): history
+matching, then each method through :func:`mdcore.run_method`, as in the app."""
 
 from __future__ import annotations
 
@@ -23,12 +20,8 @@ from ._koh import KOHModel
 from ._pipeline import Method, MethodResult, Progress, Settings, run_method
 from ._validation import as_seed_int
 
-__all__ = ["SCHEMA_VERSION", "CaseRun", "default_methods", "parse_methods", "reproduce",
-           "run_case", "run_methods"]
-
-#: Version of the JSON layout written by :meth:`CaseRun.to_dict` (3: the failed simulator
-#: runs of each wave; 4: the rule, its cut-off and V_m's correlation; 5: each wave's
-#: emulator validation and space removed, each decoupled scenario's θ–δ share).
+#: Version of :meth:`CaseRun.to_dict`'s layout (5: each wave's emulator validation and space
+#: removed, each decoupled scenario's θ–δ share).
 SCHEMA_VERSION = 5
 
 
@@ -115,14 +108,13 @@ class CaseRun:
 
 
 def _entry(r: MethodResult) -> dict:
-    entry: dict = {"metrics": r.metrics.as_dict(), "importance": None, "chain": None,
-                   "warnings": list(r.warnings), "seconds": r.seconds}
-    if r.importance is not None:
-        entry["importance"] = {k: (list(v) if isinstance(v, tuple) else v)
-                               for k, v in r.importance.__dict__.items()}
-    if r.chain is not None and isinstance(r.model, KOHModel):
-        entry["chain"] = {k: (list(v) if isinstance(v, tuple) else v)
-                          for k, v in r.chain.__dict__.items()}
+    """One method's part of :meth:`CaseRun.to_dict`."""
+    entry: dict = {"metrics": r.metrics.as_dict(), **{
+        name: None if d is None else {k: list(v) if isinstance(v, tuple) else v
+                                      for k, v in d.__dict__.items()}
+        for name, d in (("importance", r.importance), ("chain", r.chain))},
+        "warnings": list(r.warnings), "seconds": r.seconds}
+    if isinstance(r.model, KOHModel):
         theta = r.model.theta
         entry["posterior"] = {"theta_mean": theta.mean(axis=0).tolist(),
                               "theta_sd": theta.std(axis=0).tolist(),
@@ -166,7 +158,6 @@ def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed
     -------
     CaseRun
     """
-    executor = check_executor(executor)
     case = dataclasses.replace(_cases.load(name, seed=seed), timeout=timeout)
     return run_case(case, methods=default_methods(name) if methods is None else methods,
                     settings=Settings.paper(name) if settings is None else settings,
@@ -193,9 +184,7 @@ def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
         As in :func:`reproduce`.
     executor : concurrent.futures.Executor, optional
         Runs the history match's simulator runs (one θ per task unless ``batch_size`` is
-        given) and the pair chunks of scenarios 2–3 (:func:`mdcore.run_method`),
-        for example a Dask ``Client(...).get_executor()``; the numbers are identical to the
-        serial run's. Default: in this process.
+        given) and :func:`mdcore.run_method`'s chunks, with the serial run's numbers.
     **history_matching
         Options of :func:`mdcore._history_matching.setup` (``n_runs``, ``convergence_ratio``,
         ``batch_size``, ``timeout`` …).
@@ -222,31 +211,9 @@ def run_methods(case: _cases.Case, hm: HistoryMatchResult, methods, settings: Se
                 seed=0, report: Callable[[str], None] | None = None,
                 progress_for: Callable[[Method], Progress | None] | None = None,
                 executor: Executor | None = None) -> tuple[MethodResult, ...]:
-    """Run the methods on a history match, in the order 1, 2, 3, KOH; scenario 2 reuses
-    scenario 1's φ̂ when both run.
-
-    Parameters
-    ----------
-    case : Case
-    hm : HistoryMatchResult
-        Must not have ruled everything out.
-    methods : sequence of {1, 2, 3, "koh"} or Method
-    settings : Settings
-    seed : int, default=0
-    report : callable, optional
-        ``report(line)`` after each method.
-    progress_for : callable, optional
-        ``progress_for(method)`` gives the ``progress(fraction, message)`` of that method
-        (the command line draws one bar per method), or None.
-    executor : concurrent.futures.Executor, optional
-        As in :func:`run_case`.
-
-    Returns
-    -------
-    tuple of MethodResult
-    """
-    if hm.status == "ruled_out":
-        raise ValueError(f"{case.name}: {hm.message}")
+    """:func:`run_method` of each method in the order 1, 2, 3, KOH, scenario 2 reusing
+    scenario 1's φ̂; ``report(line)`` after each, ``progress_for(method)`` gives each one's
+    ``progress`` (the command line's bar per method)."""
     results: list[MethodResult] = []
     for method in parse_methods(methods):
         hat = next((r.model.log_params_hat for r in results

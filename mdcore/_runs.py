@@ -4,17 +4,6 @@ Real simulators raise, hang or return NaN for parts of the parameter box. A batc
 raises is re-run one θ at a time, so one bad θ costs only its own run; results are assembled
 in θ order, so the numbers do not depend on the executor (a Dask client's ``get_executor()``
 included).
-
-Examples
---------
->>> import numpy as np
->>> def simulate(X, theta):        # fails where θ < 0
-...     if np.any(theta < 0):
-...         raise ValueError("negative stiffness")
-...     return np.sqrt(theta)[:, None, :] * np.ones((1, len(X), 1))
->>> out = run_simulator(simulate, np.zeros((2, 1)), np.array([[1.0], [-1.0], [4.0]]), 1)
->>> out.ok.tolist(), out.y[:, 0, 0].tolist(), out.failures[0].message
-([True, False, True], [1.0, 2.0], 'ValueError: negative stiffness')
 """
 
 from __future__ import annotations
@@ -37,9 +26,6 @@ from typing import NamedTuple
 import numpy as np
 
 from ._validation import as_float_array, as_int, as_positive_float
-
-__all__ = ["Failure", "Runs", "SimulatorError", "SimulatorProcess", "call_with_timeout",
-           "run_simulator"]
 
 
 class Failure(NamedTuple):
@@ -134,21 +120,13 @@ while True:
 
 
 class SimulatorProcess:
-    """A simulator ``module:function`` imported and run in a child process of its own.
+    """``module.function`` (imported from ``folder``, first on the path) run in a child
+    process of its own, so that a hanging import or run cannot stop this one.
 
-    A call that outlasts ``timeout`` kills the process and raises ``TimeoutError`` (the next
-    call starts another); a simulator that raises, calls ``sys.exit`` or crashes raises
-    :class:`SimulatorError`, one that cannot be imported ``ImportError``. Only the child
-    imports the module, so a hanging import cannot stop this process. Calls from several
-    threads take turns. Pickled (process pool, Dask), it travels as the function by value
-    (cloudpickle), with every module imported from ``folder``.
-
-    Parameters
-    ----------
-    module, function : str
-        What to import: ``module.function``.
-    folder : str or Path, optional
-        A folder to import it from, put first on the search path.
+    A call past ``timeout`` kills the process and raises ``TimeoutError`` (the next call starts
+    another); a raise, ``sys.exit`` or crash raises :class:`SimulatorError`, a failed import
+    ``ImportError``. Threads take turns. Pickled (process pool, Dask) it travels as the
+    function by value (cloudpickle), with the modules of ``folder``.
     """
 
     def __init__(self, module: str, function: str, folder=None):
@@ -272,33 +250,10 @@ def _import_function(module: str, function: str, folder: str | None) -> Callable
 def run_simulator(simulate: Callable, X, theta, n_out: int, *,
                   executor: Executor | None = None, batch_size: int | None = None,
                   timeout: float | None = None) -> Runs:
-    """Run ``simulate(X, θ)`` for every row of ``theta``, dropping the runs that fail.
-
-    Parameters
-    ----------
-    simulate : callable
-        ``simulate(X, theta) -> (n_theta, N, n_out)``.
-    X : ndarray of shape (N, d_x)
-    theta : ndarray of shape (R, p)
-    n_out : int
-        Outputs per input.
-    executor : concurrent.futures.Executor, optional
-        Runs the batches; default: in this process, one after the other.
-    batch_size : int, optional
-        θ per batch (default: all at once without an executor, one per task with one).
-    timeout : float, optional
-        Seconds to wait for one batch, after which its runs count as failed (the work may
-        still finish in the background); with an executor, counted from when it is awaited.
-
-    Returns
-    -------
-    Runs
-
-    Raises
-    ------
-    ValueError
-        When ``simulate`` returns the wrong shape (a wrong simulator, not a failed run).
-    """
+    """``simulate(X, θ)`` (n_θ, N, n_out) for every row of ``theta`` (R, p), in batches of
+    ``batch_size`` θ (default: all, or one per task on an ``executor``), dropping the runs that
+    fail or outlast ``timeout`` seconds (from when a batch is awaited). A wrong output shape is
+    a wrong simulator, not a failed run: ValueError."""
     if not callable(simulate):
         raise ValueError(f"simulate must be callable (X, theta) -> (n_theta, N, n_out); "
                          f"received {type(simulate).__name__}.")

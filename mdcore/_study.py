@@ -2,14 +2,6 @@
 
 The paper reports a single run; whether its *pattern* holds is a statement over seeds (one
 seed: one noise draw, history match, set of θ and φ samples and KOH chain).
-
-Examples
---------
->>> from mdcore import Settings
->>> from mdcore import study
->>> s = study("beam-2d", [0, 1], methods=[1, 2], settings=Settings(n_s=10, n_phi=2))
->>> s.seeds, sorted(s.summary())
-((0, 1), ['1', '2'])
 """
 
 from __future__ import annotations
@@ -25,8 +17,6 @@ from . import _cases as cases
 from ._pipeline import Settings
 from ._reproduce import default_methods, parse_methods, reproduce
 from ._validation import MAX_SEED, choose, short
-
-__all__ = ["PAPER", "Study", "study", "parse_seeds"]
 
 #: The paper's published NMSE values (docs/cases.md), per case and method, [%].
 PAPER = {

@@ -102,6 +102,13 @@ def choose(value: str, name: str, options) -> str:
     return value
 
 
+def check_type(value, kind, name: str, what: str):
+    """``value`` if it is a ``kind``, else "``name`` must be ``what``; received <its type>"."""
+    if not isinstance(value, kind):
+        raise ValueError(f"{name} must be {what}; received {type(value).__name__}.")
+    return value
+
+
 def as_seed_int(seed, name: str = "seed") -> int:
     """An integer seed (for streams ``[seed, k]``) from an int ≥ 0 or a Generator, drawn from
     it so that the result is reproducible from the Generator's state."""

@@ -310,23 +310,11 @@ def test_evidence_gradient_matches_finite_differences(beam):
 
 
 def test_nan_wrong_shape_and_empty_inputs_of_the_other_public_functions(beam, toy):
-    from mdcore._koh import fit_phi
     case, em = beam
-    at = em.at(case.X_train)
     for bad, match in ((np.array([[np.nan]]), "NaN"), (np.empty((0, 1)), "empty"),
                        (np.zeros(3), "2 dimension")):
         with pytest.raises(ValueError, match=match):
             em.at(bad)
-    draws = np.array([[35.0, 70.0], [38.0, 68.0]])
-    with pytest.raises(ValueError, match="same N inputs"):
-        fit_phi(at, case.X_train, case.z_train[:5], draws)
-    with pytest.raises(ValueError, match="z contains 1 NaN"):
-        fit_phi(at, case.X_train, np.where(np.arange(13)[:, None] == 2, np.nan, case.z_train),
-                draws)
-    with pytest.raises(ValueError, match="theta contains 1 NaN"):
-        fit_phi(at, case.X_train, case.z_train, [[np.nan, 70.0]])
-    with pytest.raises(ValueError, match="phi_prior must have 2 \\+ d_x = 3"):
-        fit_phi(at, case.X_train, case.z_train, draws, phi_prior=GaussianPrior([0.0], [1.0]))
     model, _ = toy
     for bad, match in ((np.array([[np.nan]]), "NaN"), (np.empty((0, 1)), "empty")):
         with pytest.raises(ValueError, match=match):

@@ -139,5 +139,5 @@ def test_run_methods_refuses_bad_input():
         run_methods(case, hm, ["4"], small)
     ruled_out = history_match_case(case, n_candidates=2000, V_m=[1e-7], threshold=0.5)
     assert ruled_out.status == "ruled_out"
-    with pytest.raises(ValueError, match="beam-1d: .*nothing is non-implausible"):
+    with pytest.raises(ValueError, match="ruled out every θ.*nothing is non-implausible"):
         run_methods(case, ruled_out, [1], small)

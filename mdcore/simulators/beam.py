@@ -20,8 +20,6 @@ import numpy as np
 
 from .._validation import as_float_array
 
-__all__ = ["tip_deflection"]
-
 
 def tip_deflection(crack_location, crack_length, E, *, length: float = 1.0, width: float = 0.5,
                    thickness: float = 0.1, load: float = 10e3, alpha: float = 0.667) -> np.ndarray:

@@ -20,8 +20,6 @@ import numpy as np
 
 from .._validation import as_float_array
 
-__all__ = ["ShearBuilding", "natural_frequencies"]
-
 
 class ShearBuilding:
     """Geometry of the shear building, in metres (defaults are docs/cases.md)."""

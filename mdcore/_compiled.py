@@ -4,8 +4,7 @@ The NumPy code is the implementation of record; these compute the same numbers t
 
 - scenario 3's (φ, y) pairs: the NLML of every pair (Eq. 9, :func:`nlml`) and the mixture
   prediction (Eq. 15, :func:`mixture_sums`), fused per pair in small buffers;
-- the Kennedy–O'Hagan chain (:func:`koh_chain`);
-- history matching's candidates (Eq. 16, :func:`implausibility`).
+- the Kennedy–O'Hagan chain (:func:`koh_chain`).
 
 numba is optional and imported on first use; kernels are cached on disk, and
 :func:`warm_up_in_background` prepares them while the app starts. Callers validate inputs.
@@ -29,8 +28,8 @@ from ._emulator import EmulatorArrays
 from ._linalg import JITTER_LADDER, JitterLog
 from ._threads import run_pieces
 
-__all__ = ["BACKENDS", "BACKEND_ENV", "ChainState", "KOHData", "Pairs", "Targets", "Test",
-           "available", "implausibility", "koh_chain", "mixture_sums", "nlml", "resolve_backend",
+__all__ = ["BACKENDS", "BACKEND_ENV", "ChainState", "KOHData", "Pairs", "Test", "available",
+           "koh_chain", "mixture_sums", "nlml", "resolve_backend",
            "warm_up", "warm_up_in_background"]
 
 #: Values of the ``backend=`` argument of the numerical entry points.
@@ -100,15 +99,6 @@ class ChainState(NamedTuple):
     burn_in: int
     t0: int
     s_d: float
-
-
-class Targets(NamedTuple):
-    """History matching's targets at the observed inputs, for :func:`implausibility`."""
-
-    z: np.ndarray    # (N, n_out) observations
-    vt: np.ndarray   # (N, n_out) V_o + V_m, > 0
-    rank: int        # I is the rank-th largest over the targets (1: the max rule)
-    cutoff: float    # θ with I ≤ cutoff are not ruled out
 
 
 def available() -> bool:
@@ -248,26 +238,8 @@ def koh_chain(arrays: EmulatorArrays, koh: KOHData, setup: mcmc.ChainSetup, seed
                              time.perf_counter() - start)
 
 
-def implausibility(arrays: EmulatorArrays, theta: np.ndarray,
-                   targets: Targets) -> tuple[np.ndarray, np.ndarray]:
-    """:meth:`mdcore.Emulator.implausibility_and_var` at ``arrays`` (the emulator at the
-    observed inputs) for candidates ``theta`` (M, p), compiled: ``I`` (M,) and, instead of
-    the variances, their largest value per output over the candidates with ``I ≤
-    targets.cutoff`` (n_out,), −inf where there is none."""
-    k = _kernels()
-    em = type(arrays)(*map(_contiguous, arrays))
-    theta = _contiguous(theta)
-    targets = Targets(_contiguous(targets.z), _contiguous(targets.vt), int(targets.rank),
-                      float(targets.cutoff))
-    imp = np.empty(theta.shape[0])
-    parts = run_pieces(lambda b0, b1: k.score_range(b0, b1, theta, em, targets, imp),
-                       _pieces(theta.shape[0]))
-    return imp, np.max(parts, axis=0) if parts else np.full(arrays.lin.shape[0], -np.inf)
-
-
 def warm_up() -> float:
-    """Load (the first time on a machine: compile) the kernels of scenario 3 and KOH;
-    returns seconds. History matching's compiles on its first use (kept on disk)."""
+    """Load (the first time on a machine: compile) every kernel; returns seconds."""
     start = time.perf_counter()
     k = _kernels()
     one, eye = np.ones(1), np.eye(2)

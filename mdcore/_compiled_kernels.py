@@ -1,8 +1,7 @@
-"""Numba kernels behind :mod:`mdcore._compiled`: :func:`pair_range` (scenario 3's pairs),
-:func:`koh_steps` (the KOH chain) and :func:`score_range` (history matching), serial with
-the GIL released, on C-contiguous arrays in NamedTuples (one signature each). The Matérn
-3/2 kernel (Eq. 3) is :func:`_matern_parts`; hot loops are flat loops over contiguous
-arrays, which LLVM vectorises.
+"""Numba kernels behind :mod:`mdcore._compiled`: :func:`pair_range` (scenario 3's pairs)
+and :func:`koh_steps` (the KOH chain), serial with the GIL released, on C-contiguous arrays
+in NamedTuples (one signature each). The Matérn 3/2 kernel (Eq. 3) is :func:`_matern_parts`;
+hot loops are flat loops over contiguous arrays, which LLVM vectorises.
 """
 
 from __future__ import annotations
@@ -16,8 +15,6 @@ SQRT3 = math.sqrt(3.0)
 LOG_2PI = math.log(2.0 * math.pi)
 #: Modes of :func:`pair_range`.
 NLML, MIXTURE = 0, 1
-#: Candidates per block of :func:`score_range`.
-BLOCK = 64
 # exp(x) = 2^k exp(r): fdlibm's split of ln 2 (k · _LN2_HI is exact), the round-to-nearest
 # shift 1.5 · 2^52, and the Taylor coefficients 1/i! of exp(r), |r| ≤ ln2/2.
 _LN2_HI, _LN2_LO = 6.93147180369123816490e-01, 1.90821492927058770002e-10
@@ -371,89 +368,3 @@ def koh_steps(t_start, lp, steps, log_u, chain, em, koh, stats):
                     for c in range(d):
                         L[r, c] = Rp[c, r] if c <= r else 0.0
     return lp
-
-
-# ---------------------------------------------------------------------------------------
-# History matching's candidates
-
-
-@_jit
-def _accumulate(out, C, X):
-    """``out[j] = Σ_r C[r, j] X[r]`` for rows of length :data:`BLOCK` stored flat in ``X``
-    (R·B) and ``out`` (J·B), ``C`` (R, J): four rows of X at a time, so each row of ``out``
-    is loaded and stored R/4 times (the bound on this loop)."""
-    (R, J), B = C.shape, BLOCK
-    r4 = R - R % 4
-    for j in range(J):
-        acc = out[j * B:(j + 1) * B]
-        acc[:] = 0.0
-        for r in range(0, r4, 4):
-            c0, c1, c2, c3 = C[r, j], C[r + 1, j], C[r + 2, j], C[r + 3, j]
-            x0, x1 = X[r * B:(r + 1) * B], X[(r + 1) * B:(r + 2) * B]
-            x2, x3 = X[(r + 2) * B:(r + 3) * B], X[(r + 3) * B:(r + 4) * B]
-            for i in range(B):
-                acc[i] += (c0 * x0[i] + c1 * x1[i]) + (c2 * x2[i] + c3 * x3[i])
-        for r in range(r4, R):
-            c, x = C[r, j], X[r * B:(r + 1) * B]
-            for i in range(B):
-                acc[i] += c * x[i]
-
-
-@_kernel
-def score_range(b0, b1, theta, em, targets, imp):
-    """Candidates ``b0 ≤ b < b1`` of ``theta`` (M, p): the ``targets.rank``-th largest
-    implausibility (Eq. 16) over the targets into ``imp``, with the emulator's moments
-    (:class:`mdcore._emulator.EmulatorAt`): ``k_θ = m32(θ, Θ_train)``, ``E = lin + θᵀβ_θ +
-    k_θ AK``, ``V = max(σ_f² − σ_f⁴ (k_θ Q_θ)² G, 0)``. Returns the largest V per output over
-    the candidates with ``I ≤ targets.cutoff`` (−inf where there is none). Candidates go
-    in blocks of :data:`BLOCK`; arrays hold a block's candidates last, so the inner loops
-    vectorise (a short last block computes unused columns)."""
-    (n_out, p), R, N = em.inv_ell.shape, em.T_train.shape[0], em.lin.shape[1]
-    B, rank = BLOCK, targets.rank
-    unit, DY, DX = np.zeros((p, B)), np.empty((p, R * B)), np.empty((0, R * B))
-    kt, kq, sy, none = np.empty(R * B), np.empty(R * B), np.empty(p), np.empty(0)
-    work = (np.empty(R * B), np.empty(R * B), np.empty(R * B, np.int64))
-    lin, mean, var = np.empty(B), np.empty(N * B), np.empty((n_out, N * B))
-    top = np.empty((rank, B))                          # the largest I so far, descending
-    vmax = np.full(n_out, -np.inf)
-    for c0 in range(b0, b1, B):
-        nb = min(B, b1 - c0)
-        for k in range(p):                             # (θ − θ_r)² by (r, candidate)
-            for i in range(nb):
-                unit[k, i] = (theta[c0 + i, k] - em.t_lo[k]) / em.t_span[k]
-            for r in range(R):
-                t, row = em.T_train[r, k], DY[k, r * B:(r + 1) * B]
-                for i in range(B):
-                    row[i] = (unit[k, i] - t) * (unit[k, i] - t)
-        top[:] = -np.inf
-        for o in range(n_out):
-            for k in range(p):
-                sy[k] = SQRT3 * em.inv_ell[o, k]
-            _matern_flat(DY, DX, sy, none, 0.0, kt, work)
-            _accumulate(kq, em.Q_t[o], kt)             # k_θ Q_θ, then squared
-            for t in range(R * B):
-                kq[t] *= kq[t]
-            _accumulate(mean, em.AK[o], kt)            # k_θ AK
-            _accumulate(var[o], em.G[o], kq)           # (k_θ Q_θ)² G
-            lin[:] = 0.0
-            for k in range(p):
-                for i in range(B):
-                    lin[i] += em.beta_t[o, k] * unit[k, i]
-            sf2 = em.sf2[o]
-            for n in range(N):
-                z, vt = targets.z[n, o], targets.vt[n, o]
-                m, v = mean[n * B:(n + 1) * B], var[o, n * B:(n + 1) * B]
-                for i in range(B):
-                    v[i] = max(sf2 - sf2 * sf2 * v[i], 0.0)
-                    x = abs(z - ((em.lin[o, n] + lin[i]) + m[i])) / math.sqrt(vt + v[i])
-                    for j in range(rank):              # insert x
-                        hi = max(top[j, i], x)
-                        x = min(top[j, i], x)
-                        top[j, i] = hi
-        for i in range(nb):
-            imp[c0 + i] = top[rank - 1, i]
-            if imp[c0 + i] <= targets.cutoff:
-                for o in range(n_out):
-                    for n in range(N):
-                        vmax[o] = max(vmax[o], var[o, n * B + i])
-    return vmax

@@ -22,10 +22,8 @@ Rows:
   tenth of the θ samples and extrapolates by pair counts.
 - ``KOH``: the KOH chain of beam-1d at the paper's 150,000 steps, both backends.
 - ``HM wave``: one history-matching wave of 10⁵ candidates per case (simulator runs,
-  emulator fit, candidates, scoring), shortest of ``--repeat``, with NumPy and with the
-  compiled scoring (the fit is NumPy on both), split into the fit and the scoring;
-  ``Δ pred`` is the largest relative difference of the implausibilities; ``sklearn`` is
-  ``GaussianProcessRegressor.predict(return_std=True)`` of
+  emulator fit, candidates, scoring; NumPy), shortest of ``--repeat``, split into the fit
+  and the scoring; ``sklearn`` is ``GaussianProcessRegressor.predict(return_std=True)`` of
   the dense GP over (x, θ) at the candidates, timed on 500 and extrapolated.
 
 The JIT line times ``compiled.warm_up()`` in fresh processes with an empty and then a filled
@@ -230,29 +228,19 @@ def sklearn_wave_seconds(problem, emulator, theta, n_sample=500):
 def hm_wave_row(name, repeat):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        wall, waves, score = {}, {}, {}
-        for backend in ("numpy", "numba"):
-            problem = case_problem(cases.load(name), n_candidates=100_000, max_waves=1,
-                                   backend=backend)
-            waves[backend] = next_wave(problem)                  # first-call costs
-            wall[backend] = best_of(partial(next_wave, problem), repeat)
-            wave = waves[backend]
-            score[backend] = best_of(partial(problem.nroy_score, wave.candidates,
-                                             wave.emulator), repeat)
+        problem = case_problem(cases.load(name), n_candidates=100_000, max_waves=1)
+        wave = next_wave(problem)                                # first-call costs
+        wall = best_of(partial(next_wave, problem), repeat)
         em, theta = wave.emulator, wave.candidates
         fit = best_of(partial(fit_emulator, problem.X, em.theta_train, em.y_train,
                               problem.bounds, seed=0), repeat)
+        score = best_of(partial(problem.score, theta, em), repeat)
         sk = sklearn_wave_seconds(problem, em, theta)
-    ref = waves["numpy"].candidate_implausibility
-    gap = float(np.max(np.abs(wave.candidate_implausibility - ref) / ref))
-    same = np.array_equal(waves["numpy"].nroy, wave.nroy)
     print(f"{'HM wave ' + name + ' 10⁵ cand.':<26} {len(theta):>9,} {len(wave.nroy):>9,}"
-          f" {wall['numpy']:>8.3f}  {wall['numba']:>7.3f} {'':>7} {sk:>9.2f}"
-          f" {wall['numpy'] / wall['numba']:>6.1f}x {sk / wall['numba']:>7.0f}x {gap:>8.1e}"
-          f"   (target ≤ 0.2 s; fit {fit:.3f} s, scoring numpy {score['numpy']:.3f} s,"
-          f" numba {score['numba']:.3f} s; NROY sets {'identical' if same else 'DIFFER'};"
-          f" R = {len(em.theta_train)}, N = {problem.X.shape[0]}, {problem.z.shape[1]}"
-          " output(s))", flush=True)
+          f" {wall:>8.3f}  {'':>7} {'':>7} {sk:>9.2f} {'':>7} {sk / wall:>7.0f}x"
+          f"   (target ≤ 0.2 s; fit {fit:.3f} s, scoring {score:.3f} s; R = "
+          f"{len(em.theta_train)}, N = {problem.X.shape[0]}, {problem.z.shape[1]} output(s))",
+          flush=True)
 
 
 def jit_times():

@@ -2,6 +2,7 @@
 
 Usage: python bench/bench_speed.py [--quick] [--rows beam-1d beam-2d shear-5 app koh hm-wave]
                                    [--sklearn-pairs 300] [--no-jit] [--repeat 5]
+                                   [--proposal {adaptive,prior}]
 
 Rows:
 
@@ -9,7 +10,8 @@ Rows:
   shear-5 1000 × 500 on all 5 outputs): the weights of every pair and the mixture
   prediction at the case's test inputs (``infer_discrepancy`` + ``predict``), with
   ``backend="numpy"`` (the implementation of record) and ``backend="numba"`` (the compiled
-  pair kernel); ``app`` runs the app's default sizes (100 × 50) on every case. ``sklearn``
+  pair kernel), with ``--proposal``'s φ proposal (the library's default unless given);
+  ``app`` runs the app's default sizes (100 × 50) on every case. ``sklearn``
   is one ``GaussianProcessRegressor`` per pair (fixed hyperparameters): ``fit`` for every
   pair and ``predict(return_std=True)`` for the pairs the prediction keeps, timed on
   ``--sklearn-pairs`` pairs of each kind and extrapolated (an ARD Matérn 3/2 over [y, x]:
@@ -70,14 +72,16 @@ def rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
-def library(case, theta, n_phi, backend):
+def library(case, theta, n_phi, backend, proposal=None):
     """(model, prediction, infer s, predict s, CPU s) of the library path."""
+    proposal = {} if proposal is None else {"proposal": proposal}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         c0, t0 = time.process_time(), time.perf_counter()
         model = infer_discrepancy(
             case.simulate, theta, case.X_train, case.z_train, scenario=3, seed=0,
-            options=DiscrepancyOptions(n_phi=n_phi, phi_prior=case.phi_prior, backend=backend))
+            options=DiscrepancyOptions(n_phi=n_phi, phi_prior=case.phi_prior, backend=backend,
+                                       **proposal))
         t1 = time.perf_counter()
         pred = model.predict(case.X_test)
         t2, c2 = time.perf_counter(), time.process_time()
@@ -151,18 +155,18 @@ def s3_row(name, sizes, args, rng):
     hm = history_match_case(case, seed=0)
     theta = hm.posterior_samples(n_s, seed=0)
     compiled.warm_up()
-    library(case, theta[:2], 2, "numpy")                # first-call costs out of the way
-    model_n, pred_n, inf_n, pre_n, cpu_n = library(case, theta, n_phi, "numba")
+    library(case, theta[:2], 2, "numpy", args.proposal)  # first-call costs out of the way
+    model_n, pred_n, inf_n, pre_n, cpu_n = library(case, theta, n_phi, "numba", args.proposal)
     kept = sum(i.size for i in evaluated(model_n, case.X_test))
     pairs = case.z_train.shape[1] * n_s * n_phi
     sub = max(1, n_s // 10) if args.quick and n_s > 100 else n_s
-    model_r, pred_r, inf_r, pre_r, _ = library(case, theta[:sub], n_phi, "numpy")
+    model_r, pred_r, inf_r, pre_r, _ = library(case, theta[:sub], n_phi, "numpy", args.proposal)
     numpy_s = inf_r * n_s / sub + pre_r * kept / max(1, sum(i.size for i in
                                                         evaluated(model_r, case.X_test)))
     sk = sklearn_seconds(case, theta, model_n, args.sklearn_pairs, rng) \
         if args.sklearn_pairs else np.nan
     if sub < n_s:                  # compare on the subset the NumPy path ran on
-        model_n, pred_n, *_ = library(case, theta[:sub], n_phi, "numba")
+        model_n, pred_n, *_ = library(case, theta[:sub], n_phi, "numba", args.proposal)
     gaps = agreement(pred_n, pred_r), kept_log_weight_gap(model_n, model_r)
     numba_s = inf_n + pre_n
     label = f"S3 {name} {n_s}×{n_phi}" + (f" ×{case.z_train.shape[1]}" if pairs > n_s * n_phi
@@ -260,6 +264,8 @@ def main():
     ap.add_argument("--no-jit", action="store_true", help="skip the cold/warm JIT timing")
     ap.add_argument("--repeat", type=int, default=5,
                     help="timings of the hm-wave rows: shortest of this many runs")
+    ap.add_argument("--proposal", choices=["adaptive", "prior"], default=None,
+                    help="scenario 3's φ proposal in the S3 rows (default: the library's)")
     args = ap.parse_args()
     rng = np.random.default_rng(1)
     threads.single_threaded_blas_for_process()

@@ -91,12 +91,13 @@ def _design(Xu, Tu):
     return np.column_stack([np.ones(R * N), np.tile(Xu, (R, 1)), np.repeat(Tu, N, axis=0)])
 
 
-def _kron_solve(lp, Tu, Xu, res):
+def _kron_solve(lp, Tu, Xu, res, sq=(None, None)):
     """Eigen-solve of ``σ_f² K_θ ⊗ K_x + σ_n² I`` for residuals ``res`` (R, N): factors, their
-    log-ℓ derivatives, eigenpairs, ``σ_f² λ_a μ_b``, ``S`` and ``(Q_θᵀ Res Q_x) / S``."""
+    log-ℓ derivatives, eigenpairs, ``σ_f² λ_a μ_b``, ``S`` and ``(Q_θᵀ Res Q_x) / S``; ``sq``
+    the squared differences of Tu and Xu per dimension, if known."""
     p = Tu.shape[1]
-    Kt, Dt = matern32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]))
-    Kx, Dx = matern32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]))
+    Kt, Dt = matern32_and_dlog_ell(Tu, np.exp(lp[1:1 + p]), sq[0])
+    Kx, Dx = matern32_and_dlog_ell(Xu, np.exp(lp[1 + p:-1]), sq[1])
     lam, Qt = _eig(Kt)
     mu, Qx = _eig(Kx)
     SO = np.exp(2 * lp[0]) * (lam[:, None] * mu[None, :])
@@ -104,13 +105,15 @@ def _kron_solve(lp, Tu, Xu, res):
     return Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, (Qt.T @ res @ Qx) / S
 
 
-def _kron_nlml(lp, Tu, Xu, res):
+def _kron_nlml(lp, Tu, Xu, res, sq=(None, None)):
     """NLML of the Kronecker GP for residuals ``res`` (R, N) and its gradient: with ``S_ab =
     σ_f² λ_a μ_b + σ_n²``, ``P = Q_θᵀ Res Q_x``, ``NLML = ½ Σ P²/S + ½ Σ log S + (RN/2) log 2π``
-    and ``∂NLML/∂φ = ½ tr(K⁻¹ ∂K) − ½ αᵀ ∂K α``, ``α = vec(Q_θ (P/S) Q_xᵀ)``."""
+    and ``∂NLML/∂φ = ½ tr(K⁻¹ ∂K) − ½ αᵀ ∂K α``, ``α = vec(Q_θ (P/S) Q_xᵀ)``. The L-BFGS-B
+    path turns a 1-ulp change of these into ~1e-6 in the fit, so each dimension's sums and
+    products keep one order (a stack's matmul is each slice's)."""
     p = Tu.shape[1]
     sf2, sn2 = np.exp(2 * lp[0]), np.exp(2 * lp[-1])
-    Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, Pa = _kron_solve(lp, Tu, Xu, res)
+    Kt, Dt, Kx, Dx, lam, Qt, mu, Qx, SO, S, Pa = _kron_solve(lp, Tu, Xu, res, sq)
     PP = Pa * Pa
     f = 0.5 * (PP * S).sum() + 0.5 * np.log(S).sum() + 0.5 * res.size * LOG_2PI
     A0 = Qt @ Pa @ Qx.T
@@ -118,14 +121,12 @@ def _kron_nlml(lp, Tu, Xu, res):
     Z = 1.0 / S - PP
     g[0] = (SO * Z).sum()
     g[-1] = sn2 * Z.sum()
-    for d in range(p):
-        diag_t = np.einsum("ra,rs,sa->a", Qt, Dt[d], Qt)
-        g[1 + d] = 0.5 * sf2 * (((diag_t[:, None] * mu[None, :]) / S).sum()
-                                - (A0 * (Dt[d] @ A0 @ Kx)).sum())
-    for d in range(Xu.shape[1]):
-        diag_x = np.einsum("ra,rs,sa->a", Qx, Dx[d], Qx)
-        g[1 + p + d] = 0.5 * sf2 * (((lam[:, None] * diag_x[None, :]) / S).sum()
-                                    - (A0 * (Kt @ A0 @ Dx[d])).sum())
+    diag_t = np.einsum("ra,drs,sa->da", Qt, Dt, Qt)[:, :, None] * mu[None, None, :]
+    diag_x = lam[None, :, None] * np.einsum("ra,drs,sa->da", Qx, Dx, Qx)[:, None, :]
+    g[1:1 + p] = 0.5 * sf2 * ((diag_t / S).sum(axis=(1, 2))
+                              - (A0 * (Dt @ A0 @ Kx)).sum(axis=(1, 2)))
+    g[1 + p:-1] = 0.5 * sf2 * ((diag_x / S).sum(axis=(1, 2))
+                               - (A0 * (Kt @ A0 @ Dx)).sum(axis=(1, 2)))
     return f, g
 
 
@@ -141,7 +142,8 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0, step=None):
     hi = np.r_[np.log(sd) + 3, np.full(p + d_x, np.log(30.0)), np.log(sd * 0.3)]
     starts = lo + (hi - lo) * rng.uniform(size=(n_starts, lo.size))
     starts[0] = np.r_[np.log(sd), np.full(p + d_x, np.log(0.5)), np.log(sd * 1e-3)]
-    best, _ = best_lbfgs(lambda lp: _kron_nlml(lp, Tu, Xu, res), starts, lo, hi,
+    sq = tuple((A[:, :, None] - A[:, None, :]) ** 2 for A in (Tu.T.copy(), Xu.T.copy()))
+    best, _ = best_lbfgs(lambda lp: _kron_nlml(lp, Tu, Xu, res, sq), starts, lo, hi,
                          progress=None if step is None else (lambda _: step()))
     if not lbfgs_converged(best, lo, hi):
         warnings.warn(f"emulator fit, output {output}: the best of {n_starts} L-BFGS-B runs did "
@@ -149,7 +151,7 @@ def _fit_one(Tu, Xu, y, rng, n_starts, output=0, step=None):
                       "predictions may be off. Add simulator runs (n_runs) or raise n_starts.",
                       ConvergenceWarning, stacklevel=3)
     lp = best.x
-    *_, Qt, _, Qx, _, S, Pa = _kron_solve(lp, Tu, Xu, res)
+    *_, Qt, _, Qx, _, S, Pa = _kron_solve(lp, Tu, Xu, res, sq)
     return KronGP(lp, beta, Qt, Qx, np.exp(2 * lp[0]) * Qt @ Pa @ Qx.T, 1.0 / S)
 
 

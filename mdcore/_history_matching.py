@@ -66,18 +66,14 @@ MULTIVARIATE = "multivariate"
 RULE_NAMES = (*RULES, MULTIVARIATE)
 #: Default largest share of a wave's simulator runs that may fail (and be dropped).
 MAX_FAILED_FRACTION = 0.5
-#: Largest sizes accepted up front: candidates scored per wave (and NROY samples drawn at
-#: once), simulator runs in all waves together (the last emulator's θ covariance is runs ×
-#: runs), waves, and the Metropolis steps that spread the candidates. Beyond these the work
-#: would not fit in memory, so it is refused before it starts.
+#: Largest sizes accepted up front (beyond them the work would not fit in memory): candidates
+#: per wave, runs in all waves (the θ covariance is runs × runs), waves, Metropolis steps.
 MAX_CANDIDATES = 10_000_000
 MAX_RUNS = 10_000
 MAX_WAVES = 100
 MAX_MCMC_STEPS = 1_000
-#: Values (θ rows × observed inputs × outputs) of the emulator's mean and variance held at
-#: once while candidates are scored or weighted: θ go through in chunks of at most this
-#: many values (16 MB per array), so memory does not grow with the number of candidates
-#: times the number of observations.
+#: Values (θ rows × observed inputs × outputs) of the emulator's moments held at once while
+#: candidates are scored or weighted (16 MB per array): memory does not grow with M × N.
 CHUNK_VALUES = 2**21
 #: Posterior draws kept per history match, by (n, seed): see ``posterior_samples``.
 POSTERIOR_MEMO = 4
@@ -553,12 +549,8 @@ def _in_nroy(problem, waves, theta, progress=None) -> np.ndarray:
 
 def _uniform_in_nroy(problem, waves, seeds: np.ndarray, n: int, rng,
                      progress=None) -> np.ndarray:
-    """``n`` points uniform in the NROY set of ``waves``, from uniform ``seeds`` (K, p).
-
-    Resamples the seeds, then runs ``mcmc_steps`` random-walk Metropolis steps with the
-    uniform density on the NROY set as target; the proposal covariance is the seeds'
-    covariance scaled by 2.38²/p (Gelman et al.), shrunk where few seeds exist.
-    """
+    """``n`` points uniform in the NROY set of ``waves``: resampled ``seeds`` (K, p) moved by
+    Metropolis steps of covariance 2.38²/p × the seeds' (Gelman et al.), module docstring."""
     p = problem.p
     span = problem.bounds[:, 1] - problem.bounds[:, 0]
     theta = seeds[rng.integers(0, len(seeds), size=n)]
@@ -835,14 +827,9 @@ class HistoryMatchResult:
 
     @cached_property
     def theta_map(self) -> np.ndarray:
-        """θ_MAP: the maximiser of :meth:`log_likelihood` over the final NROY set.
-
-        The prior is uniform on the box and the posterior is restricted to NROY, so the
-        MAP is the most likely non-implausible θ. Found on 2,000 NROY samples (seeded by
-        the problem), then polished by Nelder–Mead, keeping the polish only if it stays
-        non-implausible. (The mode of the NROY samples' density would not do: the samples
-        are uniform on NROY, so their density has no informative mode.)
-        """
+        """θ_MAP: the maximiser of :meth:`log_likelihood` over the final NROY set (the
+        prior is uniform on the box), the best of 2,000 NROY samples (seeded by the problem)
+        polished by Nelder–Mead, the polish kept only if it stays non-implausible."""
         return self._find_theta_map()
 
     def compute_theta_map(self, progress: Callable[[float], None] | None = None) -> np.ndarray:

@@ -58,15 +58,20 @@ def scaled_sq_dist(A, B, lengthscale) -> np.ndarray:
     return out
 
 
-def matern32_and_dlog_ell(A, ell) -> tuple[np.ndarray, np.ndarray]:
+def matern32_and_dlog_ell(A, ell, sq=None) -> tuple[np.ndarray, np.ndarray]:
     """``m32`` (n, n) between the rows of ``A`` (n, d) for lengthscales ``ell`` (d,), and its
-    derivatives in each ``log ℓ_d``, ``3 exp(−√3 r) Δ_d² / ℓ_d²`` (d, n, n)."""
-    A, ell = np.asarray(A, dtype=np.float64), np.asarray(ell, dtype=np.float64)
-    r2 = scaled_sq_dist(A, A, ell)
-    e = np.exp(-SQRT3 * np.sqrt(r2))
-    D = np.stack([3.0 * e * (A[:, None, d] - A[None, :, d]) ** 2 / ell[d] ** 2
-                  for d in range(A.shape[1])]) if A.shape[1] else np.empty((0,) + r2.shape)
-    return matern32(r2), D
+    derivatives in each ``log ℓ_d``, ``3 exp(−√3 r) Δ_d² / ℓ_d²`` (d, n, n); ``sq`` holds the
+    ``Δ_d²`` (d, n, n) when a caller reuses them. The same operations as
+    :func:`scaled_sq_dist` and :func:`matern32`, so the same bits."""
+    At = np.ascontiguousarray(np.transpose(A), dtype=np.float64)     # C order: same bits below
+    ell = np.asarray(ell, dtype=np.float64)
+    As = At * (1.0 / ell)[:, None]
+    diff = As[:, :, None] - As[:, None, :]
+    a = SQRT3 * np.sqrt(np.add.reduce(diff * diff, axis=0))       # sums dimension by dimension
+    e = np.exp(-a)
+    if sq is None:
+        sq = (At[:, :, None] - At[:, None, :]) ** 2
+    return (a + 1.0) * e, (3.0 * e) * sq / np.array([v ** 2 for v in ell])[:, None, None]
 
 
 def split_log_params(log_params, d_y: int, d_x: int):

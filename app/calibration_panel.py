@@ -118,6 +118,44 @@ def map_text(case, theta_map) -> str:
                        "samples (grey).").replace("θ_MAP", "<b>θ_MAP</b>", 1)
 
 
+def posterior_figure(case, j: int, css: str = CSS):
+    """Parameter j, empty until :func:`draw_posterior`: NROY and posterior histograms,
+    θ_MAP (solid) and the truth (dashed). Returns (figure, sources, θ_MAP source, item)."""
+    name, unit = case.theta_names[j], case.theta_units[j]
+    fig = live_figure(name, axis_label(name, unit), "density", css,
+                      x_range=Range1d(*(float(b) for b in case.theta_bounds[j])),
+                      y_range=Range1d(0.0, 1.0))     # set with the data (set_top)
+    e = theta_edges(case, j)
+    sources = [ColumnDataSource(blank(BINS, "top", left=e[:-1], right=e[1:])) for _ in range(2)]
+    nroy = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[0],
+                    fill_color="grey", fill_alpha=0.25, line_alpha=0)
+    post = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[1],
+                    fill_color=POSTERIOR_COLOR, fill_alpha=0.6, line_alpha=0)
+    at_map = ColumnDataSource(blank(1, "x"))
+    line = fig.vspan(x="x", source=at_map, line_color=THETA_MAP_COLOR, line_width=3)
+    post_item = LegendItem(label="posterior", renderers=[post])
+    items = [LegendItem(label="NROY (uniform)", renderers=[nroy]), post_item,
+             LegendItem(label="θ_MAP", renderers=[line])]
+    if case.theta_true is not None:
+        truth = fig.vspan(x=[float(case.theta_true[j])], line_color="black",
+                          line_dash="dashed", line_width=2)
+        items.append(LegendItem(label="true θ", renderers=[truth]))
+    below_legend(fig, items, ncols=2)
+    return fig, sources, at_map, post_item
+
+
+def draw_posterior(cell, case, post: ThetaPosterior, theta_map, j: int) -> None:
+    """Fill the :func:`posterior_figure` ``cell`` of parameter j."""
+    fig, (nroy, weighted), at_map, item = cell
+    e = post.edges[j]
+    replace_data(nroy, {"left": e[:-1], "right": e[1:], "top": post.nroy[j]})
+    replace_data(weighted, {"left": e[:-1], "right": e[1:], "top": post.posterior[j]})
+    set_top(fig.y_range, max(post.nroy[j].max(), post.posterior[j].max()))
+    replace_data(at_map, {"x": np.array([float(theta_map[j])])})
+    item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
+    fig.title.text = f"{case.theta_names[j]}: θ_MAP = {number(theta_map[j], case.theta_units[j])}"
+
+
 class CalibrationPanel(LivePanel):
     """θ_MAP, the θ posterior per parameter and (1-D inputs) the simulator at θ_MAP."""
 
@@ -129,7 +167,7 @@ class CalibrationPanel(LivePanel):
         c = self.state.case
         self._case = c
         self._text, self._text_div = live_text("theta-map")
-        self._posterior = [self._posterior_figure(j) for j in range(c.p)]
+        self._posterior = [posterior_figure(c, j) for j in range(c.p)]
         objects = [self._text, pn.Row(*[figure_pane(f[0]) for f in self._posterior],
                                       sizing_mode="stretch_width")]
         #: output -> (figure, curve source) of the simulator at θ_MAP (1-D input), built
@@ -158,32 +196,6 @@ class CalibrationPanel(LivePanel):
         truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
         fig, curve = self._simulator_figure(o, grid, truth)
         self._simulator[o] = (fig, curve, figure_pane(fig))
-
-    def _posterior_figure(self, j: int):
-        """Parameter j: NROY and posterior histograms, θ_MAP (solid) and the truth (dashed)."""
-        c = self._case
-        name, unit = c.theta_names[j], c.theta_units[j]
-        fig = live_figure(name, axis_label(name, unit), "density", CSS,
-                          x_range=Range1d(*(float(b) for b in c.theta_bounds[j])),
-                          y_range=Range1d(0.0, 1.0))     # set with the data (set_range)
-        e = theta_edges(c, j)
-        sources = [ColumnDataSource(blank(BINS, "top", left=e[:-1], right=e[1:]))
-                   for _ in range(2)]
-        nroy = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[0],
-                        fill_color="grey", fill_alpha=0.25, line_alpha=0)
-        post = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[1],
-                        fill_color=POSTERIOR_COLOR, fill_alpha=0.6, line_alpha=0)
-        at_map = ColumnDataSource(blank(1, "x"))
-        line = fig.vspan(x="x", source=at_map, line_color=THETA_MAP_COLOR, line_width=3)
-        post_item = LegendItem(label="posterior", renderers=[post])
-        items = [LegendItem(label="NROY (uniform)", renderers=[nroy]), post_item,
-                 LegendItem(label="θ_MAP", renderers=[line])]
-        if c.theta_true is not None:
-            truth = fig.vspan(x=[float(c.theta_true[j])], line_color="black",
-                              line_dash="dashed", line_width=2)
-            items.append(LegendItem(label="true θ", renderers=[truth]))
-        below_legend(fig, items, ncols=2)
-        return fig, sources, at_map, post_item
 
     def _simulator_figure(self, o: int, grid, truth):
         """Output o: the test (grey) and training (black) data, η(x, θ_MAP) (red) and
@@ -219,15 +231,8 @@ class CalibrationPanel(LivePanel):
             return
         theta_map = hm.theta_map
         self._text_div.text = map_text(c, theta_map)
-        for j, (fig, (nroy, weighted), at_map, item) in enumerate(self._posterior):
-            e = post.edges[j]
-            replace_data(nroy, {"left": e[:-1], "right": e[1:], "top": post.nroy[j]})
-            replace_data(weighted, {"left": e[:-1], "right": e[1:], "top": post.posterior[j]})
-            set_top(fig.y_range, max(post.nroy[j].max(), post.posterior[j].max()))
-            replace_data(at_map, {"x": np.array([float(theta_map[j])])})
-            item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
-            fig.title.text = (f"{c.theta_names[j]}: θ_MAP = "
-                              f"{number(theta_map[j], c.theta_units[j])}")
+        for j, cell in enumerate(self._posterior):
+            draw_posterior(cell, c, post, theta_map, j)
         if c.d_x == 1:
             grid = input_grid(c)
             shown = s.output_index

@@ -161,14 +161,15 @@ def loo_figures(case, numbers: Numbers, o: int) -> list:
     return [fig, hist]
 
 
-def loo_table(numbers: Numbers) -> str:
-    """One row per wave: runs, share beyond ±3, largest error, p and wrongly ruled out."""
+def loo_table(validations) -> str:
+    """One row per wave's LOO check: runs, share beyond ±3, largest error, p and wrongly
+    ruled out (the tab's and the report's table)."""
     head = ("<tr><th>wave</th><th>runs</th><th>beyond ±3</th><th>largest |e|</th>"
             "<th>p</th><th>wrongly ruled out</th></tr>")
     body = "".join(
         f"<tr><td>{v.wave}</td><td>{len(v.theta)}</td><td>{100 * v.share_beyond_3:.1f} %"
         f"</td><td>{np.abs(v.loo.error).max():.1f}</td><td>{max(v.p_value, 1e-16):.2g}</td>"
-        f"<td>{int(v.wrongly_ruled_out.sum())}</td></tr>" for v in numbers.validations)
+        f"<td>{int(v.wrongly_ruled_out.sum())}</td></tr>" for v in validations)
     return (f"<table class='diag-loo-table' style='border-collapse:collapse' cellpadding='4'>"
             f"{head}{body}</table>")
 
@@ -367,7 +368,7 @@ class DiagnosticsView(pn.viewable.Viewer):
         self._numbers, figs, case, o = message
         numbers, name = self._numbers[2], case.output_names[o]
         advice = [v.advice for v in numbers.validations if v.advice]
-        parts = [_text("<h3>Can the emulator be trusted?</h3>" + loo_table(numbers)
+        parts = [_text("<h3>Can the emulator be trusted?</h3>" + loo_table(numbers.validations)
                        + (warnings_html(advice) if advice else
                           alert_box("No wave's emulator is too confident, and no run is "
                                     "wrongly ruled out.", "success")), "diag-loo"),

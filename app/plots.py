@@ -14,7 +14,6 @@ from bokeh.models import ColumnDataSource, FixedTicker, HoverTool, LegendItem, R
 from mdcore._pipeline import Method
 
 from .live_figures import below_legend, live_figure
-from .report import PAPER_COLOR, metric_bars
 
 #: Category10 (the wave colours repeat after ten waves).
 WAVE_COLORS = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd", "#8c564b", "#e377c2",
@@ -25,6 +24,8 @@ METHOD_COLORS = {Method.S1: "#1f77b4", Method.S2: "#ff7f0e", Method.S3: "#2ca02c
 THETA_MAP_COLOR = "red"
 THETA_MAP_MARKER = {"marker": "star", "size": 18, "fill_color": THETA_MAP_COLOR,
                     "line_color": "black", "line_width": 1}
+#: Marker colour of the paper's reference values in the metrics chart.
+PAPER_COLOR = "#dd8452"
 PLOT = {"responsive": True, "height": 300, "min_width": 200, "tools": ["hover"], "show_grid": True}
 
 
@@ -177,6 +178,29 @@ def phi_posterior(case, result, *, output: int | None = None, bins: int = 30) ->
                                LegendItem(label="posterior mean", renderers=[mean])], ncols=3)
             out.append(fig)
     return out
+
+
+def metric_bars(case, results, metric: str, paper: dict | None = None) -> list[tuple]:
+    """``(method, output, value, paper value or NaN)`` of ``metric`` (a Metrics field) for
+    each of ``results`` whose metric is known and each output. ``paper`` is laid out as
+    ``mdcore._study.PAPER[case]``: a scalar stands for a single-output case only, a
+    sequence gives one value per output."""
+    ref = (paper or {}).get(metric) or {}
+    rows = []
+    for r in results:
+        values = getattr(r.metrics, metric)
+        if values is None:
+            continue
+        theirs = ref.get(r.method.value)
+        for o in range(case.n_out):
+            if theirs is None:
+                p = np.nan
+            elif np.ndim(theirs) == 0:
+                p = float(theirs) if case.n_out == 1 else np.nan
+            else:
+                p = float(theirs[o]) if len(theirs) == case.n_out else np.nan
+            rows.append((r.method, o, float(values[o]), p))
+    return rows
 
 
 #: The metrics :func:`metrics_chart` draws: Metrics field -> short name.

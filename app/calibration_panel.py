@@ -1,11 +1,7 @@
-"""What history matching calibrated, on the History matching tab, updated in place: θ_MAP in
-numbers, the weighted θ posterior (one histogram per parameter), and the simulator at θ_MAP
-against the data per output (the paper's Fig. 12 for shear-5).
-
-As in :mod:`.waves_panel`, the figures are built once per case and a new wave only replaces
-the arrays they draw (HoloViews rebuilt the eight shear-5 plots for each wave: about 2 s on
-the server, and a re-layout of the page in the browser).
-"""
+"""What history matching calibrated, on the History matching tab: θ_MAP in numbers, the
+weighted θ posterior (a histogram per parameter) and the simulator at θ_MAP against the
+data per output (the paper's Fig. 12 for shear-5). Built once per case; a new wave only
+replaces the arrays (HoloViews rebuilt shear-5's eight plots per wave: about 2 s)."""
 
 from __future__ import annotations
 
@@ -17,8 +13,6 @@ import panel as pn
 import param
 from bokeh.core.properties import value
 from bokeh.models import ColumnDataSource, LegendItem, Range1d
-
-from mdcore._validation import as_int
 
 from .live_figures import (
     CURRENT,
@@ -44,19 +38,10 @@ POSTERIOR_COLOR = "#2ca02c"
 
 
 class ThetaPosterior(NamedTuple):
-    """The weighted θ posterior of Bayesian history matching, binned per parameter.
-
-    Attributes
-    ----------
-    edges : list of ndarray of shape (bins + 1,)
-        Bin edges over each parameter's prior box.
-    nroy, posterior : list of ndarray of shape (bins,)
-        Densities (each integrates to 1): the unweighted NROY samples, and the same
-        samples weighted by their normalised likelihood.
-    ess : float
-        Effective sample size of the weights (of ``n``).
-    n : int
-    """
+    """The weighted θ posterior of history matching, binned per parameter: ``edges``
+    (bins + 1,) over the prior box, densities (bins,) of the ``nroy`` samples and of the
+    same samples weighted by their likelihood (``posterior``), the weights' ``ess`` of
+    ``n``."""
 
     edges: list
     nroy: list
@@ -72,16 +57,10 @@ def theta_edges(case, j: int, bins: int = BINS) -> np.ndarray:
 
 def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
                     bins: int = BINS) -> ThetaPosterior | None:
-    """The weighted θ posterior of history matching; None when NROY is empty.
-
-    The posterior is the Gaussian likelihood behind the implausibility measure
-    (:meth:`mdcore.HistoryMatchResult.log_likelihood`) restricted to NROY,
-    under the uniform prior on the box: ``n`` samples uniform in the final NROY set, each
-    weighted by its normalised likelihood (the density that
-    :meth:`~mdcore.HistoryMatchResult.posterior_samples` resamples from,
-    without the resampling noise).
-    """
-    n, bins = as_int(n, "n", 1), as_int(bins, "bins", 1)
+    """The weighted θ posterior of history matching, None when NROY is empty: ``n``
+    samples uniform in the final NROY set, each weighted by its normalised likelihood
+    (:meth:`mdcore.HistoryMatchResult.log_likelihood`, uniform prior on the box): what
+    :meth:`~mdcore.HistoryMatchResult.posterior_samples` resamples, without its noise."""
     if hm.waves[-1].nroy.shape[0] == 0:
         return None
     theta = hm.nroy_samples(n, seed=seed)                                   # (n, p)
@@ -99,7 +78,7 @@ def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
 
 def input_grid(case, n: int = GRID) -> np.ndarray:
     """(n, 1): the span of the training and test inputs of a 1-D case."""
-    return np.linspace(*input_span(case, 0), as_int(n, "n", 2))[:, None]
+    return np.linspace(*input_span(case, 0), n)[:, None]
 
 
 def number(v: float, unit: str) -> str:

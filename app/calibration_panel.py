@@ -153,12 +153,11 @@ class CalibrationPanel(LivePanel):
         #: when the output is first shown (state.output: one at a time)
         self._simulator: dict[int, tuple] = {}
         self._simulator_row = pn.Row(sizing_mode="stretch_width")
-        if c.d_x == 1:
+        if c.d_x == 1:                          # the output shown, ahead of θ_MAP
             objects += [pn.pane.Markdown(
                 "**The simulator at θ_MAP against the data**: what is left between them is "
                 "the discrepancy δ (the RMSE is to the training data)."),
                 self._simulator_row]
-        if c.d_x == 1:                          # the output shown, ahead of θ_MAP
             self._add_simulator(self.state.output_index)
             show_only({o: cell[2] for o, cell in self._simulator.items()},
                       self.state.output_index, self._simulator_row, attach=True)
@@ -169,20 +168,12 @@ class CalibrationPanel(LivePanel):
         self._update()
 
     def _add_simulator(self, o: int) -> None:
-        """Build the (empty) simulator plot of output ``o``."""
+        """Build the plot of output o, empty until :meth:`_update`: the test (grey) and
+        training (black) data, η(x, θ_MAP) (red) and η(x, θ_true) (dashed)."""
         c = self._case
         grid = input_grid(c)
-        truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
-        fig, curve = self._simulator_figure(o, grid, truth)
-        self._simulator[o] = (fig, curve, figure_pane(fig))
-
-    def _simulator_figure(self, o: int, grid, truth):
-        """Output o: the test (grey) and training (black) data, η(x, θ_MAP) (red) and
-        η(x, θ_true) (dashed)."""
-        c = self._case
-        xname = axis_label(c.x_names[0], c.x_units[0])
-        yname = axis_label(c.output_names[o], c.output_units[o])
-        fig = live_figure(f"{c.output_names[o]} at θ_MAP", xname, yname, CSS)
+        fig = live_figure(f"{c.output_names[o]} at θ_MAP", axis_label(c.x_names[0], c.x_units[0]),
+                          axis_label(c.output_names[o], c.output_units[o]), CSS)
         items = [
             LegendItem(label="test data", renderers=[fig.scatter(
                 c.X_test[:, 0], c.z_test[:, o], color="grey", size=4, alpha=0.6)]),
@@ -191,11 +182,12 @@ class CalibrationPanel(LivePanel):
         curve = ColumnDataSource(blank(grid.shape[0], "y", x=grid[:, 0]))
         items.append(LegendItem(label="simulator at θ_MAP", renderers=[fig.line(
             "x", "y", source=curve, line_color=THETA_MAP_COLOR, line_width=2)]))
-        if truth is not None:
+        if c.theta_true is not None:
+            truth = c.simulate(grid, c.theta_true)[0]
             items.append(LegendItem(label="simulator at true θ", renderers=[fig.line(
                 grid[:, 0], truth[:, o], line_color="black", line_dash="dashed")]))
         below_legend(fig, items, ncols=2)
-        return fig, curve
+        self._simulator[o] = (fig, curve, figure_pane(fig))
 
     # --- data ----------------------------------------------------------------------------
     def _update(self, *_):

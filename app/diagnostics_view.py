@@ -1,11 +1,7 @@
-"""The Diagnostics tab (issue 42): can the emulator be trusted, what did each wave rule out,
-and how much of δ is down to which θ was calibrated to (docs/diagnostics.md).
-
-The numbers come from :mod:`mdcore._diagnostics` and the figures (plain Bokeh, as the
-Metrics tab's) are built on a worker thread of the tab's own
-:class:`~mdcore_app.jobs.JobRunner`, so neither blocks the session nor supersedes its wave
-or discrepancy job. They are built when the tab is shown after a change, never before.
-"""
+"""The Diagnostics tab (issue 42, docs/diagnostics.md): can the emulator be trusted, what did
+each wave rule out, and how much of δ is down to which θ was calibrated to. Numbers and
+figures are made when the tab is shown after a change, on the tab's own JobRunner, so they
+neither block the session nor supersede its wave or discrepancy job."""
 
 from __future__ import annotations
 

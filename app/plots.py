@@ -195,6 +195,8 @@ def metrics_chart(case, results, paper=None):
                       y_range=Range1d(lo, hi), y_axis_type="log")
     fig.xaxis.ticker = FixedTicker(ticks=list(ticks))
     fig.xaxis.major_label_overrides = ticks
+    if len(ticks) > 4:                       # several outputs: slanted, or they overlap
+        fig.xaxis.major_label_orientation = 0.6
     # Over a few decades, ticks at 1, 2 and 5 of each (Bokeh's log ticker labelled only 5,
     # 10 and 15 on beam-1d's 0.2-15 %). Over more, its decades do.
     if hi / lo <= 1e3:

@@ -1,11 +1,7 @@
-"""What history matching calibrated, on the History matching tab, updated in place: θ_MAP in
-numbers, the weighted θ posterior (one histogram per parameter), and the simulator at θ_MAP
-against the data per output (the paper's Fig. 12 for shear-5).
-
-As in :mod:`.waves_panel`, the figures are built once per case and a new wave only replaces
-the arrays they draw (HoloViews rebuilt the eight shear-5 plots for each wave: about 2 s on
-the server, and a re-layout of the page in the browser).
-"""
+"""What history matching calibrated, on the History matching tab: θ_MAP in numbers, the
+weighted θ posterior (a histogram per parameter) and the simulator at θ_MAP against the
+data per output (the paper's Fig. 12 for shear-5). Built once per case; a new wave only
+replaces the arrays (HoloViews rebuilt shear-5's eight plots per wave: about 2 s)."""
 
 from __future__ import annotations
 
@@ -17,8 +13,6 @@ import panel as pn
 import param
 from bokeh.core.properties import value
 from bokeh.models import ColumnDataSource, LegendItem, Range1d
-
-from mdcore._validation import as_int
 
 from .live_figures import (
     CURRENT,
@@ -44,19 +38,10 @@ POSTERIOR_COLOR = "#2ca02c"
 
 
 class ThetaPosterior(NamedTuple):
-    """The weighted θ posterior of Bayesian history matching, binned per parameter.
-
-    Attributes
-    ----------
-    edges : list of ndarray of shape (bins + 1,)
-        Bin edges over each parameter's prior box.
-    nroy, posterior : list of ndarray of shape (bins,)
-        Densities (each integrates to 1): the unweighted NROY samples, and the same
-        samples weighted by their normalised likelihood.
-    ess : float
-        Effective sample size of the weights (of ``n``).
-    n : int
-    """
+    """The weighted θ posterior of history matching, binned per parameter: ``edges``
+    (bins + 1,) over the prior box, densities (bins,) of the ``nroy`` samples and of the
+    same samples weighted by their likelihood (``posterior``), the weights' ``ess`` of
+    ``n``."""
 
     edges: list
     nroy: list
@@ -72,16 +57,10 @@ def theta_edges(case, j: int, bins: int = BINS) -> np.ndarray:
 
 def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
                     bins: int = BINS) -> ThetaPosterior | None:
-    """The weighted θ posterior of history matching; None when NROY is empty.
-
-    The posterior is the Gaussian likelihood behind the implausibility measure
-    (:meth:`mdcore.HistoryMatchResult.log_likelihood`) restricted to NROY,
-    under the uniform prior on the box: ``n`` samples uniform in the final NROY set, each
-    weighted by its normalised likelihood (the density that
-    :meth:`~mdcore.HistoryMatchResult.posterior_samples` resamples from,
-    without the resampling noise).
-    """
-    n, bins = as_int(n, "n", 1), as_int(bins, "bins", 1)
+    """The weighted θ posterior of history matching, None when NROY is empty: ``n``
+    samples uniform in the final NROY set, each weighted by its normalised likelihood
+    (:meth:`mdcore.HistoryMatchResult.log_likelihood`, uniform prior on the box): what
+    :meth:`~mdcore.HistoryMatchResult.posterior_samples` resamples, without its noise."""
     if hm.waves[-1].nroy.shape[0] == 0:
         return None
     theta = hm.nroy_samples(n, seed=seed)                                   # (n, p)
@@ -99,7 +78,7 @@ def theta_posterior(case, hm, n: int = POSTERIOR_SAMPLES, seed=0, *,
 
 def input_grid(case, n: int = GRID) -> np.ndarray:
     """(n, 1): the span of the training and test inputs of a 1-D case."""
-    return np.linspace(*input_span(case, 0), as_int(n, "n", 2))[:, None]
+    return np.linspace(*input_span(case, 0), n)[:, None]
 
 
 def number(v: float, unit: str) -> str:
@@ -118,6 +97,44 @@ def map_text(case, theta_map) -> str:
                        "samples (grey).").replace("θ_MAP", "<b>θ_MAP</b>", 1)
 
 
+def posterior_figure(case, j: int, css: str = CSS):
+    """Parameter j, empty until :func:`draw_posterior`: NROY and posterior histograms,
+    θ_MAP (solid) and the truth (dashed). Returns (figure, sources, θ_MAP source, item)."""
+    name, unit = case.theta_names[j], case.theta_units[j]
+    fig = live_figure(name, axis_label(name, unit), "density", css,
+                      x_range=Range1d(*(float(b) for b in case.theta_bounds[j])),
+                      y_range=Range1d(0.0, 1.0))     # set with the data (set_top)
+    e = theta_edges(case, j)
+    sources = [ColumnDataSource(blank(BINS, "top", left=e[:-1], right=e[1:])) for _ in range(2)]
+    nroy = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[0],
+                    fill_color="grey", fill_alpha=0.25, line_alpha=0)
+    post = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[1],
+                    fill_color=POSTERIOR_COLOR, fill_alpha=0.6, line_alpha=0)
+    at_map = ColumnDataSource(blank(1, "x"))
+    line = fig.vspan(x="x", source=at_map, line_color=THETA_MAP_COLOR, line_width=3)
+    post_item = LegendItem(label="posterior", renderers=[post])
+    items = [LegendItem(label="NROY (uniform)", renderers=[nroy]), post_item,
+             LegendItem(label="θ_MAP", renderers=[line])]
+    if case.theta_true is not None:
+        truth = fig.vspan(x=[float(case.theta_true[j])], line_color="black",
+                          line_dash="dashed", line_width=2)
+        items.append(LegendItem(label="true θ", renderers=[truth]))
+    below_legend(fig, items, ncols=2)
+    return fig, sources, at_map, post_item
+
+
+def draw_posterior(cell, case, post: ThetaPosterior, theta_map, j: int) -> None:
+    """Fill the :func:`posterior_figure` ``cell`` of parameter j."""
+    fig, (nroy, weighted), at_map, item = cell
+    e = post.edges[j]
+    replace_data(nroy, {"left": e[:-1], "right": e[1:], "top": post.nroy[j]})
+    replace_data(weighted, {"left": e[:-1], "right": e[1:], "top": post.posterior[j]})
+    set_top(fig.y_range, max(post.nroy[j].max(), post.posterior[j].max()))
+    replace_data(at_map, {"x": np.array([float(theta_map[j])])})
+    item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
+    fig.title.text = f"{case.theta_names[j]}: θ_MAP = {number(theta_map[j], case.theta_units[j])}"
+
+
 class CalibrationPanel(LivePanel):
     """θ_MAP, the θ posterior per parameter and (1-D inputs) the simulator at θ_MAP."""
 
@@ -129,19 +146,18 @@ class CalibrationPanel(LivePanel):
         c = self.state.case
         self._case = c
         self._text, self._text_div = live_text("theta-map")
-        self._posterior = [self._posterior_figure(j) for j in range(c.p)]
+        self._posterior = [posterior_figure(c, j) for j in range(c.p)]
         objects = [self._text, pn.Row(*[figure_pane(f[0]) for f in self._posterior],
                                       sizing_mode="stretch_width")]
         #: output -> (figure, curve source) of the simulator at θ_MAP (1-D input), built
         #: when the output is first shown (state.output: one at a time)
         self._simulator: dict[int, tuple] = {}
         self._simulator_row = pn.Row(sizing_mode="stretch_width")
-        if c.d_x == 1:
+        if c.d_x == 1:                          # the output shown, ahead of θ_MAP
             objects += [pn.pane.Markdown(
                 "**The simulator at θ_MAP against the data**: what is left between them is "
                 "the discrepancy δ (the RMSE is to the training data)."),
                 self._simulator_row]
-        if c.d_x == 1:                          # the output shown, ahead of θ_MAP
             self._add_simulator(self.state.output_index)
             show_only({o: cell[2] for o, cell in self._simulator.items()},
                       self.state.output_index, self._simulator_row, attach=True)
@@ -152,46 +168,12 @@ class CalibrationPanel(LivePanel):
         self._update()
 
     def _add_simulator(self, o: int) -> None:
-        """Build the (empty) simulator plot of output ``o``."""
+        """Build the plot of output o, empty until :meth:`_update`: the test (grey) and
+        training (black) data, η(x, θ_MAP) (red) and η(x, θ_true) (dashed)."""
         c = self._case
         grid = input_grid(c)
-        truth = None if c.theta_true is None else c.simulate(grid, c.theta_true)[0]
-        fig, curve = self._simulator_figure(o, grid, truth)
-        self._simulator[o] = (fig, curve, figure_pane(fig))
-
-    def _posterior_figure(self, j: int):
-        """Parameter j: NROY and posterior histograms, θ_MAP (solid) and the truth (dashed)."""
-        c = self._case
-        name, unit = c.theta_names[j], c.theta_units[j]
-        fig = live_figure(name, axis_label(name, unit), "density", CSS,
-                          x_range=Range1d(*(float(b) for b in c.theta_bounds[j])),
-                          y_range=Range1d(0.0, 1.0))     # set with the data (set_range)
-        e = theta_edges(c, j)
-        sources = [ColumnDataSource(blank(BINS, "top", left=e[:-1], right=e[1:]))
-                   for _ in range(2)]
-        nroy = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[0],
-                        fill_color="grey", fill_alpha=0.25, line_alpha=0)
-        post = fig.quad(left="left", right="right", top="top", bottom=0.0, source=sources[1],
-                        fill_color=POSTERIOR_COLOR, fill_alpha=0.6, line_alpha=0)
-        at_map = ColumnDataSource(blank(1, "x"))
-        line = fig.vspan(x="x", source=at_map, line_color=THETA_MAP_COLOR, line_width=3)
-        post_item = LegendItem(label="posterior", renderers=[post])
-        items = [LegendItem(label="NROY (uniform)", renderers=[nroy]), post_item,
-                 LegendItem(label="θ_MAP", renderers=[line])]
-        if c.theta_true is not None:
-            truth = fig.vspan(x=[float(c.theta_true[j])], line_color="black",
-                              line_dash="dashed", line_width=2)
-            items.append(LegendItem(label="true θ", renderers=[truth]))
-        below_legend(fig, items, ncols=2)
-        return fig, sources, at_map, post_item
-
-    def _simulator_figure(self, o: int, grid, truth):
-        """Output o: the test (grey) and training (black) data, η(x, θ_MAP) (red) and
-        η(x, θ_true) (dashed)."""
-        c = self._case
-        xname = axis_label(c.x_names[0], c.x_units[0])
-        yname = axis_label(c.output_names[o], c.output_units[o])
-        fig = live_figure(f"{c.output_names[o]} at θ_MAP", xname, yname, CSS)
+        fig = live_figure(f"{c.output_names[o]} at θ_MAP", axis_label(c.x_names[0], c.x_units[0]),
+                          axis_label(c.output_names[o], c.output_units[o]), CSS)
         items = [
             LegendItem(label="test data", renderers=[fig.scatter(
                 c.X_test[:, 0], c.z_test[:, o], color="grey", size=4, alpha=0.6)]),
@@ -200,11 +182,12 @@ class CalibrationPanel(LivePanel):
         curve = ColumnDataSource(blank(grid.shape[0], "y", x=grid[:, 0]))
         items.append(LegendItem(label="simulator at θ_MAP", renderers=[fig.line(
             "x", "y", source=curve, line_color=THETA_MAP_COLOR, line_width=2)]))
-        if truth is not None:
+        if c.theta_true is not None:
+            truth = c.simulate(grid, c.theta_true)[0]
             items.append(LegendItem(label="simulator at true θ", renderers=[fig.line(
                 grid[:, 0], truth[:, o], line_color="black", line_dash="dashed")]))
         below_legend(fig, items, ncols=2)
-        return fig, curve
+        self._simulator[o] = (fig, curve, figure_pane(fig))
 
     # --- data ----------------------------------------------------------------------------
     def _update(self, *_):
@@ -219,15 +202,8 @@ class CalibrationPanel(LivePanel):
             return
         theta_map = hm.theta_map
         self._text_div.text = map_text(c, theta_map)
-        for j, (fig, (nroy, weighted), at_map, item) in enumerate(self._posterior):
-            e = post.edges[j]
-            replace_data(nroy, {"left": e[:-1], "right": e[1:], "top": post.nroy[j]})
-            replace_data(weighted, {"left": e[:-1], "right": e[1:], "top": post.posterior[j]})
-            set_top(fig.y_range, max(post.nroy[j].max(), post.posterior[j].max()))
-            replace_data(at_map, {"x": np.array([float(theta_map[j])])})
-            item.label = value(f"posterior (ESS {post.ess:,.0f} of {post.n:,})")
-            fig.title.text = (f"{c.theta_names[j]}: θ_MAP = "
-                              f"{number(theta_map[j], c.theta_units[j])}")
+        for j, cell in enumerate(self._posterior):
+            draw_posterior(cell, c, post, theta_map, j)
         if c.d_x == 1:
             grid = input_grid(c)
             shown = s.output_index

@@ -12,24 +12,19 @@ from mdcore._cases import Case
 
 from .session_model import SessionModel
 
-#: Points of the 1-D bands: smooth at a third of the page (a GP band between points 1 % of
-#: the span apart is straight to the eye), and the mixture of scenario 3 predicts at them
-#: as well as at the test inputs (its cost: docs/performance.md).
+#: Points of the 1-D bands: smooth at a third of the page (points 1 % of the span apart).
 GRID_1D = 101
-#: Points per axis of the 2-D δ maps: beam-2d's test grid (20 × 20 over the same span), so
-#: the maps show the very predictions the metrics score, and the grid costs no second
-#: prediction (``run_method`` predicts once at inputs that are both; docs/performance.md).
+#: Points per axis of the 2-D δ maps: beam-2d's 20 × 20 test grid, so the maps show the very
+#: predictions the metrics score, at no second prediction (docs/performance.md).
 GRID_2D = 20
 
 
 class OwnCase(NamedTuple):
-    """A case of this session beyond the built-in ones: from a ``--case`` file, or
-    measurements uploaded for a built-in case's simulator."""
+    """A case beyond the built-in ones: from a ``--case`` file, or uploaded measurements
+    (their CSV and file name) ``based_on`` a built-in case's simulator."""
 
     case: Case
-    #: The built-in case whose simulator it uses (an upload), or None (a case file).
     based_on: str | None = None
-    #: The uploaded measurements CSV and its file name (an upload), or None.
     measurements_csv: str | None = None
     measurements_file: str | None = None
 

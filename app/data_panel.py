@@ -1,10 +1,6 @@
 """The Data tab (the paper's Fig. 1): the measurements with their ±2√(V_o + V_m) bars, the
-simulator at the true θ and the true discrepancy δ, built once per case in Bokeh.
-
-A new V_m only moves the bars (one array) and the title. The HoloViews version rebuilt the
-whole layout for it and cost 0.4 s of server time per new session on beam-1d; the ten
-shear-5 plots were most of a case switch.
-"""
+simulator at the true θ and the true discrepancy δ, built once per case in Bokeh; a new V_m
+only moves the bars (HoloViews rebuilt the layout: 0.4 s per new session on beam-1d)."""
 
 from __future__ import annotations
 
@@ -12,17 +8,9 @@ import numpy as np
 import panel as pn
 import param
 from bokeh.models import ColorBar, ColumnDataSource, LegendItem, LinearColorMapper, Range1d
-from bokeh.palettes import RdBu11, Viridis256
+from bokeh.palettes import Viridis256
 
-from mdcore._validation import as_float_array, check_positive
-
-from .live_figures import (
-    LivePanel,
-    below_legend,
-    figure_pane,
-    live_figure,
-    show_only,
-)
+from .live_figures import LivePanel, MapFigure, below_legend, figure_pane, live_figure, show_only
 from .plots import axis_label, input_span
 from .sources import replace_data
 from .state import ExplorerState
@@ -35,38 +23,24 @@ SIMULATOR_COLOR, DELTA_COLOR = "#d62728", "#9467bd"
 
 
 def error_bars(x: np.ndarray, z: np.ndarray, half_width: float) -> dict:
-    """Columns of vertical bars ``z ± half_width`` at ``x`` (a Bokeh ``segment``).
-
-    ``x`` and ``z`` of shape (N,), finite; ``half_width`` finite and ≥ 0 (output units).
-    """
-    x, z = as_float_array(x, "x", ndim=1), as_float_array(z, "z", ndim=1)
-    if x.shape != z.shape:
-        raise ValueError(f"x and z must have the same shape (N,); received {x.shape} and "
-                         f"{z.shape}. Pass one bar per data point.")
-    half = float(check_positive(as_float_array([half_width], "half_width"), "half_width",
-                                strict=False)[0])
-    return {"x": x, "y0": z - half, "y1": z + half}
+    """Columns of vertical bars ``z ± half_width`` at ``x`` (both (N,)), for a ``segment``."""
+    return {"x": x, "y0": z - half_width, "y1": z + half_width}
 
 
 def true_delta_figure(case, css_class: str):
-    """2-D input: the true δ on a GRID_2D² grid of the inputs' span, blue (< 0) to red
-    (> 0) about zero as the scenarios' δ maps; None when δ is unknown."""
-    span = [input_span(case, d) for d in range(2)]
-    g1, g2 = np.meshgrid(np.linspace(*span[0], GRID_2D), np.linspace(*span[1], GRID_2D))
+    """2-D input: the true δ on a GRID_2D² grid of the inputs' span, drawn as the
+    scenarios' δ maps (blue < 0 < red); None when δ is unknown."""
+    u1, u2 = (np.linspace(*input_span(case, d), GRID_2D) for d in range(2))
+    g1, g2 = np.meshgrid(u1, u2)
     delta = case.true_delta(np.column_stack([g1.ravel(), g2.ravel()]))
     if delta is None:
         return None
-    d = delta[:, 0].reshape(GRID_2D, GRID_2D)
-    top = float(np.abs(d).max()) or 1.0
-    mapper = LinearColorMapper(palette=RdBu11, low=-top, high=top)
     x1, x2 = (axis_label(n, u) for n, u in zip(case.x_names, case.x_units))
-    fig = live_figure("true discrepancy δ", x1, x2, css_class,
-                      x_range=Range1d(*span[0]), y_range=Range1d(*span[1]))
-    fig.image(image=[d], x=span[0][0], y=span[1][0], dw=span[0][1] - span[0][0],
-              dh=span[1][1] - span[1][0], color_mapper=mapper)
-    fig.add_layout(ColorBar(color_mapper=mapper, width=10, title=axis_label(
-        "δ " + case.output_names[0], case.output_units[0])), "right")
-    return fig
+    fig = MapFigure(title="true discrepancy δ", xname=x1, yname=x2, u1=u1, u2=u2,
+                    zname=axis_label("δ " + case.output_names[0], case.output_units[0]),
+                    diverging=True, css_class=css_class)
+    fig.show(delta[:, 0].reshape(GRID_2D, GRID_2D))
+    return fig.figure
 
 
 class DataPanel(LivePanel):

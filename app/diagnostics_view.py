@@ -1,11 +1,7 @@
-"""The Diagnostics tab (issue 42): can the emulator be trusted, what did each wave rule out,
-and how much of δ is down to which θ was calibrated to (docs/diagnostics.md).
-
-The numbers come from :mod:`mdcore._diagnostics` and the figures (plain Bokeh, as the
-Metrics tab's) are built on a worker thread of the tab's own
-:class:`~mdcore_app.jobs.JobRunner`, so neither blocks the session nor supersedes its wave
-or discrepancy job. They are built when the tab is shown after a change, never before.
-"""
+"""The Diagnostics tab (issue 42, docs/diagnostics.md): can the emulator be trusted, what did
+each wave rule out, and how much of δ is down to which θ was calibrated to. Numbers and
+figures are made when the tab is shown after a change, on the tab's own JobRunner, so they
+neither block the session nor supersede its wave or discrepancy job."""
 
 from __future__ import annotations
 
@@ -161,14 +157,15 @@ def loo_figures(case, numbers: Numbers, o: int) -> list:
     return [fig, hist]
 
 
-def loo_table(numbers: Numbers) -> str:
-    """One row per wave: runs, share beyond ±3, largest error, p and wrongly ruled out."""
+def loo_table(validations) -> str:
+    """One row per wave's LOO check: runs, share beyond ±3, largest error, p and wrongly
+    ruled out (the tab's and the report's table)."""
     head = ("<tr><th>wave</th><th>runs</th><th>beyond ±3</th><th>largest |e|</th>"
             "<th>p</th><th>wrongly ruled out</th></tr>")
     body = "".join(
         f"<tr><td>{v.wave}</td><td>{len(v.theta)}</td><td>{100 * v.share_beyond_3:.1f} %"
         f"</td><td>{np.abs(v.loo.error).max():.1f}</td><td>{max(v.p_value, 1e-16):.2g}</td>"
-        f"<td>{int(v.wrongly_ruled_out.sum())}</td></tr>" for v in numbers.validations)
+        f"<td>{int(v.wrongly_ruled_out.sum())}</td></tr>" for v in validations)
     return (f"<table class='diag-loo-table' style='border-collapse:collapse' cellpadding='4'>"
             f"{head}{body}</table>")
 
@@ -367,7 +364,7 @@ class DiagnosticsView(pn.viewable.Viewer):
         self._numbers, figs, case, o = message
         numbers, name = self._numbers[2], case.output_names[o]
         advice = [v.advice for v in numbers.validations if v.advice]
-        parts = [_text("<h3>Can the emulator be trusted?</h3>" + loo_table(numbers)
+        parts = [_text("<h3>Can the emulator be trusted?</h3>" + loo_table(numbers.validations)
                        + (warnings_html(advice) if advice else
                           alert_box("No wave's emulator is too confident, and no run is "
                                     "wrongly ruled out.", "success")), "diag-loo"),

@@ -56,18 +56,6 @@ class FilesView(pn.viewable.Viewer):
                           max_bytes=MAX_UPLOAD_BYTES, css_classes=[css], margin=(5, 10),
                           sizing_mode="stretch_width")
 
-    def _download(self, label: str, css: str, make, filename):
-        """A download button whose file is made when pressed; disabled while ``make``
-        has nothing to give (no waves, no results)."""
-        def callback():
-            text = make()
-            return io.BytesIO(b"" if text is None else text.encode("utf-8"))
-
-        button = pn.widgets.FileDownload(callback=callback, filename=filename(), label=label,
-                                         color="primary", variant="outline",
-                                         css_classes=[css], sizing_mode="stretch_width")
-        return button
-
     @param.depends("state.case")
     def _upload_help(self):
         s = self.state
@@ -93,34 +81,32 @@ class FilesView(pn.viewable.Viewer):
             hm = s.history_match
             return None if hm is None else nroy_csv(hm, s.case.theta_names, s.case.theta_units)
 
-        def predictions():
-            run = s.case_run()
-            return None if run is None else predictions_csv(run)
+        def with_run(write):
+            return lambda: None if (run := s.case_run()) is None else write(run)
 
-        def report():
-            run = s.case_run()
-            return None if run is None else report_html(run)
+        # key: label, file name ending, the text (None: nothing to give yet)
+        made = {"template": ("Template CSV (this case's data)", "_measurements.csv",
+                             lambda: measurements_template(s.case)),
+                "session": ("Session (JSON)", "_session.json", s.session_json),
+                "nroy": ("NROY samples (CSV)", "_nroy.csv", nroy),
+                "predictions": ("Predictions and δ bands (CSV)", "_predictions.csv",
+                                with_run(predictions_csv)),
+                "report": ("Report (HTML, opens offline)", "_report.html",
+                           with_run(report_html))}
 
-        downloads = {
-            "template": self._download("Template CSV (this case's data)", "dl-template",
-                                       lambda: measurements_template(s.case),
-                                       lambda: f"{self._slug()}_measurements.csv"),
-            "session": self._download("Session (JSON)", "dl-session", s.session_json,
-                                      lambda: f"{self._slug()}_session.json"),
-            "nroy": self._download("NROY samples (CSV)", "dl-nroy", nroy,
-                                   lambda: f"{self._slug()}_nroy.csv"),
-            "predictions": self._download("Predictions and δ bands (CSV)", "dl-predictions",
-                                          predictions, lambda: f"{self._slug()}_predictions.csv"),
-            "report": self._download("Report (HTML, opens offline)", "dl-report", report,
-                                     lambda: f"{self._slug()}_report.html"),
-        }
+        def download(key):
+            """A button whose file is made when pressed."""
+            label, _, make = made[key]
+            return pn.widgets.FileDownload(
+                callback=lambda: io.BytesIO((make() or "").encode("utf-8")), label=label,
+                color="primary", variant="outline", css_classes=[f"dl-{key}"],
+                sizing_mode="stretch_width")
+
+        downloads = {key: download(key) for key in made}
 
         def refresh(*_):
-            slug = self._slug()
-            for key, ext in (("template", "_measurements.csv"), ("session", "_session.json"),
-                             ("nroy", "_nroy.csv"), ("predictions", "_predictions.csv"),
-                             ("report", "_report.html")):
-                downloads[key].filename = slug + ext
+            for key, (_, ending, _) in made.items():
+                downloads[key].filename = self._slug() + ending
             downloads["nroy"].disabled = not s.waves
             downloads["predictions"].disabled = downloads["report"].disabled = not s.results
 

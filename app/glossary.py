@@ -1,15 +1,11 @@
 """The words a newcomer meets on screen, defined once: the app's tooltips and the README's
-Glossary (tests/test_glossary.py holds the two equal).
-
-``GLOSSARY`` maps a term, as it is written on screen, to a definition of a sentence or
-two; ``SECTION`` maps it to the section of docs/method.md that says more.
+Glossary (tests/test_glossary.py holds them equal). ``GLOSSARY``: term as written on
+screen -> a sentence or two; ``SECTION``: term -> the section of docs/method.md on it.
 """
 
 from __future__ import annotations
 
 import html
-
-__all__ = ["GLOSSARY", "SECTION", "terms_html", "tooltip"]
 
 GLOSSARY = {
     "θ": "The simulator's calibration parameters, e.g. crack length l_cr and Young's "

@@ -1,18 +1,14 @@
 """User text in the page's HTML and Markdown: shown literally, never read as markup.
 
 Names from session files, uploaded file names, CSV headers, case files and exception
-messages can hold anything (``<img src=x onerror=…>``). Every place that puts such text
-into something the browser renders as HTML (a notification, a Div, an HTML pane) or as
-Markdown (a Markdown pane) goes through one of these functions. Bokeh's titles, axis
-labels, legends, widget labels and options are drawn as text and need neither.
+messages can hold anything (``<img src=x onerror=…>``): every place that puts them into HTML
+or Markdown goes through one of these (Bokeh's titles, labels and options are plain text).
 """
 
 from __future__ import annotations
 
 import html
 import re
-
-__all__ = ["html_text", "markdown_text"]
 
 #: ASCII punctuation: every character CommonMark lets a backslash make literal (emphasis,
 #: links, code spans, raw HTML, entities, headings, lists, tables, $ maths).

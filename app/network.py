@@ -1,19 +1,13 @@
-"""Who may use the app: this machine only, unless the person who serves it says otherwise.
+"""Who may use the app: this machine only, unless whoever serves it passes ``--args
+--allow-remote``. ``panel serve`` without ``--address`` listens on every interface, so:
 
-``panel serve app/main.py`` without ``--address`` listens on every network interface: anyone
-on the network could open the app, run simulators and upload files. The app is meant for
-this machine (the README's commands pass ``--address 127.0.0.1``), so, unless it is served
-with ``--args --allow-remote``:
+* a server reachable beyond loopback refuses: the first page and the log say why and how
+  to restart, and the server stops;
+* a request from another machine, for a ``Host`` that is not this machine (a DNS-rebinding
+  page) or with a websocket ``Origin`` other than the page's own gets the refusal.
 
-* a server that can be reached beyond the loopback interface refuses: the first page
-  says why and how to restart, the server log says the same, and the server stops;
-* a request from another machine, or one naming a host other than this machine in its
-  ``Host`` header (a DNS-rebinding page) or a websocket ``Origin`` that is not the page's
-  own, gets the refusal instead of the app.
-
-Bokeh refuses websocket connections from origins not in ``--allow-websocket-origin``
-itself; the checks here also cover requests without that list (Bokeh's default) and the
-page request. Pure functions of the request; :mod:`mdcore_app.main` applies them.
+Pure functions of the request (covering what ``--allow-websocket-origin`` does not: the
+page request, and servers without that list); :mod:`mdcore_app.main` applies them.
 """
 
 from __future__ import annotations
@@ -21,9 +15,6 @@ from __future__ import annotations
 import ipaddress
 import socket
 from urllib.parse import urlsplit
-
-__all__ = ["LOOPBACK_NAMES", "OPT_IN", "binding_refusal", "is_loopback", "port_of",
-           "reachable_beyond_loopback", "request_refusal"]
 
 #: Host names that mean this machine.
 LOOPBACK_NAMES = {"localhost", "127.0.0.1", "::1", "[::1]"}
@@ -35,8 +26,7 @@ RESTART = ("panel serve app/main.py --address 127.0.0.1 --port {port} "
 
 
 def is_loopback(host: str | None) -> bool:
-    """Whether ``host`` (a name or an IP address, IPv6 with or without brackets) is this
-    machine's loopback interface."""
+    """Whether ``host`` (a name or an IP address, IPv6 in brackets or not) is loopback."""
     if not host:
         return False
     host = host.strip().lower()
@@ -58,9 +48,8 @@ def _host_and_port(netloc: str) -> tuple[str, int | None]:
 
 
 def own_addresses() -> set[str]:
-    """This machine's IP addresses beyond loopback that we can find without sending a
-    packet: the interface of the default route (a UDP socket's ``connect`` only picks
-    it) and the addresses the host name resolves to."""
+    """This machine's addresses beyond loopback, found without sending a packet: the default
+    route's interface (a UDP ``connect`` only picks it) and the host name's addresses."""
     found: set[str] = set()
     for family, probe in ((socket.AF_INET, "192.0.2.1"), (socket.AF_INET6, "2001:db8::1")):
         try:
@@ -78,8 +67,7 @@ def own_addresses() -> set[str]:
 
 
 def reachable_beyond_loopback(port: int, timeout: float = 0.5) -> str | None:
-    """An address of this machine beyond loopback at which ``port`` accepts a TCP
-    connection (the server listens there), or None."""
+    """An address of this machine beyond loopback where ``port`` accepts TCP, or None."""
     for address in sorted(own_addresses()):
         try:
             with socket.create_connection((address, port), timeout=timeout):
@@ -108,11 +96,9 @@ def _headers(request) -> dict:
 
 
 def request_refusal(request) -> str | None:
-    """Why the app refuses the page or websocket ``request`` (a Bokeh session context's
-    request: ``remote_ip``, ``headers``), or None: from another machine, for a host that
-    is not this machine (a DNS-rebinding page), or a websocket from another site. A
-    request without a ``Host`` header (not a browser's; and a session built ahead has
-    none) is judged by where it comes from alone."""
+    """Why the app refuses a Bokeh session context's page or websocket ``request``, or None:
+    from another machine, for another host, or a websocket from another site (without a
+    ``Host`` header, as a session built ahead, by where it comes from alone)."""
     headers = _headers(request)
     host, port = _host_and_port(str(headers.get("host", "")))
     remote = getattr(request, "remote_ip", None)
@@ -129,8 +115,7 @@ def request_refusal(request) -> str | None:
 
 
 def binding_refusal(port: int | None) -> str | None:
-    """Why the app refuses to run on a server that answers at ``port`` beyond loopback,
-    or None."""
+    """Why the app refuses to run on a server answering at ``port`` beyond loopback, or None."""
     exposed = None if port is None else reachable_beyond_loopback(port)
     if exposed is None:
         return None

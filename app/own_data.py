@@ -22,23 +22,9 @@ class OwnDataModel(DiscrepancyModel):
     """Uploads and session files in; a ``CaseRun`` and session JSON out."""
 
     def upload_measurements(self, data: bytes, filename: str) -> bool:
-        """Use uploaded measurements with the current case's simulator (a new case).
-
-        The file must have the layout of :func:`mdcore.measurements_template`
-        (the "Template CSV" download). It is only parsed: nothing in it is run. Each
-        problem found becomes one notification, and the session keeps its case.
-
-        Parameters
-        ----------
-        data : bytes
-            The file's content (at most :data:`session.MAX_UPLOAD_BYTES`).
-        filename : str
-
-        Returns
-        -------
-        bool
-            Whether the case was added and selected.
-        """
+        """Use uploaded measurements (the layout of :func:`mdcore.measurements_template`)
+        with the current case's simulator, as a new case; whether it was added. The file
+        is only parsed; each problem is one notification, and the session keeps its case."""
         base = self.base_case_name()
         try:
             text = session.decode_upload(data, filename, kind="measurements CSV")
@@ -62,9 +48,8 @@ class OwnDataModel(DiscrepancyModel):
             self.case_name = name
 
     def case_run(self):
-        """The current history match and shown results as a :class:`~mdcore.CaseRun`
-        (what the CLI's ``--json``, ``--csv`` and ``--out`` write), or None before any
-        result."""
+        """The history match and results as the CLI's :class:`~mdcore.CaseRun`, or None
+        before any result."""
         from mdcore._reproduce import CaseRun
         if not self.results or self.history_match is None:
             return None
@@ -88,14 +73,9 @@ class OwnDataModel(DiscrepancyModel):
         return json.dumps(doc, indent=1, allow_nan=False)
 
     def set_controls(self, controls: dict, filename: str) -> Settings:
-        """Set a session file's ``controls`` on ``state`` in the file's order (a preset
-        first sets what it implies); returns the pipeline settings they make.
-
-        Raises
-        ------
-        SessionError
-            Naming the first control outside its parameter's bounds or choices.
-        """
+        """Set a session file's ``controls`` in the file's order (a preset first sets what
+        it implies) and return the settings they make; a SessionError names the first
+        control outside its parameter's bounds or choices."""
         self._restoring = True
         try:
             for k, v in controls.items():
@@ -112,13 +92,10 @@ class OwnDataModel(DiscrepancyModel):
         return self.method_settings()
 
     def open_session(self, data: bytes, filename: str) -> bool:
-        """Restore a saved session: its case (with uploaded data), controls, waves and
-        methods, recomputed and checked against the saved metrics.
-
-        Returns whether the file was accepted; each problem with it is one notification,
-        and the session is unchanged (the file is checked in full, its controls on a
-        scratch state, before anything of this session changes).
-        """
+        """Restore a saved session (case, uploaded data, controls; waves and methods
+        recomputed and checked against the saved metrics); whether it was accepted. The
+        file is checked in full, its controls on a scratch state, before anything changes:
+        each problem is one notification and the session keeps its state."""
         before = {k: getattr(self, k)
                   for k in ("case_name", *session.CONTROLS, *session.OPTIONAL_CONTROLS)}
         try:
@@ -169,11 +146,9 @@ class OwnDataModel(DiscrepancyModel):
         return True
 
     def try_experiment(self, key: str) -> None:
-        """Run the guided experiment ``key`` (see :mod:`mdcore_app.experiments`) as a
-        script: set every control of the card (the case first, then the preset and paper
-        sizes, then the rest, so earlier cards never matter), run the history match, and
-        the discrepancy methods when its promise is about them, then say in the status
-        line where to look."""
+        """Run the "Things to try" card ``key``: set all its controls (so earlier cards never
+        matter), run the waves, and the methods when its promise is about them, then say in
+        the status line where to look."""
         exp = next((e for e in EXPERIMENTS if e.key == key), None)
         if exp is None:
             self.report_error(f"Unknown experiment {key!r}; choose one of "

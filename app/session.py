@@ -11,14 +11,10 @@ A session file is JSON with a versioned layout::
      "n_waves": int,
      "run": null | the layout of ``python -m mdcore reproduce --json`` (the metrics)}
 
-Opening one sets the controls and recomputes the waves and the methods: every step is
-seeded, so the numbers come back the same, and :func:`compare_metrics` checks that they
-do. Uploaded data travel inside the file (``measurements_csv``), so a session on your own
-measurements reopens anywhere.
-
-Everything read from a browser goes through :func:`decode_upload` first (a size cap and
-UTF-8), and is then only parsed (``json.loads``, :mod:`csv`): no upload is ever run,
-imported or unpickled.
+Opening one sets the controls and recomputes the waves and methods (every step is seeded;
+:func:`compare_metrics` checks the numbers). Uploaded data travel inside the file. Whatever
+a browser sends goes through :func:`decode_upload` (a size cap, UTF-8) and is then only
+parsed (``json.loads``, :mod:`csv`): never run, imported or unpickled.
 """
 
 from __future__ import annotations
@@ -31,22 +27,16 @@ from typing import Any
 import mdcore
 from mdcore._pipeline import Method, MethodResult
 
-__all__ = ["CONTROLS", "MAX_UPLOAD_BYTES", "OPTIONAL_CONTROLS", "SCHEMA", "SCHEMA_VERSION",
-           "SessionError", "compare_metrics", "decode_upload", "megabytes", "parse_session"]
-
 SCHEMA, SCHEMA_VERSION = "mdcore-session", 1
-#: Largest file the app accepts from a browser (bytes): the one cap of the drop areas
-#: (counted as the chunks arrive, :mod:`mdcore_app.upload`) and of :func:`decode_upload`.
-#: Far above what the row limit lets through (mdcore._cases.MAX_ROWS rows of beam-2d's
-#: template are 60 kB); a session file carries its measurements inside.
+#: Largest file the app accepts from a browser (bytes), counted as the chunks arrive
+#: (:mod:`.upload`) and in :func:`decode_upload`: far above the row limit's 60 kB.
 MAX_UPLOAD_BYTES = 5_000_000
 #: The state's parameters a session file stores, and the JSON types each must have.
 CONTROLS: dict[str, tuple[type, ...]] = {
     "preset": (str,), "v_m": (int, float), "threshold": (int, float), "rule": (str,),
-    "n_runs": (int,),
-    "n_candidates": (int,), "max_waves": (int,), "convergence_ratio": (int, float),
-    "n_s": (int,), "n_phi": (int,), "scenarios": (list,), "koh_chain": (str,),
-    "proposal": (str,), "seed": (int,), "band": (int,)}
+    "n_runs": (int,), "n_candidates": (int,), "max_waves": (int,),
+    "convergence_ratio": (int, float), "n_s": (int,), "n_phi": (int,), "scenarios": (list,),
+    "koh_chain": (str,), "proposal": (str,), "seed": (int,), "band": (int,)}
 #: Controls a session file may leave out (files saved before they existed), with defaults.
 OPTIONAL_CONTROLS: dict[str, tuple[tuple[type, ...], object]] = {
     "v_m_length": ((int, float), 0.0)}
@@ -69,22 +59,9 @@ def megabytes(n: int) -> str:
 
 
 def decode_upload(data: bytes, filename: str, *, kind: str) -> str:
-    """The text of an uploaded file, after the size cap and a UTF-8 check.
-
-    Parameters
-    ----------
-    data : bytes
-        The file's content as the browser sent it.
-    filename : str
-        Its name, for the messages.
-    kind : str
-        What the file should be ("measurements CSV", "session JSON"), for the messages.
-
-    Raises
-    ------
-    SessionError
-        Empty, larger than :data:`MAX_UPLOAD_BYTES`, or not UTF-8 text.
-    """
+    """The text of an uploaded file ``data``; a SessionError naming ``filename`` and the
+    ``kind`` of file expected ("session JSON") if it is empty, larger than
+    :data:`MAX_UPLOAD_BYTES` or not UTF-8."""
     if not isinstance(data, bytes | bytearray) or not data:
         raise SessionError([f"{filename}: the file is empty; choose a {kind}."])
     if len(data) > MAX_UPLOAD_BYTES:
@@ -99,19 +76,9 @@ def decode_upload(data: bytes, filename: str, *, kind: str) -> str:
 
 
 def parse_session(text: str, filename: str = "session.json") -> dict[str, Any]:
-    """Read and check a session file's JSON (layout in the module doc).
-
-    Returns
-    -------
-    dict
-        The parsed document, with every key of the layout present and of its type.
-
-    Raises
-    ------
-    SessionError
-        Listing every problem found: not JSON, another schema or a newer version, a
-        missing key, or a value of the wrong type.
-    """
+    """A session file's JSON, every key of the layout (module doc) present and of its type;
+    else a SessionError listing every problem (not JSON, another schema or a newer version,
+    a missing key, a value of the wrong type)."""
     try:
         doc = json.loads(text)
     except json.JSONDecodeError as exc:
@@ -195,20 +162,8 @@ def _close(a, b) -> bool:
 
 
 def compare_metrics(saved: dict, results: dict[Method, MethodResult]) -> str:
-    """Say whether recomputed results reproduce a saved session's metrics.
-
-    Parameters
-    ----------
-    saved : dict
-        ``run["methods"]`` of a session file: method value -> {"metrics": {...}}.
-    results : dict of Method -> MethodResult
-        What the restored session computed.
-
-    Returns
-    -------
-    str
-        A status line: every metric equal to :data:`RTOL`, or the first differences.
-    """
+    """A status line saying whether the recomputed ``results`` reproduce the ``saved``
+    metrics (a session file's ``run["methods"]``) to :data:`RTOL`, or the first that differ."""
     differ, missing = [], []
     for value, entry in saved.items():
         method = Method.parse(value)

@@ -1,10 +1,5 @@
-"""What every part of a session's state shares: its jobs, busy line and messages, and
-the app's limits.
-
-No widget code lives here (nor in the other models: :mod:`.case_model`,
-:mod:`.history_model`, :mod:`.runs`, :mod:`.own_data`, put together in
-:class:`mdcore_app.state.ExplorerState`).
-"""
+"""What every part of a session's state shares: its jobs, busy line and messages, and the
+app's limits (no widget code, as in the other models put together in ExplorerState)."""
 
 from __future__ import annotations
 
@@ -14,10 +9,8 @@ from mdcore._pipeline import Method, Settings
 
 from .jobs import JobRunner
 
-# The app's own limits, tighter than the library's (which only refuse what cannot fit in
-# memory): each bounds the time and memory of one click of one session (their measured
-# sizes are in docs/performance.md); the command line (python -m mdcore reproduce / run)
-# takes more.
+# The app's own limits, tighter than the library's: each bounds the time and memory of one
+# click (measured in docs/performance.md); the command line takes more.
 #: Candidates per wave (library: 10⁷). A wave scores each at every observed input, in
 #: chunks (memory does not grow), and later waves walk them through the earlier waves.
 APP_MAX_CANDIDATES = 1_000_000
@@ -82,8 +75,7 @@ def work_problem(case, settings: Settings, methods) -> str | None:
 
 
 def allowed_values(p: param.Parameter) -> str:
-    """What the parameter ``p`` accepts, in words: "a whole number from 1 to 100", "a
-    number greater than 0", "one of max, 2nd max"."""
+    """What ``p`` accepts, in words: "a whole number from 1 to 100", "one of max, 2nd max"."""
     if isinstance(p, param.Selector):
         return "one of " + ", ".join(str(o) for o in p.objects)
     if not isinstance(p, param.Number):
@@ -107,11 +99,8 @@ def allowed_values(p: param.Parameter) -> str:
 
 
 class SessionModel(param.Parameterized):
-    """The busy state of the session's one job at a time, and the messages it shows.
-
-    ``_jobs`` (a :class:`~mdcore_app.jobs.JobRunner`) is set by
-    :class:`mdcore_app.state.ExplorerState`, which wires it to the state.
-    """
+    """The busy state of the session's one job at a time, and the messages it shows
+    (``_jobs``, a :class:`~mdcore_app.jobs.JobRunner`, is set by ExplorerState)."""
 
     busy = param.Boolean(default=False)
     task = param.String(default="")
@@ -139,9 +128,8 @@ class SessionModel(param.Parameterized):
             self.progress_message = "cancelling …"
 
     def reject(self, name: str, value, reason: Exception) -> None:
-        """Report a typed value the parameter ``name`` refused (the field reverts) in plain
-        words: what is allowed, never param's own message (it names the class, as in
-        ``ExplorerState.v_m``); for the app's own limits (:data:`APP_LIMITS`), also why."""
+        """Report a typed value the parameter ``name`` refused (the field reverts): what is
+        allowed and, for :data:`APP_LIMITS`, why; never param's message (it names the class)."""
         p = self.param[name]
         if name in APP_LIMITS and isinstance(value, int) and not isinstance(value, bool) \
                 and value > p.bounds[1]:

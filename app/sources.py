@@ -4,9 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
-from bokeh.models import ColumnDataSource, Range1d
-
-from mdcore._validation import as_float_array, as_int
+from bokeh.models import ColumnDataSource
 
 
 def set_range(r, start: float, end: float) -> None:
@@ -15,54 +13,38 @@ def set_range(r, start: float, end: float) -> None:
     For axes the server sets: a range fitted in the browser (``DataRange1d``) is sent back
     to the server after each change of its data, one round trip each, and warns ("could
     not set initial ranges") while its plot has no data yet.
-
-    Raises
-    ------
-    ValueError
-        If ``r`` is not a ``Range1d``, or ``start`` and ``end`` are not finite numbers
-        with ``start < end``.
     """
-    if not isinstance(r, Range1d):
-        raise ValueError(f"r must be a bokeh Range1d (an axis the server sets); received "
-                         f"{type(r).__name__}.")
-    bounds = as_float_array([start, end], "start and end", ndim=1)
-    if not bounds[0] < bounds[1]:
-        raise ValueError(f"start must be below end; received start = {start!r}, "
-                         f"end = {end!r}.")
     if (r.start, r.end) != (start, end):
         r.update(start=start, end=end)
 
 
 def set_top(r, top: float, pad: float = 0.05) -> None:
     """:func:`set_range` from 0 to ``top`` and ``pad`` of it above (0 to 1 when ``top`` is
-    not positive: nothing to show yet). A NaN or infinite ``top`` or a negative ``pad`` is
-    a ValueError."""
-    top, pad = as_float_array([top, pad], "top and pad", ndim=1)
-    if pad < 0:
-        raise ValueError(f"pad must be ≥ 0 (a fraction of top); received {pad!r}.")
+    not positive: nothing to show yet)."""
     set_range(r, 0.0, (1.0 + pad) * top if top > 0 else 1.0)
 
 
 def replace_data(source: ColumnDataSource, data: dict) -> None:
     """Give ``source`` the columns ``data``, sending the browser only what changed.
 
-    Columns already equal are not sent. When the changed ones keep their length and
-    dtype (a band on a fixed grid, a map), their new values go as a *patch* into the
-    source's own arrays; otherwise the source gets a new ``data`` dict (of copies, which
-    later patches may overwrite without touching the caller's arrays, e.g. a cached
-    result's). A patch redraws the glyphs in place. A new ``data`` dict also makes every
-    Bokeh legend whose items reach the source rebuild all its entries, each with a new
-    canvas (with :func:`blank` sources, shear-5's first wave creates 37 canvases, not 347).
+    Columns already equal are not sent. Changed ones of the same length and dtype go as a
+    *patch* into the source's own arrays (the glyphs redraw in place); otherwise the source
+    gets a new ``data`` dict of copies (which later patches may overwrite without touching
+    the caller's arrays, e.g. a cached result's). A new ``data`` dict also makes every
+    legend whose items reach the source rebuild all its entries, each with a new canvas
+    (with :func:`blank` sources, shear-5's first wave creates 37 canvases, not 347).
     """
     old = source.data
     if old.keys() == data.keys():
         changed = {k: v for k, v in data.items() if not _same(old[k], v)}
         if not changed:
             return
-        if all(_patchable(old[k], v) for k, v in changed.items()):
+        if all(_numeric(old[k]) and old[k].flags.owndata and old[k].flags.writeable
+               and isinstance(v, np.ndarray) and v.shape == old[k].shape
+               and v.dtype == old[k].dtype for k, v in changed.items()):
             source.patch({k: [(slice(0, v.size), v)] for k, v in changed.items()})
             return
-    source.data = {k: _own(v) for k, v in data.items()}
+    source.data = {k: v.copy() if _numeric(v) else v for k, v in data.items()}
 
 
 def blank(n: int, *names: str, **fixed) -> dict:
@@ -74,34 +56,14 @@ def blank(n: int, *names: str, **fixed) -> dict:
     figure's legend (12 rebuilds of each band figure's legend in beam-2d's first
     discrepancy run, three canvases each).
     """
-    n = as_int(n, "n", 0)
-    columns = {k: as_float_array(v, k, ndim=1, allow_empty=True).copy()
-               for k, v in fixed.items()}
-    for k, v in columns.items():
-        if v.size != n:
-            raise ValueError(f"{k} must have n = {n} values like the blank columns; received "
-                             f"{v.size}.")
+    columns = {k: np.array(v, dtype=float) for k, v in fixed.items()}
     columns.update({k: np.full(n, np.nan) for k in names})
     return columns
 
 
-def _patchable(old, new) -> bool:
-    """Whether ``new`` can overwrite the column ``old`` in place: ``old`` a writable 1-D
-    numeric array of this source's own (see :func:`_own`), ``new`` an array of the same
-    length and dtype."""
-    return (_numeric_column(old) and old.flags.owndata and old.flags.writeable
-            and isinstance(new, np.ndarray) and new.shape == old.shape
-            and new.dtype == old.dtype)
-
-
-def _numeric_column(column) -> bool:
+def _numeric(column) -> bool:
     """Whether ``column`` is a 1-D NumPy array of numbers (what a patch can overwrite)."""
     return isinstance(column, np.ndarray) and column.ndim == 1 and column.dtype.kind in "fiub"
-
-
-def _own(column):
-    """A copy of a 1-D numeric column (patchable later), else the column as given."""
-    return column.copy() if _numeric_column(column) else column
 
 
 def _same(a, b) -> bool:

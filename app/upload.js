@@ -1,10 +1,6 @@
-// The Files tab's drop areas (app/upload.py): a file dropped or chosen goes to the server in
-// chunks, one at a time, each sent after the server has counted the one before (so the
-// server can refuse a file, by its announced size or by what it has received, before the
-// rest is sent); the server's verdict (receiving, loaded or refused, and why) is shown
-// under the area.
-//
-// Every text shown is set with textContent: file names and messages are never markup.
+// The Files tab's drop areas (app/upload.py): a file goes to the server in chunks, each sent
+// after the server counted the one before (so it can refuse a file before the rest is sent);
+// its verdict is shown under the area. Every text is set with textContent, never as markup.
 
 function base64(buffer) {
   const bytes = new Uint8Array(buffer)

@@ -1,15 +1,11 @@
-"""A drop area whose file reaches the server in counted chunks (the Files tab's uploads).
+"""A drop area whose file reaches the server in counted chunks (the Files tab's uploads),
+a Panel ``JSComponent`` (public API: its ESM module ``upload.js`` and ``on_msg``).
 
-The browser (``upload.js``) announces a file (name and size), then sends it in chunks of
-:data:`CHUNK_BYTES`, each after the server has answered the one before. The server counts
-what arrives: a file announced or grown beyond ``max_bytes`` is refused at that message
-and its chunks are dropped, so memory never holds more than the cap, whatever a client
-sends. A complete file goes to ``take(data, filename)``; the area then shows the verdict:
-loaded, or refused with the reason (plain text, never markup). The same file chosen or
-dropped again is a new upload.
-
-A Panel ``JSComponent``: its ESM module and the messages it sends (``on_msg``) are Panel's
-public API for custom components; the browser reads the parameters below.
+The browser announces a file (name, size), then sends chunks of :data:`CHUNK_BYTES`, each
+after the server answered the one before. The server counts what arrives: a file announced
+or grown beyond ``max_bytes`` is refused at that message and its chunks dropped, so memory
+never holds more than the cap, whatever a client sends. A complete file goes to ``take``;
+the area shows the verdict as plain text, never markup.
 """
 
 from __future__ import annotations
@@ -26,8 +22,6 @@ from panel.io.state import set_curdoc
 
 from .session import megabytes
 
-__all__ = ["CHUNK_BYTES", "FileUpload"]
-
 #: Bytes per chunk sent by the browser (base64 on the websocket: a third more).
 CHUNK_BYTES = 256 * 1024
 #: Longest file name taken (bytes of UTF-8 are not counted: characters).
@@ -35,19 +29,9 @@ MAX_NAME = 255
 
 
 class FileUpload(JSComponent):
-    """A drop area (or file chooser) for one file at a time, sent in counted chunks.
-
-    Parameters
-    ----------
-    take : callable
-        ``take(data: bytes, filename: str) -> str | None``: use a complete file; return
-        None when it was taken, else why not (shown under the area).
-    refuse : callable, optional
-        ``refuse(message)`` for a file refused before ``take`` (too large, a broken
-        transfer): the app's notification.
-    **params
-        ``accept``, ``prompt``, ``max_bytes``, layout parameters.
-    """
+    """A drop area (or file chooser) for one file at a time. ``take(data, filename)`` uses a
+    complete file and returns None, or why not (shown under the area); ``refuse(message)``
+    reports a file refused before ``take`` (too large, a broken transfer)."""
 
     accept = param.String(default="", doc="What the file chooser offers (the input's "
                                           "accept: '.csv,text/csv').")
@@ -92,13 +76,11 @@ class FileUpload(JSComponent):
 
     # --- the browser's messages ---------------------------------------------------------
     def _on_msg(self, event) -> None:
-        # Panel hands ``on_msg`` callbacks the event (its ``data`` is what the browser
-        # sent) outside the Bokeh document's lock; ``take`` changes the app's Bokeh models,
-        # which needs it (Bokeh refused the change otherwise, "we should have the lock when
-        # the document changes", and the session broke). So the message is handled in a
-        # next-tick callback of the document, which holds the lock, in the order the
-        # messages came, and held (as the app's jobs hand back their results: main.py),
-        # so that changes to Panel objects and to Bokeh models reach the page together.
+        # Panel calls ``on_msg`` outside the document's lock, and ``take`` changes Bokeh
+        # models, which needs it ("we should have the lock when the document changes"
+        # broke the session). So each message is handled, in order, in a next-tick
+        # callback (which holds the lock), under ``hold`` so that Panel's and Bokeh's
+        # changes reach the page together.
         msg = getattr(event, "data", event)
         doc = pn.state.curdoc
         if doc is None or doc.session_context is None:

@@ -1,5 +1,5 @@
-"""Views of the Model Discrepancy Explorer: they read an :class:`ExplorerState`, draw it
-(tabs rebuilt when shown, or panels updated in place) and turn presses into state calls."""
+"""The page of the Model Discrepancy Explorer: it reads an :class:`ExplorerState`, draws it
+(tabs rebuilt when shown, or panels updated in place) and turns presses into state calls."""
 
 from __future__ import annotations
 
@@ -30,16 +30,24 @@ SHOW_PROGRESS_AFTER = 0.5
 #: Height of the busy line (two lines of text), fixed so that a new message never
 #: changes the page's layout.
 STATUS_HEIGHT = 40
+DISCREPANCY_TAB = 2
+#: The sidebar's settings, in order: a state parameter, or (parameter, step, format) of a
+#: number field. Selectors are button groups, Integers number fields, except those shown
+#: by pn.Param (``max_waves``' slider, ``paper_sizes``' checkbox).
+HM_FIELDS = ("preset", ("v_m", 0.005, "0.[0000]"), ("threshold", 0.5, "0.[00]"), "rule",
+             ("v_m_length", 0.05, "0.[0000]"), "n_runs", ("n_candidates", 10_000), "max_waves",
+             ("convergence_ratio", 0.1, "0.[000]"))
+DISC_FIELDS = ("n_s", "n_phi", "paper_sizes", "scenarios", "proposal", "koh_chain", "band",
+               "seed")
+BY_PARAM = ("max_waves", "paper_sizes")
 
 
 def _status_html(busy: bool, task: str, detail: str = "") -> str:
-    """The busy line: "Idle." or "Running <task> … <detail>", in a span whose class
-    (``mdcore-busy`` or ``mdcore-idle``) says which."""
+    """The busy line: "Idle." or "Running <task> … <detail>" (class mdcore-idle/-busy)."""
     if not busy:
         return '<span class="mdcore-idle">Idle.</span>'
     tail = f" {html.escape(detail)}" if detail else ""
     return f'<span class="mdcore-busy">Running <b>{html.escape(task)}</b> …{tail}</span>'
-DISCREPANCY_TAB = 2
 
 
 def terms(*words: str) -> pn.pane.HTML:
@@ -61,12 +69,14 @@ class ExplorerView(pn.viewable.Viewer):
         # new case) just before their tab is shown: the History-matching ones were half
         # of a new session's 0.6 s of server time, for a tab not yet in view.
         self._tabs = pn.Tabs(dynamic=True, sizing_mode="stretch_both")
-        self._data = DataPanel(state=self.state, shown_in=(self._tabs, 0))
-        self._discrepancy = DiscrepancyPanel(state=self.state)
-        self._discrepancy.prebuild_when_shown(self._tabs, DISCREPANCY_TAB)
-        self._waves = WavesPanel(state=self.state, shown_in=(self._tabs, 1))
-        self._calibration = CalibrationPanel(state=self.state, shown_in=(self._tabs, 1))
-        self._status, self._status_div = live_text("hm-status")
+        #: The live panels of the Data, History matching and Discrepancy tabs, and the
+        #: history match's status line (coloured by the last wave's status).
+        self.data_view = DataPanel(state=self.state, shown_in=(self._tabs, 0))
+        self.discrepancy_view = DiscrepancyPanel(state=self.state)
+        self.discrepancy_view.prebuild_when_shown(self._tabs, DISCREPANCY_TAB)
+        self.waves_view = WavesPanel(state=self.state, shown_in=(self._tabs, 1))
+        self.calibration_view = CalibrationPanel(state=self.state, shown_in=(self._tabs, 1))
+        self.status_view, self._status_div = live_text("hm-status")
         self.state.param.watch(self._show_status, ["status", "waves"])
         self._show_status()
         self._fill_tabs()
@@ -94,36 +104,18 @@ class ExplorerView(pn.viewable.Viewer):
         w = pn.Column(pn.Param(s.param, parameters=["case_name"], show_name=False,
                                widgets={"case_name": pn.widgets.Select}),
                       self._output_choice(), sizing_mode="stretch_width", margin=0)
-        hm = pn.Column(
-            self._choice("preset"),
-            self._number_input("v_m", pn.widgets.FloatInput, step=0.005, format="0.[0000]"),
-            self._number_input("threshold", pn.widgets.FloatInput, step=0.5, format="0.[00]"),
-            self._choice("rule"),
-            self._number_input("v_m_length", pn.widgets.FloatInput, step=0.05,
-                               format="0.[0000]"),
-            self._number_input("n_runs", pn.widgets.IntInput),
-            self._number_input("n_candidates", pn.widgets.IntInput, step=10_000),
-            pn.Param(s.param, parameters=["max_waves"], show_name=False),
-            self._number_input("convergence_ratio", pn.widgets.FloatInput, step=0.1,
-                               format="0.[000]"))
-        next_btn = pn.widgets.Button(label="Next wave", color="primary")
-        conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
-        next_btn.on_click(lambda _: s.next_wave())
-        conv_btn.on_click(lambda _: s.run_to_convergence())
-        koh = self._choice("koh_chain")
-        disc = pn.Column(
-            self._number_input("n_s", pn.widgets.IntInput),
-            self._number_input("n_phi", pn.widgets.IntInput),
-            pn.Param(s.param, parameters=["paper_sizes"], show_name=False),
-            self._choice("scenarios", pn.widgets.CheckButtonGroup),
-            self._choice("proposal"), koh, self._choice("band"),
-            self._number_input("seed", pn.widgets.IntInput))
-        run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
-        run_btn.on_click(lambda _: s.run_discrepancy())
+        hm = pn.Column(*[self._field(f) for f in HM_FIELDS])
+        disc = pn.Column(*[self._field(f) for f in DISC_FIELDS])
+        next_btn, conv_btn, run_btn = buttons = [
+            pn.widgets.Button(label=label, color=color, css_classes=[css])
+            for label, color, css in (("Next wave", "primary", "next-wave"),
+                                      ("Run to convergence", "primary", "run-convergence"),
+                                      ("Run discrepancy", "success", "run-discrepancy"))]
+        for button, press in zip(buttons, ("next_wave", "run_to_convergence",
+                                           "run_discrepancy")):
+            button.on_click(lambda _, press=press: getattr(s, press)())
+        koh = disc.objects[DISC_FIELDS.index("koh_chain")]
         self._announce(run_btn, koh.select(pn.widgets.TooltipIcon)[0])
-        for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
-                         (run_btn, "run-discrepancy")):
-            b.css_classes = [label]
         # The buttons and the progress line come first, the settings follow in cards. The
         # sidebar scrolls on its own, so reaching a control never scrolls the plots away
         # (a projector's 1280×720). Nothing here changes on a tab switch: folding a card
@@ -162,12 +154,38 @@ class ExplorerView(pn.viewable.Viewer):
         s.param.watch(show, ["case", "scenarios", "koh_chain", "n_s", "n_phi"])
         show()
 
-    def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):
-        """A button group for the state's parameter ``name``, with its label above it (a
-        bare group of buttons does not say what it chooses)."""
-        p = self.state.param[name]
-        widget = cls.from_param(p, name="", description=None, sizing_mode="stretch_width")
-        return self._labelled(name, widget)
+    def _field(self, field):
+        """The control of a :data:`HM_FIELDS` entry: a labelled button group for a selector
+        (check buttons for a list), pn.Param's widget for :data:`BY_PARAM`, else a number
+        field whose typed value the parameter checks: a value it refuses (outside the hard
+        bounds, empty, wrong type) becomes one notification saying what is allowed, and the
+        field reverts. Soft bounds are only a hint (T = 7, V_m = 0.5 are accepted)."""
+        s = self.state
+        name, *kw = (field,) if isinstance(field, str) else field
+        p = s.param[name]
+        if name in BY_PARAM:
+            return pn.Param(s.param, parameters=[name], show_name=False)
+        if isinstance(p, param.Selector):
+            cls = (pn.widgets.CheckButtonGroup if isinstance(p, param.ListSelector)
+                   else pn.widgets.RadioButtonGroup)
+            return self._labelled(name, cls.from_param(p, name="", description=None,
+                                                       sizing_mode="stretch_width"))
+        cls = pn.widgets.IntInput if isinstance(p, param.Integer) else pn.widgets.FloatInput
+        widget = cls(label=p.label, value=getattr(s, name), description=p.doc,
+                     **dict(zip(("step", "format"), kw)))
+
+        def push(event):
+            if event.new == getattr(s, name):
+                return
+            try:
+                setattr(s, name, event.new)
+            except ValueError as exc:
+                s.reject(name, event.new, exc)
+                widget.value = getattr(s, name)
+
+        widget.param.watch(push, "value")
+        s.param.watch(lambda e: setattr(widget, "value", e.new), name)
+        return widget
 
     def _output_choice(self) -> pn.Column:
         """Buttons for the output the tabs show (``state.output``), under the case: only for
@@ -201,28 +219,6 @@ class ExplorerView(pn.viewable.Viewer):
             if p.doc else label
         return pn.Column(head, widget, sizing_mode="stretch_width", margin=0)
 
-    def _number_input(self, name: str, cls, **kw):
-        """A number field for the state's parameter ``name`` whose typed value the parameter
-        checks: a value it refuses (outside the hard bounds, empty, wrong type) becomes one
-        notification saying what is allowed, and the field reverts. The parameter's soft
-        bounds are only a hint, so values beyond them (T = 7, V_m = 0.5) are accepted."""
-        s = self.state
-        p = s.param[name]
-        field = cls(label=p.label, value=getattr(s, name), description=p.doc, **kw)
-
-        def push(event):
-            if event.new == getattr(s, name):
-                return
-            try:
-                setattr(s, name, event.new)
-            except ValueError as exc:
-                s.reject(name, event.new, exc)
-                field.value = getattr(s, name)
-
-        field.param.watch(push, "value")
-        s.param.watch(lambda e: setattr(field, "value", e.new), name)
-        return field
-
     @param.depends("state.case")
     def _case_info(self):
         c = self.state.case
@@ -234,13 +230,9 @@ class ExplorerView(pn.viewable.Viewer):
                                 css_classes=["case-description"])
 
     def _progress_panel(self):
-        """Busy line, progress bar and a Cancel button, updated in place.
-
-        The bar and the button are always there (the button disabled between jobs), so a
-        job changes no size, visibility or layout: only the bar's value and the line's
-        text, whose fixed height never moves what is below it. The line names the job
-        once it has run :data:`SHOW_PROGRESS_AFTER` seconds, so short runs do not flash.
-        """
+        """Busy line, progress bar and a Cancel button (disabled between jobs), always
+        there: a job changes only the bar's value and the fixed-height line's text, never
+        the layout. The line names the step after :data:`SHOW_PROGRESS_AFTER` seconds."""
         text = pn.pane.HTML(_status_html(False, ""), height=STATUS_HEIGHT,
                             sizing_mode="stretch_width",
                             styles={"overflow": "hidden", "font-size": "0.9em"})
@@ -273,46 +265,18 @@ class ExplorerView(pn.viewable.Viewer):
 
     # --- tabs --------------------------------------------------------------------------
     @property
-    def data_view(self) -> DataPanel:
-        """The Data tab: data, simulator at the true θ and true δ (bars follow V_m)."""
-        return self._data
-
-    @property
-    def status_view(self) -> pn.pane.Bokeh:
-        """The history match's status line, coloured by the last wave's status."""
-        return self._status
-
-    @property
     def status_html(self) -> str:
         """The status line's HTML as shown."""
         return self._status_div.text
 
     def _show_status(self, *_):
-        """New text and colour in the same line (a new pane re-laid-out the page)."""
-        self._status_div.text = alert_box(html.escape(self.state.status or "No waves yet."),
-                                          self._alert())
-
-    def _alert(self):
+        """New text, coloured by the last wave's status, in the same line (a new pane
+        re-laid-out the page)."""
         w = self.state.waves
-        if not w:
-            return "info"
-        return {"converged": "success", "max_waves": "warning",
-                "ruled_out": "danger"}.get(w[-1].status, "info")
-
-    @property
-    def waves_view(self) -> WavesPanel:
-        """The waves of the History matching tab (their plots are updated in place)."""
-        return self._waves
-
-    @property
-    def calibration_view(self) -> CalibrationPanel:
-        """θ_MAP, the θ posterior and the simulator at θ_MAP (updated in place)."""
-        return self._calibration
-
-    @property
-    def discrepancy_view(self) -> DiscrepancyPanel:
-        """The Discrepancy tab (its plots are updated in place)."""
-        return self._discrepancy
+        kind = {"converged": "success", "max_waves": "warning",
+                "ruled_out": "danger"}.get(w[-1].status, "info") if w else "info"
+        self._status_div.text = alert_box(html.escape(self.state.status or "No waves yet."),
+                                          kind)
 
     @param.depends("state.results")              # filtered by the scenarios already
     def metrics_view(self):
@@ -386,11 +350,11 @@ class ExplorerView(pn.viewable.Viewer):
         # Each tab scrolls on its own, below its header, beside the sidebar.
         tabs.extend([(name, pn.Column(view, scroll=True, sizing_mode="stretch_both"))
                      for name, view in (
-                         ("Data", pn.Column(terms("V_o", "V_m", "θ"), self._data)),
+                         ("Data", pn.Column(terms("V_o", "V_m", "θ"), self.data_view)),
                          ("History matching", hm_tab),
                          ("Discrepancy", pn.Column(terms(
                              "δ", "scenario 1", "scenario 2", "scenario 3", "KOH", "N_s, N_φ"),
-                             self._discrepancy)), ("Metrics", metrics_tab),
+                             self.discrepancy_view)), ("Metrics", metrics_tab),
                          ("Diagnostics", self._diagnostics),
                          ("Files", self.files_view()), ("Things to try", self.try_view()))])
 

@@ -5,8 +5,6 @@ from __future__ import annotations
 import numpy as np
 from bokeh.models import LinearColorMapper
 
-from mdcore._validation import as_float_array, as_int, as_positive_float
-
 from .history_model import HistoryModel
 from .plots import THETA_MAP_COLOR, WAVE_COLORS
 
@@ -21,7 +19,6 @@ MAX_WAVES = HistoryModel.param.max_waves.bounds[1]
 def wave_samples(wave, max_points: int = MAX_POINTS) -> np.ndarray:
     """At most ``max_points`` of a wave's NROY samples (n, p): a subset drawn with a seed of
     the wave's index, so a wave shows the same points whichever wave the player is at."""
-    max_points = as_int(max_points, "max_points", 1)
     nroy = wave.nroy
     if nroy.shape[0] > max_points:
         rng = np.random.default_rng(wave.index)
@@ -32,7 +29,6 @@ def wave_samples(wave, max_points: int = MAX_POINTS) -> np.ndarray:
 def nroy_columns(waves, p: int, max_points: int = MAX_POINTS) -> dict:
     """The scatter data of waves (in order, later waves drawn on top): columns ``t0`` …
     ``t{p-1}`` (θ) and ``wave`` (index, coloured by :func:`wave_colors`)."""
-    p = as_int(p, "p", 1)
     parts = [(w.index, wave_samples(w, max_points)) for w in waves]
     theta = np.concatenate([s for _, s in parts]) if parts else np.empty((0, p))
     index = np.concatenate([np.full(s.shape[0], k, np.int32) for k, s in parts]) if parts \
@@ -43,12 +39,7 @@ def nroy_columns(waves, p: int, max_points: int = MAX_POINTS) -> dict:
 def histogram_columns(waves, bounds, bins: int = BINS) -> dict:
     """Per wave, the histogram (counts) of its NROY samples of a single parameter over the
     prior box: columns ``left``, ``right``, ``top``, ``wave`` (``bins`` rows a wave)."""
-    bins = as_int(bins, "bins", 1)
-    bounds = as_float_array(bounds, "bounds", ndim=2)
-    if bounds.shape[1] != 2 or not bounds[0, 0] < bounds[0, 1]:
-        raise ValueError(f"bounds must have rows (low, high) with low < high; received "
-                         f"{bounds.tolist()}.")
-    edges = np.linspace(bounds[0, 0], bounds[0, 1], bins + 1)
+    edges = np.linspace(*bounds[0], bins + 1)
     cols: dict[str, list] = {"left": [], "right": [], "top": [], "wave": []}
     for w in waves:
         counts, _ = np.histogram(wave_samples(w)[:, 0], bins=edges)
@@ -82,12 +73,6 @@ def contour_lines(t1, t2, I, level: float) -> dict:
     """The contour of ``I`` (n2, n1) at ``level`` on the grid (t1, t2): columns ``xs``,
     ``ys`` (one list of points per line) for a ``multi_line`` glyph."""
     from contourpy import contour_generator
-    t1, t2 = as_float_array(t1, "t1", ndim=1), as_float_array(t2, "t2", ndim=1)
-    I = as_float_array(I, "I", ndim=2)
-    if I.shape != (t2.size, t1.size):
-        raise ValueError(f"I must have shape (len(t2), len(t1)) = ({t2.size}, {t1.size}); "
-                         f"received {I.shape}.")
-    level = as_positive_float(level, "level", "(the threshold T, e.g. 3)")
     if I.min() > level or I.max() < level:
         return {"xs": [], "ys": []}
     lines = contour_generator(t1, t2, I).lines(level)
@@ -101,14 +86,9 @@ def variance_ratios(waves, n_out: int) -> np.ndarray:
 
 
 def padded(values, n: int) -> np.ndarray:
-    """``values`` (1-D) followed by NaNs (not drawn) up to length ``n``, as floats. A
-    non-finite value is kept (a ratio without a threshold is a gap in its line)."""
-    n = as_int(n, "n", 0)
-    values = as_float_array(values, "values", ndim=1, allow_empty=True, finite=False)
-    if values.size > n:
-        raise ValueError(f"values must have at most n = {n} entries; received {values.size}.")
+    """``values`` (at most ``n``) followed by NaNs (not drawn) up to length ``n``."""
     out = np.full(n, np.nan)
-    out[:values.size] = values
+    out[:len(values)] = values
     return out
 
 

@@ -565,12 +565,12 @@ def test_a_new_session_builds_the_live_panels_of_the_tab_in_view_only():
     s = small_state()
     view = ExplorerView(state=s)
     pn.panel(view).get_root(Document())
-    waves, calibration = view._waves, view._calibration
+    waves, calibration = view.waves_view, view.calibration_view
 
     def plots(panel):
         return [p for p in panel._layout.select(pn.pane.Bokeh) if isinstance(p.object, Plot)]
 
-    assert view._data._case is s.case and plots(view._data)
+    assert view.data_view._case is s.case and plots(view.data_view)
     assert waves._stale and calibration._stale and not plots(waves)
     s.run_to_convergence()                                  # hidden: nothing drawn yet
     assert not plots(waves)
@@ -589,7 +589,7 @@ def test_a_case_switch_rebuilds_only_the_live_panels_in_view():
     page = pn.panel(view)
     page.get_root(Document())
     (tabs,) = page.select(pn.Tabs)
-    waves, data = view._waves, view._data
+    waves, data = view.waves_view, view.data_view
 
     def plots():
         return [p.object for p in waves._layout.select(pn.pane.Bokeh)
@@ -601,7 +601,7 @@ def test_a_case_switch_rebuilds_only_the_live_panels_in_view():
     s.next_wave()                                           # hidden and stale: no update
     assert waves._stale and plots() == []
     tabs.active = 1
-    assert not waves._stale and waves._case is s.case and view._calibration._case is s.case
+    assert not waves._stale and waves._case is s.case and view.calibration_view._case is s.case
     titles = [p.title.text for p in plots()]
     assert "NROY samples: E vs nu" in titles               # shear-5's pairs, with the wave
     s.case_name = "beam-1d"                                 # in view now: at once

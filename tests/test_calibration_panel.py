@@ -122,13 +122,3 @@ def test_a_new_wave_redraws_in_place_and_a_new_case_rebuilds():
     (post,) = figures(panel)
     hm = s.history_match
     assert post.title.text == f"E: θ_MAP = {hm.theta_map[0]:.4g} GPa"
-
-
-def test_bad_sizes_name_the_argument(beam):
-    from mdcore_app.calibration_panel import input_grid, theta_posterior
-    s, _ = beam
-    for kw, match in [({"n": 0}, "n"), ({"bins": 0}, "bins"), ({"n": 2.5}, "n")]:
-        with pytest.raises(ValueError, match=match):
-            theta_posterior(s.case, s.history_match, **kw)
-    with pytest.raises(ValueError, match="n"):
-        input_grid(s.case, 1)

@@ -21,19 +21,6 @@ def test_error_bars_are_symmetric_about_the_data():
     assert np.array_equal(bars["y0"], [2.5, -1.5]) and np.array_equal(bars["y1"], [3.5, -0.5])
 
 
-@pytest.mark.parametrize("args, match", [
-    (([1.0, np.nan], [3.0, 1.0], 0.5), "x contains 1 NaN"),
-    (([1.0, 2.0], [3.0], 0.5), "same shape"),
-    (([[1.0, 2.0]], [3.0, 1.0], 0.5), "x must"),
-    (([], [], 0.5), "x is empty"),
-    (([1.0], [3.0], -0.1), "half_width must be non-negative"),
-    (([1.0], [3.0], np.inf), "half_width contains"),
-])
-def test_error_bars_refuse_bad_input(args, match):
-    with pytest.raises(ValueError, match=match):
-        error_bars(*args)
-
-
 def test_beam_2d_shows_the_training_data_and_the_true_delta_map():
     s = ExplorerState(case_name="beam-2d")
     panel = DataPanel(state=s)

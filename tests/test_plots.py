@@ -24,7 +24,6 @@ from mdcore._history_matching import history_match_case  # noqa: E402
 from mdcore._pipeline import Method, Settings, run_method  # noqa: E402
 from mdcore._study import PAPER  # noqa: E402
 from mdcore_app import plots  # noqa: E402
-from mdcore_app.report import metric_bars  # noqa: E402
 
 hv.extension("bokeh")
 
@@ -180,7 +179,7 @@ def test_metrics_chart_groups_by_output_and_shares_the_reports_pairing():
     # The pairing with the paper's values is one function, shared with the report:
     # a scalar stands for single-output cases only, a sequence gives one per output.
     paper = {"nmse_z": {"1": 9.0, "koh": list(z[Method.S1])}}
-    rows = metric_bars(case, results.values(), "nmse_z", paper)
+    rows = plots.metric_bars(case, results.values(), "nmse_z", paper)
     assert [(r[0], r[1], r[2]) for r in rows] == [(m, o, v[o]) for m, v in z.items()
                                                   for o in range(5)]
     assert all(np.isnan(r[3]) for r in rows[:5])

@@ -34,7 +34,12 @@ def test_every_plot_has_data(run):
         lengths = {len(v) for v in data.values()}
         assert lengths and min(lengths) > 0, (r.glyph, {k: len(v) for k, v in data.items()})
     titles = [f.title.text for f in layout.select({"type": Plot}) if f.title is not None]
-    assert "KOH: δ tip deflection (±2σ)" in titles and "Final NROY samples" in titles
+    assert "KOH: δ tip deflection (±2σ)" in titles
+    # the app's figure builders: the space each wave ruled out, the θ posterior with θ_MAP
+    # and the metrics chart
+    assert "Not ruled out yet (NROY), share of the box" in titles
+    assert f"l_cr: θ_MAP = {run.hm.theta_map[0]:.4g} mm" in titles
+    assert any(t.startswith("NMSE at the test inputs") for t in titles)
     text = " ".join(d.text for d in layout.select({"type": Div}))
     for words in ("Settings", "History matching", "Metrics at the test inputs", "Warnings",
                   "Scenario 3", "KOH", "θ_MAP", "truth in NROY",

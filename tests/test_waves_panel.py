@@ -177,40 +177,18 @@ def test_many_outputs_each_have_a_variance_line():
     assert panel._player.styles == PLAYER_HIDDEN and panel._player.visible
 
 
-def test_bad_inputs_name_the_argument(beam):
+def test_bad_inputs_name_the_argument():
     from mdcore_app.live_figures import alert_box, live_text
-    t = np.linspace(0.0, 1.0, 5)
-    I = np.ones((4, 5))
-    for args, match in [
-            ((t, t, np.ones((5, 5)) * np.nan, 1.0), "I"),              # NaN
-            ((t, t, I, 1.0), r"I must have shape \(len\(t2\), len\(t1\)\) = \(5, 5\)"),
-            ((t, np.empty(0), np.empty((0, 5)), 1.0), "t2"),           # empty
-            ((t, t, np.ones((5, 5)), 0.0), "level"),                   # T ≤ 0
-            ((t, t, np.ones((5, 5)), np.inf), "level")]:
-        with pytest.raises(ValueError, match=match):
-            contour_lines(*args)
-    with pytest.raises(ValueError, match="bins"):
-        histogram_columns([], [[0.0, 1.0]], bins=0)
-    with pytest.raises(ValueError, match="low < high"):
-        histogram_columns([], [[1.0, 0.0]])
-    with pytest.raises(ValueError, match="bounds"):
-        histogram_columns([], [[np.nan, 1.0]])
-    with pytest.raises(ValueError, match="max_points"):
-        nroy_columns(beam.waves, 2, max_points=0)
     with pytest.raises(ValueError, match="kind must be one of"):
         alert_box("x", "fatal")
     with pytest.raises(ValueError, match="height"):
         live_text("x", height=-1)
 
 
-def test_padded_fills_with_nan_and_refuses_what_does_not_fit():
+def test_padded_fills_with_nan():
     np.testing.assert_array_equal(padded([1, 2], 4), [1.0, 2.0, np.nan, np.nan])
     assert padded([], 2).shape == (2,)
     np.testing.assert_array_equal(padded([np.inf], 2), [np.inf, np.nan])
-    for values, n, name in (([1.0, 2.0, 3.0], 2, "at most n = 2"), (["a"], 2, "values"),
-                            (np.zeros((2, 2)), 4, "values"), ([1.0], -1, "n")):
-        with pytest.raises(ValueError, match=name):
-            padded(values, n)
 
 
 def test_the_multivariate_rule_draws_its_map_against_the_chi2_cutoff():

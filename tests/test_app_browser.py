@@ -8,24 +8,10 @@ import time
 from pathlib import Path
 
 import pytest
-from browser import PageLog, chromium, files_only, require_browser, serve_app, tab
+from browser import PageLog, files_only, serve_app, tab
 
 ARTIFACTS = Path(__file__).resolve().parent.parent / "test-artifacts"
 ROOT = Path(__file__).resolve().parent.parent
-
-
-@pytest.fixture(scope="module")
-def server():
-    require_browser()
-    proc, url, _log = serve_app()
-    yield url
-    proc.terminate()
-    proc.wait(timeout=10)
-
-
-@pytest.fixture(scope="module")
-def browser(server):
-    yield from chromium()
 
 
 def open_page(browser, url):
@@ -72,7 +58,7 @@ DIMMEST = """(cls) => {
 
 def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
     ARTIFACTS.mkdir(exist_ok=True)
-    page, log = open_page(browser, server)
+    page, log = open_page(browser, server.url)
     page.screenshot(path=str(ARTIFACTS / "01-first-screen.png"))
 
     page.get_by_role("button", name="Run to convergence").click()
@@ -141,8 +127,8 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
 
 
 def test_two_sessions_do_not_share_results(browser, server):
-    a, log_a = open_page(browser, server)
-    b, log_b = open_page(browser, server)
+    a, log_a = open_page(browser, server.url)
+    b, log_b = open_page(browser, server.url)
     a.get_by_role("button", name="Next wave").click()
     tab(a, "History matching")
     a.wait_for_selector(".hm-status:has-text('wave 1')", timeout=60_000)
@@ -218,7 +204,7 @@ def test_an_idle_page_asks_for_no_frames_even_with_a_drop_area_shown(browser, se
     page = browser.new_page(viewport={"width": 1280, "height": 720})
     page.add_init_script(COUNT_FRAMES)
     log = PageLog(page)
-    page.goto(server)
+    page.goto(server.url)
     assert_drawn(page, ".data-plot", 2)
     page.wait_for_timeout(1_000)
     idle = frames_in(page, 2_000)
@@ -242,7 +228,7 @@ def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_hm, n_
     ARTIFACTS.mkdir(exist_ok=True)
     page = browser.new_page(viewport={"width": 1280, "height": 720})
     log = PageLog(page)
-    page.goto(server)
+    page.goto(server.url)
     page.wait_for_selector(".data-plot canvas", timeout=60_000)
     if case != "beam-1d":
         from mdcore import _cases as cases

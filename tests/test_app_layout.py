@@ -9,23 +9,9 @@ the state's class, and a tab that was blank before its first run.
 import time
 
 import pytest
-from browser import PageLog, chromium, require_browser, serve_app, tab
+from browser import PageLog, tab
 
 SIZES = [(1280, 720), (1920, 1080)]
-
-
-@pytest.fixture(scope="module")
-def server():
-    require_browser()
-    proc, url, _log = serve_app()
-    yield url
-    proc.terminate()
-    proc.wait(timeout=10)
-
-
-@pytest.fixture(scope="module")
-def browser(server):
-    yield from chromium()
 
 
 def open_page(browser, url, size=(1280, 720)):
@@ -67,7 +53,7 @@ SCROLL_BOX_OF = """(cls) => {
 def test_a_control_and_its_plots_are_seen_together(browser, server, size):
     """Issue 41 item 4: the page itself never scrolls; the sidebar scrolls on its own, so
     the band and seed controls at its end are reached with the plots still in place."""
-    page, log = open_page(browser, server, size)
+    page, log = open_page(browser, server.url, size)
     page.get_by_role("button", name="Run discrepancy").click()
     tab(page, "Discrepancy")
     wait_idle(page)
@@ -89,7 +75,7 @@ def test_a_control_and_its_plots_are_seen_together(browser, server, size):
 
 def test_the_progress_bar_shows_during_a_long_run(browser, server):
     """Issue 41 item 2: the bar was ``visibility: hidden`` for the whole of a long run."""
-    page, log = open_page(browser, server)
+    page, log = open_page(browser, server.url)
     page.locator(".bk-Checkbox", has_text="Paper sizes").locator("input").check()
     page.get_by_role("button", name="Run discrepancy").click()
     page.locator(".mdcore-busy").wait_for(state="attached", timeout=30_000)
@@ -111,7 +97,7 @@ def test_the_progress_bar_shows_during_a_long_run(browser, server):
 def test_the_band_legend_says_its_band(browser, server):
     """Issue 41 item 10: the legend read "±kσ" whatever the band; set as a field name,
     Bokeh drew "Invalid field"."""
-    page, log = open_page(browser, server)
+    page, log = open_page(browser, server.url)
     page.get_by_role("button", name="Run discrepancy").click()
     tab(page, "Discrepancy")
     wait_idle(page)
@@ -143,7 +129,7 @@ def test_the_band_legend_says_its_band(browser, server):
 
 def test_a_refused_number_says_what_is_allowed_in_plain_words(browser, server):
     """Issue 41 item 10: the toast named ``ExplorerState.v_m``, and its text overflowed."""
-    page, log = open_page(browser, server)
+    page, log = open_page(browser, server.url)
     field = page.get_by_label("V_m", exact=True)
     field.fill("-1")
     field.press("Enter")
@@ -164,7 +150,7 @@ def test_a_refused_number_says_what_is_allowed_in_plain_words(browser, server):
                                          ("Metrics", "press Run discrepancy")])
 def test_no_tab_is_blank_before_its_first_run(browser, server, name, words):
     """Issue 41 item 9: before any run a tab says what to press, within half a second."""
-    page, log = open_page(browser, server)
+    page, log = open_page(browser, server.url)
     tab(page, name)
     start = time.monotonic()
     page.get_by_text(words).first.wait_for(timeout=30_000)

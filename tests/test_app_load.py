@@ -27,7 +27,7 @@ import warnings
 from pathlib import Path
 
 import pytest
-from browser import chromium, require_browser, tab
+from browser import require_browser, tab
 
 ROOT = Path(__file__).resolve().parent.parent
 APP = ROOT / "app" / "main.py"
@@ -90,11 +90,6 @@ def server():
             time.sleep(0.2)
     yield url
     thread.stop()
-
-
-@pytest.fixture(scope="module")
-def browser(server):
-    yield from chromium()
 
 
 def shown_text(page, css_class: str) -> str:

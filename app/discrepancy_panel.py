@@ -51,8 +51,20 @@ PAD = 0.05
 KEEP_SPAN = 0.6
 
 
-#: The line above the plots while none is shown (HTML).
+#: The line above the plots while none is shown and nothing runs (HTML).
 EMPTY_HTML = "Run history matching, then press <b>Run discrepancy</b>."
+
+
+def empty_html(s: ExplorerState) -> str:
+    """The line above the plots while none is shown: what is running, or what to press."""
+    if not s.busy:
+        return EMPTY_HTML
+    if s.task == "waves":
+        return "Running history matching; then press <b>Run discrepancy</b>."
+    matched = bool(s.waves) and s.waves[-1].status == "converged"
+    return ("Running the discrepancy methods; their bands appear here when they finish."
+            if matched else "Running history matching until it converges, then the "
+                            "discrepancy methods; their bands appear here.")
 
 
 class DiscrepancyPanel(LivePanel):
@@ -62,7 +74,7 @@ class DiscrepancyPanel(LivePanel):
     state = param.ClassSelector(class_=ExplorerState)
     quantity = param.Selector(objects=list(QUANTITIES), default="z and δ", label="Show")
 
-    UPDATE_ON = ("results", "band", "busy", "scenarios")
+    UPDATE_ON = ("results", "band", "busy", "scenarios", "waves")
 
     def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
@@ -361,12 +373,12 @@ class DiscrepancyPanel(LivePanel):
                 group.visible = visible
             if group.styles != styles:
                 group.styles = styles
-        if stale:
-            return                     # the warnings stay with the dimmed plots they concern
-        advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
         shown = any(g.visible and g.styles.get("visibility") != "hidden"
                     for g in self._groups.values())
-        text = warnings_html(advice) if shown else EMPTY_HTML
+        if stale and shown:
+            return                     # the warnings stay with the dimmed plots they concern
+        advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
+        text = warnings_html(advice) if shown else empty_html(s)
         if self._warnings_div.text != text:
             self._warnings_div.text = text
 

@@ -13,13 +13,12 @@ from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
 from .diagnostics_view import DiagnosticsView
 from .discrepancy_panel import DiscrepancyPanel
-from .experiments import EXPERIMENTS, KOH_CHAINS
+from .experiments import EXPERIMENTS
 from .files_view import FilesView
 from .glossary import terms_html
 from .live_figures import alert_box, live_text, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
-from .session_model import ANNOUNCE_SECONDS, estimate_seconds
 from .state import ExplorerState
 from .waves_panel import WavesPanel
 
@@ -120,10 +119,10 @@ class ExplorerView(pn.viewable.Viewer):
             self._number_input("seed", pn.widgets.IntInput))
         run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
         run_btn.on_click(lambda _: s.run_discrepancy())
-        self._announce(run_btn, koh.select(pn.widgets.TooltipIcon)[0])
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
+        self._announce((next_btn, conv_btn, run_btn), koh.select(pn.widgets.TooltipIcon)[0])
         # The buttons and the progress line come first, the settings follow in cards. The
         # sidebar scrolls on its own, so reaching a control never scrolls the plots away
         # (a projector's 1280×720). Nothing here changes on a tab switch: folding a card
@@ -141,25 +140,17 @@ class ExplorerView(pn.viewable.Viewer):
             width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
             css_classes=["mdcore-sidebar"])
 
-    def _announce(self, run_btn, koh_icon) -> None:
-        """Say the estimated time of the next run on ``run_btn`` when it is over
-        :data:`ANNOUNCE_SECONDS`, and KOH's for both chains on this case in ``koh_icon``."""
-        s = self.state
-
+    def _announce(self, buttons, koh_icon) -> None:
+        """The state's estimates (:meth:`ExplorerState.announcements`) on ``buttons`` (by
+        CSS class) and in ``koh_icon``, kept up to date."""
         def show(*_):
-            t = s.run_seconds()
-            run_btn.label = "Run discrepancy" + (f" (≈ {t:.0f} s)" if t > ANNOUNCE_SECONDS
-                                                 else "")
-            run_btn.description = f"Estimated {t:.1f} s for the chosen methods."
-            koh = [estimate_seconds(s.case.X_train.shape[0], s.case.n_out,
-                                    koh_steps=KOH_CHAINS[c]["n_iter"]) for c in KOH_CHAINS]
-            koh_icon.value = (f"{s.param.koh_chain.doc} Estimated for KOH on "
-                              f"{html_text(s.case.name)}: "
-                              + ", ".join(f"{c} ≈ {t:.1f} s" for c, t in zip(KOH_CHAINS, koh))
-                              + (" (over 3 s: the run button says so)."
-                                 if max(koh) > ANNOUNCE_SECONDS else "."))
+            said = self.state.announcements()
+            for b in buttons:
+                b.param.update(**said[b.css_classes[0]])
+            koh_icon.value = said["koh"]
 
-        s.param.watch(show, ["case", "scenarios", "koh_chain", "n_s", "n_phi"])
+        self.state.param.watch(show, ["case", "scenarios", "koh_chain", "n_s", "n_phi",
+                                      "proposal", "waves", "n_candidates", "max_waves"])
         show()
 
     def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):

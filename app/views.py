@@ -79,10 +79,11 @@ class ExplorerView(pn.viewable.Viewer):
 
     def _notify_warning(self, *_):
         # A notice is a result's advice (a low ESS, a chain that did not mix), which the
-        # Discrepancy tab shows beside the bands: there, a toast would say it twice, and
+        # Discrepancy and Metrics tabs show beside the bands and the diagnostics: there, a
+        # toast would say it twice (and covered the tables a card points at), and
         # each toast makes Bokeh walk the whole document (0.17 s of the server's main
         # thread per beam-2d run). Elsewhere, the toast says that there is advice to read.
-        if self._tabs.active == DISCREPANCY_TAB:
+        if self._tabs.active in (DISCREPANCY_TAB, DISCREPANCY_TAB + 1):
             return
         if pn.state.notifications is not None:
             pn.state.notifications.warning(html_text(self.state.notice), duration=10_000)
@@ -320,13 +321,18 @@ class ExplorerView(pn.viewable.Viewer):
         for exp in EXPERIMENTS:
             button = pn.widgets.Button(label="Run it", color="primary",
                                        css_classes=[f"try-{exp.key}"], width=120)
-            button.on_click(lambda _, k=exp.key: self.state.try_experiment(k))
+            button.on_click(lambda _, e=exp: self._try(e))
             cards.append(pn.Column(
                 pn.pane.Markdown(f"**{exp.title}**\n\n**Predict first:** {exp.predict} "
                                  f"*Then:* {exp.then}", margin=(0, 10)),
                 button, styles={"border-bottom": "1px solid #ddd"},
                 sizing_mode="stretch_width"))
         return pn.Column(*cards, sizing_mode="stretch_width", max_width=900)
+
+    def _try(self, exp) -> None:
+        """Run the card ``exp`` with its tab shown (from the top: see _fill_tabs)."""
+        self._tabs.active = [t.name for t in self._tabs].index(exp.tab)
+        self.state.try_experiment(exp.key)
 
     def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes
@@ -374,8 +380,10 @@ class ExplorerView(pn.viewable.Viewer):
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
             metrics, sizing_mode="stretch_width")
-        # Each tab scrolls on its own, below its header, beside the sidebar.
-        tabs.extend([(name, pn.Column(view, scroll=True, sizing_mode="stretch_both"))
+        # Each tab scrolls on its own, below its header, beside the sidebar; shown from its
+        # top (kept scrolled down, a card's plot was out of view).
+        tabs.param.watch(lambda e: tabs[e.new].scroll_to(0), "active")
+        tabs.extend([pn.Column(view, name=name, scroll=True, sizing_mode="stretch_both")
                      for name, view in (
                          ("Data", pn.Column(terms("V_o", "V_m", "θ"), self._data)),
                          ("History matching", hm_tab),

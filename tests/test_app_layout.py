@@ -157,3 +157,64 @@ def test_no_tab_is_blank_before_its_first_run(browser, server, name, words):
     assert time.monotonic() - start < 0.5 + 0.5          # 0.5 s, with the test's own wait
     assert log.errors == []
     page.close()
+
+
+#: Scroll the nearest scrolling box around an element (across shadow roots) to its end;
+#: returns how far it scrolled.
+SCROLL_ANCESTOR = """(e) => {
+  while (e) { if (e.scrollHeight > e.clientHeight + 10 &&
+                  ['auto', 'scroll'].includes(getComputedStyle(e).overflowY)) {
+      e.scrollTop = e.scrollHeight; return e.scrollTop; }
+    e = e.parentElement || (e.getRootNode() && e.getRootNode().host); }
+  return 0;
+}"""
+
+
+def overlaps(a, b) -> bool:
+    return not (a["x"] + a["width"] <= b["x"] or b["x"] + b["width"] <= a["x"]
+                or a["y"] + a["height"] <= b["y"] or b["y"] + b["height"] <= a["y"])
+
+
+def run_card(page, key: str, tab_name: str) -> None:
+    """Press the card ``key``: its tab must be shown at once, then wait for its run."""
+    tab(page, "Things to try")
+    page.locator(f".try-{key} button").click()
+    page.locator(".bk-tab.bk-active", has_text=tab_name).wait_for(timeout=10_000)
+    wait_idle(page)
+
+
+def test_a_card_shows_its_plot_in_view_even_after_the_tab_was_scrolled(browser, server):
+    """The History matching tab kept its scroll position: after a card, the class saw
+    θ_MAP's plot, not the NROY samples the card points at. A card now shows its tab, and
+    every tab is shown from its top."""
+    page, log = open_page(browser, server.url)
+    tab(page, "History matching")
+    page.locator(".run-convergence button").click()
+    wait_idle(page)
+    nroy = page.locator(".hm-plot").first
+    assert nroy.evaluate(SCROLL_ANCESTOR) > 0       # the tab scrolls on its own: to its end
+    page.wait_for_timeout(500)
+    assert not in_view(page, nroy)
+    run_card(page, "rule-out", "History matching")
+    page.wait_for_timeout(500)
+    assert in_view(page, nroy)
+    assert log.errors == []
+    page.close()
+
+
+def test_the_ess_card_shows_its_diagnostics_and_advice_uncovered(browser, server):
+    """Card 4 pointed at ESS φ and k̂, below the fold of the Metrics tab and under the
+    low-ESS toast: the tab now opens on the tables, with the advice beside them."""
+    page, log = open_page(browser, server.url)
+    run_card(page, "ess", "Metrics")
+    table = page.locator(".diagnostics-table")
+    table.wait_for(timeout=30_000)
+    advice = page.locator(".metrics-advice")
+    advice.get_by_text("unreliable").first.wait_for(timeout=5_000)
+    page.wait_for_timeout(1000)                     # a toast would be shown by now
+    assert in_view(page, table) and in_view(page, advice)
+    for toast in page.locator(".notyf__toast").all():
+        box = toast.bounding_box()
+        assert box is None or not overlaps(box, table.bounding_box()), toast.inner_text()
+    assert log.errors == []
+    page.close()

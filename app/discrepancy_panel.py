@@ -7,6 +7,7 @@ earlier plots stay, dimmed.
 
 from __future__ import annotations
 
+import html
 from typing import Any
 
 import numpy as np
@@ -78,13 +79,19 @@ class DiscrepancyPanel(LivePanel):
 
     def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
+        # The band beside the bands it sets (it was below the sidebar's fold at 720 px).
+        band = self.state.param.band
+        self._bar = pn.Row(self._show, pn.pane.HTML(f"<label>{html.escape(band.label)}</label>",
+                                                    margin=(12, 5, 0, 25)),
+                           pn.widgets.RadioButtonGroup.from_param(band, name="",
+                                                                  css_classes=["band-choice"]))
         # One line above the plots: what to press while no plot is shown, else the
         # diagnostics' warnings; its text changes, never its ``visible`` (a page re-layout).
         self._warnings, self._warnings_div = live_text("disc-warnings")
         self._warnings_div.text = EMPTY_HTML
         self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
         self._methods = pn.Row(sizing_mode="stretch_width")        # 1-D: one column each
-        self._layout.objects = [self._show, self._warnings, self._head, self._methods]
+        self._layout.objects = [self._bar, self._warnings, self._head, self._methods]
         self._case = None
         self._truth = None
         #: (method, cell key) -> [pane, figure, payload last drawn]

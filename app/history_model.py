@@ -110,7 +110,7 @@ class HistoryModel(CaseModel):
             "outputs; shown on the map) instead of T; ℓ_m correlates V_m between inputs "
             "(0: independent).")
     v_m_length = param.Number(
-        default=0.0, bounds=(0.0, 1e6), label="ℓ_m (V_m correlation length)",
+        default=0.0, bounds=(0.0, 1e6), label="V_m length ℓ_m",
         doc="Correlation length of the model discrepancy variance over the inputs (Matérn "
             "3/2, in input units); 0: V_m independent at each input. Used by the "
             "multivariate rule (the max rules use only V_m's diagonal).")

@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import html
-import time
 
 import panel as pn
 import param
@@ -19,26 +18,28 @@ from .glossary import terms_html
 from .live_figures import alert_box, live_text, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
+from .progress_view import progress_panel
 from .state import ExplorerState
 from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
-#: The busy line names a job's step once it has run this long (seconds), so that runs at
-#: the default sizes (a fraction of a second) do not flash it.
-SHOW_PROGRESS_AFTER = 0.5
-#: Height of the busy line (two lines of text), fixed so that a new message never
-#: changes the page's layout.
-STATUS_HEIGHT = 40
-
-
-def _status_html(busy: bool, task: str, detail: str = "") -> str:
-    """The busy line: "Idle." or "Running <task> … <detail>", in a span whose class
-    (``mdcore-busy`` or ``mdcore-idle``) says which."""
-    if not busy:
-        return '<span class="mdcore-idle">Idle.</span>'
-    tail = f" {html.escape(detail)}" if detail else ""
-    return f'<span class="mdcore-busy">Running <b>{html.escape(task)}</b> …{tail}</span>'
 DISCREPANCY_TAB = 2
+
+
+def pair(a, b) -> pn.Row:
+    """Two controls side by side, sharing the sidebar's width."""
+    for w in (a, b):
+        w.sizing_mode = "stretch_width"
+    return pn.Row(a, b, sizing_mode="stretch_width", margin=0)
+
+
+def fold(cards, tab: int) -> None:
+    """Open the card of the controls of ``tab`` (History matching: tab 1; Discrepancy:
+    tabs 2-4) and fold the other; other tabs leave them as they are."""
+    want = {1: (False, True)}.get(tab, (True, False) if 2 <= tab <= 4 else None)
+    for card, collapsed in zip(cards, want or ()):
+        if card.collapsed != collapsed:
+            card.collapsed = collapsed
 
 
 def terms(*words: str) -> pn.pane.HTML:
@@ -94,51 +95,47 @@ class ExplorerView(pn.viewable.Viewer):
         w = pn.Column(pn.Param(s.param, parameters=["case_name"], show_name=False,
                                widgets={"case_name": pn.widgets.Select}),
                       self._output_choice(), sizing_mode="stretch_width", margin=0)
+        num = self._number_input
+        # Two controls a row, so that a tab's card fits beside its plots at 1280×720.
         hm = pn.Column(
-            self._choice("preset"),
-            self._number_input("v_m", pn.widgets.FloatInput, step=0.005, format="0.[0000]"),
-            self._number_input("threshold", pn.widgets.FloatInput, step=0.5, format="0.[00]"),
+            pair(self._choice("preset"), pn.widgets.IntSlider.from_param(s.param.max_waves)),
+            pair(num("v_m", pn.widgets.FloatInput, step=0.005, format="0.[0000]"),
+                 num("threshold", pn.widgets.FloatInput, step=0.5, format="0.[00]")),
             self._choice("rule"),
-            self._number_input("v_m_length", pn.widgets.FloatInput, step=0.05,
-                               format="0.[0000]"),
-            self._number_input("n_runs", pn.widgets.IntInput),
-            self._number_input("n_candidates", pn.widgets.IntInput, step=10_000),
-            pn.Param(s.param, parameters=["max_waves"], show_name=False),
-            self._number_input("convergence_ratio", pn.widgets.FloatInput, step=0.1,
-                               format="0.[000]"))
+            pair(num("v_m_length", pn.widgets.FloatInput, step=0.05, format="0.[0000]"),
+                 num("n_runs", pn.widgets.IntInput)),
+            pair(num("n_candidates", pn.widgets.IntInput, step=10_000),
+                 num("convergence_ratio", pn.widgets.FloatInput, step=0.1, format="0.[000]")))
         next_btn = pn.widgets.Button(label="Next wave", color="primary")
         conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
         next_btn.on_click(lambda _: s.next_wave())
         conv_btn.on_click(lambda _: s.run_to_convergence())
         koh = self._choice("koh_chain")
-        disc = pn.Column(
-            self._number_input("n_s", pn.widgets.IntInput),
-            self._number_input("n_phi", pn.widgets.IntInput),
-            pn.Param(s.param, parameters=["paper_sizes"], show_name=False),
+        disc = pn.Column(          # the band is chosen beside the bands (DiscrepancyPanel)
+            pair(num("n_s", pn.widgets.IntInput), num("n_phi", pn.widgets.IntInput)),
+            pair(pn.widgets.Checkbox.from_param(s.param.paper_sizes, margin=(25, 10, 0, 10)),
+                 num("seed", pn.widgets.IntInput)),
             self._choice("scenarios", pn.widgets.CheckButtonGroup),
-            self._choice("proposal"), koh, self._choice("band"),
-            self._number_input("seed", pn.widgets.IntInput))
+            pair(self._choice("proposal"), koh))
         run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
         run_btn.on_click(lambda _: s.run_discrepancy())
         for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
                          (run_btn, "run-discrepancy")):
             b.css_classes = [label]
         self._announce((next_btn, conv_btn, run_btn), koh.select(pn.widgets.TooltipIcon)[0])
-        # The buttons and the progress line come first, the settings follow in cards. The
-        # sidebar scrolls on its own, so reaching a control never scrolls the plots away
-        # (a projector's 1280×720). Nothing here changes on a tab switch: folding a card
-        # makes BokehJS lay out the whole page again.
+        # The buttons and the progress line come first, the settings follow in cards: the
+        # History matching tab's card is open beside it and the other folded, and the
+        # same for the Discrepancy, Metrics and Diagnostics tabs, so at 1280×720 every
+        # control of the tab shown is in view. The sidebar scrolls on its own.
+        progress, cancel = progress_panel(self.state)
+        cards = [pn.Card(hm, title="History matching", sizing_mode="stretch_width",
+                         css_classes=["hm-controls"]),
+                 pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width",
+                         css_classes=["disc-controls"])]
+        self._tabs.param.watch(lambda e: fold(cards, e.new), "active")
         return pn.Column(
-            pn.pane.Markdown("**Model Discrepancy Explorer** · Gardner et al., MSSP 2021: "
-                             "history matching, then GP discrepancy (scenarios 1–3), "
-                             "against the joint Kennedy–O'Hagan baseline (koh).",
-                             styles={"font-size": "0.9em"}),
-            w, self._case_info, pn.Row(next_btn, conv_btn), run_btn, self._progress_panel(),
-            pn.Card(hm, title="History matching", sizing_mode="stretch_width",
-                    css_classes=["hm-controls"]),
-            pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width",
-                    css_classes=["disc-controls"]),
-            width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
+            w, self._case_info, pn.Row(next_btn, conv_btn), pn.Row(run_btn, cancel), progress,
+            *cards, width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
             css_classes=["mdcore-sidebar"])
 
     def _announce(self, buttons, koh_icon) -> None:
@@ -219,49 +216,14 @@ class ExplorerView(pn.viewable.Viewer):
     def _case_info(self):
         c = self.state.case
         text = markdown_text(c.description)      # an upload's file name, a case file's text
+        # At most four lines, the rest scrolls: a long description pushed the controls of
+        # the tab below the fold at 1280×720.
+        style = {"font-size": "0.85em", "max-height": "5.6em", "overflow-y": "auto"}
         if c.stand_in:                 # synthetic data standing in for unpublished ones
-            return pn.pane.Alert(text, alert_type="warning",
-                                 styles={"font-size": "0.85em"}, css_classes=["stand-in"])
-        return pn.pane.Markdown(text, styles={"font-size": "0.85em"},
-                                css_classes=["case-description"])
-
-    def _progress_panel(self):
-        """Busy line, progress bar and a Cancel button, updated in place.
-
-        The bar and the button are always there (the button disabled between jobs), so a
-        job changes no size, visibility or layout: only the bar's value and the line's
-        text, whose fixed height never moves what is below it. The line names the job
-        once it has run :data:`SHOW_PROGRESS_AFTER` seconds, so short runs do not flash.
-        """
-        text = pn.pane.HTML(_status_html(False, ""), height=STATUS_HEIGHT,
-                            sizing_mode="stretch_width",
-                            styles={"overflow": "hidden", "font-size": "0.9em"})
-        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width",
-                                     css_classes=["job-progress-bar"])
-        cancel = pn.widgets.Button(label="Cancel", color="warning", disabled=True,
-                                   css_classes=["cancel-job"])
-        row = pn.Row(bar, cancel, sizing_mode="stretch_width", css_classes=["job-progress"])
-        cancel.on_click(lambda _: self.state.cancel())
-        since: list[float | None] = [None]          # when the current job started
-
-        def update(*_):
-            s = self.state
-            if not s.busy:
-                since[0] = None
-            elif since[0] is None:
-                since[0] = time.monotonic()
-                doc = pn.state.curdoc            # look again then, progress or not
-                if doc is not None and doc.session_context is not None:
-                    doc.add_timeout_callback(update, int(1000 * SHOW_PROGRESS_AFTER) + 20)
-            show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
-            text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
-            if cancel.disabled == s.busy:
-                cancel.disabled = not s.busy
-            bar.value = int(100 * s.progress) if s.busy else 0
-
-        self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
-        update()
-        return pn.Column(text, row, sizing_mode="stretch_width")
+            style.update({"background": "#fff3cd", "color": "#664d03", "padding": "0 6px"})
+        return pn.pane.Markdown(text, styles=style, margin=(0, 10),
+                                stylesheets=["p { margin: 2px 0; }"], css_classes=[
+            "stand-in" if c.stand_in else "case-description"])
 
     # --- tabs --------------------------------------------------------------------------
     @property
@@ -327,7 +289,11 @@ class ExplorerView(pn.viewable.Viewer):
                                  f"*Then:* {exp.then}", margin=(0, 10)),
                 button, styles={"border-bottom": "1px solid #ddd"},
                 sizing_mode="stretch_width"))
-        return pn.Column(*cards, sizing_mode="stretch_width", max_width=900)
+        intro = pn.pane.Markdown(
+            "**Model Discrepancy Explorer** · Gardner et al., MSSP 2021: history matching, "
+            "then GP discrepancy (scenarios 1–3), against the joint Kennedy–O'Hagan baseline "
+            "(koh). Each card sets every control it needs, runs, and shows its tab.")
+        return pn.Column(intro, *cards, sizing_mode="stretch_width", max_width=900)
 
     def _try(self, exp) -> None:
         """Run the card ``exp`` with its tab shown (from the top: see _fill_tabs)."""

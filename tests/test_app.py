@@ -22,8 +22,9 @@ import mdcore_app.state as state_module  # noqa: E402
 import mdcore_app.views as views_module  # noqa: E402
 from mdcore._pipeline import Method  # noqa: E402
 from mdcore_app.metrics_view import NOT_APPLICABLE, metrics_frame  # noqa: E402
+from mdcore_app.progress_view import STATUS_HEIGHT, progress_panel  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
-from mdcore_app.views import STATUS_HEIGHT, ExplorerView  # noqa: E402
+from mdcore_app.views import ExplorerView  # noqa: E402
 
 hv.extension("bokeh")
 SMALL = {"preset": "paper", "n_candidates": 4000, "n_s": 30, "n_phi": 8}
@@ -406,14 +407,14 @@ def test_progress_bar_is_always_shown_and_cancel_enabled_only_while_busy(monkeyp
     job's fraction while busy and 0 between jobs, Cancel is enabled only while busy; the
     busy line says busy or idle by a class inside its text, at a fixed height, and names
     the job's step only after SHOW_PROGRESS_AFTER (no flash for short runs)."""
-    import mdcore_app.views as views_module
+    import mdcore_app.progress_view as progress_module
 
     s = ExplorerState()
-    panel = ExplorerView(state=s)._progress_panel()
+    panel, cancel = progress_panel(s)
     text, row = panel[0], panel[1]
-    bar, cancel = row[0], row[1]
+    bar = row[0]
     clock = [100.0]
-    monkeypatch.setattr(views_module.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(progress_module.time, "monotonic", lambda: clock[0])
     assert cancel.disabled and bar.value == 0 and not row.styles
     s.param.update(busy=True, task="scenario 1")
     s.param.update(progress=0.5, progress_message="pairs 10 of 20")
@@ -425,7 +426,7 @@ def test_progress_bar_is_always_shown_and_cancel_enabled_only_while_busy(monkeyp
     assert cancel.disabled and bar.value == 0
     clock[0] += 10.0
     s.param.update(busy=True, task="scenario 3")
-    clock[0] += views_module.SHOW_PROGRESS_AFTER
+    clock[0] += progress_module.SHOW_PROGRESS_AFTER
     s.param.update(progress=0.2, progress_message="pairs 1 of 5 <b>")
     assert bar.value == 20 and not cancel.disabled
     assert "pairs 1 of 5 &lt;b&gt;" in text.object        # messages are text, not HTML

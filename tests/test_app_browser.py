@@ -136,8 +136,9 @@ def test_two_sessions_do_not_share_results(browser, server):
     b.wait_for_selector(".hm-status:has-text('Press “Next wave”')", timeout=30_000)
     assert b.locator(".hm-status:has-text('Press “Next wave”')").count() == 1
     assert b.locator(".hm-status:has-text('wave 1')").count() == 0
-    # b's plots are built ahead of its first wave (keeping their place), but none shows
-    assert b.locator(".hm-plot").count() > 0
+    # b's plots are built ahead of its first wave (keeping their place, within a second
+    # of the tab's status line), but none shows
+    b.locator(".hm-plot").first.wait_for(state="attached", timeout=10_000)
     assert b.locator(".hm-plot:visible").count() == 0
     assert a.locator(".hm-plot:visible").count() > 0          # a's wave shows in a
     assert log_a.errors == [] and log_b.errors == []

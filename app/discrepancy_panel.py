@@ -17,6 +17,7 @@ from bokeh.models import Range1d
 
 from mdcore._pipeline import Method
 
+from .band_axes import band_extent
 from .data_panel import true_delta_figure
 from .live_figures import (
     CURRENT,
@@ -42,11 +43,6 @@ CSS = "disc-plot"
 #: Styles of the earlier plots while their recompute runs (see CURRENT and SLOT).
 STALE_OPACITY = "0.45"
 STALE = {"opacity": STALE_OPACITY, "visibility": "visible"}
-#: The axes of a band plot hold mean ± this many sd (the widest band offered), so a new
-#: band redraws only the band: the axes, and the plot's layout, stay put.
-WIDEST_BAND = 3
-#: Margin around the data of a plot, as a fraction of its span.
-PAD = 0.05
 #: New results keep the axes while their extent fits inside and spans at least this
 #: fraction of them (another seed, or N_s, seen at the same scale, and not re-laid-out).
 KEEP_SPAN = 0.6
@@ -76,6 +72,7 @@ class DiscrepancyPanel(LivePanel):
     quantity = param.Selector(objects=list(QUANTITIES), default="z and δ", label="Show")
 
     UPDATE_ON = ("results", "band", "busy", "scenarios", "waves")
+    SIZING = "stretch_both"                      # the plots fill the tab's height
 
     def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
@@ -89,8 +86,8 @@ class DiscrepancyPanel(LivePanel):
         # diagnostics' warnings; its text changes, never its ``visible`` (a page re-layout).
         self._warnings, self._warnings_div = live_text("disc-warnings")
         self._warnings_div.text = EMPTY_HTML
-        self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
-        self._methods = pn.Row(sizing_mode="stretch_width")        # 1-D: one column each
+        self._head = pn.Column(sizing_mode="stretch_both")         # beam-2d: truth, slider
+        self._methods = pn.Row(sizing_mode="stretch_both")         # 1-D: one column each
         self._layout.objects = [self._bar, self._warnings, self._head, self._methods]
         self._case = None
         self._truth = None
@@ -116,6 +113,9 @@ class DiscrepancyPanel(LivePanel):
         self._fitted: set = set()                # cell keys whose axes have been set
         self._methods.objects = []
         self._show.visible = c.d_x == 1
+        # Only the box that holds the plots shares the tab's height (an empty one took half).
+        self._head.sizing_mode, self._methods.sizing_mode = (
+            ("stretch_both", "stretch_width") if c.d_x == 2 else ("stretch_width", "stretch_both"))
         # One output at a time (state.output): shear-5's five modes side by side were 20-40
         # plots, all redrawn on every change.
         if c.d_x == 1:
@@ -128,7 +128,8 @@ class DiscrepancyPanel(LivePanel):
                 self.state.param.slice_x2, step=float(u2[1] - u2[0]) if u2.size > 1 else 0.001,
                 format="0.0000")
             truth = true_delta_figure(c, "disc-truth")          # None: δ is unknown
-            self._head_fixed = [slider] + ([] if truth is None else [figure_pane(truth)])
+            self._head_fixed = [slider] + ([] if truth is None
+                                           else [figure_pane(truth, stretch=True)])
             self._head.objects = list(self._head_fixed)
         self._update()
 
@@ -152,11 +153,11 @@ class DiscrepancyPanel(LivePanel):
             for key in self._keys(method):
                 if self._wanted(key):
                     fig = self._figure(method, key)
-                    pane = figure_pane(fig.figure)
+                    pane = figure_pane(fig.figure, stretch=True)
                     self._cells[method, key] = [pane, fig, None]
                     panes.append(pane)
             self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
-                *panes, sizing_mode="stretch_width", styles=SLOT)
+                *panes, sizing_mode="stretch_both", styles=SLOT)
             added = True
         if added:
             self._place()
@@ -184,7 +185,7 @@ class DiscrepancyPanel(LivePanel):
             fig = self._figure(method, key)
             self._draw(fig, key, payload)
             self._drawn.add(method)
-            pane = figure_pane(fig.figure)
+            pane = figure_pane(fig.figure, stretch=True)
             self._cells[method, key] = [pane, fig, payload]
             added = True
         if not added and method in self._groups:
@@ -195,7 +196,7 @@ class DiscrepancyPanel(LivePanel):
             self._pending[method] = panes        # attached by _place, once drawn
         else:
             self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
-                *panes, sizing_mode="stretch_width")
+                *panes, sizing_mode="stretch_both")
 
     def _place(self) -> None:
         """Put the groups in method order into the layout: one assignment per change
@@ -226,35 +227,8 @@ class DiscrepancyPanel(LivePanel):
         return self._ranges[key]
 
     def _extent(self, key, held: dict) -> tuple[tuple[float, float], tuple[float, float]]:
-        """x and y extents of cell ``key`` over the ``held`` results (shown or hidden,
-        :meth:`ExplorerState.held_results`) at the widest band, with the data (z) or the
-        true δ: fixed axes, so that neither a new band nor hiding a method rescales them,
-        and a narrower band looks narrower."""
-        s, c = self.state, self._case
-        xs, ys = [s.grid[:, 0]], []
-        for result in held.values():
-            on_grid = result.on_extra
-            if c.d_x == 2:
-                mean, var = on_grid.delta_mean[:, 0], on_grid.delta_var[:, 0]
-            else:
-                o, q = key
-                mean, var = ((on_grid.z_mean[:, o], on_grid.z_var[:, o]) if q == "z"
-                             else (on_grid.delta_mean[:, o], on_grid.delta_var[:, o]))
-            sd = WIDEST_BAND * np.sqrt(np.maximum(var, 0.0))
-            ys += [mean - sd, mean + sd]
-        if c.d_x == 1 and key[1] == "z":
-            xs += [c.X_train[:, 0], c.X_test[:, 0]]
-            ys += [c.z_train[:, key[0]], c.z_test[:, key[0]]]
-        elif self._truth is not None:                # a δ plot or the beam-2d slice
-            ys.append(self._truth[:, 0 if c.d_x == 2 else key[0]])
-
-        def padded(parts):
-            lo = float(min(np.min(p) for p in parts))
-            hi = float(max(np.max(p) for p in parts))
-            pad = PAD * (hi - lo) if hi > lo else max(abs(lo), 1.0) * PAD
-            return lo - pad, hi + pad
-
-        return padded(xs), padded(ys)
+        """x and y extents of cell ``key`` over the ``held`` results (:func:`band_extent`)."""
+        return band_extent(self.state.grid, self._case, self._truth, key, held)
 
     def _fit_ranges(self) -> None:
         """Set the shared axes of every band plot to :meth:`_extent`: at once for a new

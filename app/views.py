@@ -351,11 +351,13 @@ class ExplorerView(pn.viewable.Viewer):
         tabs.param.watch(lambda e: tabs[e.new].scroll_to(0), "active")
         tabs.extend([pn.Column(view, name=name, scroll=True, sizing_mode="stretch_both")
                      for name, view in (
-                         ("Data", pn.Column(terms("V_o", "V_m", "θ"), self._data)),
+                         ("Data", pn.Column(terms("V_o", "V_m", "θ"), self._data,
+                                            sizing_mode="stretch_both")),
                          ("History matching", hm_tab),
                          ("Discrepancy", pn.Column(terms(
                              "δ", "scenario 1", "scenario 2", "scenario 3", "KOH", "N_s, N_φ"),
-                             self._discrepancy)), ("Metrics", metrics_tab),
+                             self._discrepancy, sizing_mode="stretch_both")),
+                         ("Metrics", metrics_tab),
                          ("Diagnostics", self._diagnostics),
                          ("Files", self.files_view()), ("Things to try", self.try_view()))])
 

@@ -232,3 +232,24 @@ def test_the_ess_card_shows_its_diagnostics_and_advice_uncovered(browser, server
         assert box is None or not overlaps(box, table.bounding_box()), toast.inner_text()
     assert log.errors == []
     page.close()
+
+
+@pytest.mark.parametrize("size", SIZES, ids=lambda s: f"{s[0]}x{s[1]}")
+def test_the_plots_fill_the_height_of_the_screen(browser, server, size):
+    """The plots were 300 px high whatever the screen: at 1920×1080 the lower half of the
+    Data and Discrepancy tabs stayed white. They now share the tab's height (at least
+    300 px each, the tab scrolls below that)."""
+    page, log = open_page(browser, server.url, size)
+    data = page.locator(".data-plot").first.bounding_box()
+    page.locator(".run-discrepancy button").click()
+    tab(page, "Discrepancy")
+    wait_idle(page)
+    page.wait_for_timeout(1000)
+    boxes = [b for b in (p.bounding_box() for p in page.locator(".disc-plot").all()) if b]
+    lowest = max(b["y"] + b["height"] for b in boxes)
+    assert min(b["height"] for b in boxes) >= 299
+    assert lowest >= size[1] - 20, (lowest, "white below the plots")      # filled
+    if size[1] >= 1000:
+        assert min(b["height"] for b in boxes) > 400 and data["height"] > 600
+    assert log.errors == []
+    page.close()

@@ -113,24 +113,24 @@ def check_shown_in(shown_in, name: str) -> None:
                          f"index ≥ 0; received {shown_in!r}.")
 
 
+def next_tick(fn) -> None:
+    """Call ``fn()``: served, on the session's next tick under Panel's ``hold`` (raw Bokeh
+    models changed inside a widget's or a tab's own event were refused, "_pending_writes
+    should be non-None", leaving a tab blank); else at once."""
+    doc = pn.state.curdoc
+    if doc is None or doc.session_context is None:
+        fn()
+        return
+
+    def run() -> None:
+        with pn.io.hold(doc):
+            fn()
+    doc.add_next_tick_callback(run)
+
+
 def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
-    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes active: served, on the next
-    tick under Panel's ``hold`` (raw Bokeh models changed inside the tab's own event were
-    now and then refused, "_pending_writes should be non-None", leaving the tab blank)."""
-    def shown(event) -> None:
-        if event.new != index:
-            return
-        doc = pn.state.curdoc
-        if doc is None or doc.session_context is None:
-            hook()
-            return
-
-        def run() -> None:
-            with pn.io.hold(doc):
-                hook()
-        doc.add_next_tick_callback(run)
-
-    tabs.param.watch(shown, "active")
+    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes active (:func:`next_tick`)."""
+    tabs.param.watch(lambda event: event.new == index and next_tick(hook), "active")
 
 
 class LivePanel(pn.viewable.Viewer):

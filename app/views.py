@@ -15,7 +15,7 @@ from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .files_view import FilesView
 from .glossary import terms_html
-from .live_figures import alert_box, live_text, when_shown
+from .live_figures import alert_box, live_text, next_tick, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
 from .progress_view import progress_panel
@@ -296,9 +296,10 @@ class ExplorerView(pn.viewable.Viewer):
         return pn.Column(intro, *cards, sizing_mode="stretch_width", max_width=900)
 
     def _try(self, exp) -> None:
-        """Run the card ``exp`` with its tab shown (from the top: see _fill_tabs)."""
+        """Run the card ``exp`` with its tab shown (from the top: see _fill_tabs); its
+        settings change the shown tab's figures, so not inside the button's own event."""
         self._tabs.active = [t.name for t in self._tabs].index(exp.tab)
-        self.state.try_experiment(exp.key)
+        next_tick(lambda: self.state.try_experiment(exp.key))
 
     def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes

@@ -253,3 +253,26 @@ def test_the_plots_fill_the_height_of_the_screen(browser, server, size):
         assert min(b["height"] for b in boxes) > 400 and data["height"] > 600
     assert log.errors == []
     page.close()
+
+
+def test_a_card_pressed_after_another_case_draws_its_plots(browser, server):
+    """After a beam-2d run, the KOH card switched the Discrepancy tab it shows to beam-1d
+    inside the button's own event: Bokeh refused the change ("_pending_writes should be
+    non-None"), the session stopped updating and the tab stayed blank."""
+    page, log = open_page(browser, server.url)
+    page.locator("select").first.select_option("beam-2d")
+    wait_idle(page)
+    page.locator(".run-discrepancy button").click()
+    tab(page, "Discrepancy")
+    wait_idle(page)
+    before = server.log.text().count("Traceback")
+    run_card(page, "koh", "Discrepancy")
+    end = time.monotonic() + 60
+    while sum(1 for p in page.locator(".disc-plot").all()
+              if (p.bounding_box() or {}).get("height")) < 4:     # z and δ of S1 and KOH
+        assert time.monotonic() < end, "the card's plots were not drawn"
+        page.wait_for_timeout(250)
+    assert page.locator("select").first.input_value() == "beam-1d"
+    assert server.log.text().count("Traceback") == before, server.log.text()[-3000:]
+    assert log.errors == []
+    page.close()

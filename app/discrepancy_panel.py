@@ -86,7 +86,7 @@ class DiscrepancyPanel(LivePanel):
         # diagnostics' warnings; its text changes, never its ``visible`` (a page re-layout).
         self._warnings, self._warnings_div = live_text("disc-warnings")
         self._warnings_div.text = EMPTY_HTML
-        self._head = pn.Column(sizing_mode="stretch_both")         # beam-2d: truth, slider
+        self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
         self._methods = pn.Row(sizing_mode="stretch_both")         # 1-D: one column each
         self._layout.objects = [self._bar, self._warnings, self._head, self._methods]
         self._case = None
@@ -113,9 +113,6 @@ class DiscrepancyPanel(LivePanel):
         self._fitted: set = set()                # cell keys whose axes have been set
         self._methods.objects = []
         self._show.visible = c.d_x == 1
-        # Only the box that holds the plots shares the tab's height (an empty one took half).
-        self._head.sizing_mode, self._methods.sizing_mode = (
-            ("stretch_both", "stretch_width") if c.d_x == 2 else ("stretch_width", "stretch_both"))
         # One output at a time (state.output): shear-5's five modes side by side were 20-40
         # plots, all redrawn on every change.
         if c.d_x == 1:
@@ -129,7 +126,7 @@ class DiscrepancyPanel(LivePanel):
                 format="0.0000")
             truth = true_delta_figure(c, "disc-truth")          # None: δ is unknown
             self._head_fixed = [slider] + ([] if truth is None
-                                           else [figure_pane(truth, stretch=True)])
+                                           else [figure_pane(truth)])
             self._head.objects = list(self._head_fixed)
         self._update()
 
@@ -153,14 +150,19 @@ class DiscrepancyPanel(LivePanel):
             for key in self._keys(method):
                 if self._wanted(key):
                     fig = self._figure(method, key)
-                    pane = figure_pane(fig.figure, stretch=True)
+                    pane = figure_pane(fig.figure, stretch=self._case.d_x == 1)
                     self._cells[method, key] = [pane, fig, None]
                     panes.append(pane)
             self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
-                *panes, sizing_mode="stretch_both", styles=SLOT)
+                *panes, sizing_mode=self._sizing(), styles=SLOT)
             added = True
         if added:
             self._place()
+
+    def _sizing(self) -> str:
+        """A method's group's sizing: 1-D, it shares the tab's height; beam-2d's rows do not
+        (a box once stretched by a child stayed stretched, with its height, for 1-D)."""
+        return "stretch_both" if self._case.d_x == 1 else "stretch_width"
 
     def _keys(self, method: Method) -> list:
         """The cell keys of a method's plots, in display order."""
@@ -185,7 +187,7 @@ class DiscrepancyPanel(LivePanel):
             fig = self._figure(method, key)
             self._draw(fig, key, payload)
             self._drawn.add(method)
-            pane = figure_pane(fig.figure, stretch=True)
+            pane = figure_pane(fig.figure, stretch=self._case.d_x == 1)
             self._cells[method, key] = [pane, fig, payload]
             added = True
         if not added and method in self._groups:
@@ -196,7 +198,7 @@ class DiscrepancyPanel(LivePanel):
             self._pending[method] = panes        # attached by _place, once drawn
         else:
             self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
-                *panes, sizing_mode="stretch_both")
+                *panes, sizing_mode=self._sizing())
 
     def _place(self) -> None:
         """Put the groups in method order into the layout: one assignment per change

@@ -258,7 +258,8 @@ def test_the_plots_fill_the_height_of_the_screen(browser, server, size):
 def test_a_card_pressed_after_another_case_draws_its_plots(browser, server):
     """After a beam-2d run, the KOH card switched the Discrepancy tab it shows to beam-1d
     inside the button's own event: Bokeh refused the change ("_pending_writes should be
-    non-None"), the session stopped updating and the tab stayed blank."""
+    non-None"), the session stopped updating and the tab stayed blank. Then, the plots
+    were drawn 1,200 px down, out of view."""
     page, log = open_page(browser, server.url)
     page.locator("select").first.select_option("beam-2d")
     wait_idle(page)
@@ -268,11 +269,19 @@ def test_a_card_pressed_after_another_case_draws_its_plots(browser, server):
     before = server.log.text().count("Traceback")
     run_card(page, "koh", "Discrepancy")
     end = time.monotonic() + 60
-    while sum(1 for p in page.locator(".disc-plot").all()
-              if (p.bounding_box() or {}).get("height")) < 4:     # z and δ of S1 and KOH
+    while page.locator("select").first.input_value() != "beam-1d":
+        assert time.monotonic() < end, "the card did not switch to beam-1d"
+        page.wait_for_timeout(250)
+    wait_idle(page)
+    while True:                     # z and δ of S1 and KOH, drawn
+        boxes = [b for b in (p.bounding_box() for p in page.locator(".disc-plot").all())
+                 if b and b["height"]]
+        if len(boxes) >= 4:
+            break
         assert time.monotonic() < end, "the card's plots were not drawn"
         page.wait_for_timeout(250)
-    assert page.locator("select").first.input_value() == "beam-1d"
+    # in view: an empty box stretched by beam-2d's rows kept 1,200 px above them
+    assert min(b["y"] for b in boxes) < 200, boxes
     assert server.log.text().count("Traceback") == before, server.log.text()[-3000:]
     assert log.errors == []
     page.close()

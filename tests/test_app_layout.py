@@ -67,20 +67,20 @@ def test_every_control_of_the_tab_is_seen_beside_its_plots(browser, server, size
     wait_idle(page)
     plot = page.locator(".disc-plot").first
     plot.wait_for(timeout=60_000)
-    page.wait_for_timeout(500)
+    page.wait_for_timeout(1500)                      # the cards fold after 0.6 s
     assert in_view(page, plot)
     scrolling = page.evaluate("() => document.scrollingElement.scrollHeight")
     assert scrolling <= size[1] + 1, "the whole page scrolls"
     assert controls_out_of_view(page, ".disc-controls") == []
     assert controls_out_of_view(page, ".band-choice") == []
     tab(page, "History matching")
-    page.wait_for_timeout(500)
+    page.wait_for_timeout(1500)                      # the cards fold after 0.6 s
     assert controls_out_of_view(page, ".hm-controls") == []
     assert in_view(page, page.locator(".hm-plot").first)
     for case in ("beam-2d", "shear-5"):        # longer descriptions, a stand-in warning
         page.locator("select").first.select_option(case)
         wait_idle(page)
-        page.wait_for_timeout(500)
+        page.wait_for_timeout(1500)                      # the cards fold after 0.6 s
         assert controls_out_of_view(page, ".hm-controls") == [], case
     assert log.errors == []
     page.close()

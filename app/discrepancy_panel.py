@@ -28,6 +28,7 @@ from .live_figures import (
     check_shown_in,
     figure_pane,
     live_text,
+    next_tick,
     show_pane,
     warnings_html,
     when_shown,
@@ -362,8 +363,14 @@ class DiscrepancyPanel(LivePanel):
             return                     # the warnings stay with the dimmed plots they concern
         advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
         text = warnings_html(advice) if shown else empty_html(s)
-        if self._warnings_div.text != text:
-            self._warnings_div.text = text
+        # On the next tick: a run's start (busy) comes inside its button's click event,
+        # where Bokeh refuses a change of a raw model ("_pending_writes should be non-None").
+        self._message = text
+        next_tick(self._show_message)
+
+    def _show_message(self) -> None:
+        if self._warnings_div.text != self._message:
+            self._warnings_div.text = self._message
 
     @property
     def message(self) -> str:

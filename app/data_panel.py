@@ -50,6 +50,7 @@ class DataPanel(LivePanel):
 
     state = param.ClassSelector(class_=ExplorerState)
     UPDATE_ON = ("v_m", "output")
+    SIZING = "stretch_both"                      # the plots fill the tab's height
 
     def _rebuild(self, *_):
         c = self.state.case
@@ -62,8 +63,8 @@ class DataPanel(LivePanel):
         if c.d_x == 2:
             figs = self._maps()
             self._update()                   # drawn before it is attached (see LivePanel)
-            self._layout.objects = [pn.Row(*[figure_pane(f) for f in figs],
-                                           sizing_mode="stretch_width")]
+            self._layout.objects = [pn.Row(*[figure_pane(f, stretch=True) for f in figs],
+                                           sizing_mode="stretch_both")]
             return
         self._layout.objects = []
         self._update()
@@ -129,8 +130,8 @@ class DataPanel(LivePanel):
         shown = self.state.output_index
         new_row = c.d_x == 1 and shown not in self._rows
         if new_row:
-            panes = [figure_pane(f) for f in self._curves(shown)]
-            self._rows[shown] = pn.Row(*panes, sizing_mode="stretch_width")
+            panes = [figure_pane(f, stretch=True) for f in self._curves(shown)]
+            self._rows[shown] = pn.Row(*panes, sizing_mode="stretch_both")
         for o, (source, x, z) in self._bars.items():
             replace_data(source, error_bars(x, z, float(half[o])))
         for fig, o in self._titled:

@@ -7,6 +7,7 @@ earlier plots stay, dimmed.
 
 from __future__ import annotations
 
+import html
 from typing import Any
 
 import numpy as np
@@ -16,6 +17,7 @@ from bokeh.models import Range1d
 
 from mdcore._pipeline import Method
 
+from .band_axes import band_extent
 from .data_panel import true_delta_figure
 from .live_figures import (
     CURRENT,
@@ -26,6 +28,7 @@ from .live_figures import (
     check_shown_in,
     figure_pane,
     live_text,
+    next_tick,
     show_pane,
     warnings_html,
     when_shown,
@@ -41,18 +44,25 @@ CSS = "disc-plot"
 #: Styles of the earlier plots while their recompute runs (see CURRENT and SLOT).
 STALE_OPACITY = "0.45"
 STALE = {"opacity": STALE_OPACITY, "visibility": "visible"}
-#: The axes of a band plot hold mean ± this many sd (the widest band offered), so a new
-#: band redraws only the band: the axes, and the plot's layout, stay put.
-WIDEST_BAND = 3
-#: Margin around the data of a plot, as a fraction of its span.
-PAD = 0.05
 #: New results keep the axes while their extent fits inside and spans at least this
 #: fraction of them (another seed, or N_s, seen at the same scale, and not re-laid-out).
 KEEP_SPAN = 0.6
 
 
-#: The line above the plots while none is shown (HTML).
+#: The line above the plots while none is shown and nothing runs (HTML).
 EMPTY_HTML = "Run history matching, then press <b>Run discrepancy</b>."
+
+
+def empty_html(s: ExplorerState) -> str:
+    """The line above the plots while none is shown: what is running, or what to press."""
+    if not s.busy:
+        return EMPTY_HTML
+    if s.task == "waves":
+        return "Running history matching; then press <b>Run discrepancy</b>."
+    matched = bool(s.waves) and s.waves[-1].status == "converged"
+    return ("Running the discrepancy methods; their bands appear here when they finish."
+            if matched else "Running history matching until it converges, then the "
+                            "discrepancy methods; their bands appear here.")
 
 
 class DiscrepancyPanel(LivePanel):
@@ -62,17 +72,24 @@ class DiscrepancyPanel(LivePanel):
     state = param.ClassSelector(class_=ExplorerState)
     quantity = param.Selector(objects=list(QUANTITIES), default="z and δ", label="Show")
 
-    UPDATE_ON = ("results", "band", "busy", "scenarios")
+    UPDATE_ON = ("results", "band", "busy", "scenarios", "waves")
+    SIZING = "stretch_both"                      # the plots fill the tab's height
 
     def _setup(self):
         self._show = pn.widgets.RadioButtonGroup.from_param(self.param.quantity)
+        # The band beside the bands it sets (it was below the sidebar's fold at 720 px).
+        band = self.state.param.band
+        self._bar = pn.Row(self._show, pn.pane.HTML(f"<label>{html.escape(band.label)}</label>",
+                                                    margin=(12, 5, 0, 25)),
+                           pn.widgets.RadioButtonGroup.from_param(band, name="",
+                                                                  css_classes=["band-choice"]))
         # One line above the plots: what to press while no plot is shown, else the
         # diagnostics' warnings; its text changes, never its ``visible`` (a page re-layout).
         self._warnings, self._warnings_div = live_text("disc-warnings")
         self._warnings_div.text = EMPTY_HTML
         self._head = pn.Column(sizing_mode="stretch_width")        # beam-2d: truth, slider
-        self._methods = pn.Row(sizing_mode="stretch_width")        # 1-D: one column each
-        self._layout.objects = [self._show, self._warnings, self._head, self._methods]
+        self._methods = pn.Row(sizing_mode="stretch_both")         # 1-D: one column each
+        self._layout.objects = [self._bar, self._warnings, self._head, self._methods]
         self._case = None
         self._truth = None
         #: (method, cell key) -> [pane, figure, payload last drawn]
@@ -109,7 +126,8 @@ class DiscrepancyPanel(LivePanel):
                 self.state.param.slice_x2, step=float(u2[1] - u2[0]) if u2.size > 1 else 0.001,
                 format="0.0000")
             truth = true_delta_figure(c, "disc-truth")          # None: δ is unknown
-            self._head_fixed = [slider] + ([] if truth is None else [figure_pane(truth)])
+            self._head_fixed = [slider] + ([] if truth is None
+                                           else [figure_pane(truth)])
             self._head.objects = list(self._head_fixed)
         self._update()
 
@@ -133,14 +151,19 @@ class DiscrepancyPanel(LivePanel):
             for key in self._keys(method):
                 if self._wanted(key):
                     fig = self._figure(method, key)
-                    pane = figure_pane(fig.figure)
+                    pane = figure_pane(fig.figure, stretch=self._case.d_x == 1)
                     self._cells[method, key] = [pane, fig, None]
                     panes.append(pane)
             self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
-                *panes, sizing_mode="stretch_width", styles=SLOT)
+                *panes, sizing_mode=self._sizing(), styles=SLOT)
             added = True
         if added:
             self._place()
+
+    def _sizing(self) -> str:
+        """A method's group's sizing: 1-D, it shares the tab's height; beam-2d's rows do not
+        (a box once stretched by a child stayed stretched, with its height, for 1-D)."""
+        return "stretch_both" if self._case.d_x == 1 else "stretch_width"
 
     def _keys(self, method: Method) -> list:
         """The cell keys of a method's plots, in display order."""
@@ -165,7 +188,7 @@ class DiscrepancyPanel(LivePanel):
             fig = self._figure(method, key)
             self._draw(fig, key, payload)
             self._drawn.add(method)
-            pane = figure_pane(fig.figure)
+            pane = figure_pane(fig.figure, stretch=self._case.d_x == 1)
             self._cells[method, key] = [pane, fig, payload]
             added = True
         if not added and method in self._groups:
@@ -176,7 +199,7 @@ class DiscrepancyPanel(LivePanel):
             self._pending[method] = panes        # attached by _place, once drawn
         else:
             self._groups[method] = (pn.Row if self._case.d_x == 2 else pn.Column)(
-                *panes, sizing_mode="stretch_width")
+                *panes, sizing_mode=self._sizing())
 
     def _place(self) -> None:
         """Put the groups in method order into the layout: one assignment per change
@@ -207,35 +230,8 @@ class DiscrepancyPanel(LivePanel):
         return self._ranges[key]
 
     def _extent(self, key, held: dict) -> tuple[tuple[float, float], tuple[float, float]]:
-        """x and y extents of cell ``key`` over the ``held`` results (shown or hidden,
-        :meth:`ExplorerState.held_results`) at the widest band, with the data (z) or the
-        true δ: fixed axes, so that neither a new band nor hiding a method rescales them,
-        and a narrower band looks narrower."""
-        s, c = self.state, self._case
-        xs, ys = [s.grid[:, 0]], []
-        for result in held.values():
-            on_grid = result.on_extra
-            if c.d_x == 2:
-                mean, var = on_grid.delta_mean[:, 0], on_grid.delta_var[:, 0]
-            else:
-                o, q = key
-                mean, var = ((on_grid.z_mean[:, o], on_grid.z_var[:, o]) if q == "z"
-                             else (on_grid.delta_mean[:, o], on_grid.delta_var[:, o]))
-            sd = WIDEST_BAND * np.sqrt(np.maximum(var, 0.0))
-            ys += [mean - sd, mean + sd]
-        if c.d_x == 1 and key[1] == "z":
-            xs += [c.X_train[:, 0], c.X_test[:, 0]]
-            ys += [c.z_train[:, key[0]], c.z_test[:, key[0]]]
-        elif self._truth is not None:                # a δ plot or the beam-2d slice
-            ys.append(self._truth[:, 0 if c.d_x == 2 else key[0]])
-
-        def padded(parts):
-            lo = float(min(np.min(p) for p in parts))
-            hi = float(max(np.max(p) for p in parts))
-            pad = PAD * (hi - lo) if hi > lo else max(abs(lo), 1.0) * PAD
-            return lo - pad, hi + pad
-
-        return padded(xs), padded(ys)
+        """x and y extents of cell ``key`` over the ``held`` results (:func:`band_extent`)."""
+        return band_extent(self.state.grid, self._case, self._truth, key, held)
 
     def _fit_ranges(self) -> None:
         """Set the shared axes of every band plot to :meth:`_extent`: at once for a new
@@ -361,14 +357,20 @@ class DiscrepancyPanel(LivePanel):
                 group.visible = visible
             if group.styles != styles:
                 group.styles = styles
-        if stale:
-            return                     # the warnings stay with the dimmed plots they concern
-        advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
         shown = any(g.visible and g.styles.get("visibility") != "hidden"
                     for g in self._groups.values())
-        text = warnings_html(advice) if shown else EMPTY_HTML
-        if self._warnings_div.text != text:
-            self._warnings_div.text = text
+        if stale and shown:
+            return                     # the warnings stay with the dimmed plots they concern
+        advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
+        text = warnings_html(advice) if shown else empty_html(s)
+        # On the next tick: a run's start (busy) comes inside its button's click event,
+        # where Bokeh refuses a change of a raw model ("_pending_writes should be non-None").
+        self._message = text
+        next_tick(self._show_message)
+
+    def _show_message(self) -> None:
+        if self._warnings_div.text != self._message:
+            self._warnings_div.text = self._message
 
     @property
     def message(self) -> str:

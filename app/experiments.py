@@ -70,6 +70,11 @@ class Experiment(NamedTuple):
     promise: str = ""
     expect: dict[str, Any] = {}
 
+    @property
+    def tab(self) -> str:
+        """The tab where the card shows its point: the first named in :attr:`look`."""
+        return self.look.split(" tab", 1)[0]
+
 
 def controls(case_name: str, **own) -> dict[str, Any]:
     """Every control a card depends on: the app's defaults for ``case_name`` (its V_m, the

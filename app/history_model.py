@@ -24,6 +24,18 @@ from .teaching import PRESETS, preset_controls, teaching_design
 
 #: Resolution of the implausibility map (per axis).
 MAP_RESOLUTION = 60
+#: Seconds of wave k = 1, 2, …: a fixed cost, plus per candidate a cost growing with the
+#: observed values (rows × outputs), × (2k − 1) as later waves also walk the candidates
+#: through the earlier waves' emulators. Fitted to the app's waves of the built-in cases
+#: (docs/performance.md, "Run estimates": bench/app_estimates.py).
+WAVE_FIXED, WAVE_PER_CANDIDATE, WAVE_PER_CANDIDATE_VALUE = 0.08, 1.8e-7, 7e-9
+
+
+def wave_seconds(n_obs: int, n_out: int, n_candidates: int, k: int) -> float:
+    """Rough seconds of wave ``k`` scoring ``n_candidates`` against ``n_obs`` rows of
+    ``n_out`` outputs (within about a factor of 2)."""
+    per = WAVE_PER_CANDIDATE + WAVE_PER_CANDIDATE_VALUE * n_obs * n_out
+    return WAVE_FIXED + n_candidates * per * (2 * k - 1)
 class ProblemKey(NamedTuple):
     """The settings that define a history-matching problem; a change starts a new match."""
 
@@ -98,7 +110,7 @@ class HistoryModel(CaseModel):
             "outputs; shown on the map) instead of T; ℓ_m correlates V_m between inputs "
             "(0: independent).")
     v_m_length = param.Number(
-        default=0.0, bounds=(0.0, 1e6), label="ℓ_m (V_m correlation length)",
+        default=0.0, bounds=(0.0, 1e6), label="V_m length ℓ_m",
         doc="Correlation length of the model discrepancy variance over the inputs (Matérn "
             "3/2, in input units); 0: V_m independent at each input. Used by the "
             "multivariate rule (the max rules use only V_m's diagonal).")
@@ -208,6 +220,16 @@ class HistoryModel(CaseModel):
                        "a changed setting starts a new history match.")
             return
         yield from self.wave_steps(problem, key, waves, lambda w: not until_done, report)
+
+    def waves_seconds(self, until_done: bool = True) -> float:
+        """Estimated seconds of the next wave, or (``until_done``) of every wave up to max
+        waves: an upper bound, as the match may converge sooner (:func:`wave_seconds`)."""
+        waves = self.waves if self._settings_key() == self._problem_key else ()
+        if waves and waves[-1].done:
+            return 0.0
+        last = self.max_waves if until_done else len(waves) + 1
+        return sum(wave_seconds(self.case.X_train.shape[0], self.case.n_out,
+                                self.n_candidates, k) for k in range(len(waves) + 1, last + 1))
 
     def next_wave(self) -> None:
         """Run one more wave (a changed setting starts a new history match)."""

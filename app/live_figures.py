@@ -8,8 +8,6 @@ the browser redraws and re-ranges the glyphs itself.
 
 from __future__ import annotations
 
-import html
-
 import numpy as np
 import panel as pn
 from bokeh.core.properties import value
@@ -28,6 +26,7 @@ from bokeh.plotting import figure
 
 from mdcore._validation import as_float_array, as_int, check_positive
 
+from .alerts import ALERT_COLORS, alert_box, warnings_html  # noqa: F401 (their old home)
 from .sources import blank, replace_data
 
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
@@ -43,9 +42,14 @@ def live_figure(title: str, xname: str, yname: str, css_class: str, **kw):
     return fig
 
 
-def figure_pane(fig, height: int = 300) -> pn.pane.Bokeh:
-    """A Bokeh figure in the layout, ``height`` px high, stretching to the width."""
-    return pn.pane.Bokeh(fig, height=height, sizing_mode="stretch_width")
+def figure_pane(fig, height: int = 300, stretch: bool = False) -> pn.pane.Bokeh:
+    """A Bokeh figure in the layout, ``height`` px high, stretching to the width; with
+    ``stretch``, at least ``height`` px, sharing the height of its layout (which must
+    stretch too) with the other stretching panes: plots that fill a tall screen."""
+    if not stretch:
+        return pn.pane.Bokeh(fig, height=height, sizing_mode="stretch_width")
+    fig.update(sizing_mode="stretch_both", height=None, min_height=height)
+    return pn.pane.Bokeh(fig, min_height=height, sizing_mode="stretch_both")
 
 
 def show_pane(pane, shown: bool) -> None:
@@ -109,24 +113,24 @@ def check_shown_in(shown_in, name: str) -> None:
                          f"index ≥ 0; received {shown_in!r}.")
 
 
+def next_tick(fn) -> None:
+    """Call ``fn()``: served, on the session's next tick under Panel's ``hold`` (raw Bokeh
+    models changed inside a widget's or a tab's own event were refused, "_pending_writes
+    should be non-None", leaving a tab blank); else at once."""
+    doc = pn.state.curdoc
+    if doc is None or doc.session_context is None:
+        fn()
+        return
+
+    def run() -> None:
+        with pn.io.hold(doc):
+            fn()
+    doc.add_next_tick_callback(run)
+
+
 def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
-    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes active: served, on the next
-    tick under Panel's ``hold`` (raw Bokeh models changed inside the tab's own event were
-    now and then refused, "_pending_writes should be non-None", leaving the tab blank)."""
-    def shown(event) -> None:
-        if event.new != index:
-            return
-        doc = pn.state.curdoc
-        if doc is None or doc.session_context is None:
-            hook()
-            return
-
-        def run() -> None:
-            with pn.io.hold(doc):
-                hook()
-        doc.add_next_tick_callback(run)
-
-    tabs.param.watch(shown, "active")
+    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes active (:func:`next_tick`)."""
+    tabs.param.watch(lambda event: event.new == index and next_tick(hook), "active")
 
 
 class LivePanel(pn.viewable.Viewer):
@@ -147,6 +151,8 @@ class LivePanel(pn.viewable.Viewer):
 
     #: State parameters whose change calls ``_update``.
     UPDATE_ON: tuple[str, ...] = ()
+    #: The layout's sizing mode ("stretch_both": its plots fill the height).
+    SIZING = "stretch_width"
 
     def __init__(self, *, shown_in: tuple | None = None, **params):
         """``shown_in = (tabs, index)``: the panel is tab ``index`` of ``tabs`` and is
@@ -155,7 +161,7 @@ class LivePanel(pn.viewable.Viewer):
         if shown_in is not None:
             check_shown_in(shown_in, "shown_in")
         super().__init__(**params)
-        self._layout = pn.Column(sizing_mode="stretch_width")
+        self._layout = pn.Column(sizing_mode=self.SIZING)
         self._case = None                        # the case drawn (set by _rebuild)
         self._setup()
         self._shown = lambda: True               # see defer_while_hidden
@@ -201,34 +207,6 @@ class LivePanel(pn.viewable.Viewer):
 
     def _update(self, *_) -> None:
         raise NotImplementedError
-
-
-#: Colours (text, background, border) of a message box, as Bootstrap's alerts.
-ALERT_COLORS = {"info": ("#055160", "#cff4fc", "#b6effb"),
-                "success": ("#0f5132", "#d1e7dd", "#badbcc"),
-                "warning": ("#664d03", "#fff3cd", "#ffecb5"),
-                "danger": ("#842029", "#f8d7da", "#f5c2c7")}
-
-
-def alert_box(inner_html: str, kind: str) -> str:
-    """``inner_html`` (escaped by the caller) in a message box of ``kind`` (a key of
-    :data:`ALERT_COLORS`), with a class ``mdcore-alert-<kind>``. The colour is in the HTML,
-    so a new kind changes no CSS class and no layout."""
-    if kind not in ALERT_COLORS:
-        raise ValueError(f"kind must be one of {sorted(ALERT_COLORS)}; received {kind!r}.")
-    color, background, border = ALERT_COLORS[kind]
-    return (f'<div class="mdcore-alert-{kind}" style="color:{color};background:{background};'
-            f'border:1px solid {border};border-radius:4px;padding:12px 16px;margin:0">'
-            f"{inner_html}</div>")
-
-
-def warnings_html(advice: list[str]) -> str:
-    """The diagnostics' warnings in a warning box (HTML, escaped), each "subject: text"
-    with its subject in bold; '' for none."""
-    if not advice:
-        return ""
-    return alert_box("".join("<p style='margin:4px 0'><b>{}</b>{}{}</p>".format(
-        *(html.escape(part) for part in w.partition(":"))) for w in advice), "warning")
 
 
 def live_text(css_class: str, height: int | None = None) -> tuple[pn.pane.Bokeh, Div]:

@@ -10,7 +10,7 @@ from mdcore._pipeline import Method, MethodResult
 from mdcore._study import PAPER
 
 from . import plots
-from .live_figures import figure_pane
+from .live_figures import figure_pane, warnings_html
 from .markup import markdown_text
 from .runs import method_order
 
@@ -71,7 +71,9 @@ def metrics_panel(s) -> pn.Column:
     table = pn.pane.DataFrame(df.drop(columns=list(DIAGNOSTICS)), index=False,
                               float_format="{:.4g}".format, sizing_mode="stretch_width",
                               css_classes=["metrics-table"])
-    objs = [chart, table]
+    # The tables first, the chart below: at 1280×720 the diagnostics a card points at
+    # (ESS φ, k̂) were below the fold, under a toast; the advice now sits beside them.
+    objs = [table]
     if Method.S3 in shown or Method.KOH in shown:
         rows = df["method"].isin([Method.S3.label, Method.KOH.label])
         objs += [pn.pane.Markdown("Diagnostics: importance weights of scenario 3 (ESS "
@@ -81,6 +83,11 @@ def metrics_panel(s) -> pn.Column:
                  pn.pane.DataFrame(df.loc[rows, ["method", "output", *DIAGNOSTICS]],
                                    index=False, float_format="{:.4g}".format,
                                    css_classes=["diagnostics-table"])]
+    advice = [w for m in sorted(shown, key=method_order) for w in shown[m].warnings]
+    if advice:
+        objs.append(pn.pane.HTML(warnings_html(advice), css_classes=["metrics-advice"],
+                                 sizing_mode="stretch_width"))
+    objs.append(chart)
     if Method.S3 in shown:
         o = s.output_index
         phi = plots.phi_posterior(s.case, shown[Method.S3], output=o)

@@ -20,7 +20,14 @@ from . import experiments, session
 from .experiments import KOH_CHAINS
 from .glossary import tooltip
 from .history_model import HistoryModel, Note, ProblemKey, WaveDone
-from .session_model import APP_MAX_N_PHI, APP_MAX_N_S, estimate_seconds, work_problem
+from .markup import html_text
+from .session_model import (
+    ANNOUNCE_SECONDS,
+    APP_MAX_N_PHI,
+    APP_MAX_N_S,
+    estimate_seconds,
+    work_problem,
+)
 
 _INTERACTIVE = Settings.interactive()
 #: Defaults sized for a sub-second scenario 1–3 update on beam-1d (see bench/bench_app.py).
@@ -70,15 +77,30 @@ class RunPlan(NamedTuple):
     waves_only: bool = False
 
 
+def method_seconds(case, settings: Settings, method: Method) -> float:
+    """Estimated seconds of one method's run (:func:`estimate_seconds`)."""
+    n, out = case.X_train.shape[0], case.n_out
+    return estimate_seconds(
+        n, out, koh_steps=settings.n_iter if method is Method.KOH else 0,
+        s3_pairs=settings.n_s * settings.n_phi if method is Method.S3 else 0,
+        proposal=settings.proposal)
+
+
 def discrepancy_job(plan: RunPlan, report, cancel):
     """The job of a run: its waves (:func:`waves_for`), then its methods
-    (:func:`methods_for`); yields :class:`Note`, :class:`WaveDone`, :class:`MethodsDone`."""
+    (:func:`methods_for`); yields :class:`Note`, :class:`WaveDone`, :class:`MethodsDone`.
+    The progress bar's share of each step is its estimated seconds."""
     too_much = work_problem(plan.case, plan.settings, plan.chosen)
     if too_much is not None:
         raise ValueError(too_much)
-    waves = yield from waves_for(plan, report)
+    hm = plan.model.waves_seconds() if plan.target is None and not plan.waves else 0.0
+    methods = 0.0 if plan.waves_only else sum(
+        method_seconds(plan.case, plan.settings, m) for m in plan.chosen)
+    share = hm / (hm + methods) if hm + methods > 0 else 1.0
+    waves = yield from waves_for(plan, lambda f, m: report(share * f, m))
     if not plan.waves_only:
-        yield from methods_for(plan, waves, report, cancel)
+        yield from methods_for(plan, waves, lambda f, m: report(share + (1 - share) * f, m),
+                               cancel)
 
 
 def waves_for(plan: RunPlan, report):
@@ -91,7 +113,7 @@ def waves_for(plan: RunPlan, report):
     if target is None or len(waves) < target:
         for done in plan.model.wave_steps(plan.problem, plan.key, waves,
                                            lambda w: target is not None and w.index >= target,
-                                           lambda f, m: report(0.3 * f, m)):
+                                           report):
             waves = done.waves
             yield done
         if target is not None and len(waves) != target:
@@ -105,7 +127,8 @@ def waves_for(plan: RunPlan, report):
 
 def methods_for(plan: RunPlan, waves: tuple, report, cancel):
     """Run the chosen methods not cached yet on ``waves``; yields :class:`MethodsDone`
-    (scenarios 1–3 before KOH's chain starts, so they show while it runs)."""
+    (scenarios 1–3 before KOH's chain starts, so they show while it runs). Each method's
+    share of the progress is its estimated seconds (:func:`method_seconds`)."""
     model, key, settings, seed = plan.model, plan.key, plan.settings, plan.seed
     hm = model.history_match_of(plan.problem, waves)
     if hm.status == "ruled_out":
@@ -113,7 +136,8 @@ def methods_for(plan: RunPlan, waves: tuple, report, cancel):
     keys = {m: ResultKey(key, len(waves), settings.key(m), seed) for m in plan.chosen}
     todo = [m for m in plan.chosen if not model.is_cached(keys[m])]
     hat = model.cached_phi_hat(ResultKey(key, len(waves), settings.key(Method.S1), seed))
-    base = 0.3 if plan.target is None else 0.0
+    cost = np.array([method_seconds(plan.case, settings, m) for m in todo])
+    start = np.concatenate([[0.0], np.cumsum(cost)]) / max(cost.sum(), 1e-12)
     done: list[MethodResult] = []
     for i, method in enumerate(todo):
         if method is Method.KOH and done:
@@ -123,7 +147,7 @@ def methods_for(plan: RunPlan, waves: tuple, report, cancel):
             plan.case, hm, method, settings, seed=seed, X_extra=plan.grid,
             log_params_hat=hat if method is Method.S2 else None,
             progress=lambda f, message, i=i: report(
-                base + (1 - base) * (i + f) / len(todo), message),
+                start[i] + (start[i + 1] - start[i]) * f, message),
             cancel=cancel)
         if method is Method.S1:
             hat = result.model.log_params_hat
@@ -181,7 +205,30 @@ class DiscrepancyModel(HistoryModel):
         return estimate_seconds(c.X_train.shape[0], c.n_out,
                                 koh_steps=steps if Method.KOH in self.scenarios else 0,
                                 s3_pairs=self.n_s * self.n_phi if Method.S3 in self.scenarios
-                                else 0)
+                                else 0, proposal=self.proposal)
+
+    def announcements(self) -> dict[str, dict[str, str]]:
+        """Label and tooltip (``description``) of each run button, by its CSS class
+        ("next-wave", "run-convergence", "run-discrepancy"): the estimated seconds in the
+        tooltip, and on the label when over :data:`ANNOUNCE_SECONDS`; and (key "koh") the
+        KOH chain's tooltip with both chains' estimates on this case."""
+        wave, waves = self.waves_seconds(False), self.waves_seconds()
+        out: dict = {}
+        for key, label, t, tip in (
+                ("next-wave", "Next wave", wave, ""),
+                ("run-convergence", "Run to convergence", wave,
+                 f" a wave, at most {waves:.1f} s up to max waves"),
+                ("run-discrepancy", "Run discrepancy", self.run_seconds(), " for the methods")):
+            out[key] = {"description": f"Estimated {t:.1f} s{tip}.", "label": label + (
+                f" (≈ {t:.0f} s)" if t > ANNOUNCE_SECONDS else "")}
+        c = self.case
+        koh = [estimate_seconds(c.X_train.shape[0], c.n_out, koh_steps=KOH_CHAINS[k]["n_iter"])
+               for k in KOH_CHAINS]
+        out["koh"] = (f"{self.param.koh_chain.doc} Estimated for KOH on {html_text(c.name)}: "
+                      + ", ".join(f"{k} ≈ {t:.1f} s" for k, t in zip(KOH_CHAINS, koh))
+                      + (" (over 3 s: the run button says so)."
+                         if max(koh) > ANNOUNCE_SECONDS else "."))
+        return out
 
     def _key(self, method: Method, settings: Settings | None = None, *,
              problem_key: ProblemKey | None = None, n_waves: int | None = None) -> ResultKey:

@@ -36,22 +36,28 @@ APP_LIMITS = {
            "(10⁶ pairs, the paper's largest; a minute or so); the command line takes more.",
 }
 APP_LIMITS["n_phi"] = APP_LIMITS["n_s"]
-#: Seconds per unit of work (above) of a KOH chain step and of a scenario-3 (θ, φ) pair,
-#: and a run's fixed cost: fitted to the app's runs on the built-in cases (paired timings
-#: in tests/test_app.py::test_estimate_seconds_matches_measured_runs).
+#: Seconds per unit of work (above) of a KOH chain step and of a scenario-3 (θ, φ) pair
+#: with the paper's prior proposal (each pair also joins the prediction), and a run's
+#: fixed cost. The adaptive proposal (the default) predicts from a bounded number of
+#: pairs, so each pair costs only its weight: SECONDS_PER_PAIR per pair and output plus
+#: SECONDS_PER_ADAPTIVE_WORK per unit. Fitted to the app's runs of the built-in cases
+#: (docs/performance.md, "Run estimates": bench/app_estimates.py).
 SECONDS_PER_KOH_WORK, SECONDS_PER_S3_WORK, SECONDS_FIXED = 1.3e-9, 5e-10, 0.4
+SECONDS_PER_PAIR, SECONDS_PER_ADAPTIVE_WORK = 1.4e-6, 6.2e-11
 #: A run estimated longer than this says so on its button before it starts.
 ANNOUNCE_SECONDS = 3.0
 
 
 def estimate_seconds(n_train: int, n_out: int, *, koh_steps: int = 0,
-                     s3_pairs: int = 0) -> float:
+                     s3_pairs: int = 0, proposal: str = "adaptive") -> float:
     """Rough seconds of a discrepancy run: each KOH chain step and each scenario-3 pair
-    factorises an ``n_train`` × ``n_train`` covariance per output (cubic in ``n_train``);
-    scenarios 1 and 2 are in the fixed cost. Within about a factor of 2."""
+    factorises an ``n_train`` × ``n_train`` covariance per output (cubic in ``n_train``;
+    ``proposal`` "adaptive" or "prior", see above); scenarios 1 and 2 are in the fixed
+    cost. Within about a factor of 2."""
     per = n_out * float(n_train) ** 3
-    return SECONDS_FIXED + per * (SECONDS_PER_KOH_WORK * koh_steps
-                                  + SECONDS_PER_S3_WORK * s3_pairs)
+    pair = (n_out * SECONDS_PER_PAIR + SECONDS_PER_ADAPTIVE_WORK * per
+            if proposal == "adaptive" else SECONDS_PER_S3_WORK * per)
+    return SECONDS_FIXED + SECONDS_PER_KOH_WORK * per * koh_steps + pair * s3_pairs
 
 
 def work_problem(case, settings: Settings, methods) -> str | None:

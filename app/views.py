@@ -1,10 +1,9 @@
-"""The page of the Model Discrepancy Explorer: it reads an :class:`ExplorerState`, draws it
-(tabs rebuilt when shown, or panels updated in place) and turns presses into state calls."""
+"""Views of the Model Discrepancy Explorer: they read an :class:`ExplorerState`, draw it
+(tabs rebuilt when shown, or panels updated in place) and turn presses into state calls."""
 
 from __future__ import annotations
 
 import html
-import time
 
 import panel as pn
 import param
@@ -13,41 +12,48 @@ from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
 from .diagnostics_view import DiagnosticsView
 from .discrepancy_panel import DiscrepancyPanel
-from .experiments import EXPERIMENTS, KOH_CHAINS
+from .experiments import EXPERIMENTS
 from .files_view import FilesView
 from .glossary import terms_html
-from .live_figures import alert_box, live_text, when_shown
+from .live_figures import alert_box, live_text, next_tick, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
-from .session_model import ANNOUNCE_SECONDS, estimate_seconds
+from .progress_view import progress_panel
 from .state import ExplorerState
 from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
-#: The busy line names a job's step once it has run this long (seconds), so that runs at
-#: the default sizes (a fraction of a second) do not flash it.
-SHOW_PROGRESS_AFTER = 0.5
-#: Height of the busy line (two lines of text), fixed so that a new message never
-#: changes the page's layout.
-STATUS_HEIGHT = 40
 DISCREPANCY_TAB = 2
-#: The sidebar's settings, in order: a state parameter, or (parameter, step, format) of a
-#: number field. Selectors are button groups, Integers number fields, except those shown
-#: by pn.Param (``max_waves``' slider, ``paper_sizes``' checkbox).
-HM_FIELDS = ("preset", ("v_m", 0.005, "0.[0000]"), ("threshold", 0.5, "0.[00]"), "rule",
-             ("v_m_length", 0.05, "0.[0000]"), "n_runs", ("n_candidates", 10_000), "max_waves",
-             ("convergence_ratio", 0.1, "0.[000]"))
-DISC_FIELDS = ("n_s", "n_phi", "paper_sizes", "scenarios", "proposal", "koh_chain", "band",
-               "seed")
-BY_PARAM = ("max_waves", "paper_sizes")
 
 
-def _status_html(busy: bool, task: str, detail: str = "") -> str:
-    """The busy line: "Idle." or "Running <task> … <detail>" (class mdcore-idle/-busy)."""
-    if not busy:
-        return '<span class="mdcore-idle">Idle.</span>'
-    tail = f" {html.escape(detail)}" if detail else ""
-    return f'<span class="mdcore-busy">Running <b>{html.escape(task)}</b> …{tail}</span>'
+def pair(a, b) -> pn.Row:
+    """Two controls side by side, sharing the sidebar's width."""
+    for w in (a, b):
+        w.sizing_mode = "stretch_width"
+    return pn.Row(a, b, sizing_mode="stretch_width", margin=0)
+
+
+#: Seconds after a tab switch when the sidebar's cards fold: BokehJS lays out the whole
+#: page again for a fold, which at once made the new tab blank 0.3-0.8 s longer.
+FOLD_AFTER = 0.6
+
+
+def later(seconds: float, fn) -> None:
+    """Call ``fn()`` ``seconds`` from now on the session's loop (at once, not served)."""
+    doc = pn.state.curdoc
+    if doc is None or doc.session_context is None:
+        fn()
+    else:
+        doc.add_timeout_callback(fn, int(1000 * seconds))
+
+
+def fold(cards, tab: int) -> None:
+    """Open the card of the controls of ``tab`` (History matching: tab 1; Discrepancy:
+    tabs 2-4) and fold the other; other tabs leave them as they are."""
+    want = {1: (False, True)}.get(tab, (True, False) if 2 <= tab <= 4 else None)
+    for card, collapsed in zip(cards, want or ()):
+        if card.collapsed != collapsed:
+            card.collapsed = collapsed
 
 
 def terms(*words: str) -> pn.pane.HTML:
@@ -69,8 +75,6 @@ class ExplorerView(pn.viewable.Viewer):
         # new case) just before their tab is shown: the History-matching ones were half
         # of a new session's 0.6 s of server time, for a tab not yet in view.
         self._tabs = pn.Tabs(dynamic=True, sizing_mode="stretch_both")
-        #: The live panels of the Data, History matching and Discrepancy tabs, and the
-        #: history match's status line (coloured by the last wave's status).
         self.data_view = DataPanel(state=self.state, shown_in=(self._tabs, 0))
         self.discrepancy_view = DiscrepancyPanel(state=self.state)
         self.discrepancy_view.prebuild_when_shown(self._tabs, DISCREPANCY_TAB)
@@ -90,10 +94,11 @@ class ExplorerView(pn.viewable.Viewer):
 
     def _notify_warning(self, *_):
         # A notice is a result's advice (a low ESS, a chain that did not mix), which the
-        # Discrepancy tab shows beside the bands: there, a toast would say it twice, and
+        # Discrepancy and Metrics tabs show beside the bands and the diagnostics: there, a
+        # toast would say it twice (and covered the tables a card points at), and
         # each toast makes Bokeh walk the whole document (0.17 s of the server's main
         # thread per beam-2d run). Elsewhere, the toast says that there is advice to read.
-        if self._tabs.active == DISCREPANCY_TAB:
+        if self._tabs.active in (DISCREPANCY_TAB, DISCREPANCY_TAB + 1):
             return
         if pn.state.notifications is not None:
             pn.state.notifications.warning(html_text(self.state.notice), duration=10_000)
@@ -104,88 +109,69 @@ class ExplorerView(pn.viewable.Viewer):
         w = pn.Column(pn.Param(s.param, parameters=["case_name"], show_name=False,
                                widgets={"case_name": pn.widgets.Select}),
                       self._output_choice(), sizing_mode="stretch_width", margin=0)
-        hm = pn.Column(*[self._field(f) for f in HM_FIELDS])
-        disc = pn.Column(*[self._field(f) for f in DISC_FIELDS])
-        next_btn, conv_btn, run_btn = buttons = [
-            pn.widgets.Button(label=label, color=color, css_classes=[css])
-            for label, color, css in (("Next wave", "primary", "next-wave"),
-                                      ("Run to convergence", "primary", "run-convergence"),
-                                      ("Run discrepancy", "success", "run-discrepancy"))]
-        for button, press in zip(buttons, ("next_wave", "run_to_convergence",
-                                           "run_discrepancy")):
-            button.on_click(lambda _, press=press: getattr(s, press)())
-        koh = disc.objects[DISC_FIELDS.index("koh_chain")]
-        self._announce(run_btn, koh.select(pn.widgets.TooltipIcon)[0])
-        # The buttons and the progress line come first, the settings follow in cards. The
-        # sidebar scrolls on its own, so reaching a control never scrolls the plots away
-        # (a projector's 1280×720). Nothing here changes on a tab switch: folding a card
-        # makes BokehJS lay out the whole page again.
+        num = self._number_input
+        # Two controls a row, so that a tab's card fits beside its plots at 1280×720.
+        hm = pn.Column(
+            pair(self._choice("preset"), pn.widgets.IntSlider.from_param(s.param.max_waves)),
+            pair(num("v_m", pn.widgets.FloatInput, step=0.005, format="0.[0000]"),
+                 num("threshold", pn.widgets.FloatInput, step=0.5, format="0.[00]")),
+            self._choice("rule"),
+            pair(num("v_m_length", pn.widgets.FloatInput, step=0.05, format="0.[0000]"),
+                 num("n_runs", pn.widgets.IntInput)),
+            pair(num("n_candidates", pn.widgets.IntInput, step=10_000),
+                 num("convergence_ratio", pn.widgets.FloatInput, step=0.1, format="0.[000]")))
+        next_btn = pn.widgets.Button(label="Next wave", color="primary")
+        conv_btn = pn.widgets.Button(label="Run to convergence", color="primary")
+        next_btn.on_click(lambda _: s.next_wave())
+        conv_btn.on_click(lambda _: s.run_to_convergence())
+        koh = self._choice("koh_chain")
+        disc = pn.Column(          # the band is chosen beside the bands (DiscrepancyPanel)
+            pair(num("n_s", pn.widgets.IntInput), num("n_phi", pn.widgets.IntInput)),
+            pair(pn.widgets.Checkbox.from_param(s.param.paper_sizes, margin=(25, 10, 0, 10)),
+                 num("seed", pn.widgets.IntInput)),
+            self._choice("scenarios", pn.widgets.CheckButtonGroup),
+            pair(self._choice("proposal"), koh))
+        run_btn = pn.widgets.Button(label="Run discrepancy", color="success")
+        run_btn.on_click(lambda _: s.run_discrepancy())
+        for b, label in ((next_btn, "next-wave"), (conv_btn, "run-convergence"),
+                         (run_btn, "run-discrepancy")):
+            b.css_classes = [label]
+        self._announce((next_btn, conv_btn, run_btn), koh.select(pn.widgets.TooltipIcon)[0])
+        # The buttons and the progress line come first, the settings follow in cards: the
+        # History matching tab's card is open beside it and the other folded, and the
+        # same for the Discrepancy, Metrics and Diagnostics tabs, so at 1280×720 every
+        # control of the tab shown is in view. The sidebar scrolls on its own.
+        progress, cancel = progress_panel(self.state)
+        cards = [pn.Card(hm, title="History matching", sizing_mode="stretch_width",
+                         css_classes=["hm-controls"]),
+                 pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width",
+                         css_classes=["disc-controls"])]
+        self._tabs.param.watch(lambda e: later(FOLD_AFTER, lambda: fold(cards, e.new)),
+                               "active")
         return pn.Column(
-            pn.pane.Markdown("**Model Discrepancy Explorer** · Gardner et al., MSSP 2021: "
-                             "history matching, then GP discrepancy (scenarios 1–3), "
-                             "against the joint Kennedy–O'Hagan baseline (koh).",
-                             styles={"font-size": "0.9em"}),
-            w, self._case_info, pn.Row(next_btn, conv_btn), run_btn, self._progress_panel(),
-            pn.Card(hm, title="History matching", sizing_mode="stretch_width",
-                    css_classes=["hm-controls"]),
-            pn.Card(disc, title="Discrepancy", sizing_mode="stretch_width",
-                    css_classes=["disc-controls"]),
-            width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
+            w, self._case_info, pn.Row(next_btn, conv_btn), pn.Row(run_btn, cancel), progress,
+            *cards, width=SIDEBAR_WIDTH, sizing_mode="stretch_height", scroll=True,
             css_classes=["mdcore-sidebar"])
 
-    def _announce(self, run_btn, koh_icon) -> None:
-        """Say the estimated time of the next run on ``run_btn`` when it is over
-        :data:`ANNOUNCE_SECONDS`, and KOH's for both chains on this case in ``koh_icon``."""
-        s = self.state
-
+    def _announce(self, buttons, koh_icon) -> None:
+        """The state's estimates (:meth:`ExplorerState.announcements`) on ``buttons`` (by
+        CSS class) and in ``koh_icon``, kept up to date."""
         def show(*_):
-            t = s.run_seconds()
-            run_btn.label = "Run discrepancy" + (f" (≈ {t:.0f} s)" if t > ANNOUNCE_SECONDS
-                                                 else "")
-            run_btn.description = f"Estimated {t:.1f} s for the chosen methods."
-            koh = [estimate_seconds(s.case.X_train.shape[0], s.case.n_out,
-                                    koh_steps=KOH_CHAINS[c]["n_iter"]) for c in KOH_CHAINS]
-            koh_icon.value = (f"{s.param.koh_chain.doc} Estimated for KOH on "
-                              f"{html_text(s.case.name)}: "
-                              + ", ".join(f"{c} ≈ {t:.1f} s" for c, t in zip(KOH_CHAINS, koh))
-                              + (" (over 3 s: the run button says so)."
-                                 if max(koh) > ANNOUNCE_SECONDS else "."))
+            said = self.state.announcements()
+            for b in buttons:
+                b.param.update(**said[b.css_classes[0]])
+            koh_icon.value = said["koh"]
 
-        s.param.watch(show, ["case", "scenarios", "koh_chain", "n_s", "n_phi"])
+        self.state.param.watch(show, ["case", "scenarios", "koh_chain", "n_s", "n_phi",
+                                      "proposal", "waves", "n_candidates", "max_waves"])
         show()
 
-    def _field(self, field):
-        """The control of a :data:`HM_FIELDS` entry: a labelled button group for a selector
-        (check buttons for a list), pn.Param's widget for :data:`BY_PARAM`, else a number
-        field whose typed value the parameter checks: a value it refuses (outside the hard
-        bounds, empty, wrong type) becomes one notification saying what is allowed, and the
-        field reverts. Soft bounds are only a hint (T = 7, V_m = 0.5 are accepted)."""
-        s = self.state
-        name, *kw = (field,) if isinstance(field, str) else field
-        p = s.param[name]
-        if name in BY_PARAM:
-            return pn.Param(s.param, parameters=[name], show_name=False)
-        if isinstance(p, param.Selector):
-            cls = (pn.widgets.CheckButtonGroup if isinstance(p, param.ListSelector)
-                   else pn.widgets.RadioButtonGroup)
-            return self._labelled(name, cls.from_param(p, name="", description=None,
-                                                       sizing_mode="stretch_width"))
-        cls = pn.widgets.IntInput if isinstance(p, param.Integer) else pn.widgets.FloatInput
-        widget = cls(label=p.label, value=getattr(s, name), description=p.doc,
-                     **dict(zip(("step", "format"), kw)))
-
-        def push(event):
-            if event.new == getattr(s, name):
-                return
-            try:
-                setattr(s, name, event.new)
-            except ValueError as exc:
-                s.reject(name, event.new, exc)
-                widget.value = getattr(s, name)
-
-        widget.param.watch(push, "value")
-        s.param.watch(lambda e: setattr(widget, "value", e.new), name)
-        return widget
+    def _choice(self, name: str, cls=pn.widgets.RadioButtonGroup):
+        """A button group for the state's parameter ``name``, with its label above it (a
+        bare group of buttons does not say what it chooses)."""
+        p = self.state.param[name]
+        widget = cls.from_param(p, name="", description=None, sizing_mode="stretch_width")
+        return self._labelled(name, widget)
 
     def _output_choice(self) -> pn.Column:
         """Buttons for the output the tabs show (``state.output``), under the case: only for
@@ -219,49 +205,40 @@ class ExplorerView(pn.viewable.Viewer):
             if p.doc else label
         return pn.Column(head, widget, sizing_mode="stretch_width", margin=0)
 
+    def _number_input(self, name: str, cls, **kw):
+        """A number field for the state's parameter ``name`` whose typed value the parameter
+        checks: a value it refuses (outside the hard bounds, empty, wrong type) becomes one
+        notification saying what is allowed, and the field reverts. The parameter's soft
+        bounds are only a hint, so values beyond them (T = 7, V_m = 0.5) are accepted."""
+        s = self.state
+        p = s.param[name]
+        field = cls(label=p.label, value=getattr(s, name), description=p.doc, **kw)
+
+        def push(event):
+            if event.new == getattr(s, name):
+                return
+            try:
+                setattr(s, name, event.new)
+            except ValueError as exc:
+                s.reject(name, event.new, exc)
+                field.value = getattr(s, name)
+
+        field.param.watch(push, "value")
+        s.param.watch(lambda e: setattr(field, "value", e.new), name)
+        return field
+
     @param.depends("state.case")
     def _case_info(self):
         c = self.state.case
         text = markdown_text(c.description)      # an upload's file name, a case file's text
+        # At most four lines, the rest scrolls: a long description pushed the controls of
+        # the tab below the fold at 1280×720.
+        style = {"font-size": "0.85em", "max-height": "5.6em", "overflow-y": "auto"}
         if c.stand_in:                 # synthetic data standing in for unpublished ones
-            return pn.pane.Alert(text, alert_type="warning",
-                                 styles={"font-size": "0.85em"}, css_classes=["stand-in"])
-        return pn.pane.Markdown(text, styles={"font-size": "0.85em"},
-                                css_classes=["case-description"])
-
-    def _progress_panel(self):
-        """Busy line, progress bar and a Cancel button (disabled between jobs), always
-        there: a job changes only the bar's value and the fixed-height line's text, never
-        the layout. The line names the step after :data:`SHOW_PROGRESS_AFTER` seconds."""
-        text = pn.pane.HTML(_status_html(False, ""), height=STATUS_HEIGHT,
-                            sizing_mode="stretch_width",
-                            styles={"overflow": "hidden", "font-size": "0.9em"})
-        bar = pn.indicators.Progress(value=0, max=100, sizing_mode="stretch_width",
-                                     css_classes=["job-progress-bar"])
-        cancel = pn.widgets.Button(label="Cancel", color="warning", disabled=True,
-                                   css_classes=["cancel-job"])
-        row = pn.Row(bar, cancel, sizing_mode="stretch_width", css_classes=["job-progress"])
-        cancel.on_click(lambda _: self.state.cancel())
-        since: list[float | None] = [None]          # when the current job started
-
-        def update(*_):
-            s = self.state
-            if not s.busy:
-                since[0] = None
-            elif since[0] is None:
-                since[0] = time.monotonic()
-                doc = pn.state.curdoc            # look again then, progress or not
-                if doc is not None and doc.session_context is not None:
-                    doc.add_timeout_callback(update, int(1000 * SHOW_PROGRESS_AFTER) + 20)
-            show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
-            text.object = _status_html(s.busy, s.task, s.progress_message if show else "")
-            if cancel.disabled == s.busy:
-                cancel.disabled = not s.busy
-            bar.value = int(100 * s.progress) if s.busy else 0
-
-        self.state.param.watch(update, ["busy", "progress", "task", "progress_message"])
-        update()
-        return pn.Column(text, row, sizing_mode="stretch_width")
+            style.update({"background": "#fff3cd", "color": "#664d03", "padding": "0 6px"})
+        return pn.pane.Markdown(text, styles=style, margin=(0, 10),
+                                stylesheets=["p { margin: 2px 0; }"], css_classes=[
+            "stand-in" if c.stand_in else "case-description"])
 
     # --- tabs --------------------------------------------------------------------------
     @property
@@ -270,13 +247,16 @@ class ExplorerView(pn.viewable.Viewer):
         return self._status_div.text
 
     def _show_status(self, *_):
-        """New text, coloured by the last wave's status, in the same line (a new pane
-        re-laid-out the page)."""
-        w = self.state.waves
-        kind = {"converged": "success", "max_waves": "warning",
-                "ruled_out": "danger"}.get(w[-1].status, "info") if w else "info"
+        """New text and colour in the same line (a new pane re-laid-out the page)."""
         self._status_div.text = alert_box(html.escape(self.state.status or "No waves yet."),
-                                          kind)
+                                          self._alert())
+
+    def _alert(self):
+        w = self.state.waves
+        if not w:
+            return "info"
+        return {"converged": "success", "max_waves": "warning",
+                "ruled_out": "danger"}.get(w[-1].status, "info")
 
     @param.depends("state.results")              # filtered by the scenarios already
     def metrics_view(self):
@@ -293,13 +273,23 @@ class ExplorerView(pn.viewable.Viewer):
         for exp in EXPERIMENTS:
             button = pn.widgets.Button(label="Run it", color="primary",
                                        css_classes=[f"try-{exp.key}"], width=120)
-            button.on_click(lambda _, k=exp.key: self.state.try_experiment(k))
+            button.on_click(lambda _, e=exp: self._try(e))
             cards.append(pn.Column(
                 pn.pane.Markdown(f"**{exp.title}**\n\n**Predict first:** {exp.predict} "
                                  f"*Then:* {exp.then}", margin=(0, 10)),
                 button, styles={"border-bottom": "1px solid #ddd"},
                 sizing_mode="stretch_width"))
-        return pn.Column(*cards, sizing_mode="stretch_width", max_width=900)
+        intro = pn.pane.Markdown(
+            "**Model Discrepancy Explorer** · Gardner et al., MSSP 2021: history matching, "
+            "then GP discrepancy (scenarios 1–3), against the joint Kennedy–O'Hagan baseline "
+            "(koh). Each card sets every control it needs, runs, and shows its tab.")
+        return pn.Column(intro, *cards, sizing_mode="stretch_width", max_width=900)
+
+    def _try(self, exp) -> None:
+        """Run the card ``exp`` with its tab shown (from the top: see _fill_tabs); its
+        settings change the shown tab's figures, so not inside the button's own event."""
+        self._tabs.active = [t.name for t in self._tabs].index(exp.tab)
+        next_tick(lambda: self.state.try_experiment(exp.key))
 
     def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes
@@ -347,14 +337,18 @@ class ExplorerView(pn.viewable.Viewer):
                              "coverage = share of test points (or of the true δ) inside the "
                              "band."),
             metrics, sizing_mode="stretch_width")
-        # Each tab scrolls on its own, below its header, beside the sidebar.
-        tabs.extend([(name, pn.Column(view, scroll=True, sizing_mode="stretch_both"))
+        # Each tab scrolls on its own, below its header, beside the sidebar; shown from its
+        # top (kept scrolled down, a card's plot was out of view).
+        tabs.param.watch(lambda e: tabs[e.new].scroll_to(0), "active")
+        tabs.extend([pn.Column(view, name=name, scroll=True, sizing_mode="stretch_both")
                      for name, view in (
-                         ("Data", pn.Column(terms("V_o", "V_m", "θ"), self.data_view)),
+                         ("Data", pn.Column(terms("V_o", "V_m", "θ"), self.data_view,
+                                            sizing_mode="stretch_both")),
                          ("History matching", hm_tab),
                          ("Discrepancy", pn.Column(terms(
                              "δ", "scenario 1", "scenario 2", "scenario 3", "KOH", "N_s, N_φ"),
-                             self.discrepancy_view)), ("Metrics", metrics_tab),
+                             self.discrepancy_view, sizing_mode="stretch_both")),
+                         ("Metrics", metrics_tab),
                          ("Diagnostics", self._diagnostics),
                          ("Files", self.files_view()), ("Things to try", self.try_view()))])
 

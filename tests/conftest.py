@@ -1,5 +1,6 @@
 import importlib.util
 import os
+from typing import NamedTuple
 
 import numpy as np
 import pytest
@@ -41,3 +42,31 @@ def missing(reason: str) -> None:
 @pytest.fixture
 def rng():
     return np.random.default_rng(12345)
+
+
+class Served(NamedTuple):
+    """``panel serve app/main.py`` of a module's browser tests (see :func:`server`)."""
+
+    proc: object             # the subprocess.Popen
+    url: str
+    log: object              # browser.ServerLog: the server's output
+
+
+@pytest.fixture(scope="module")
+def server():
+    """The app served on a free port for one test module's browser tests (skipped, or
+    failed under ``MDCORE_REQUIRE_BROWSER=1``, without Chromium and Playwright)."""
+    from browser import require_browser, serve_app
+    require_browser()
+    proc, url, log = serve_app()
+    yield Served(proc, url, log)
+    proc.terminate()
+    proc.wait(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """Debian's headless Chromium for one test module, closed afterwards."""
+    from browser import chromium, require_browser
+    require_browser()
+    yield from chromium()

@@ -18,27 +18,13 @@ import time
 from pathlib import Path
 
 import pytest
-from browser import PageLog, chromium, require_browser, serve_app, tab
+from browser import PageLog, tab
 
 #: CPU seconds per second the server may use in the second from 1 s after the click.
 IDLE_CPU = 0.3
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"),
                                 reason="reads the server's CPU time from /proc")
-
-
-@pytest.fixture(scope="module")
-def server():
-    require_browser()
-    proc, url, log = serve_app()
-    yield proc, url, log
-    proc.terminate()
-    proc.wait(timeout=10)
-
-
-@pytest.fixture(scope="module")
-def browser(server):
-    yield from chromium()
 
 
 def cpu(pid: int) -> float:

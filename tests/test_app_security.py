@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
-from browser import CHROMIUM, FLAGS, PageLog, chromium, require_browser, serve_app, tab
+from browser import CHROMIUM, FLAGS, PageLog, serve_app, tab
 
 
 def expect(locator):
@@ -46,20 +46,6 @@ PAGE_TEXT = """() => {
   text(document.body);
   return {text: parts.join(' '), images};
 }"""
-
-
-@pytest.fixture(scope="module")
-def server():
-    require_browser()
-    proc, url, log = serve_app()
-    yield url, log
-    proc.terminate()
-    proc.wait(timeout=10)
-
-
-@pytest.fixture(scope="module")
-def browser(server):
-    yield from chromium()
 
 
 def open_app(browser, url):
@@ -137,7 +123,7 @@ def test_hostile_names_are_shown_as_text_and_run_nothing(browser, server, tmp_pa
     ``case.measurements_file``, a CSV whose *file name* is that markup, and one whose
     header is: each is refused or taken with the markup shown literally (notification,
     case list, case description), no script runs and no dialog opens."""
-    url, _log = server
+    url = server.url
     page, log, dialogs = open_app(browser, url)
     tab(page, "Files")
 
@@ -190,7 +176,7 @@ def test_the_page_refuses_inline_event_handlers(browser, server):
     """The Content-Security-Policy, the second line of defence: markup put into the page
     by its own script (as escaping gone wrong would) cannot run a handler, and nothing
     of the app is blocked by the policy (no console error on any tab)."""
-    url, _log = server
+    url = server.url
     page, log, dialogs = open_app(browser, url)
     policy = page.locator("meta[http-equiv='Content-Security-Policy']")
     assert policy.count() == 1
@@ -310,7 +296,7 @@ def test_uploads_through_the_page_chunked_again_and_over_the_limits(browser, ser
     from mdcore._cases import MAX_ROWS
     from mdcore_app.session import MAX_UPLOAD_BYTES
     from mdcore_app.upload import CHUNK_BYTES
-    url, server_log = server
+    url, server_log = server.url, server.log
     page, log, dialogs = open_app(browser, url)
     tab(page, "Files")
     select = page.locator("select").first
@@ -399,7 +385,7 @@ def test_a_forged_websocket_origin_is_refused(server):
     """A websocket whose Origin is another site (a page elsewhere that talks to the app)
     gets 403; the app's own page origin is accepted."""
     from urllib.parse import urlparse
-    url, _log = server
+    url = server.url
     port = urlparse(url).port
     for origin in (f"http://evil.example:{port}", "http://evil.example",
                    f"http://localhost.evil.example:{port}", "null"):

@@ -345,10 +345,15 @@ def test_showing_the_tab_builds_the_plots_ahead_and_a_run_only_fills_them():
     # Blank (NaN, nothing drawn) at the plotting grid: the run's data come as patches.
     assert all(np.isnan(source(f, "mean")["mean"]).all() and
                len(source(f, "mean")["mean"]) == s.grid.shape[0] for f in figures(root).values())
-    s.busy = True                                       # the first run computes: still hidden
+    s.param.update(busy=True, task="discrepancy")     # the first run computes: still hidden
     assert all(g.styles == SLOT for g in panel._groups.values())
+    # ... and the line says what runs, not "Run history matching" (the match converged)
+    assert panel.message.startswith("Running the discrepancy methods")
+    s.param.update(busy=False, task="")
+    s.param.update(busy=True, task="waves")
+    assert panel.message.startswith("Running history matching")
+    s.param.update(busy=False, task="")
     assert panel.message == EMPTY_HTML
-    s.busy = False
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         s.run_discrepancy()

@@ -119,6 +119,13 @@ def test_every_card_sets_every_control_and_names_the_marks_right():
         assert "truth (the star)" not in words and "the star" not in words.replace(
             "θ_MAP (the star)", "")                           # the star is θ_MAP, × the truth
     assert CARDS["rule-out"].settings["v_m"] == 0.014
+    import panel as pn  # each card's tab is one of the app's tabs
+
+    from mdcore_app.state import ExplorerState
+    from mdcore_app.views import ExplorerView
+    (tabs,) = ExplorerView(state=ExplorerState()).__panel__().select(pn.Tabs)
+    assert {c.tab for c in EXPERIMENTS} == {"History matching", "Discrepancy", "Metrics"}
+    assert {c.tab for c in EXPERIMENTS} <= {t.name for t in tabs}
     with pytest.raises(ValueError, match="unknown control"):
         controls("beam-1d", vm=0.01)
 

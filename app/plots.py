@@ -11,6 +11,7 @@ import numpy as np
 from bokeh.models import ColumnDataSource, FixedTicker, HoverTool, LegendItem, Range1d
 from bokeh.palettes import Category10
 
+from mdcore._export import with_unit
 from mdcore._pipeline import Method
 
 from .live_figures import below_legend, live_figure
@@ -29,7 +30,8 @@ PLOT = {"responsive": True, "height": 300, "min_width": 200, "tools": ["hover"],
 
 
 def axis_label(name: str, unit: str) -> str:
-    return f"{name} [{unit}]" if unit and unit != "-" else name
+    """``name [unit]``, the unit said once (as in the CSV headings); "-" means no unit."""
+    return with_unit(name, "" if unit == "-" else unit)
 
 
 def input_span(case, d: int) -> tuple[float, float]:

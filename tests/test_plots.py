@@ -216,3 +216,16 @@ def test_koh_posterior_is_the_chain_against_the_prior_and_the_true_theta(beam):
         assert np.array_equal(column(truth, name), [case.theta_true[j]] * 2)
         ty = column(truth, "density")
         assert ty[0] == 0.0 and ty[1] >= max(dens.max(), ys.max())
+
+
+def test_axis_labels_say_a_unit_once():
+    # beam-lab's output column is "deflection_mm" in mm: the axis read "deflection_mm [mm]"
+    from pathlib import Path
+
+    from mdcore import load_case_file
+
+    lab = load_case_file(Path(__file__).parents[1] / "examples/beam_lab/beam_lab.toml")
+    assert plots.axis_label(lab.output_names[0], lab.output_units[0]) == "deflection_mm"
+    assert plots.axis_label(lab.x_names[0], lab.x_units[0]) == "position_m"
+    assert plots.axis_label("E", "GPa") == "E [GPa]"
+    assert plots.axis_label("ratio", "-") == "ratio"

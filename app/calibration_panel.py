@@ -1,7 +1,7 @@
 """What history matching calibrated, on the History matching tab: θ_MAP in numbers, the
 weighted θ posterior (a histogram per parameter) and the simulator at θ_MAP against the
 data per output (the paper's Fig. 12 for shear-5). Built once per case; a new wave only
-replaces the arrays (HoloViews rebuilt shear-5's eight plots per wave: about 2 s)."""
+replaces the arrays (HoloViews rebuilt every plot per wave: docs/performance.md)."""
 
 from __future__ import annotations
 

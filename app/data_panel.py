@@ -1,6 +1,6 @@
 """The Data tab (the paper's Fig. 1): the measurements with their ±2√(V_o + V_m) bars, the
 simulator at the true θ and the true discrepancy δ, built once per case in Bokeh; a new V_m
-only moves the bars (HoloViews rebuilt the layout: 0.4 s per new session on beam-1d)."""
+only moves the bars (HoloViews rebuilt the layout: docs/performance.md)."""
 
 from __future__ import annotations
 

@@ -34,7 +34,7 @@ def pair(a, b) -> pn.Row:
 
 
 #: Seconds after a tab switch when the sidebar's cards fold: BokehJS lays out the whole
-#: page again for a fold, which at once made the new tab blank 0.3-0.8 s longer.
+#: page again for a fold, which at once kept the new tab blank longer (docs/performance.md).
 FOLD_AFTER = 0.6
 
 

@@ -29,7 +29,10 @@ PLOT = {"responsive": True, "height": 300, "min_width": 200, "tools": ["hover"],
 
 
 def axis_label(name: str, unit: str) -> str:
-    return f"{name} [{unit}]" if unit and unit != "-" else name
+    """"name [unit]", the unit said once ("deflection_mm", "mm": "deflection [mm]")."""
+    if not unit or unit == "-":
+        return name
+    return f"{name.removesuffix('_' + unit) or name} [{unit}]"
 
 
 def input_span(case, d: int) -> tuple[float, float]:

@@ -216,3 +216,17 @@ def test_koh_posterior_is_the_chain_against_the_prior_and_the_true_theta(beam):
         assert np.array_equal(column(truth, name), [case.theta_true[j]] * 2)
         ty = column(truth, "density")
         assert ty[0] == 0.0 and ty[1] >= max(dens.max(), ys.max())
+
+
+def test_an_axis_label_gives_its_unit_once():
+    """Issue 41: beam-lab's case file names its columns ``position_m`` and
+    ``deflection_mm``; the axes read "deflection_mm [mm]"."""
+    from pathlib import Path
+
+    from mdcore import load_case_file
+    case = load_case_file(Path(__file__).resolve().parent.parent / "examples" / "beam_lab"
+                          / "beam_lab.toml")
+    assert plots.axis_label(case.output_names[0], case.output_units[0]) == "deflection [mm]"
+    assert plots.axis_label(case.x_names[0], case.x_units[0]) == "position [m]"
+    assert plots.axis_label("tip deflection", "mm") == "tip deflection [mm]"
+    assert plots.axis_label("E", "-") == "E" and plots.axis_label("nu", "") == "nu"

@@ -305,7 +305,8 @@ WIDE_TITLES = """() => {
 @pytest.mark.parametrize("case", ["beam-1d", "shear-5"])
 def test_no_plot_title_is_cut_off_with_four_methods_at_1280(browser, server, case):
     """Issue 41's "no title is clipped": with KOH as a fourth column at 1280×720 the z
-    row read "Scenario 1: z (bias-correctec" (shear-5: "Scenario 1: z, ω1 (bias-corre")."""
+    row read "Scenario 1: z (bias-correctec" (shear-5: "Scenario 1: z, ω1 (bias-corre"),
+    and the Diagnostics tab "Left-out runs: emulator against simu" on every case."""
     page, log = open_page(browser, server.url)
     if case != "beam-1d":
         page.locator("select").first.select_option(case)
@@ -315,6 +316,10 @@ def test_no_plot_title_is_cut_off_with_four_methods_at_1280(browser, server, cas
     tab(page, "Discrepancy")
     wait_idle(page)
     page.locator(".disc-plot canvas").nth(7).wait_for(timeout=60_000)   # z, δ of four
+    page.wait_for_timeout(1500)
+    assert page.evaluate(WIDE_TITLES) == []
+    tab(page, "Diagnostics")      # "Left-out runs: emulator against simu", and others
+    page.locator(".diag-plot canvas").nth(5).wait_for(timeout=60_000)
     page.wait_for_timeout(1500)
     assert page.evaluate(WIDE_TITLES) == []
     assert log.errors == []

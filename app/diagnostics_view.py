@@ -118,8 +118,7 @@ def loo_figures(case, numbers: Numbers, o: int) -> list:
     """Per wave: LOO prediction against the simulator (wrongly ruled-out runs crossed), and
     every wave's standardised errors with the ±3 lines and N(0, 1)."""
     name = axis_label(case.output_names[o], case.output_units[o])
-    fig = _fig("Left-out runs: emulator against simulator", f"simulator: {name}",
-               f"emulator without the run: {name}")
+    fig = _fig("Left-out runs", f"simulator: {name}", f"emulator: {name}")
     items, lo, hi = [], np.inf, -np.inf
     for v, y in zip(numbers.validations, numbers.simulated):
         sim, loo, err = y[..., o], v.loo.mean[..., o], v.loo.error[..., o]
@@ -173,9 +172,9 @@ def loo_table(validations) -> str:
 def space_figures(case, views) -> list:
     """The NROY share per wave and the share of each parameter's range removed."""
     W, p = views.space_removed.shape
-    share = _wave_bars("Not ruled out yet (NROY), share of the box", "share",
+    share = _wave_bars("NROY share of the box", "share",
                        views.nroy_fraction, y_range=Range1d(0, 1.05))
-    removed = _fig("Space removed along each parameter", "", "share of the range",
+    removed = _fig("Range removed per parameter", "", "share of the range",
                    x_range=Range1d(-0.5, p - 0.5), y_range=Range1d(0, 1.05))
     width, items = 0.8 / W, []
     for w in range(W):
@@ -259,7 +258,7 @@ def hits_figures(case, views) -> list:
                                 color="black" if w == 0 else WAVE_COLORS[(w - 1) % 10])
             items.append(LegendItem(label="kept" if w == 0 else f"wave {w}", renderers=[r]))
     below_legend(scatter, items, ncols=min(len(items), 4))
-    return [scatter, _wave_bars("Candidates ruled out by each wave", "candidates", views.hits)]
+    return [scatter, _wave_bars("Ruled out by each wave", "candidates", views.hits)]
 
 
 def _wave_bars(title: str, yname: str, values, **kw):

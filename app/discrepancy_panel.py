@@ -275,7 +275,7 @@ class DiscrepancyPanel(LivePanel):
                        {"color": "grey", "size": 4, "alpha": 0.6}),
                       (c.X_train[:, 0], c.z_train[:, o], "training data",
                        {"color": "black", "size": 7})]
-            return BandFigure(title=f"{label}: z{of} (bias-corrected)", xname=x1,
+            return BandFigure(title=f"{label}: z{of}", xname=x1,
                               yname=axis_label(name, unit), color=color, label=label,
                               points=points, css_class=CSS, k=self.state.band, **self._linked(key),
                               x=self.state.grid[:, 0])

@@ -285,3 +285,42 @@ def test_a_card_pressed_after_another_case_draws_its_plots(browser, server):
     assert server.log.text().count("Traceback") == before, server.log.text()[-3000:]
     assert log.errors == []
     page.close()
+
+
+#: Plot titles (drawn on the canvas, so measured here with the title's own font) wider
+#: than their plot's frame: Bokeh cuts them off at the toolbar.
+WIDE_TITLES = """() => {
+  const ctx = document.createElement('canvas').getContext('2d'), out = [];
+  for (const d of Bokeh.documents) for (const m of d.all_models) {
+    const t = m.title;
+    if (!t || !t.text || !m.inner_width) continue;
+    ctx.font = `${t.text_font_style} ${t.text_font_size} ${t.text_font}`;
+    const w = ctx.measureText(t.text).width;
+    if (w > m.inner_width + 5) out.push(`${t.text}: ${Math.round(w)} > ${m.inner_width}`);
+  }
+  return out;
+}"""
+
+
+@pytest.mark.parametrize("case", ["beam-1d", "shear-5"])
+def test_no_plot_title_is_cut_off_with_four_methods_at_1280(browser, server, case):
+    """Issue 41's "no title is clipped": with KOH as a fourth column at 1280×720 the z
+    row read "Scenario 1: z (bias-correctec" (shear-5: "Scenario 1: z, ω1 (bias-corre"),
+    and the Diagnostics tab "Left-out runs: emulator against simu" on every case."""
+    page, log = open_page(browser, server.url)
+    if case != "beam-1d":
+        page.locator("select").first.select_option(case)
+        wait_idle(page)
+    page.get_by_role("button", name="koh", exact=True).click()
+    page.locator(".run-discrepancy button").click()
+    tab(page, "Discrepancy")
+    wait_idle(page)
+    page.locator(".disc-plot canvas").nth(7).wait_for(timeout=60_000)   # z, δ of four
+    page.wait_for_timeout(1500)
+    assert page.evaluate(WIDE_TITLES) == []
+    tab(page, "Diagnostics")      # "Left-out runs: emulator against simu", and others
+    page.locator(".diag-plot canvas").nth(5).wait_for(timeout=60_000)
+    page.wait_for_timeout(1500)
+    assert page.evaluate(WIDE_TITLES) == []
+    assert log.errors == []
+    page.close()

@@ -73,7 +73,7 @@ def test_band_change_patches_the_data_of_the_same_figures(beam1d):
         np.testing.assert_allclose(band["x"], s.grid[:, 0])
         np.testing.assert_allclose(band["lower"], on_grid.delta_mean[:, 0] - sd, rtol=1e-12)
         np.testing.assert_allclose(band["upper"], on_grid.delta_mean[:, 0] + sd, rtol=1e-12)
-        z = source(after["Scenario 2: z (bias-corrected)"], "lower")
+        z = source(after["Scenario 2: z"], "lower")
         np.testing.assert_allclose(z["upper"] - z["lower"],
                                    4 * np.sqrt(on_grid.z_var[:, 0]), rtol=1e-10)
         truth = source(after["Scenario 2: δ"], "y")
@@ -205,7 +205,7 @@ def test_several_outputs_are_shown_one_at_a_time():
                 if cell[0].visible}
 
     assert set(shown()) == {f"{m.label}: {t}" for m in S123
-                            for t in ("z, ω1 (bias-corrected)", "δ, ω1")}
+                            for t in ("z, ω1", "δ, ω1")}
     assert set(shown().values()) == {(0, "z"), (0, "delta")}
     s.output = "ω4"                                  # as a click on the "ω4" button
     assert set(shown().values()) == {(3, "z"), (3, "delta")}
@@ -224,10 +224,10 @@ def test_the_methods_plots_of_one_quantity_share_their_axes(beam1d):
     """Scenario 1's narrow δ band and scenario 2's wide one are compared at one scale."""
     s, panel, root = beam1d
     figs = figures(root)
-    for q in ("δ", "z (bias-corrected)"):
+    for q in ("δ", "z"):
         plots = [figs[f"{m.label}: {q}"] for m in S123]
         assert len({p.y_range.id for p in plots}) == 1 and len({p.x_range.id for p in plots}) == 1
-    assert figs["Scenario 1: δ"].y_range is not figs["Scenario 1: z (bias-corrected)"].y_range
+    assert figs["Scenario 1: δ"].y_range is not figs["Scenario 1: z"].y_range
 
 
 def test_axes_hold_every_method_at_the_widest_band_and_stay_put(beam1d):
@@ -243,7 +243,7 @@ def test_axes_hold_every_method_at_the_widest_band_and_stay_put(beam1d):
 
     before = axes()
     for q, o in (("delta", 0), ("z", 0)):
-        fig = figs["Scenario 2: δ" if q == "delta" else "Scenario 2: z (bias-corrected)"]
+        fig = figs["Scenario 2: δ" if q == "delta" else "Scenario 2: z"]
         lo, hi = [], []
         for r in s.results.values():                         # independent of the panel
             mean = getattr(r.on_extra, f"{q}_mean")[:, o]

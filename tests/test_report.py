@@ -37,7 +37,7 @@ def test_every_plot_has_data(run):
     assert "KOH: δ tip deflection (±2σ)" in titles
     # the app's figure builders: the space each wave ruled out, the θ posterior with θ_MAP
     # and the metrics chart
-    assert "Not ruled out yet (NROY), share of the box" in titles
+    assert "NROY share of the box" in titles
     assert f"l_cr: θ_MAP = {run.hm.theta_map[0]:.4g} mm" in titles
     assert any(t.startswith("NMSE at the test inputs") for t in titles)
     text = " ".join(d.text for d in layout.select({"type": Div}))

@@ -28,7 +28,7 @@ from bokeh.resources import Resources
 
 from mdcore import metrics_table
 from mdcore._diagnostics import space_views
-from mdcore._pipeline import metric_text
+from mdcore._pipeline import Method, metric_text
 from mdcore._study import PAPER
 
 from .calibration_panel import draw_posterior, posterior_figure, theta_posterior
@@ -117,15 +117,21 @@ def _text(run) -> str:
         t for m, split in run.theta_delta.items()
         for t in split.advice(f"Scenario {m}", case.output_names)]
     rows = metrics_table(run.results, case.output_names)
-    notes = [w for r in run.results for w in r.warnings]
+    notes = advice + [w for r in run.results for w in r.warnings if w not in advice]
+    ran = {r.method for r in run.results}
+    # Only the settings of the methods that ran (KOH's chain when KOH did not run misled).
+    settings = [(name, value) for name, value, users in (
+        ("seed", run.seed, None),
+        ("N_s", s.n_s, {Method.S2, Method.S3}),
+        ("N_φ", s.n_phi, {Method.S3}),
+        ("φ proposal", s.proposal, {Method.S3}),
+        ("φ̂ swarm steps", s.fit_iterations, {Method.S1, Method.S2, Method.S3}),
+        ("KOH chain", f"{s.n_iter:,} ({s.burn_in:,} burn-in)", {Method.KOH}),
+        ("threshold T", f"{hm.problem.options.threshold:g}", None),
+        ("rule", hm.problem.options.rule, None)) if users is None or users & ran]
     return (
         f"{STYLE}<h1>{_html.escape(case.title)}</h1><p>{_html.escape(case.description)}</p>"
-        "<h2>Settings</h2>" + _table(
-            ["seed", "N_s", "N_φ", "φ proposal", "φ̂ swarm steps", "KOH chain", "threshold T",
-             "rule"],
-            [[run.seed, s.n_s, s.n_phi, s.proposal, s.fit_iterations,
-              f"{s.n_iter:,} ({s.burn_in:,} burn-in)", f"{hm.problem.options.threshold:g}",
-              hm.problem.options.rule]])
+        "<h2>Settings</h2>" + _table([n for n, _ in settings], [[v for _, v in settings]])
         + "<h2>History matching</h2>" + _table(
             ["wave", "NROY % of box", "runs", "failed runs", "status"],
             [[w.index, f"{100 * w.nroy_fraction:.3g}", len(w.runs_theta), len(w.failures),
@@ -137,7 +143,6 @@ def _text(run) -> str:
         + "<h3>Emulator check, leaving out each run</h3>" + loo_table(run.validation)
         + ("<h3>θ–δ trade-off</h3>" + _table(["method", "output", "share of Var(δ) from θ"],
                                              shares) if shares else "")
-        + _warnings(advice)
         + "<h2>Metrics at the test inputs</h2>" + _table(
             ["method", "output", *METRICS],
             [[r["method"].label, r["output"], *(metric_text(k, r[k]) for k in METRICS)]

@@ -1,5 +1,6 @@
 """The HTML report: self-contained, every plot has data, and it renders offline in Chromium."""
 
+import html
 import re
 import warnings
 
@@ -127,3 +128,24 @@ def test_bands_are_drawn_on_a_dense_grid_of_inputs_as_in_the_app(run):
     data = band.data_source.data
     np.testing.assert_allclose(data["upper"] - data["lower"],
                                4 * np.sqrt(expected.z_var[:, 0]), rtol=1e-8)
+
+
+def test_settings_and_warnings_say_what_the_run_did(run):
+    # Issue 41, item 7: the settings listed KOH's chain when KOH did not run, and
+    # "Warnings: None." stood under the run's own advice in red.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lone = run_case(cases.load("beam-1d"), methods=[3], n_candidates=5000,
+                        settings=Settings(n_s=5, n_phi=2, n_iter=1000, burn_in=200))
+    for r, koh in ((lone, False), (run, True)):
+        text = " ".join(d.text for d in report_layout(r).select({"type": Div}))
+        settings = text.split("<h2>Settings</h2>")[1].split("<h2>")[0]
+        assert "N_φ" in settings and "φ proposal" in settings
+        assert ("KOH chain" in settings) == koh
+        said = [v.advice for v in r.validation if v.advice]
+        said += [w for m in r.results for w in m.warnings]
+        assert said or koh, "N_φ = 2 must raise the advice this test is about"
+        tail = text.split("<h2>Warnings</h2>")[1]
+        assert "None." not in tail
+        for w in said:
+            assert html.escape(w) in tail

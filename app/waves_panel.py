@@ -89,7 +89,8 @@ class WavesPanel(LivePanel):
     UPDATE_ON = ("waves", "selected_wave", "implausibility_maps")
 
     def _setup(self):
-        self._layout.objects = [pn.pane.Markdown(EMPTY_TEXT)]
+        self._placeholder = pn.pane.Markdown(EMPTY_TEXT)
+        self._layout.objects = [self._placeholder]
         # One player for the session, kept in the layout: rebuilding it for each wave
         # re-laid-out the page. Kept in its place but not shown until there are two waves
         # to step through (a style: see _show_body).
@@ -98,6 +99,16 @@ class WavesPanel(LivePanel):
                                   show_loop_controls=False, styles=PLAYER_HIDDEN)
         self._player.param.watch(self._player_moved, "value")
         self._syncing = False
+
+    def _state_changed(self, *events):
+        # Waves run while the tab is hidden and not yet built: its first showing builds the
+        # figures (up to seconds), and meanwhile the placeholder must not say "press Next
+        # wave" under a status line that says converged.
+        if self._stale and self._layout.objects == [self._placeholder]:
+            n = len(self.state.waves)
+            self._placeholder.object = f"Drawing {n} wave{'s' if n > 1 else ''} …" if n \
+                else EMPTY_TEXT
+        super()._state_changed(*events)
 
     # --- structure -----------------------------------------------------------------------
     def _rebuild(self, *_):

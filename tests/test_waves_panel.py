@@ -213,3 +213,18 @@ def test_the_multivariate_rule_draws_its_map_against_the_chi2_cutoff():
     t1, t2, I = s.implausibility_maps[1]
     np.testing.assert_array_equal(panel._image.data["image"][0], np.minimum(I, 3 * cutoff))
     assert f"χ² = {cutoff:.3g}" in panel._image_fig.title.text
+
+
+def test_a_hidden_tab_says_its_waves_are_being_drawn_not_press_next_wave():
+    # Waves run from another tab: the History matching tab's figures are built when it is
+    # first shown (up to seconds); meanwhile it said "Press Next wave" under "converged".
+    s = ExplorerState()
+    tabs = pn.Tabs(("Data", pn.pane.Markdown("data")), ("History matching", pn.Column()))
+    panel = WavesPanel(state=s, shown_in=(tabs, 1))
+    placeholder = panel._layout.objects[0]
+    assert "Next wave" in placeholder.object
+    s.next_wave()
+    assert s.waves and panel._layout.objects == [placeholder]    # not built while hidden
+    assert placeholder.object == "Drawing 1 wave …"
+    s.next_wave()
+    assert placeholder.object == f"Drawing {len(s.waves)} waves …"

@@ -73,7 +73,7 @@ MAX_RUNS = 10_000
 MAX_WAVES = 100
 MAX_MCMC_STEPS = 1_000
 #: Values (θ rows × observed inputs × outputs) of the emulator's moments held at once while
-#: candidates are scored or weighted (16 MB per array): memory does not grow with M × N.
+#: candidates are scored or weighted (a fixed bound per array): memory does not grow with M × N.
 CHUNK_VALUES = 2**21
 #: Posterior draws kept per history match, by (n, seed): see ``posterior_samples``.
 POSTERIOR_MEMO = 4

@@ -740,8 +740,7 @@ MEASURED_SECONDS = {
     (13, 1, 0, 5_000): 0.21, (64, 1, 0, 5_000): 0.71, (30, 5, 0, 5_000): 0.41,
 }
 #: ... and scenario 3 with the adaptive proposal, the default (bench/app_estimates.py; one
-#: run each, docs/performance.md "Run estimates"): the estimate was ≈131 s for beam-2d's
-#: 10⁶ pairs, which take 18–25 s.
+#: run each, docs/performance.md "Run estimates").
 MEASURED_ADAPTIVE = {
     (13, 1, 500_000): 0.98, (64, 1, 200_000): 3.49, (64, 1, 500_000): 10.54,
     (64, 1, 1_000_000): 17.8, (30, 5, 50_000): 1.96, (30, 5, 200_000): 3.6,
@@ -793,7 +792,7 @@ def test_long_runs_say_so_on_the_button_and_koh_tooltip():
     (koh,) = [i for i in page.select(pn.widgets.TooltipIcon) if "KOH on" in str(i.value)]
     assert "0.4–1.2" not in koh.value and "beam-2d: fast ≈ 7.2 s, paper ≈ 51" in koh.value
     s.scenarios = [Method.S1, Method.S2, Method.S3]
-    s.paper_sizes = True                                 # 10⁶ pairs: 18–25 s, not ≈131 s
+    s.paper_sizes = True                # beam-2d's 10⁶ pairs (docs/performance.md)
     assert run.label.startswith("Run discrepancy (≈ ") and 12 <= s.run_seconds() <= 40
     # The history match's buttons: their estimate in the tooltip, on the label when > 3 s.
     (conv,) = [b for b in page.select(pn.widgets.Button) if "run-convergence" in b.css_classes]

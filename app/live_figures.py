@@ -113,6 +113,15 @@ def check_shown_in(shown_in, name: str) -> None:
                          f"index ≥ 0; received {shown_in!r}.")
 
 
+def later(seconds: float, fn) -> None:
+    """Call ``fn()`` ``seconds`` from now on the session's loop (at once, not served)."""
+    doc = pn.state.curdoc
+    if doc is None or doc.session_context is None:
+        fn()
+    else:
+        doc.add_timeout_callback(fn, int(1000 * seconds))
+
+
 def next_tick(fn) -> None:
     """Call ``fn()``: served, on the session's next tick under Panel's ``hold`` (raw Bokeh
     models changed inside a widget's or a tab's own event were refused, "_pending_writes

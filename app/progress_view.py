@@ -7,6 +7,8 @@ import time
 
 import panel as pn
 
+from .live_figures import later
+
 #: The busy line names a job's step once it has run this long (seconds), so that runs at
 #: the default sizes (a fraction of a second) do not flash it.
 SHOW_PROGRESS_AFTER = 0.5
@@ -50,9 +52,7 @@ def progress_panel(state) -> tuple[pn.Column, pn.widgets.Button]:
             since[0] = None
         elif since[0] is None:
             since[0] = time.monotonic()
-            doc = pn.state.curdoc            # look again then, progress or not
-            if doc is not None and doc.session_context is not None:
-                doc.add_timeout_callback(update, int(1000 * SHOW_PROGRESS_AFTER) + 20)
+            later(SHOW_PROGRESS_AFTER + 0.02, update)     # look again then, progress or not
         show = since[0] is not None and time.monotonic() - since[0] >= SHOW_PROGRESS_AFTER
         text.object = status_html(s.busy, s.task, s.progress_message if show else "")
         if cancel.disabled == s.busy:

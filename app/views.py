@@ -15,7 +15,7 @@ from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .files_view import FilesView
 from .glossary import terms_html
-from .live_figures import alert_box, live_text, next_tick, when_shown
+from .live_figures import alert_box, later, live_text, next_tick, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
 from .progress_view import progress_panel
@@ -36,15 +36,6 @@ def pair(a, b) -> pn.Row:
 #: Seconds after a tab switch when the sidebar's cards fold: BokehJS lays out the whole
 #: page again for a fold, which at once kept the new tab blank longer (docs/performance.md).
 FOLD_AFTER = 0.6
-
-
-def later(seconds: float, fn) -> None:
-    """Call ``fn()`` ``seconds`` from now on the session's loop (at once, not served)."""
-    doc = pn.state.curdoc
-    if doc is None or doc.session_context is None:
-        fn()
-    else:
-        doc.add_timeout_callback(fn, int(1000 * seconds))
 
 
 def fold(cards, tab: int) -> None:

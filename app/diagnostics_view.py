@@ -29,7 +29,15 @@ from mdcore._diagnostics import space_views
 from mdcore._pipeline import Method
 
 from .jobs import JobRunner
-from .live_figures import TOOLS, alert_box, below_legend, live_figure, warnings_html, when_shown
+from .live_figures import (
+    TOOLS,
+    alert_box,
+    below_legend,
+    live_figure,
+    warnings_html,
+    when_idle,
+    when_shown,
+)
 from .plots import METHOD_COLORS, WAVE_COLORS, axis_label
 
 HELP = {
@@ -322,6 +330,7 @@ class DiagnosticsView(pn.viewable.Viewer):
                                on_error=lambda m: (self._say(m), state.report_error(m)))
         state.param.watch(self._changed, ["waves", "results", "output"])
         when_shown(tabs, index, lambda: self._stale and self.refresh())
+        when_idle(state, lambda: self._stale and self.refresh())     # after a job
         self._say("Press “Next wave” or “Run to convergence”, then come back to this tab.")
 
     numbers = property(lambda self: self._numbers and self._numbers[2], doc="What it shows.")

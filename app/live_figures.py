@@ -114,12 +114,17 @@ def check_shown_in(shown_in, name: str) -> None:
 
 
 def later(seconds: float, fn) -> None:
-    """Call ``fn()`` ``seconds`` from now on the session's loop (at once, not served)."""
+    """Call ``fn()`` ``seconds`` from now on the session's loop under Panel's ``hold`` (see
+    :func:`next_tick`); not served, at once."""
     doc = pn.state.curdoc
     if doc is None or doc.session_context is None:
         fn()
-    else:
-        doc.add_timeout_callback(fn, int(1000 * seconds))
+        return
+
+    def run() -> None:
+        with pn.io.hold(doc):
+            fn()
+    doc.add_timeout_callback(run, int(1000 * seconds))
 
 
 def next_tick(fn) -> None:
@@ -140,6 +145,32 @@ def next_tick(fn) -> None:
 def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
     """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes active (:func:`next_tick`)."""
     tabs.param.watch(lambda event: event.new == index and next_tick(hook), "active")
+
+
+#: Seconds a served session stays idle (no job) before the views of hidden tabs catch up
+#: with its state: a tab is then drawn before it is clicked, and the work waits for a
+#: pause instead of delaying what is in view.
+CATCH_UP_AFTER = 0.5
+
+
+def when_idle(state, hook):
+    """Call ``hook()`` once ``state`` (a session's state with ``busy`` and ``cancelled``)
+    has been idle for :data:`CATCH_UP_AFTER` s after each job ends, unless it was
+    cancelled (Cancel gives the CPU back), and after each ``poke()`` (a new case); returns
+    ``poke``. Not served (tests, the report), nothing is called: views build when shown.
+
+    ``hook`` decides itself whether anything is left to do (a view that is stale). A
+    change of what is shown (a band, a scenario hidden) does not poke: hidden tabs would
+    redo their plots for each click, and the browser lays out the page again each time."""
+    doc = pn.state.curdoc
+    if doc is None or doc.session_context is None:
+        return lambda *_: None
+
+    def poke(*_):
+        later(CATCH_UP_AFTER, lambda: state.busy or hook())
+
+    state.param.watch(lambda event: event.new or state.cancelled or poke(), "busy")
+    return poke
 
 
 class LivePanel(pn.viewable.Viewer):
@@ -174,6 +205,7 @@ class LivePanel(pn.viewable.Viewer):
         self._case = None                        # the case drawn (set by _rebuild)
         self._setup()
         self._shown = lambda: True               # see defer_while_hidden
+        self._poke = lambda: None                # ... and its catching up when idle
         self._stale = False                      # a case change waits for the tab
         self.state.param.watch(self._case_changed, "case")
         self.state.param.watch(self._state_changed, list(self.UPDATE_ON))
@@ -191,6 +223,7 @@ class LivePanel(pn.viewable.Viewer):
         """
         self._shown = lambda: tabs.active == index
         when_shown(tabs, index, self._catch_up)
+        self._poke = when_idle(self.state, self._catch_up)
 
     def _catch_up(self) -> None:
         if self._stale:
@@ -203,6 +236,8 @@ class LivePanel(pn.viewable.Viewer):
             self._rebuild()
         else:
             self._stale = True
+            if self._case is not None:           # not a new session's page: see when_idle
+                self._poke()
 
     def _state_changed(self, *events) -> None:
         if not self._stale:                      # else the coming rebuild draws it all

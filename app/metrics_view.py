@@ -65,7 +65,8 @@ def metrics_panel(s) -> pn.Column:
     shown = {k: v for k, v in s.results.items() if k in s.scenarios}
     if not shown:
         return pn.pane.Markdown("No scenario has run yet: press **Run discrepancy** (it runs "
-                                "the history match first if there is none).")
+                                "the history match first if there is none).",
+                                css_classes=["metrics-placeholder"])
     df = metrics_frame(s.case, shown)
     chart = figure_pane(plots.metrics_chart(s.case, shown, PAPER.get(s.base_case_name())))
     table = pn.pane.DataFrame(df.drop(columns=list(DIAGNOSTICS)), index=False,

@@ -109,6 +109,7 @@ class SessionModel(param.Parameterized):
     (``_jobs``, a :class:`~mdcore_app.jobs.JobRunner`, is set by ExplorerState)."""
 
     busy = param.Boolean(default=False)
+    cancelled = param.Boolean(default=False, doc="Whether the last job was cancelled.")
     task = param.String(default="")
     progress = param.Number(default=0.0, bounds=(0.0, 1.0))
     progress_message = param.String(default="", doc="What the running job is doing.")
@@ -131,7 +132,7 @@ class SessionModel(param.Parameterized):
     def cancel(self) -> None:
         """Stop the running wave or discrepancy run; what it already showed stays."""
         if self._jobs.cancel():
-            self.progress_message = "cancelling …"
+            self.param.update(progress_message="cancelling …", cancelled=True)
 
     def reject(self, name: str, value, reason: Exception) -> None:
         """Report a typed value the parameter ``name`` refused (the field reverts): what is

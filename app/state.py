@@ -80,7 +80,7 @@ class ExplorerState(OwnDataModel):
         self._jobs = JobRunner(
             background=background, schedule=schedule,
             on_start=lambda label: self.param.update(busy=True, task=label, progress=0.0,
-                                                     progress_message=""),
+                                                     progress_message="", cancelled=False),
             on_progress=lambda f, message: self.param.update(progress=f,
                                                              progress_message=message),
             on_finish=lambda: self.param.update(busy=False, task="", progress_message=""),

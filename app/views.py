@@ -15,7 +15,7 @@ from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .files_view import FilesView
 from .glossary import terms_html
-from .live_figures import alert_box, later, live_text, next_tick, when_shown
+from .live_figures import alert_box, later, live_text, next_tick, when_idle, when_shown
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
 from .progress_view import progress_panel
@@ -62,10 +62,12 @@ class ExplorerView(pn.viewable.Viewer):
         super().__init__(**params)
         self.state.param.watch(self._notify_error, "n_errors")
         self.state.param.watch(self._notify_warning, "n_notices")
-        # The live panels of a hidden tab are built (for a new session, or rebuilt for a
-        # new case) just before their tab is shown: the History-matching ones were half
-        # of a new session's 0.6 s of server time, for a tab not yet in view.
-        self._tabs = pn.Tabs(dynamic=True, sizing_mode="stretch_both")
+        # Every tab is in the page (not ``dynamic``): a visit only shows it. Sent again on
+        # each visit, a tab was blank 0.3-0.9 s every time (docs/performance.md). The live
+        # panels of a hidden tab are built (for a new session, or rebuilt for a new case)
+        # when their tab is shown or once the session is idle (when_idle): the
+        # History-matching ones were half of a new session's server time.
+        self._tabs = pn.Tabs(dynamic=False, sizing_mode="stretch_both")
         self.data_view = DataPanel(state=self.state, shown_in=(self._tabs, 0))
         self.discrepancy_view = DiscrepancyPanel(state=self.state)
         self.discrepancy_view.prebuild_when_shown(self._tabs, DISCREPANCY_TAB)
@@ -284,13 +286,17 @@ class ExplorerView(pn.viewable.Viewer):
 
     def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes
-        while tab ``index`` is shown, or when that tab is shown after such a change."""
+        while tab ``index`` is shown, or when that tab is shown after such a change, or
+        once a job has ended (:func:`when_idle`): a change of what is shown (a scenario
+        hidden) rebuilt the hidden metrics' 13 plots, 2-3 s of the browser's time."""
         box = pn.Column(sizing_mode="stretch_width")
         stale = [True]
 
         def build():
             stale[0] = False
             box.objects = [view()]
+
+        when_idle(self.state, lambda: stale[0] and build())
 
         def refresh(*_):
             if tabs.active != index:
@@ -307,14 +313,14 @@ class ExplorerView(pn.viewable.Viewer):
 
         self.state.param.watch(refresh, params)
         when_shown(tabs, index, lambda: stale[0] and refresh())
-        refresh()
+        build()                # a new session's: what to press, in the page from the start
         return box
 
     def _fill_tabs(self) -> None:
         tabs = self._tabs
-        # Views rebuilt from scratch on a change are built only while their tab is shown,
-        # else when it is next shown: Panel keeps updating a dynamic tab once it has been
-        # drawn, and the metrics alone took 0.3-0.9 s per scenario toggle.
+        # Views rebuilt from scratch on a change are built while their tab is shown, else
+        # when it is next shown or the session is idle: the metrics alone took 0.3-0.9 s
+        # per scenario toggle, which a hidden tab must not add to the one in view.
         metrics = self._shown_only(tabs, 3, self.metrics_view, ["results", "output"])
         self._diagnostics = DiagnosticsView(self.state, tabs, 4)
         hm_tab = pn.Column(terms("NROY", "V_o", "V_m", "T", "θ_MAP", "implausibility", "wave"),

@@ -89,7 +89,7 @@ class WavesPanel(LivePanel):
     UPDATE_ON = ("waves", "selected_wave", "implausibility_maps")
 
     def _setup(self):
-        self._placeholder = pn.pane.Markdown(EMPTY_TEXT)
+        self._placeholder = pn.pane.Markdown(EMPTY_TEXT, css_classes=["hm-placeholder"])
         self._layout.objects = [self._placeholder]
         # One player for the session, kept in the layout: rebuilding it for each wave
         # re-laid-out the page. Kept in its place but not shown until there are two waves

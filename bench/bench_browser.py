@@ -21,15 +21,17 @@ Debian's Chromium (tests/browser.py) at 1280×720 with Playwright and prints, pe
 and the first paint of five sessions opened at once (slowest and median).
 
 How "settled" is measured: a script injected into every page records, with
-``performance.now()``, the last canvas drawing call (2-D and WebGL), the last DOM change
-(in the document and in every shadow root), and the last WebSocket message from the
-server; and the time of the triggering input event (pointer down, key down, input). After
-an action the bench waits until the server has answered, the busy line says "Idle.",
-nothing has been drawn, changed or received for ``--quiet`` seconds *and* the server
-process used less than a quarter of a core for as long (a server still computing sends
-nothing), then checks that two screenshots 0.25 s apart are equal. The figure is *last
-activity − trigger*, so the quiet wait does not count. It is wall time on a shared
-machine: the load average is printed before and after.
+``performance.now()``, the last canvas drawing call (2-D and WebGL) on a canvas in view,
+the last DOM change of an element in view (in the document and in every shadow root), and
+the last WebSocket message from the server; and the time of the triggering input event
+(pointer down, key down, input). After an action the bench waits until the server has
+answered, the busy line says "Idle.", nothing has been drawn, changed or received for
+``--quiet`` seconds *and* the server process used less than a quarter of a core for as
+long (a server still computing sends nothing), then checks that two screenshots 0.25 s
+apart are equal. The figure is *last change in view − trigger*, so neither the quiet wait
+nor the tabs out of view, which catch up once the session is idle, count (their cost is in
+the CPU columns). It is wall time on a shared machine: the load average is printed before
+and after.
 
 The same instrumentation counts what each action rebuilt: canvases created, and Bokeh
 models sent as new objects (``Figure`` = a plot rebuilt rather than updated in place);
@@ -65,12 +67,29 @@ INSTRUMENT = r"""
   const md = window.__md = {lastDraw: 0, lastMut: 0, lastMsg: 0, msgs: 0, bytes: 0,
                             models: 0, figures: 0, canvases: 0, trigger: 0};
   const now = () => performance.now();
+  // Only what can be seen counts: a tab not shown (display: none) is drawn and changed
+  // while the session is idle, which no one waits for. Asked once per element per frame.
+  let frame = 0;
+  const tick = () => { frame++; requestAnimationFrame(tick); };
+  tick();
+  const seen = new WeakMap();
+  const visible = el => {
+    if (!el) return false;
+    const c = seen.get(el);
+    if (c && c[0] === frame) return c[1];
+    const v = el.isConnected && el.checkVisibility();
+    seen.set(el, [frame, v]);
+    return v;
+  };
   const wrap = (proto, names) => {
     if (!proto) return;
     for (const n of names) {
       const f = proto[n];
       if (typeof f !== 'function') continue;
-      proto[n] = function (...a) { md.lastDraw = now(); return f.apply(this, a); };
+      proto[n] = function (...a) {
+        if (visible(this.canvas)) md.lastDraw = now();
+        return f.apply(this, a);
+      };
     }
   };
   wrap(window.CanvasRenderingContext2D && CanvasRenderingContext2D.prototype,
@@ -80,7 +99,10 @@ INSTRUMENT = r"""
     wrap(gl && gl.prototype, ['drawArrays', 'drawElements', 'clear', 'drawArraysInstanced',
                               'drawElementsInstanced']);
   const opts = {subtree: true, childList: true, attributes: true, characterData: true};
-  const mo = new MutationObserver(() => { md.lastMut = now(); });
+  const mo = new MutationObserver(records => {
+    if (records.some(r => visible(r.target.nodeType === 1 ? r.target : r.target.parentElement)))
+      md.lastMut = now();
+  });
   mo.observe(document, opts);
   const attach = Element.prototype.attachShadow;
   Element.prototype.attachShadow = function (init) {
@@ -276,8 +298,9 @@ def settle(page, before: dict | None, *, ready: tuple[str, object] = ALWAYS,
         if s["server_cpu"] - prev_cpu > 0.25 * (now - prev_t):
             server_busy = now
         prev_cpu, prev_t = s["server_cpu"], now
-        last = max(s["lastDraw"], s["lastMut"], s["lastMsg"])
-        if (s["msgs"] > msgs0 and (s["now"] - last) >= quiet * 1000
+        last = max(s["lastDraw"], s["lastMut"])                  # the last change seen
+        quiet_since = max(last, s["lastMsg"])
+        if (s["msgs"] > msgs0 and (s["now"] - quiet_since) >= quiet * 1000
                 and now - server_busy >= quiet
                 and page.evaluate(IDLE) and page.evaluate(*ready)):
             a = page.screenshot()

@@ -155,3 +155,32 @@ def files_only(page) -> list[str]:
 
     page.route("**/*", route)
     return outside
+
+
+#: Is the first element of class ``cls`` (searched through shadow roots) with a size the
+#: one the page shows at its centre? Hit-testing through the shadow roots skips elements
+#: hidden by ``visibility`` (an inactive tab: Playwright's ``is_visible`` calls its
+#: content visible) and those covered by others.
+SHOWN = """(cls) => {
+  const all = (root, out) => { for (const e of root.querySelectorAll('*')) { out.push(e);
+      if (e.shadowRoot) all(e.shadowRoot, out); } return out; };
+  const host = all(document, []).find(e => e.classList.contains(cls) &&
+      e.getBoundingClientRect().width > 0 && e.getBoundingClientRect().height > 0);
+  if (!host) return false;
+  const r = host.getBoundingClientRect();
+  const x = r.x + Math.min(r.width / 2, 40), y = r.y + Math.min(r.height / 2, 20);
+  let hit = document.elementFromPoint(x, y);
+  while (hit && hit.shadowRoot) {
+    const inner = hit.shadowRoot.elementFromPoint(x, y);
+    if (!inner || inner === hit) break;
+    hit = inner;
+  }
+  for (let e = hit; e; e = e.parentElement || (e.getRootNode() && e.getRootNode().host))
+    if (e === host) return true;
+  return false;
+}"""
+
+
+def shown(page, css_class: str) -> bool:
+    """Whether the page shows the element of ``css_class`` now (see :data:`SHOWN`)."""
+    return page.evaluate(SHOWN, css_class)

@@ -530,16 +530,19 @@ def test_shear5_teaching_keeps_its_own_design():
 
 
 def test_hidden_tabs_are_rebuilt_when_shown_not_on_every_change():
-    """The metrics (rebuilt from scratch on each change) wait until their tab is shown; a
-    shown tab follows every change."""
+    """The metrics (rebuilt from scratch on each change) wait until their tab is shown
+    (served, or the session is idle: tests/test_app_layout.py); a shown tab follows every
+    change. A new session's says what to press."""
     s = small_state()
     page = pn.panel(ExplorerView(state=s))
     page.get_root(Document())
     (tabs,) = page.select(pn.Tabs)
     metrics_box = tabs[3][0][2]         # (in its scrolling column, after two lines)
+    first = metrics_box.objects
+    assert "press **Run discrepancy**" in first[0].object
     s.run_to_convergence()
     s.run_discrepancy()
-    assert metrics_box.objects == []                       # never shown: nothing built
+    assert metrics_box.objects == first                    # never shown: not rebuilt
     tabs.active = 3
     (table,) = [o for o in metrics_box.select(pn.pane.DataFrame)
                 if "metrics-table" in o.css_classes]

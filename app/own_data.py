@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from functools import partial
 
+import param
+
 from mdcore import _cases as cases
 from mdcore._case_file import with_measurements
 from mdcore._pipeline import Method, Settings
@@ -19,7 +21,15 @@ from .session_model import APP_LIMITS, allowed_values
 
 
 class OwnDataModel(DiscrepancyModel):
-    """Uploads and session files in; a ``CaseRun`` and session JSON out."""
+    """Uploads and session files in; a ``CaseRun`` and session JSON out; the "Things to
+    try" cards."""
+
+    card = param.String(default="", doc="The last card run and where to look, shown above "
+                                        "every tab until another case is chosen.")
+
+    @param.depends("case_name", watch=True)
+    def _forget_card(self):
+        self.card = ""
 
     def upload_measurements(self, data: bytes, filename: str) -> bool:
         """Use uploaded measurements (the layout of :func:`mdcore.measurements_template`)
@@ -154,7 +164,11 @@ class OwnDataModel(DiscrepancyModel):
             self.report_error(f"Unknown experiment {key!r}; choose one of "
                               f"{[e.key for e in EXPERIMENTS]}.")
             return
+        before = self.case_name
         settings = self.set_controls(exp.settings, f"the card {exp.title!r}")
+        moved = (f" (the card switched the case from {before} to {self.case_name})"
+                 if self.case_name != before else "")
+        self.card = f"{exp.title}{moved} — look at: {exp.look}"
         if exp.expect.keys() & METHOD_FACTS:
             label, compute = "discrepancy", partial(discrepancy_job, self._plan(settings))
         else:

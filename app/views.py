@@ -349,5 +349,21 @@ class ExplorerView(pn.viewable.Viewer):
                          ("Diagnostics", self._diagnostics),
                          ("Files", self.files_view()), ("Things to try", self.try_view()))])
 
+    def _card_line(self) -> pn.pane.Bokeh:
+        """The last card's "look at" line above the tabs: its tab may be Discrepancy or
+        Metrics, away from the status line (History matching)."""
+        pane, div = live_text("card-note")
+        div.styles = {"font-size": "0.9em", "padding": "2px 6px", "background": "#e8f1fb"}
+
+        def show(*_):
+            div.text = html.escape(self.state.card)
+            div.visible = bool(self.state.card)
+
+        self.state.param.watch(show, "card")
+        show()
+        return pane
+
     def __panel__(self):
-        return pn.Row(self._controls(), self._tabs, sizing_mode="stretch_both")
+        return pn.Row(self._controls(), pn.Column(self._card_line(), self._tabs,
+                                                  sizing_mode="stretch_both"),
+                      sizing_mode="stretch_both")

@@ -82,6 +82,17 @@ PLAYER_HIDDEN = {**SLOT, "opacity": "0", "pointer-events": "none"}
 PLAYER_SHOWN = {**CURRENT, "pointer-events": "auto"}
 
 
+#: Share of a parameter's range left blank on each side of the box in the plots: a marker
+#: on the box's edge (shear-5's θ_MAP, at E's lower bound) was cut in half.
+EDGE = 0.04
+
+
+def box_range(bounds) -> Range1d:
+    """The plot range of a parameter with ``bounds`` (lo, hi), :data:`EDGE` wider each side."""
+    lo, hi = (float(b) for b in bounds)
+    return Range1d(lo - EDGE * (hi - lo), hi + EDGE * (hi - lo))
+
+
 class WavesPanel(LivePanel):
     """NROY samples per wave, the implausibility map (p = 2) and the per-wave summary."""
 
@@ -148,7 +159,7 @@ class WavesPanel(LivePanel):
             for j in range(i + 1, c.p):
                 fig = live_figure(f"NROY samples: {c.theta_names[i]} vs {c.theta_names[j]}",
                                   labels[i], labels[j], CSS,
-                                  x_range=Range1d(*bounds[i]), y_range=Range1d(*bounds[j]))
+                                  x_range=box_range(bounds[i]), y_range=box_range(bounds[j]))
                 dots = fig.scatter(f"t{i}", f"t{j}", source=self._nroy, color=wave_colors(),
                                    view=CDSView(filter=self._upto), size=3, alpha=0.5)
                 fig.add_tools(HoverTool(renderers=[dots], tooltips=[
@@ -168,7 +179,7 @@ class WavesPanel(LivePanel):
         self._new_nroy_source()
         self._count_range = Range1d(0.0, 1.0)
         fig = live_figure("NROY samples", labels[0], "count", CSS,
-                          x_range=Range1d(*bounds[0]), y_range=self._count_range)
+                          x_range=box_range(bounds[0]), y_range=self._count_range)
         fig.quad(left="left", right="right", top="top", bottom=0.0, source=self._nroy,
                  fill_color=wave_colors(), line_color=wave_colors(), fill_alpha=0.5,
                  line_alpha=0.8, view=CDSView(filter=self._upto))
@@ -184,7 +195,7 @@ class WavesPanel(LivePanel):
         """p = 2: the combined implausibility image, its contour at T and the markers."""
         c = self._case
         fig = live_figure("implausibility", labels[0], labels[1], CSS,
-                          x_range=Range1d(*bounds[0]), y_range=Range1d(*bounds[1]))
+                          x_range=box_range(bounds[0]), y_range=box_range(bounds[1]))
         self._mapper = LinearColorMapper(palette=Viridis256[::-1], low=0.0, high=1.0)
         image = ColumnDataSource({"image": []})
         fig.image(image="image", x=bounds[0][0], y=bounds[1][0],

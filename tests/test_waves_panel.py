@@ -228,3 +228,25 @@ def test_a_hidden_tab_says_its_waves_are_being_drawn_not_press_next_wave():
     assert placeholder.object == "Drawing 1 wave …"
     s.next_wave()
     assert placeholder.object == f"Drawing {len(s.waves)} waves …"
+
+
+def test_a_marker_on_the_edge_of_the_box_is_drawn_whole():
+    """shear-5's θ_MAP sits on E's lower bound: with the plots' ranges equal to the box,
+    its star was cut in half. Every range now leaves a margin beyond the box."""
+    s = ExplorerState(case_name="shear-5")
+    s.next_wave()
+    panel = WavesPanel(state=s)
+    bounds = np.asarray(s.case.theta_bounds, float)
+    figs = [f for f in panel._layout.select(pn.pane.Bokeh) if f.object is not None
+            and getattr(f.object, "x_range", None) is not None
+            and "NROY samples:" in str(getattr(f.object.title, "text", ""))]
+    assert len(figs) == 3                                 # (E, ν), (E, ρ), (ν, ρ)
+    theta_map = s.history_match.theta_map
+    assert np.isclose(theta_map[0], bounds[0, 0], rtol=0.02)   # the star on the edge
+    for pane in figs:
+        fig = pane.object
+        names = fig.title.text.split(": ")[1].split(" vs ")
+        i, j = (list(s.case.theta_names).index(n) for n in names)
+        for rng, (lo, hi) in ((fig.x_range, bounds[i]), (fig.y_range, bounds[j])):
+            margin = 0.03 * (hi - lo)
+            assert rng.start <= lo - margin and rng.end >= hi + margin, fig.title.text

@@ -313,7 +313,7 @@ class DiscrepancyPanel(LivePanel):
             row = int(np.argmin(np.abs(u2 - data[2])))      # nearest grid row to the slice
             truth = None if self._truth is None else self._truth.reshape(shape)[row]
             fig.show(u1, mean[row], var[row], k, reference=truth,
-                     title=f"{label}: δ, {c.x_names[1]} {u2[row]:.4f} {c.x_units[1]}")
+                     title=f"{label}: δ at x₂ = {u2[row]:.3g}")     # the slider's x₂
 
     def _send(self, method: Method, key) -> None:
         cell = self._cells[method, key]
@@ -347,8 +347,8 @@ class DiscrepancyPanel(LivePanel):
             drawn = method in self._drawn
             if method in s.results:
                 visible, styles = True, CURRENT
-            elif not drawn:        # built ahead, empty: its place is kept, nothing shown
-                visible, styles = True, SLOT
+            elif not drawn:        # built ahead, empty: a chosen method's place is kept
+                visible, styles = method in s.scenarios, SLOT
             elif stale and method in s.scenarios:
                 visible, styles = True, STALE
             else:                  # hidden by the buttons: its place stays, empty

@@ -228,7 +228,7 @@ class WavesPanel(LivePanel):
         return fig
 
     def _variance_figure(self, output_names):
-        fig = live_figure("emulator variance vs V_o + V_m (converged below 1)", "wave",
+        fig = live_figure("emulator variance (converged below 1)", "wave",
                           "max var / (V_o + V_m)", CSS, y_axis_type="log",
                           x_range=self._wave_range, y_range=Range1d(0.1, 10.0))
         fig.add_layout(Span(location=1.0, dimension="width", line_color="black",

@@ -166,8 +166,8 @@ def test_beam_2d_maps_and_slice_follow_the_band_and_the_slider():
     assert source(figures(root)["Scenario 3: δ sd (σ)"], "image")["image"][0] is sd
     row = 3
     s.slice_x2 = float(u2[row])
-    (title,) = [t for t in figures(root) if t.startswith("Scenario 3: δ, crack length")]
-    assert f"{u2[row]:.4f}" in title
+    (title,) = [t for t in figures(root) if t.startswith("Scenario 3: δ at x₂ = ")]
+    assert f"{u2[row]:.3g}" in title
     sliced = source(figures(root)[title], "mean")
     np.testing.assert_allclose(sliced["x"], u1)
     np.testing.assert_allclose(sliced["mean"], r.delta_mean[:, 0].reshape(shape)[row])
@@ -354,6 +354,13 @@ def test_showing_the_tab_builds_the_plots_ahead_and_a_run_only_fills_them():
     assert panel.message.startswith("Running history matching")
     s.param.update(busy=False, task="")
     assert panel.message == EMPTY_HTML
+    # A method no longer chosen gives up its empty place: the KOH card (scenario 1 and
+    # KOH) showed its two columns with two empty ones between them.
+    s.scenarios = [Method.S1, Method.S3]
+    assert not panel._groups[Method.S2].visible
+    assert panel._groups[Method.S1].visible and panel._groups[Method.S3].visible
+    s.scenarios = S123
+    assert all(g.visible for g in panel._groups.values())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         s.run_discrepancy()

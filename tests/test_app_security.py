@@ -319,7 +319,12 @@ def test_uploads_through_the_page_chunked_again_and_over_the_limits(browser, ser
     assert select.locator("option").all_inner_texts().count("beam-1d · lab.csv") == 1
 
     page.get_by_role("button", name="Run discrepancy").click()
-    expect(page.locator(".dl-report").get_by_role("button")).to_be_enabled(timeout=120_000)
+    try:
+        expect(page.locator(".dl-report").get_by_role("button")).to_be_enabled(timeout=120_000)
+    except AssertionError as exc:          # once in a full run: say what the page had
+        raise AssertionError(f"the report stayed disabled; page errors {log.errors}; busy "
+                             f"line {page.locator('.mdcore-busy').count()}; server log: "
+                             f"{server_log.text()[-3000:]}") from exc
     page.locator(".mdcore-idle").wait_for(state="attached", timeout=120_000)
     with page.expect_download() as got:
         page.locator(".dl-session").get_by_role("button").click()

@@ -209,7 +209,7 @@ def lattice_figure(case, views):
     optical depth as bars coloured by the 1-D minimum implausibility (Vernon et al. 2010)."""
     p, cut, bins = len(case.theta_names), views.cutoff, views.optical_depth_1d.shape[1]
     size = min(470, 90 * p + 110)
-    fig = figure(title="Lattice: min implausibility (above), optical depth (below)",
+    fig = figure(title="Above: min implausibility; below: depth",
                  width=size + 130, height=size, tools=TOOLS, match_aspect=True,
                  x_range=Range1d(0, p), y_range=Range1d(0, p), css_classes=["diag-lattice"])
     fig.toolbar.logo = None
@@ -291,7 +291,7 @@ def split_figures(case, numbers: Numbers, method, split, o: int) -> list:
         curves.varea(x, mean - 2 * sd, mean + 2 * sd, fill_color=color, fill_alpha=0.1)
         curves.line(x, mean, color=color, line_width=2)
     mean = w @ split.mean[:, numbers.rows, o]
-    bands = _fig(f"Scenario {method.value}: {100 * split.share[o]:.0f} % of Var δ from θ",
+    bands = _fig(f"Scenario {method.value}: Var δ from θ {100 * split.share[o]:.0f} %",
                  numbers.x_label, name)
     items = []
     for part, alpha, what in ((split.between, 0.25, "across θ"), (split.within, 0.5,

@@ -268,7 +268,8 @@ def test_the_ess_card_shows_its_diagnostics_and_advice_uncovered(browser, server
     assert in_view(page, table) and in_view(page, advice)
     # Where to look, said on the card's own tab (the status line is on History matching).
     assert shown(page, "card-note")
-    assert "look at: Metrics tab: ESS φ" in page.locator(".card-note").inner_text()
+    note = page.locator(".card-note").evaluate("e => (e.shadowRoot || e).textContent")
+    assert "look at: Metrics tab: ESS φ" in note, note
     for toast in page.locator(".notyf__toast").all():
         box = toast.bounding_box()
         assert box is None or not overlaps(box, table.bounding_box()), toast.inner_text()

@@ -28,17 +28,11 @@ from mdcore import theta_delta_split, validate_waves
 from mdcore._diagnostics import space_views
 from mdcore._pipeline import Method
 
+from .alerts import alert_box, warnings_html
 from .jobs import JobRunner
-from .live_figures import (
-    TOOLS,
-    alert_box,
-    below_legend,
-    live_figure,
-    warnings_html,
-    when_idle,
-    when_shown,
-)
+from .live_figures import TOOLS, below_legend, live_figure
 from .plots import METHOD_COLORS, WAVE_COLORS, axis_label
+from .session_loop import when_idle, when_shown
 
 HELP = {
     "loo": "Each wave's emulator predicts each simulator run from the others. Left: those "

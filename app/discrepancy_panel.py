@@ -17,6 +17,7 @@ from bokeh.models import Range1d
 
 from mdcore._pipeline import Method
 
+from .alerts import warnings_html
 from .band_axes import band_extent
 from .data_panel import true_delta_figure
 from .live_figures import (
@@ -28,13 +29,11 @@ from .live_figures import (
     check_shown_in,
     figure_pane,
     live_text,
-    next_tick,
     show_pane,
-    warnings_html,
-    when_shown,
 )
 from .plots import METHOD_COLORS, axis_label
 from .runs import method_order
+from .session_loop import next_tick, when_shown
 from .state import ExplorerState
 
 #: The "Show" choices of a 1-D case and the quantities they show.

@@ -26,7 +26,7 @@ from bokeh.plotting import figure
 
 from mdcore._validation import as_float_array, as_int, check_positive
 
-from .alerts import ALERT_COLORS, alert_box, warnings_html  # noqa: F401 (their old home)
+from .session_loop import when_idle, when_shown
 from .sources import blank, replace_data
 
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
@@ -113,66 +113,6 @@ def check_shown_in(shown_in, name: str) -> None:
                          f"index ≥ 0; received {shown_in!r}.")
 
 
-def later(seconds: float, fn) -> None:
-    """Call ``fn()`` ``seconds`` from now on the session's loop under Panel's ``hold`` (see
-    :func:`next_tick`); not served, at once."""
-    doc = pn.state.curdoc
-    if doc is None or doc.session_context is None:
-        fn()
-        return
-
-    def run() -> None:
-        with pn.io.hold(doc):
-            fn()
-    doc.add_timeout_callback(run, int(1000 * seconds))
-
-
-def next_tick(fn) -> None:
-    """Call ``fn()``: served, on the session's next tick under Panel's ``hold`` (raw Bokeh
-    models changed inside a widget's or a tab's own event were refused, "_pending_writes
-    should be non-None", leaving a tab blank); else at once."""
-    doc = pn.state.curdoc
-    if doc is None or doc.session_context is None:
-        fn()
-        return
-
-    def run() -> None:
-        with pn.io.hold(doc):
-            fn()
-    doc.add_next_tick_callback(run)
-
-
-def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
-    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes active (:func:`next_tick`)."""
-    tabs.param.watch(lambda event: event.new == index and next_tick(hook), "active")
-
-
-#: Seconds a served session stays idle (no job) before the views of hidden tabs catch up
-#: with its state: a tab is then drawn before it is clicked, and the work waits for a
-#: pause instead of delaying what is in view.
-CATCH_UP_AFTER = 0.5
-
-
-def when_idle(state, hook):
-    """Call ``hook()`` once ``state`` (a session's state with ``busy`` and ``cancelled``)
-    has been idle for :data:`CATCH_UP_AFTER` s after each job ends, unless it was
-    cancelled (Cancel gives the CPU back), and after each ``poke()`` (a new case); returns
-    ``poke``. Not served (tests, the report), nothing is called: views build when shown.
-
-    ``hook`` decides itself whether anything is left to do (a view that is stale). A
-    change of what is shown (a band, a scenario hidden) does not poke: hidden tabs would
-    redo their plots for each click, and the browser lays out the page again each time."""
-    doc = pn.state.curdoc
-    if doc is None or doc.session_context is None:
-        return lambda *_: None
-
-    def poke(*_):
-        later(CATCH_UP_AFTER, lambda: state.busy or hook())
-
-    state.param.watch(lambda event: event.new or state.cancelled or poke(), "busy")
-    return poke
-
-
 class LivePanel(pn.viewable.Viewer):
     """A view of the app's state whose figures are built per case and then updated in
     place.
@@ -196,7 +136,7 @@ class LivePanel(pn.viewable.Viewer):
 
     def __init__(self, *, shown_in: tuple | None = None, **params):
         """``shown_in = (tabs, index)``: the panel is tab ``index`` of ``tabs`` and is
-        built only when that tab is shown (:meth:`defer_while_hidden`); a new session's
+        built when that tab is shown or later (:meth:`defer_while_hidden`); a new session's
         first page then builds the figures of the tab in view only."""
         if shown_in is not None:
             check_shown_in(shown_in, "shown_in")
@@ -217,9 +157,10 @@ class LivePanel(pn.viewable.Viewer):
         return self._layout
 
     def defer_while_hidden(self, tabs, index: int) -> None:
-        """Rebuild for a new case only when tab ``index`` of ``tabs`` shows this panel.
-        A case switch then builds the figures of the tab in view only (shear-5: the
-        History-matching panels were 0.3-0.5 s of a 0.7 s switch made from the Data tab).
+        """Rebuild for a new case when tab ``index`` of ``tabs`` shows this panel, or
+        once the session is idle after it (:func:`when_idle`). A case switch then draws
+        the tab in view first (shear-5: the History-matching panels were 0.3-0.5 s of a
+        0.7 s switch made from the Data tab).
         """
         self._shown = lambda: tabs.active == index
         when_shown(tabs, index, self._catch_up)

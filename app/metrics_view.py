@@ -10,7 +10,8 @@ from mdcore._pipeline import Method, MethodResult
 from mdcore._study import PAPER
 
 from . import plots
-from .live_figures import figure_pane, warnings_html
+from .alerts import warnings_html
+from .live_figures import figure_pane
 from .markup import markdown_text
 from .runs import method_order
 

@@ -7,7 +7,7 @@ import time
 
 import panel as pn
 
-from .live_figures import later
+from .session_loop import later
 
 #: The busy line names a job's step once it has run this long (seconds), so that runs at
 #: the default sizes (a fraction of a second) do not flash it.

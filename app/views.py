@@ -8,6 +8,7 @@ import html
 import panel as pn
 import param
 
+from .alerts import alert_box
 from .calibration_panel import CalibrationPanel
 from .data_panel import DataPanel
 from .diagnostics_view import DiagnosticsView
@@ -15,10 +16,11 @@ from .discrepancy_panel import DiscrepancyPanel
 from .experiments import EXPERIMENTS
 from .files_view import FilesView
 from .glossary import terms_html
-from .live_figures import alert_box, later, live_text, next_tick, when_idle, when_shown
+from .live_figures import live_text
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
 from .progress_view import progress_panel
+from .session_loop import later, next_tick, when_idle, when_shown
 from .state import ExplorerState
 from .waves_panel import WavesPanel
 

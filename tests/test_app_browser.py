@@ -94,7 +94,7 @@ def test_end_to_end_waves_scenarios_and_case_switch(browser, server):
 
     page.locator("select").first.select_option("shear-5")
     page.wait_for_selector("text=/SYNTHETIC stand-in/", timeout=90_000)   # case-sensitive
-    tab(page, "History matching")          # tabs are drawn when shown (dynamic)
+    tab(page, "History matching")          # the status line is on this tab
     page.wait_for_selector(".hm-status:has-text('Five-storey')", timeout=30_000)
     tab(page, "Data")
     wait_drawn(page, ".data-plot", n=2)               # data and true δ of the mode shown
@@ -241,7 +241,7 @@ def test_every_tab_of_every_case_draws_its_plots(browser, server, case, n_hm, n_
         from mdcore import _cases as cases
         title = cases.load(case).title[-10:]          # "paper §4.2)": unique per case
         page.locator("select").first.select_option(case)
-        tab(page, "History matching")      # tabs are drawn when shown (dynamic)
+        tab(page, "History matching")      # the status line is on this tab
         page.wait_for_selector(f".hm-status:has-text('{title}')", timeout=90_000)
     tab(page, "Data")
     assert_drawn(page, ".data-plot", 1)

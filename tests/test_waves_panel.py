@@ -178,7 +178,8 @@ def test_many_outputs_each_have_a_variance_line():
 
 
 def test_bad_inputs_name_the_argument():
-    from mdcore_app.live_figures import alert_box, live_text
+    from mdcore_app.alerts import alert_box
+    from mdcore_app.live_figures import live_text
     with pytest.raises(ValueError, match="kind must be one of"):
         alert_box("x", "fatal")
     with pytest.raises(ValueError, match="height"):

@@ -1,0 +1,71 @@
+"""Callbacks on a served session's event loop: on its next tick, after a delay, when a tab
+is shown, and once the session is idle. Each runs under Panel's ``hold``, so its changes
+to Panel objects and to raw Bokeh models reach the browser in one message. Not served
+(tests, the report), a callback runs at once, and :func:`when_idle` calls nothing.
+"""
+
+from __future__ import annotations
+
+import panel as pn
+
+#: Seconds a served session stays idle (no job) before the views of hidden tabs catch up
+#: with its state: a tab is then drawn before it is clicked, and the work waits for a
+#: pause instead of delaying what is in view.
+CATCH_UP_AFTER = 0.5
+
+
+def _served_doc():
+    """The session's document, or None when not served."""
+    doc = pn.state.curdoc
+    return None if doc is None or doc.session_context is None else doc
+
+
+def _held(doc, fn):
+    def run() -> None:
+        with pn.io.hold(doc):
+            fn()
+    return run
+
+
+def later(seconds: float, fn) -> None:
+    """Call ``fn()`` ``seconds`` from now (not served: at once)."""
+    doc = _served_doc()
+    if doc is None:
+        fn()
+    else:
+        doc.add_timeout_callback(_held(doc, fn), int(1000 * seconds))
+
+
+def next_tick(fn) -> None:
+    """Call ``fn()`` on the session's next tick (not served: at once): raw Bokeh models
+    changed inside a widget's or a tab's own event were refused ("_pending_writes should
+    be non-None"), leaving a tab blank."""
+    doc = _served_doc()
+    if doc is None:
+        fn()
+    else:
+        doc.add_next_tick_callback(_held(doc, fn))
+
+
+def when_shown(tabs: pn.Tabs, index: int, hook) -> None:
+    """Call ``hook()`` whenever tab ``index`` of ``tabs`` becomes active (:func:`next_tick`)."""
+    tabs.param.watch(lambda event: event.new == index and next_tick(hook), "active")
+
+
+def when_idle(state, hook):
+    """Call ``hook()`` once ``state`` (a session's state with ``busy`` and ``cancelled``)
+    has been idle for :data:`CATCH_UP_AFTER` s after each job ends, unless it was
+    cancelled (Cancel gives the CPU back), and after each ``poke()`` (a new case); returns
+    ``poke``.
+
+    ``hook`` decides itself whether anything is left to do (a view that is stale). A
+    change of what is shown (a band, a scenario hidden) does not poke: hidden tabs would
+    redo their plots for each click, and the browser lays out the page again each time."""
+    if _served_doc() is None:
+        return lambda *_: None
+
+    def poke(*_):
+        later(CATCH_UP_AFTER, lambda: state.busy or hook())
+
+    state.param.watch(lambda event: event.new or state.cancelled or poke(), "busy")
+    return poke

@@ -145,7 +145,7 @@ class LivePanel(pn.viewable.Viewer):
         self._case = None                        # the case drawn (set by _rebuild)
         self._setup()
         self._shown = lambda: True               # see defer_while_hidden
-        self._poke = lambda: None                # ... and its catching up when idle
+        self._poke = lambda busy=False: None     # ... and its catching up (when_idle)
         self._stale = False                      # a case change waits for the tab
         self.state.param.watch(self._case_changed, "case")
         self.state.param.watch(self._state_changed, list(self.UPDATE_ON))
@@ -183,6 +183,8 @@ class LivePanel(pn.viewable.Viewer):
     def _state_changed(self, *events) -> None:
         if not self._stale:                      # else the coming rebuild draws it all
             self._update(*events)
+        else:              # waves run with the tab hidden: drawn while the job runs
+            self._poke(busy=True)
 
     def _setup(self) -> None:
         """Widgets and watchers kept across cases (none by default)."""

@@ -56,16 +56,17 @@ def when_idle(state, hook):
     """Call ``hook()`` once ``state`` (a session's state with ``busy`` and ``cancelled``)
     has been idle for :data:`CATCH_UP_AFTER` s after each job ends, unless it was
     cancelled (Cancel gives the CPU back), and after each ``poke()`` (a new case); returns
-    ``poke``.
+    ``poke``. ``poke(busy=True)`` calls it even while a job runs (a hidden tab whose
+    data a job is changing: its first drawing then happens while the browser waits).
 
     ``hook`` decides itself whether anything is left to do (a view that is stale). A
     change of what is shown (a band, a scenario hidden) does not poke: hidden tabs would
     redo their plots for each click, and the browser lays out the page again each time."""
     if _served_doc() is None:
-        return lambda *_: None
+        return lambda *_, busy=False: None
 
-    def poke(*_):
-        later(CATCH_UP_AFTER, lambda: state.busy or hook())
+    def poke(*_, busy: bool = False):
+        later(CATCH_UP_AFTER, lambda: (state.busy and not busy) or hook())
 
     state.param.watch(lambda event: event.new or state.cancelled or poke(), "busy")
     return poke

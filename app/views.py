@@ -321,8 +321,8 @@ class ExplorerView(pn.viewable.Viewer):
     def _fill_tabs(self) -> None:
         tabs = self._tabs
         # Views rebuilt from scratch on a change are built while their tab is shown, else
-        # when it is next shown or the session is idle: the metrics alone took 0.3-0.9 s
-        # per scenario toggle, which a hidden tab must not add to the one in view.
+        # when it is next shown or after a job: the metrics alone took 0.3-0.9 s per
+        # scenario toggle, which a hidden tab must not add to the one in view.
         metrics = self._shown_only(tabs, 3, self.metrics_view, ["results", "output"])
         self._diagnostics = DiagnosticsView(self.state, tabs, 4)
         hm_tab = pn.Column(terms("NROY", "V_o", "V_m", "T", "θ_MAP", "implausibility", "wave"),

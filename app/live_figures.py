@@ -159,8 +159,8 @@ class LivePanel(pn.viewable.Viewer):
     def defer_while_hidden(self, tabs, index: int) -> None:
         """Rebuild for a new case when tab ``index`` of ``tabs`` shows this panel, or
         once the session is idle after it (:func:`when_idle`). A case switch then draws
-        the tab in view first (shear-5: the History-matching panels were 0.3-0.5 s of a
-        0.7 s switch made from the Data tab).
+        the tab in view first: the History-matching panels were most of a switch made from
+        the Data tab (docs/performance.md).
         """
         self._shown = lambda: tabs.active == index
         when_shown(tabs, index, self._catch_up)

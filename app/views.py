@@ -65,7 +65,7 @@ class ExplorerView(pn.viewable.Viewer):
         self.state.param.watch(self._notify_error, "n_errors")
         self.state.param.watch(self._notify_warning, "n_notices")
         # Every tab is in the page (not ``dynamic``): a visit only shows it. Sent again on
-        # each visit, a tab was blank 0.3-0.9 s every time (docs/performance.md). The live
+        # each visit, a tab was blank for a while every time (docs/performance.md). The live
         # panels of a hidden tab are built (for a new session, or rebuilt for a new case)
         # when their tab is shown or once the session is idle (when_idle): the
         # History-matching ones were half of a new session's server time.
@@ -290,7 +290,7 @@ class ExplorerView(pn.viewable.Viewer):
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes
         while tab ``index`` is shown, or when that tab is shown after such a change, or
         once a job has ended (:func:`when_idle`): a change of what is shown (a scenario
-        hidden) rebuilt the hidden metrics' 13 plots, 2-3 s of the browser's time."""
+        hidden) rebuilt all the hidden metrics' plots for each click (docs/performance.md)."""
         box = pn.Column(sizing_mode="stretch_width")
         stale = [True]
 
@@ -321,8 +321,8 @@ class ExplorerView(pn.viewable.Viewer):
     def _fill_tabs(self) -> None:
         tabs = self._tabs
         # Views rebuilt from scratch on a change are built while their tab is shown, else
-        # when it is next shown or after a job: the metrics alone took 0.3-0.9 s per
-        # scenario toggle, which a hidden tab must not add to the one in view.
+        # when it is next shown or after a job: rebuilding the metrics is the slowest part
+        # of a scenario toggle, which a hidden tab must not add to the one in view.
         metrics = self._shown_only(tabs, 3, self.metrics_view, ["results", "output"])
         self._diagnostics = DiagnosticsView(self.state, tabs, 4)
         hm_tab = pn.Column(terms("NROY", "V_o", "V_m", "T", "θ_MAP", "implausibility", "wave"),

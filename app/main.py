@@ -197,15 +197,29 @@ def _scheduler(doc):
     routes (Panel writes to the websocket itself, Bokeh queues a patch), and a patch that
     named a model the other route had not delivered yet failed in the page with
     "reference pNNNN isn't known", losing the update (a status line that never changed).
+
+    A job's worker thread hands the callback to Tornado's loop (``add_callback``, safe from
+    any thread), which adds it to the document. Added from the worker itself, it raced
+    the session's thread: while that thread holds the document, Bokeh queues the
+    "callback added" event and dispatches the queue when the hold ends, and an event
+    queued as the hold ended was lost (Bokeh's queue has no lock). A lost wave left the
+    state one wave short of its results, so a finished run showed nothing.
     """
     if doc is None or doc.session_context is None:
         return lambda fn: fn()
+    loop = IOLoop.current()                    # the session's loop: create_app runs on it
 
     def run(fn):
         with set_curdoc(doc), pn.io.hold(doc):
             fn()
 
-    return lambda fn: doc.add_next_tick_callback(partial(run, fn))
+    def add(fn):
+        try:
+            doc.add_next_tick_callback(partial(run, fn))
+        except RuntimeError:                   # the session's document is destroyed
+            log.debug("session ended; a job's callback was dropped")
+
+    return lambda fn: loop.add_callback(add, fn)
 
 
 if pn.state.served:

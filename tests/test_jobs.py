@@ -384,3 +384,49 @@ def test_state_cancel_stops_a_running_discrepancy_run():
     drain(inbox, until=lambda: job.wait(0) and not s.busy, timeout=120.0)
     assert job.status == "cancelled" and s.n_errors == 0 and s.results == {}
     assert s.progress_message == ""
+
+
+def test_a_served_session_gets_job_callbacks_on_its_own_loop_in_order():
+    """The job's worker thread added its callbacks to the Bokeh document itself. While the
+    session's thread held the document (Panel's ``hold``), Bokeh queued the event without
+    a lock and now and then lost it: under load a run's last wave never arrived, and the
+    finished run showed nothing. The document is now only touched on the session's
+    loop, in the order the worker handed the callbacks over."""
+    import asyncio
+    import time
+
+    from tornado.ioloop import IOLoop
+
+    from mdcore_app.main import _scheduler
+
+    class Document:
+        """What the scheduler uses of a served session's document."""
+        session_context = object()
+
+        def __init__(self):
+            self.added = []
+
+        def add_next_tick_callback(self, callback):
+            self.added.append((threading.current_thread(), callback))
+
+    doc, ready, loop_of = Document(), threading.Event(), {}
+
+    def session_loop():
+        asyncio.set_event_loop(asyncio.new_event_loop())
+        loop_of.update(loop=IOLoop.current(), thread=threading.current_thread(),
+                       schedule=_scheduler(doc))
+        ready.set()
+        loop_of["loop"].start()
+
+    threading.Thread(target=session_loop, daemon=True).start()
+    assert ready.wait(TIMEOUT)
+    fns = [lambda: None for _ in range(50)]
+    worker = threading.Thread(target=lambda: [loop_of["schedule"](fn) for fn in fns])
+    worker.start()
+    worker.join(TIMEOUT)
+    end = time.monotonic() + TIMEOUT
+    while len(doc.added) < len(fns) and time.monotonic() < end:
+        time.sleep(0.01)
+    loop_of["loop"].add_callback(loop_of["loop"].stop)
+    assert [thread for thread, _ in doc.added] == [loop_of["thread"]] * len(fns)
+    assert [callback.args[0] for _, callback in doc.added] == fns

@@ -56,6 +56,10 @@ export function render({model, el}) {
     if (sending) return
     sending = true
     bar.value = 0
+    // At once, before the server answers: the line under the area is never the verdict
+    // on the file sent before.
+    status.textContent = `${file.name}: sending …`
+    status.dataset.state = area.dataset.state = "sending"
     try {
       if (!await ask({start: file.name, size: file.size})) return
       for (let offset = 0; offset < file.size; offset += model.chunk_bytes) {
@@ -67,6 +71,7 @@ export function render({model, el}) {
     } finally {
       sending = false
       input.value = ""        // the same file chosen again is a new upload
+      show()
     }
   }
 

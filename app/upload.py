@@ -59,7 +59,8 @@ class FileUpload(JSComponent):
     .mdcore-drop progress { width: 120px; visibility: hidden; }
     .mdcore-drop-status { min-height: 1.4em; margin-top: 4px; font-size: 13px;
                           overflow-wrap: anywhere; }
-    .mdcore-drop-status[data-state="receiving"] { color: #555; }
+    .mdcore-drop-status[data-state="receiving"],
+    .mdcore-drop-status[data-state="sending"] { color: #555; }
     .mdcore-drop-status[data-state="accepted"] { color: #1e7b34; }
     .mdcore-drop-status[data-state="rejected"] { color: #b00020; }
     """]

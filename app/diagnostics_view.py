@@ -32,7 +32,7 @@ from .alerts import alert_box, warnings_html
 from .jobs import JobRunner
 from .live_figures import TOOLS, below_legend, live_figure
 from .plots import METHOD_COLORS, WAVE_COLORS, axis_label
-from .session_loop import when_idle, when_shown
+from .session_loop import show_updating, when_idle, when_shown
 
 HELP = {
     "loo": "Each wave's emulator predicts each simulator run from the others. Left: those "
@@ -331,6 +331,7 @@ class DiagnosticsView(pn.viewable.Viewer):
 
     def _say(self, text: str) -> None:
         self._box.objects = [_text(f"<i>{html.escape(text)}</i>", "diag-placeholder")]
+        self._drawn = False                          # what the box shows is not diagnostics
 
     def _changed(self, *_):
         self._stale = True
@@ -344,7 +345,7 @@ class DiagnosticsView(pn.viewable.Viewer):
         if hm is None:
             self._say("Press “Next wave” or “Run to convergence” to see the diagnostics.")
             return
-        self._say("Computing the diagnostics …")
+        show_updating(self._box, "Computing the diagnostics …", keep=self._drawn)
         case, results = s.case, dict(s.results)
         o = list(case.output_names).index(s.output)
         done = self._numbers
@@ -393,6 +394,7 @@ class DiagnosticsView(pn.viewable.Viewer):
                 "of the θ chosen.", "success"), "diag-delta"))
             parts.append(_row(pair, "delta"))
         self._box.objects = parts
+        self._drawn = True
 
     def __panel__(self):
         return self._box

@@ -70,3 +70,17 @@ def when_idle(state, hook):
 
     state.param.watch(lambda event: event.new or state.cancelled or poke(), "busy")
     return poke
+
+
+#: CSS class of the line above a box whose content is being rebuilt.
+UPDATING = "mdcore-updating"
+
+
+def show_updating(box: pn.Column, text: str, keep: bool = True) -> None:
+    """Put ``text`` (italic) at the top of ``box`` until it is rebuilt; with ``keep``, the
+    box's content stays under it, dimmed: a rebuild of seconds (shear-5's metrics) left a
+    tab blank but for that line."""
+    old = [o for o in box.objects if UPDATING not in o.css_classes] if keep else []
+    for o in old:
+        o.styles = {**o.styles, "opacity": "0.45"}
+    box.objects = [pn.pane.Markdown(f"*{text}*", css_classes=[UPDATING]), *old]

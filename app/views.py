@@ -20,7 +20,7 @@ from .live_figures import live_text
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
 from .progress_view import progress_panel
-from .session_loop import later, next_tick, when_idle, when_shown
+from .session_loop import later, next_tick, show_updating, when_idle, when_shown
 from .state import ExplorerState
 from .waves_panel import WavesPanel
 
@@ -308,9 +308,8 @@ class ExplorerView(pn.viewable.Viewer):
             if doc is None or doc.session_context is None:
                 build()                                # not served: at once
                 return
-            # Served: say so at once and build on the next tick (shear-5's metrics take
-            # seconds; a blank tab meanwhile looked broken).
-            box.objects = [pn.pane.Markdown("*Updating …*", css_classes=["mdcore-updating"])]
+            # Served: say so at once, over the old content, and build on the next tick.
+            show_updating(box, "Updating …")
             pn.state.execute(build, schedule=True)
 
         self.state.param.watch(refresh, params)

@@ -6,6 +6,7 @@ legend that did not say its band (or said "Invalid field"), a refused number tha
 the state's class, and a tab that was blank before its first run.
 """
 
+import re
 import time
 
 import pytest
@@ -207,6 +208,37 @@ def test_the_tabs_are_drawn_before_they_are_clicked(browser, server, case):
         assert not shown(page, css), name                      # the Data tab is shown
         tab(page, name)
         assert shown(page, css), f"{name} does not show its .{css} at once"
+    assert log.errors == []
+    page.close()
+
+
+@pytest.mark.parametrize("name, css", [("Metrics", "metrics-table"),
+                                       ("Diagnostics", "diag-loo")])
+def test_a_tab_stale_after_a_display_change_keeps_its_content_while_rebuilt(
+        browser, server, name, css):
+    """Issue 41 item 9: after a scenario was hidden on the Discrepancy tab, a visit of
+    Metrics or Diagnostics showed only "Updating …" / "Computing …" for 1.3-2.1 s while
+    they were rebuilt. The old content now stays (dimmed) under that line."""
+    from playwright.sync_api import expect
+    page, log = open_page(browser, server.url)
+    tab(page, "Discrepancy")
+    page.locator(".run-discrepancy button").click()
+    page.locator(".mdcore-busy").wait_for(state="attached", timeout=30_000)
+    wait_idle(page)
+    page.wait_for_function(BUILT, arg=[css, False], timeout=30_000)
+    s2 = page.locator(".bk-btn-group").filter(has_text="koh").get_by_role(
+        "button", name="2", exact=True)
+    s2.click()                                                        # hide scenario 2
+    expect(s2).not_to_have_class(re.compile(r"\bbk-active\b"), timeout=10_000)
+    page.wait_for_timeout(1000)
+    tab(page, name)
+    seen = []
+    end = time.monotonic() + 3.0
+    while time.monotonic() < end:
+        seen.append(shown(page, css))
+        page.wait_for_timeout(40)
+    assert all(seen), f"{name} showed no .{css} in {seen.count(False)} of {len(seen)} looks"
+    page.locator(".mdcore-updating").first.wait_for(state="detached", timeout=30_000)
     assert log.errors == []
     page.close()
 

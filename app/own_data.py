@@ -15,7 +15,6 @@ from mdcore._pipeline import Method, Settings
 from . import session
 from .case_model import OwnCase
 from .experiments import EXPERIMENTS, METHOD_FACTS
-from .history_model import Note
 from .runs import DiscrepancyModel, discrepancy_job, method_order
 from .session_model import APP_LIMITS, allowed_values
 
@@ -157,8 +156,8 @@ class OwnDataModel(DiscrepancyModel):
 
     def try_experiment(self, key: str) -> None:
         """Run the "Things to try" card ``key``: set all its controls (so earlier cards never
-        matter), run the waves, and the methods when its promise is about them, then say in
-        the status line where to look."""
+        matter), say where to look in the card line above the tabs (:attr:`card`), and run
+        the waves, and the methods when its promise is about them."""
         exp = next((e for e in EXPERIMENTS if e.key == key), None)
         if exp is None:
             self.report_error(f"Unknown experiment {key!r}; choose one of "
@@ -173,13 +172,5 @@ class OwnDataModel(DiscrepancyModel):
             label, compute = "discrepancy", partial(discrepancy_job, self._plan(settings))
         else:
             label, compute = "waves", partial(self._wave_job, True)
-        self._jobs.submit(label, _then_say(compute, f"{exp.title} — look at: {exp.look}"),
-                          self._apply)
+        self._jobs.submit(label, compute, self._apply)     # the card line says where to look
 
-
-def _then_say(compute, text: str):
-    """The job ``compute``, then ``text`` in the status line when it is done."""
-    def job(report, cancel):
-        yield from compute(report, cancel)
-        yield Note(text)
-    return job

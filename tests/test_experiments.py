@@ -155,7 +155,8 @@ def test_each_card_runs_and_shows_its_promise_in_any_order(order_seed):
             assert state.error == "", (key, state.error)
             for name, value in card.settings.items():
                 assert getattr(state, name) == value, (key, name)
-            assert state.status.endswith(card.look), (key, state.status)
+            assert state.card.endswith(card.look), (key, state.card)
+            assert card.look not in state.status, (key, state.status)    # said once
             if card.expect.keys() & METHOD_FACTS:
                 assert set(state.results) == set(card.settings["scenarios"]), key
             found = shown_effect(state, card)

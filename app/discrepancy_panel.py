@@ -71,7 +71,7 @@ class DiscrepancyPanel(LivePanel):
     state = param.ClassSelector(class_=ExplorerState)
     quantity = param.Selector(objects=list(QUANTITIES), default="z and δ", label="Show")
 
-    UPDATE_ON = ("results", "band", "busy", "scenarios", "waves")
+    UPDATE_ON = ("results", "band", "busy", "scenarios", "waves", "card")
     SIZING = "stretch_both"                      # the plots fill the tab's height
 
     def _setup(self):
@@ -350,8 +350,11 @@ class DiscrepancyPanel(LivePanel):
                 visible, styles = method in s.scenarios, SLOT
             elif stale and method in s.scenarios:
                 visible, styles = True, STALE
-            else:                  # hidden by the buttons: its place stays, empty
-                visible, styles = method in kept and method not in s.scenarios, SLOT
+            else:   # hidden by the buttons: its place stays, empty (not after a card,
+                # which chooses the methods it shows: KOH's card showed scenario 1 and KOH
+                # with the earlier cards' two columns empty between them)
+                visible = method in kept and method not in s.scenarios and not s.card
+                styles = SLOT
             if group.visible != visible:
                 group.visible = visible
             if group.styles != styles:

@@ -306,6 +306,24 @@ def test_a_new_band_sends_the_band_only(beam1d):
     assert changed == ["lower", "lower"]
 
 
+def test_after_a_card_a_method_it_did_not_choose_gives_up_its_column(beam1d):
+    """The KOH card (scenario 1 and KOH) run after cards that drew scenarios 2 and 3 showed
+    its two columns with two empty ones between them: the buttons' rule keeps a hidden
+    method's place. A card chooses what it shows, so the place goes while its line is up."""
+    s, panel, _root = beam1d
+    groups = panel._groups
+    try:
+        s.param.update(card="Joint calibration — look at: Discrepancy tab",
+                       scenarios=[Method.S1, Method.S3])
+        assert not groups[Method.S2].visible
+        assert groups[Method.S1].visible and groups[Method.S3].visible
+        s.card = ""                                    # the buttons' rule again
+        assert groups[Method.S2].visible and groups[Method.S2].styles == SLOT
+    finally:
+        s.param.update(card="", scenarios=S123)
+    assert all(g.visible and g.styles == CURRENT for g in groups.values())
+
+
 def test_beam_2d_without_a_known_delta_keeps_one_group_per_method(monkeypatch):
     """An own 2-D case whose δ is unknown has no truth map above the methods: the head is
     the slider, then each method's group once, however often the groups are placed."""

@@ -24,6 +24,8 @@ METHOD_COLORS = {Method.S1: "#1f77b4", Method.S2: "#ff7f0e", Method.S3: "#2ca02c
 THETA_MAP_COLOR = "red"
 THETA_MAP_MARKER = {"marker": "star", "size": 18, "fill_color": THETA_MAP_COLOR,
                     "line_color": "black", "line_width": 1}
+#: The true θ's marker on the θ plots, drawn over θ_MAP's star (which often hides it).
+TRUTH_MARKER = {"marker": "x", "color": "black", "size": 14, "line_width": 3}
 #: Marker colour of the paper's reference values in the metrics chart.
 PAPER_COLOR = "#dd8452"
 PLOT = {"responsive": True, "height": 300, "min_width": 200, "tools": ["hover"], "show_grid": True}

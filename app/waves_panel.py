@@ -50,7 +50,7 @@ from .live_figures import (
     live_figure,
     live_text,
 )
-from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, axis_label
+from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, TRUTH_MARKER, axis_label
 from .sources import blank, replace_data, set_range, set_top
 from .state import ExplorerState
 from .wave_data import (
@@ -165,10 +165,9 @@ class WavesPanel(LivePanel):
                 fig.add_tools(HoverTool(renderers=[dots], tooltips=[
                     (labels[i], f"@t{i}{{0.[000]}}"), (labels[j], f"@t{j}{{0.[000]}}"),
                     ("wave", "@wave")]))
-                if c.theta_true is not None:
-                    fig.scatter([c.theta_true[i]], [c.theta_true[j]], marker="x",
-                                color="black", size=14, line_width=3)
                 fig.scatter(f"t{i}", f"t{j}", source=self._map_point, **THETA_MAP_MARKER)
+                if c.theta_true is not None:      # over the star: θ_MAP often sits on it
+                    fig.scatter([c.theta_true[i]], [c.theta_true[j]], **TRUTH_MARKER)
                 figs.append(fig)
         return figs
 
@@ -203,10 +202,9 @@ class WavesPanel(LivePanel):
                   color_mapper=self._mapper, source=image)
         self._contour = ColumnDataSource({"xs": [], "ys": []})
         fig.multi_line("xs", "ys", source=self._contour, line_color="white", line_width=2)
-        if c.theta_true is not None:
-            fig.scatter([c.theta_true[0]], [c.theta_true[1]], marker="x", color="red",
-                        size=14, line_width=3)
         fig.scatter("t0", "t1", source=self._map_point, **THETA_MAP_MARKER)
+        if c.theta_true is not None:
+            fig.scatter([c.theta_true[0]], [c.theta_true[1]], **TRUTH_MARKER)
         fig.add_layout(ColorBar(color_mapper=self._mapper, title="implausibility", width=10),
                        "right")
         self._image_fig = fig

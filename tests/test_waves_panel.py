@@ -117,6 +117,12 @@ def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
     stars = [r for f in figures for r in f.renderers if getattr(r, "data_source", None)
              is panel._map_point]
     assert len(stars) == 2 and all(r.glyph.marker == "star" for r in stars)   # pair, map
+    # The truth's cross is drawn over the star: the tour's waves card had θ_MAP on the
+    # truth, and the star hid the × the card points at.
+    for f in figures:
+        kinds = [getattr(r.glyph, "marker", None) for r in f.renderers]
+        if "star" in kinds:
+            assert kinds.index("x") > kinds.index("star"), f.title.text
     t1, t2, I = s.implausibility_maps[n]
     np.testing.assert_array_equal(panel._image.data["image"][0],
                                   np.minimum(I, 3 * s.history_match.problem.options.threshold))

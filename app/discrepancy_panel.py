@@ -48,14 +48,19 @@ STALE = {"opacity": STALE_OPACITY, "visibility": "visible"}
 KEEP_SPAN = 0.6
 
 
-#: The line above the plots while none is shown and nothing runs (HTML).
-EMPTY_HTML = "Run history matching, then press <b>Run discrepancy</b>."
+#: The line above the plots while none is shown and nothing runs (HTML): Run discrepancy
+#: runs the history match first when there is none (it read "Run history matching, then
+#: press Run discrepancy", also after the waves had run).
+EMPTY_HTML = ("No scenario has run for these settings yet: press <b>Run discrepancy</b> "
+              "(it runs the history match first if there is none).")
+#: ... and while no method is chosen under Scenarios.
+NONE_CHOSEN_HTML = "Choose a method under <b>Scenarios</b> to see its bands."
 
 
 def empty_html(s: ExplorerState) -> str:
     """The line above the plots while none is shown: what is running, or what to press."""
     if not s.busy:
-        return EMPTY_HTML
+        return EMPTY_HTML if s.scenarios else NONE_CHOSEN_HTML
     if s.task == "waves":
         return "Running history matching; then press <b>Run discrepancy</b>."
     matched = bool(s.waves) and s.waves[-1].status == "converged"

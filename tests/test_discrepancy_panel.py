@@ -19,6 +19,7 @@ from mdcore._pipeline import Method  # noqa: E402
 from mdcore_app.discrepancy_panel import (  # noqa: E402
     CURRENT,
     EMPTY_HTML,
+    NONE_CHOSEN_HTML,
     SLOT,
     STALE_OPACITY,
     DiscrepancyPanel,
@@ -98,7 +99,7 @@ def test_hiding_a_method_or_a_quantity_changes_only_visibility(beam1d):
     assert {t: f.id for t, f in figures(root).items()} == before
     s.scenarios = [Method.S3]
     s.scenarios = []
-    assert panel.message == EMPTY_HTML             # every column hidden: say what to do
+    assert panel.message == NONE_CHOSEN_HTML       # every column hidden: say what to do
     s.scenarios = S123
     assert all(g.visible and g.styles == CURRENT for g in groups.values())
     assert panel.message != EMPTY_HTML
@@ -358,6 +359,9 @@ def test_showing_the_tab_builds_the_plots_ahead_and_a_run_only_fills_them():
     assert set(panel._groups) == set(S123)
     assert all(g.styles == SLOT for g in panel._groups.values())
     assert panel.message == EMPTY_HTML
+    # The waves have run: the line no longer says "Run history matching, then ..."
+    assert not panel.message.startswith("Run history") and "press <b>Run discrepancy" in \
+        panel.message
     ahead = {t: f.id for t, f in figures(root).items()}
     assert len(ahead) == 6                              # z and δ of three methods
     # Blank (NaN, nothing drawn) at the plotting grid: the run's data come as patches.

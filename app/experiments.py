@@ -131,7 +131,9 @@ EXPERIMENTS = (
         "less than the real discrepancy needs, what happens to NROY, and to the true θ "
         "(the ×)?",
         controls("beam-1d", v_m=0.014),
-        "Raise V_m back to 0.05, press “Run to convergence” and compare.",
+        "Raise V_m back to 0.05, press “Run to convergence” and compare. Is it the "
+        "emulator's fault? The simulator itself at the true θ has implausibility 3.07 "
+        "> T = 3 at V_m = 0.014 mm² (1.67 at 0.05): V_m rules the truth out.",
         look="History matching tab: the non-implausible θ against the truth × and θ_MAP "
              "(the star).",
         promise="A small NROY set (0.37 % of the box) survives, but the truth × is "

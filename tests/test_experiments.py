@@ -102,6 +102,20 @@ def test_rule_out_keeps_a_wrong_nroy_on_other_seeds(data_seed, hm_seed):
     assert all(ok for ok, _ in found.values()), found
 
 
+def test_rule_out_says_the_simulator_itself_rules_the_truth_out():
+    """The tour's review asked whether the truth fell to V_m or to the emulator's error:
+    the card now gives Eq. 16 at the true θ with the simulator itself (no emulator
+    variance), which these numbers check."""
+    from mdcore import _cases as cases
+    c = cases.load("beam-1d", seed=0)
+    miss = np.abs(c.z_train - c.simulate(c.X_train, c.theta_true[None])[0])
+    then = CARDS["rule-out"].then
+    for v_m in (0.014, 0.05):
+        implausibility = float(np.max(miss / np.sqrt(c.noise_var + v_m)))
+        assert f"{implausibility:.2f}" in then, (v_m, implausibility)
+        assert (implausibility > 3.0) == (v_m == 0.014)
+
+
 def test_the_old_rule_out_value_ruled_out_everything():
     """V_m = 0.002 mm² (the card before issue 41) and 0.01 leave nothing at the teaching
     preset: the class saw an error instead of the point."""

@@ -48,9 +48,7 @@ STALE = {"opacity": STALE_OPACITY, "visibility": "visible"}
 KEEP_SPAN = 0.6
 
 
-#: The line above the plots while none is shown and nothing runs (HTML): Run discrepancy
-#: runs the history match first when there is none (it read "Run history matching, then
-#: press Run discrepancy", also after the waves had run).
+#: The line above the plots while none is shown and nothing runs (HTML).
 EMPTY_HTML = ("No scenario has run for these settings yet: press <b>Run discrepancy</b> "
               "(it runs the history match first if there is none).")
 #: ... and while no method is chosen under Scenarios.
@@ -355,11 +353,9 @@ class DiscrepancyPanel(LivePanel):
                 visible, styles = method in s.scenarios, SLOT
             elif stale and method in s.scenarios:
                 visible, styles = True, STALE
-            else:   # hidden by the buttons: its place stays, empty (not after a card,
-                # which chooses the methods it shows: KOH's card showed scenario 1 and KOH
-                # with the earlier cards' two columns empty between them)
-                visible = method in kept and method not in s.scenarios and not s.card
-                styles = SLOT
+            else:   # hidden by the buttons: its place stays, empty; not after a card,
+                # which chooses what it shows (KOH's showed two empty columns)
+                visible, styles = method in kept and method not in s.scenarios and not s.card, SLOT
             if group.visible != visible:
                 group.visible = visible
             if group.styles != styles:

@@ -20,6 +20,7 @@ from mdcore._pipeline import Method
 from .alerts import warnings_html
 from .band_axes import band_extent
 from .data_panel import true_delta_figure
+from .discrepancy_text import EMPTY_HTML, empty_html, not_run_html
 from .live_figures import (
     CURRENT,
     SLOT,
@@ -46,25 +47,6 @@ STALE = {"opacity": STALE_OPACITY, "visibility": "visible"}
 #: New results keep the axes while their extent fits inside and spans at least this
 #: fraction of them (another seed, or N_s, seen at the same scale, and not re-laid-out).
 KEEP_SPAN = 0.6
-
-
-#: The line above the plots while none is shown and nothing runs (HTML).
-EMPTY_HTML = ("No scenario has run for these settings yet: press <b>Run discrepancy</b> "
-              "(it runs the history match first if there is none).")
-#: ... and while no method is chosen under Scenarios.
-NONE_CHOSEN_HTML = "Choose a method under <b>Scenarios</b> to see its bands."
-
-
-def empty_html(s: ExplorerState) -> str:
-    """The line above the plots while none is shown: what is running, or what to press."""
-    if not s.busy:
-        return EMPTY_HTML if s.scenarios else NONE_CHOSEN_HTML
-    if s.task == "waves":
-        return "Running history matching; then press <b>Run discrepancy</b>."
-    matched = bool(s.waves) and s.waves[-1].status == "converged"
-    return ("Running the discrepancy methods; their bands appear here when they finish."
-            if matched else "Running history matching until it converges, then the "
-                            "discrepancy methods; their bands appear here.")
 
 
 class DiscrepancyPanel(LivePanel):
@@ -365,7 +347,7 @@ class DiscrepancyPanel(LivePanel):
         if stale and shown:
             return                     # the warnings stay with the dimmed plots they concern
         advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
-        text = warnings_html(advice) if shown else empty_html(s)
+        text = warnings_html(advice) + not_run_html(s) if shown else empty_html(s)
         # On the next tick: a run's start (busy) comes inside its button's click event,
         # where Bokeh refuses a change of a raw model ("_pending_writes should be non-None").
         self._message = text

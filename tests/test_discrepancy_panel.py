@@ -18,12 +18,11 @@ from bokeh.models import ColumnDataSource, Plot  # noqa: E402
 from mdcore._pipeline import Method  # noqa: E402
 from mdcore_app.discrepancy_panel import (  # noqa: E402
     CURRENT,
-    EMPTY_HTML,
-    NONE_CHOSEN_HTML,
     SLOT,
     STALE_OPACITY,
     DiscrepancyPanel,
 )
+from mdcore_app.discrepancy_text import EMPTY_HTML, NONE_CHOSEN_HTML, not_run_html  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 
 hv.extension("bokeh")
@@ -323,6 +322,20 @@ def test_after_a_card_a_method_it_did_not_choose_gives_up_its_column(beam1d):
     finally:
         s.param.update(card="", scenarios=S123)
     assert all(g.visible and g.styles == CURRENT for g in groups.values())
+
+
+def test_a_chosen_method_without_a_result_is_named_above_the_plots(beam1d):
+    """The tour's waves card left scenarios 1-3 chosen but only 1 and 2 computed for the
+    new settings: the tab showed two methods and said nothing of the third."""
+    from types import SimpleNamespace
+    s, panel, _root = beam1d
+    assert "not run" not in panel.message                # every chosen method has run
+    state = SimpleNamespace(busy=False, scenarios=[Method.KOH, Method.S1, Method.S3],
+                            results={Method.S1: s.results[Method.S1]})
+    assert not_run_html(state) == ("<p>Scenario 3 and KOH: not run for these settings "
+                                   "yet; press <b>Run discrepancy</b>.</p>")
+    state.busy = True                                    # running: the line says so
+    assert not_run_html(state) == ""
 
 
 def test_beam_2d_without_a_known_delta_keeps_one_group_per_method(monkeypatch):

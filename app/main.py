@@ -14,7 +14,6 @@ import argparse
 import logging
 import sys
 from concurrent.futures import ThreadPoolExecutor
-from functools import partial
 from pathlib import Path
 
 import holoviews as hv
@@ -28,6 +27,7 @@ from mdcore import _threads as threads
 from mdcore._case_file import load_case_file
 from mdcore_app import network
 from mdcore_app.markup import markdown_text
+from mdcore_app.session_loop import job_scheduler
 from mdcore_app.state import ExplorerState
 from mdcore_app.views import ExplorerView
 
@@ -160,7 +160,7 @@ def create_app(argv: list[str] | None = None) -> pn.viewable.Viewable:
             return pn.pane.Alert(markdown_text(why), alert_type="danger",
                                  css_classes=["mdcore-refused"], sizing_mode="stretch_width")
     cases, errors = own_cases(args.case)
-    state = ExplorerState(background=served, schedule=_scheduler(doc), own_cases=tuple(cases))
+    state = ExplorerState(background=served, schedule=job_scheduler(doc), own_cases=tuple(cases))
     view = ExplorerView(state=state)
     if served:
         # A closed tab stops its running job: nobody will see the result, and the CPU is
@@ -187,39 +187,6 @@ def _local_style_sheets(doc) -> None:
     with set_curdoc(doc):
         local = f"{pn.state.rel_path}/{LOCAL_DIST}" if pn.state.rel_path else LOCAL_DIST
     doc.template_variables.setdefault("dist_url", local)
-
-
-def _scheduler(doc):
-    """Run callbacks on the session's event loop (with the document lock), or inline.
-
-    Each callback runs under Panel's ``hold``: its changes to Panel objects and to raw
-    Bokeh models alike reach the browser in one message. Unheld, the two took different
-    routes (Panel writes to the websocket itself, Bokeh queues a patch), and a patch that
-    named a model the other route had not delivered yet failed in the page with
-    "reference pNNNN isn't known", losing the update (a status line that never changed).
-
-    A job's worker thread hands the callback to Tornado's loop (``add_callback``, safe from
-    any thread), which adds it to the document. Added from the worker itself, it raced
-    the session's thread: while that thread holds the document, Bokeh queues the
-    "callback added" event and dispatches the queue when the hold ends, and an event
-    queued as the hold ended was lost (Bokeh's queue has no lock). A lost wave left the
-    state one wave short of its results, so a finished run showed nothing.
-    """
-    if doc is None or doc.session_context is None:
-        return lambda fn: fn()
-    loop = IOLoop.current()                    # the session's loop: create_app runs on it
-
-    def run(fn):
-        with set_curdoc(doc), pn.io.hold(doc):
-            fn()
-
-    def add(fn):
-        try:
-            doc.add_next_tick_callback(partial(run, fn))
-        except RuntimeError:                   # the session's document is destroyed
-            log.debug("session ended; a job's callback was dropped")
-
-    return lambda fn: loop.add_callback(add, fn)
 
 
 if pn.state.served:

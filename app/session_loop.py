@@ -6,7 +6,13 @@ to Panel objects and to raw Bokeh models reach the browser in one message. Not s
 
 from __future__ import annotations
 
+import logging
+
 import panel as pn
+from panel.io.state import set_curdoc
+from tornado.ioloop import IOLoop
+
+log = logging.getLogger("mdcore_app")
 
 #: Seconds a served session stays idle (no job) before the views of hidden tabs catch up
 #: with its state: a tab is then drawn before it is clicked, and the work waits for a
@@ -22,7 +28,7 @@ def _served_doc():
 
 def _held(doc, fn):
     def run() -> None:
-        with pn.io.hold(doc):
+        with set_curdoc(doc), pn.io.hold(doc):
             fn()
     return run
 
@@ -45,6 +51,31 @@ def next_tick(fn) -> None:
         fn()
     else:
         doc.add_next_tick_callback(_held(doc, fn))
+
+
+def job_scheduler(doc):
+    """``schedule(fn)`` for a session's jobs: ``fn()`` on the session's next tick, called
+    from any thread (not served: at once).
+
+    The worker thread hands ``fn`` to Tornado's loop (``add_callback``, safe from any
+    thread), which adds it to the document. Added from the worker itself, it raced the
+    session's thread: while that thread holds the document, Bokeh queues the "callback
+    added" event and dispatches the queue when the hold ends, and an event queued as the
+    hold ended was lost (Bokeh's queue has no lock). A lost wave left the state one wave
+    short of its results, so a finished run showed nothing. Create it on the session's
+    loop (``create_app`` runs there).
+    """
+    if doc is None or doc.session_context is None:
+        return lambda fn: fn()
+    loop = IOLoop.current()
+
+    def add(fn):
+        try:
+            doc.add_next_tick_callback(_held(doc, fn))
+        except RuntimeError:                   # the session's document is destroyed
+            log.debug("session ended; a job's callback was dropped")
+
+    return lambda fn: loop.add_callback(add, fn)
 
 
 def when_shown(tabs: pn.Tabs, index: int, hook) -> None:

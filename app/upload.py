@@ -15,12 +15,11 @@ import binascii
 from collections.abc import Callable
 from pathlib import Path
 
-import panel as pn
 import param
 from panel.custom import JSComponent
-from panel.io.state import set_curdoc
 
 from .session import megabytes
+from .session_loop import next_tick
 
 #: Bytes per chunk sent by the browser (base64 on the websocket: a third more).
 CHUNK_BYTES = 256 * 1024
@@ -79,20 +78,11 @@ class FileUpload(JSComponent):
     def _on_msg(self, event) -> None:
         # Panel calls ``on_msg`` outside the document's lock, and ``take`` changes Bokeh
         # models, which needs it ("we should have the lock when the document changes"
-        # broke the session). So each message is handled, in order, in a next-tick
-        # callback (which holds the lock), under ``hold`` so that Panel's and Bokeh's
-        # changes reach the page together.
+        # broke the session). So each message is handled, in order, on the next tick
+        # (with the lock, under ``hold``: Panel's and Bokeh's changes reach the page
+        # together).
         msg = getattr(event, "data", event)
-        doc = pn.state.curdoc
-        if doc is None or doc.session_context is None:
-            self._received(msg)
-            return
-
-        def handle() -> None:
-            with set_curdoc(doc), pn.io.hold(doc):
-                self._received(msg)
-
-        doc.add_next_tick_callback(handle)
+        next_tick(lambda: self._received(msg))
 
     def _received(self, msg) -> None:
         """Handle one message of the browser (``upload.js``)."""

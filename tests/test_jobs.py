@@ -395,15 +395,17 @@ def test_a_served_session_gets_job_callbacks_on_its_own_loop_in_order():
     import asyncio
     import time
 
+    from bokeh.document import Document as BokehDocument
     from tornado.ioloop import IOLoop
 
-    from mdcore_app.main import _scheduler
+    from mdcore_app.session_loop import job_scheduler
 
-    class Document:
-        """What the scheduler uses of a served session's document."""
+    class Document(BokehDocument):
+        """A served session's document that records the callbacks added to it."""
         session_context = object()
 
         def __init__(self):
+            super().__init__()
             self.added = []
 
         def add_next_tick_callback(self, callback):
@@ -414,13 +416,14 @@ def test_a_served_session_gets_job_callbacks_on_its_own_loop_in_order():
     def session_loop():
         asyncio.set_event_loop(asyncio.new_event_loop())
         loop_of.update(loop=IOLoop.current(), thread=threading.current_thread(),
-                       schedule=_scheduler(doc))
+                       schedule=job_scheduler(doc))
         ready.set()
         loop_of["loop"].start()
 
     threading.Thread(target=session_loop, daemon=True).start()
     assert ready.wait(TIMEOUT)
-    fns = [lambda: None for _ in range(50)]
+    ran = []
+    fns = [lambda k=k: ran.append(k) for k in range(50)]
     worker = threading.Thread(target=lambda: [loop_of["schedule"](fn) for fn in fns])
     worker.start()
     worker.join(TIMEOUT)
@@ -429,4 +432,6 @@ def test_a_served_session_gets_job_callbacks_on_its_own_loop_in_order():
         time.sleep(0.01)
     loop_of["loop"].add_callback(loop_of["loop"].stop)
     assert [thread for thread, _ in doc.added] == [loop_of["thread"]] * len(fns)
-    assert [callback.args[0] for _, callback in doc.added] == fns
+    for _, callback in doc.added:          # as the session's next ticks would
+        callback()
+    assert ran == list(range(len(fns)))

@@ -44,6 +44,7 @@ from ._threads import single_threaded_blas
 from ._validation import (
     as_float_array,
     as_int,
+    as_number,
     as_outputs,
     as_positive_float,
     as_seed_int,
@@ -410,30 +411,25 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, initial_design=Non
     p = bounds.shape[0]
     X = as_float_array(X, "X", ndim=2)
     z = as_outputs(z, X.shape[0])
-    try:
-        T = float(threshold)
-    except (TypeError, ValueError):
-        T = float("nan")
-    if isinstance(threshold, bool) or not np.isfinite(T) or T <= 0:
+    T = as_number(threshold)
+    if not np.isfinite(T) or T <= 0:
         raise ValueError(f"threshold T must be a positive number; received {threshold!r}. "
                          "T = 3 is the usual choice.")
-    threshold = T
     choose(rule, "rule", RULE_NAMES)
     Xu, zm, zv, counts = replicate_summary(X, z)
     n_out = z.shape[1]
-    V_m = check_positive(as_float_array(V_m, "V_m"), "V_m")
-    try:
-        V_m = np.broadcast_to(V_m, zm.shape).copy()
-    except ValueError:
-        raise ValueError(f"V_m must be a scalar, (n_out,) = ({n_out},) or (N_u, n_out) = "
-                         f"{zm.shape}; received shape {V_m.shape}.") from None
-    if V_o is not None:
-        V_o = check_positive(as_float_array(V_o, "V_o"), "V_o", strict=False)
+
+    def per_target(value, name: str, strict: bool) -> np.ndarray:
+        value = check_positive(as_float_array(value, name), name, strict=strict)
         try:
-            V_o = np.broadcast_to(V_o, zm.shape).copy()
+            return np.broadcast_to(value, zm.shape).copy()
         except ValueError:
-            raise ValueError(f"V_o must be a scalar, (n_out,) or (N_u, n_out) = {zm.shape}; "
-                             f"received shape {V_o.shape}.") from None
+            raise ValueError(f"{name} must be a scalar, (n_out,) = ({n_out},) or (N_u, n_out) "
+                             f"= {zm.shape}; received shape {value.shape}.") from None
+
+    V_m = per_target(V_m, "V_m", True)
+    if V_o is not None:
+        V_o = per_target(V_o, "V_o", False)
     has_rep = counts > 1
     if V_o is None:
         if not np.all(has_rep):
@@ -464,10 +460,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, initial_design=Non
                          "max_waves.")
     convergence_ratio = as_positive_float(o.convergence_ratio, "convergence_ratio",
                                           "1 is the paper's rule.")
-    try:
-        failed = float(o.max_failed_fraction)
-    except (TypeError, ValueError):
-        failed = float("nan")
+    failed = as_number(o.max_failed_fraction)
     if not 0.0 <= failed < 1.0:
         raise ValueError(f"max_failed_fraction must be in [0, 1); received "
                          f"{o.max_failed_fraction!r}.")
@@ -480,7 +473,7 @@ def setup(simulate: Callable, X, z, bounds, *, V_m, V_o=None, initial_design=Non
         raise ValueError(f"executor must be a concurrent.futures.Executor (with submit); "
                          f"received {type(o.executor).__name__}.")
     checked = replace(
-        o, threshold=threshold, n_runs=n_runs, n_candidates=n_candidates, max_waves=max_waves,
+        o, threshold=T, n_runs=n_runs, n_candidates=n_candidates, max_waves=max_waves,
         mcmc_steps=as_int(o.mcmc_steps, "mcmc_steps", 0, MAX_MCMC_STEPS),
         convergence_ratio=convergence_ratio, max_failed_fraction=failed,
         V_m_length=V_m_length, V_m_corr=V_m_corr, chi2_probability=chi2_probability,
@@ -498,10 +491,7 @@ def check_correlation(length, corr, probability, n_out: int):
         raise ValueError(f"V_m_length must be one length ≥ 0 or one per output ({n_out}), in "
                          f"the inputs' units (0: independent); received {short(length)}.")
     length = np.broadcast_to(length.ravel(), (n_out,)).copy()
-    try:
-        prob = float(probability)
-    except (TypeError, ValueError):
-        prob = float("nan")
+    prob = as_number(probability)
     if not 0.0 < prob < 1.0:
         raise ValueError(f"chi2_probability must be in (0, 1); received {probability!r}. "
                          "0.995 is Vernon et al.'s choice.")

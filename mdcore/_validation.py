@@ -66,13 +66,21 @@ def as_int(value, name: str, minimum: int, maximum: int | None = None) -> int:
     return int(value)
 
 
+def as_number(value) -> float:
+    """``float(value)``, or NaN for what is not a number (a bool included): the caller's
+    range check then refuses it with its own message."""
+    if isinstance(value, bool):
+        return float("nan")
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        return float("nan")
+
+
 def as_positive_float(value, name: str, hint: str = "") -> float:
     """A finite scalar > 0 as float; ``hint`` ends the message (meaning, a usual value)."""
-    try:
-        out = float(value)
-    except (TypeError, ValueError):
-        out = float("nan")
-    if isinstance(value, bool) or not np.isfinite(out) or out <= 0:
+    out = as_number(value)
+    if not np.isfinite(out) or out <= 0:
         raise ValueError(f"{name} must be a positive number (finite, > 0); received "
                          f"{value!r}." + (f" {hint}" if hint else ""))
     return out

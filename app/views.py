@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import html
+import json
 
 import panel as pn
 import param
@@ -25,7 +26,10 @@ from .state import ExplorerState
 from .waves_panel import WavesPanel
 
 SIDEBAR_WIDTH = 330
-DISCREPANCY_TAB = 2
+#: The tabs, in order.
+TAB_NAMES = ("Data", "History matching", "Discrepancy", "Metrics", "Diagnostics", "Files",
+             "Things to try")
+DISCREPANCY_TAB = TAB_NAMES.index("Discrepancy")
 
 
 def pair(a, b) -> pn.Row:
@@ -47,6 +51,11 @@ def fold(cards, tab: int) -> None:
     for card, collapsed in zip(cards, want or ()):
         if card.collapsed != collapsed:
             card.collapsed = collapsed
+
+
+def starting_html(exp) -> str:
+    """The card line from a card's click until the server answers."""
+    return html.escape(f"{exp.title} — starting …")
 
 
 def terms(*words: str) -> pn.pane.HTML:
@@ -78,6 +87,11 @@ class ExplorerView(pn.viewable.Viewer):
         self.status_view, self._status_div = live_text("hm-status")
         self.state.param.watch(self._show_status, ["status", "waves"])
         self._show_status()
+        self._card_pane, self._card_div = live_text("card-note")
+        self._card_div.styles = {"font-size": "0.9em", "padding": "2px 6px",
+                                 "background": "#e8f1fb"}
+        self.state.param.watch(self._show_card, "card")
+        self._show_card()
         self._fill_tabs()
 
     # --- events ------------------------------------------------------------------------
@@ -269,6 +283,12 @@ class ExplorerView(pn.viewable.Viewer):
             button = pn.widgets.Button(label="Run it", color="primary",
                                        css_classes=[f"try-{exp.key}"], width=120)
             button.on_click(lambda _, e=exp: self._try(e))
+            # The card's tab and line at once, in the browser: a busy server (hidden tabs
+            # catching up after a run, a loaded machine) answered the click 3-11 s later,
+            # and until then the class saw nothing happen.
+            button.js_on_click(args={"tabs": self._tabs, "line": self._card_div}, code=(
+                f"tabs.active = {TAB_NAMES.index(exp.tab)}; "
+                f"line.text = {json.dumps(starting_html(exp))}; line.visible = true;"))
             cards.append(pn.Column(
                 pn.pane.Markdown(f"**{exp.title}**\n\n**Predict first:** {exp.predict} "
                                  f"*Then:* {exp.then}", margin=(0, 10)),
@@ -283,8 +303,15 @@ class ExplorerView(pn.viewable.Viewer):
     def _try(self, exp) -> None:
         """Run the card ``exp`` with its tab shown (from the top: see _fill_tabs); its
         settings change the shown tab's figures, so not inside the button's own event."""
-        self._tabs.active = [t.name for t in self._tabs].index(exp.tab)
-        next_tick(lambda: self.state.try_experiment(exp.key))
+        self._tabs.active = TAB_NAMES.index(exp.tab)
+
+        def run():
+            self.state.try_experiment(exp.key)
+            # Sent even when ``card`` is as it was (the same card again): the browser
+            # says "starting" since the click (try_view).
+            self._card_div.text = ""
+            self._show_card()
+        next_tick(run)
 
     def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:
         """A box holding ``view()``, rebuilt when one of the state's ``params`` changes
@@ -350,21 +377,13 @@ class ExplorerView(pn.viewable.Viewer):
                          ("Diagnostics", self._diagnostics),
                          ("Files", self.files_view()), ("Things to try", self.try_view()))])
 
-    def _card_line(self) -> pn.pane.Bokeh:
+    def _show_card(self, *_):
         """The last card's "look at" line above the tabs: its tab may be Discrepancy or
         Metrics, away from the status line (History matching)."""
-        pane, div = live_text("card-note")
-        div.styles = {"font-size": "0.9em", "padding": "2px 6px", "background": "#e8f1fb"}
-
-        def show(*_):
-            div.text = html.escape(self.state.card)
-            div.visible = bool(self.state.card)
-
-        self.state.param.watch(show, "card")
-        show()
-        return pane
+        self._card_div.text = html.escape(self.state.card)
+        self._card_div.visible = bool(self.state.card)
 
     def __panel__(self):
-        return pn.Row(self._controls(), pn.Column(self._card_line(), self._tabs,
+        return pn.Row(self._controls(), pn.Column(self._card_pane, self._tabs,
                                                   sizing_mode="stretch_both"),
                       sizing_mode="stretch_both")

@@ -51,6 +51,8 @@ def small_state(case="beam-1d", **extra):
 def test_first_screen_is_the_paper_fig1():
     s = ExplorerState()
     v = ExplorerView(state=s)
+    # the cards switch tabs by these indices in the browser (views.TAB_NAMES)
+    assert tuple(t.name for t in v._tabs) == views_module.TAB_NAMES
     c = s.case
     assert c.name == "beam-1d"
     data = glyph_data(render(v.data_view))

@@ -278,12 +278,62 @@ def overlaps(a, b) -> bool:
                 or a["y"] + a["height"] <= b["y"] or b["y"] + b["height"] <= a["y"])
 
 
+def card_note(page) -> str:
+    return page.locator(".card-note").evaluate("e => (e.shadowRoot || e).textContent")
+
+
 def run_card(page, key: str, tab_name: str) -> None:
-    """Press the card ``key``: its tab must be shown at once, then wait for its run."""
+    """Press the card ``key``: its tab must be shown at once (the browser switches it),
+    then wait for the server's answer (the card line's "look at") and the card's run."""
     tab(page, "Things to try")
     page.locator(f".try-{key} button").click()
     page.locator(".bk-tab.bk-active", has_text=tab_name).wait_for(timeout=10_000)
+    wait_card_answer(page)
     wait_idle(page)
+
+
+def wait_card_answer(page, timeout: float = 60.0) -> None:
+    """Until the card line says where to look: the server has run the card's click."""
+    end = time.monotonic() + timeout
+    while "look at:" not in card_note(page):
+        assert time.monotonic() < end, f"no answer to the card: {card_note(page)[-80:]!r}"
+        page.wait_for_timeout(200)
+
+
+def test_a_card_shows_its_tab_at_once_while_the_server_is_busy(browser, server):
+    """Under load (tests alongside, hidden tabs catching up after a run) the server
+    answered a card's click 3-11 s later, and until then the page showed nothing: the
+    tab switch looked lost. The browser now switches the tab and says the card is starting
+    by itself; the server's answer follows. The server is stopped (SIGSTOP) to show it."""
+    import os
+    import signal
+    page, log = open_page(browser, server.url)
+    wait_idle(page)
+    tab(page, "Things to try")
+    os.kill(server.proc.pid, signal.SIGSTOP)
+    try:
+        page.locator(".try-ess button").click()
+        page.locator(".bk-tab.bk-active", has_text="Metrics").wait_for(timeout=5_000)
+        assert shown(page, "card-note")
+        assert "starting" in card_note(page)
+    finally:
+        os.kill(server.proc.pid, signal.SIGCONT)
+    wait_card_answer(page)
+    assert "look at: Metrics tab" in card_note(page)
+    # The same card again: the line says "starting", then the server's "look at" again.
+    tab(page, "Things to try")
+    os.kill(server.proc.pid, signal.SIGSTOP)
+    try:
+        page.locator(".try-ess button").click()
+        page.locator(".bk-tab.bk-active", has_text="Metrics").wait_for(timeout=5_000)
+        assert "starting" in card_note(page)
+    finally:
+        os.kill(server.proc.pid, signal.SIGCONT)
+    wait_card_answer(page)
+    wait_idle(page)
+    assert page.locator(".bk-tab.bk-active").inner_text() == "Metrics"
+    assert log.errors == []
+    page.close()
 
 
 def test_a_card_shows_its_plot_in_view_even_after_the_tab_was_scrolled(browser, server):
@@ -319,7 +369,7 @@ def test_the_ess_card_shows_its_diagnostics_and_advice_uncovered(browser, server
     assert in_view(page, table) and in_view(page, advice)
     # Where to look, said on the card's own tab (the status line is on History matching).
     assert shown(page, "card-note")
-    note = page.locator(".card-note").evaluate("e => (e.shadowRoot || e).textContent")
+    note = card_note(page)
     assert "look at: Metrics tab: ESS φ" in note, note
     for toast in page.locator(".notyf__toast").all():
         box = toast.bounding_box()

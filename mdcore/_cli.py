@@ -81,7 +81,8 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
     with _Bar("history matching", problem.options.max_waves, "wave") as bar:
         for wave in iter_waves(problem):
             waves.append(wave)
-            bar.update_to(len(waves), f"wave {wave.index}: NROY {100 * wave.nroy_fraction:.2f} %")
+            bar.fraction(len(waves) / bar.total, f"wave {wave.index}: NROY "
+                         f"{100 * wave.nroy_fraction:.2f} %")
     return HistoryMatchResult(problem, tuple(waves))
 
 
@@ -157,15 +158,12 @@ class _Bar:
     def __enter__(self):
         return self
 
-    def update_to(self, done: float, message: str = "") -> None:
-        self._bar.n = min(done, self.total)
+    def fraction(self, f: float, message: str = "") -> None:
+        """The pipeline's ``progress(fraction, message)``."""
+        self._bar.n = min(int(round(f * self.total)), self.total)
         if message:
             self._bar.set_postfix_str(message, refresh=False)
         self._bar.refresh()
-
-    def fraction(self, f: float, message: str = "") -> None:
-        """The pipeline's ``progress(fraction, message)``."""
-        self.update_to(int(round(f * self.total)), message)
 
     def __exit__(self, *exc):
         self._bar.close()

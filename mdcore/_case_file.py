@@ -1,10 +1,8 @@
-"""Your own case from files: a TOML case file, a measurements CSV and a simulator function.
-
-The format, key by key, is in the README ("Your own data"; worked example
-``examples/beam_lab/``). Paths are relative to the case file. The simulator is named
-``package.module:function`` and has the signature of :meth:`mdcore.Case.simulate`:
-``simulate(X, theta) -> (n_theta, N, n_out)``, X (N, d_x) in the CSV's input units and
-theta (n_theta, p) in the parameters' units.
+"""Your own case from files: a TOML case file (format: the README, "Your own data"; example
+``examples/beam_lab/``), a measurements CSV and a simulator ``package.module:function`` with
+the signature of :meth:`mdcore.Case.simulate`: ``simulate(X, theta) -> (n_theta, N, n_out)``,
+X (N, d_x) in the CSV's input units, theta (n_theta, p) in the parameters' units. Paths are
+relative to the case file.
 """
 
 from __future__ import annotations

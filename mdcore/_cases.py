@@ -41,8 +41,7 @@ class Case:
     name, title, description : str
         Identifier, one-line label, and where the data come from.
     stand_in : bool
-        Whether the data are a synthetic stand-in for measurements that are not public
-        (shear-5's); the beams' data are synthetic in the paper itself.
+        Whether the data stand in for measurements that are not public (shear-5's).
     theta_names, theta_units : tuple of str
     theta_bounds : ndarray of shape (p, 2)
         Prior box, in ``theta_units``.
@@ -336,16 +335,12 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     :data:`MAX_PROBLEMS` problems, each naming ``source``, the line and the column.
     """
     lines = text.removeprefix("\ufeff").splitlines()   # a BOM (Excel's UTF-8 CSV)
-    comments, header_line = [], None
-    for lineno, line in enumerate(lines, start=1):
-        if line.startswith("#"):
-            comments.append(line[1:].strip())
-        elif line.strip():
-            header_line = lineno
-            break
+    header_line = next((i for i, line in enumerate(lines, start=1)
+                        if line.strip() and not line.startswith("#")), None)
     if header_line is None:
         raise MeasurementsError([f"{source}: no header row found; the first non-comment line "
                                  "must name the columns."])
+    comments = [line[1:].strip() for line in lines[:header_line] if line.startswith("#")]
     # A name that mdcore._export wrote with a leading "'" (it would start a formula) reads
     # back as the name.
     header = [h[1:] if h[:1] == "'" and h[1:2] in ("=", "+", "-", "@") else h
@@ -380,8 +375,7 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     cols = [header.index(c) for c in inputs + outputs]
     rows, problems = [], []
     n_rows = 0
-    for lineno in range(header_line + 1, len(lines) + 1):
-        line = lines[lineno - 1]
+    for lineno, line in enumerate(lines[header_line:], start=header_line + 1):
         if not line.strip() or line.startswith("#"):
             continue
         n_rows += 1

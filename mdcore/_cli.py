@@ -22,7 +22,7 @@ from ._export import write_tables
 from ._history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
 from ._koh import BURN_IN, N_ITER
 from ._pipeline import Method, Settings, metric_text, metrics_table
-from ._reproduce import CaseRun, default_methods, parse_methods, run_methods
+from ._reproduce import CaseRun, default_methods, run_methods
 from ._study import PAPER, study
 from ._validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
 
@@ -205,7 +205,6 @@ def _settings(args, name: str) -> Settings:
 def _run(case, args, methods, settings_name: str) -> int:
     """History match with a bar, then the methods with a bar each, then the tables."""
     settings = _settings(args, settings_name)
-    methods = parse_methods(methods)
     with _executor(args) as executor:
         hm = _history_match(case, args, executor)
         print(hm.message, flush=True)
@@ -329,13 +328,11 @@ def _cmd_study(args) -> int:
     print(f"{'method':>6} {'output':>6} " + " ".join(f"{m:>24}" for m in shown))
     for method, entry in summary.items():
         n_out = len(entry["nmse_z"]["mean"])
+        refs = [paper.get(m, {}).get(method) if n_out == 1 else None for m in shown]
         for o in range(n_out):
-            cells = []
-            for metric in shown:
-                v, ref = entry[metric], paper.get(metric, {}).get(method)
-                tail = f" [{ref:g}]" if ref is not None and n_out == 1 else ""
-                cells.append("—" if v is None
-                             else f"{v['mean'][o]:.3f} ± {v['sd'][o]:.3f}{tail}")
+            cells = ["—" if v is None else f"{v['mean'][o]:.3f} ± {v['sd'][o]:.3f}"
+                     + ("" if ref is None else f" [{ref:g}]")
+                     for v, ref in zip((entry[m] for m in shown), refs)]
             print(f"{method:>6} {o + 1:>6} " + " ".join(c.rjust(24) for c in cells))
     pat = result.patterns()
     if pat["koh_delta_ratio"] is not None:

@@ -346,33 +346,31 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     header = [h[1:] if h[:1] == "'" and h[1:2] in ("=", "+", "-", "@") else h
               for h in (c.strip() for c in next(csv.reader([lines[header_line - 1]])))]
     inputs = tuple(inputs)
-    if outputs is None:
-        outputs = tuple(h for h in header if h not in inputs and h not in ignore)
-    outputs = tuple(outputs)
-    missing = [c for c in inputs + outputs if c not in header]
+    outputs = tuple(h for h in header if h not in inputs and h not in ignore) \
+        if outputs is None else tuple(outputs)
+    wanted = inputs + outputs
+    missing = [c for c in wanted if c not in header]
     for sep, word in ((";", "semicolons"), ("\t", "tabs")):
-        if missing and set(inputs + outputs) <= {h.strip() for h in
-                                                 lines[header_line - 1].split(sep)}:
+        if missing and set(wanted) <= {h.strip() for h in lines[header_line - 1].split(sep)}:
             raise MeasurementsError([f"{source} line {header_line}: the columns are separated "
                                      f"by {word}; save the file as CSV with commas (the "
-                                     f"columns {list(inputs + outputs)} are there)."])
+                                     f"columns {list(wanted)} are there)."])
     if missing:
         # The header is quoted only when it names a wanted column: this is then the
         # measurements file with a column misnamed, not some other file's first line.
         found = ("the header " + ", ".join(short(h, 30) for h in header[:20])
-                 if set(header) & set(inputs + outputs) else
+                 if set(header) & set(wanted) else
                  "a header with none of them (is this the measurements file?)")
         raise MeasurementsError([f"{source} line {header_line}: column(s) {missing} not found "
-                                 f"in {found}; the file needs the columns "
-                                 f"{list(inputs + outputs)}."])
+                                 f"in {found}; the file needs the columns {list(wanted)}."])
     if not outputs:
         raise MeasurementsError([f"{source}: no output columns; name them with outputs=."])
-    repeated = [c for c in dict.fromkeys(inputs + outputs) if header.count(c) > 1]
+    repeated = [c for c in dict.fromkeys(wanted) if header.count(c) > 1]
     if repeated:                      # which of the equal names is meant is ambiguous
         raise MeasurementsError([f"{source} line {header_line}: column(s) {repeated} appear "
                                  f"more than once in the header {header}; give each column "
                                  "a distinct name."])
-    cols = [header.index(c) for c in inputs + outputs]
+    cols = [header.index(c) for c in wanted]
     rows, problems = [], []
     n_rows = 0
     for lineno, line in enumerate(lines[header_line:], start=header_line + 1):

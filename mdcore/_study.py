@@ -157,8 +157,7 @@ class Study:
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
                              "fit_iterations": s.fit_iterations},
                 "summary": self.summary(), "history_matching": self.history(),
-                "paper": PAPER.get(self.case),
-                "patterns": self.patterns(), "runs": list(self.runs)}
+                "paper": PAPER.get(self.case), "patterns": self.patterns(), "runs": list(self.runs)}
 
 
 def study(name: str, seeds, *, methods=None, settings: Settings | None = None,

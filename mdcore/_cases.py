@@ -58,17 +58,20 @@ class Case:
         Prior of each output's discrepancy-GP log hyperparameters (docs/method.md §2,
         ``P = 2 + n_out + d_x``).
     theta_prior : ThetaPrior
-        Gaussian prior of θ (``theta_units``) for the Kennedy–O'Hagan baseline (docs/method.md §7).
+        Gaussian prior of θ for the Kennedy–O'Hagan baseline (docs/method.md §7): ``mean`` in
+        ``theta_units``, ``var`` in their squares.
     initial_design : ndarray of shape (R, p)
         θ of the first emulator's simulator runs.
     seed : int
         Seed the noise was drawn with.
     timeout : float or None, default=None
-        Seconds one simulator run (one θ) may take (None: no limit; set it with
-        ``dataclasses.replace``); past it the run raises ``TimeoutError``, a failed run in
-        history matching, and a case file's simulator process is killed.
+        Seconds one simulator run (one θ) may take, n × timeout for n θ (None: no limit; set
+        it with ``dataclasses.replace``). Past it a run raises ``TimeoutError`` (a failed run in
+        history matching, an error in the scenarios): a case file's simulator process is
+        killed, another simulator's thread abandoned.
     V_m_length : ndarray of shape (n_out,), default 0
-        Correlation length ℓ_m of V_m over x per output, in ``x_units`` (0: independent).
+        Correlation length ℓ_m of V_m over x per output, in ``x_units``, for the multivariate
+        rule (0: independent, as on the built-ins).
     V_m_corr : ndarray of shape (n_out, n_out) or None, default None
         Default correlation of the outputs' discrepancies (None: independent).
     """

@@ -1,10 +1,8 @@
-"""Your own case from files: a TOML case file, a measurements CSV and a simulator function.
-
-The format, key by key, is in the README ("Your own data"; worked example
-``examples/beam_lab/``). Paths are relative to the case file. The simulator is named
-``package.module:function`` and has the signature of :meth:`mdcore.Case.simulate`:
-``simulate(X, theta) -> (n_theta, N, n_out)``, X (N, d_x) in the CSV's input units and
-theta (n_theta, p) in the parameters' units.
+"""Your own case from files: a TOML case file (format: the README, "Your own data"; example
+``examples/beam_lab/``), a measurements CSV and a simulator ``package.module:function`` with
+the signature of :meth:`mdcore.Case.simulate`: ``simulate(X, theta) -> (n_theta, N, n_out)``,
+X (N, d_x) in the CSV's input units, theta (n_theta, p) in the parameters' units. Paths are
+relative to the case file.
 """
 
 from __future__ import annotations
@@ -98,9 +96,8 @@ class _Reader:
 
     def texts(self, key: str, n: int | None = None, default=None) -> tuple[str, ...]:
         value = self.table.get(key, default)
-        if not isinstance(value, list) or not value or not all(
-                isinstance(v, str) and v.strip() for v in value) or (n is not None
-                                                                     and len(value) != n):
+        if not isinstance(value, list) or not value or (n is not None and len(value) != n) \
+                or not all(isinstance(v, str) and v.strip() for v in value):
             size = "" if n is None else f" of {n}"
             raise self._fail(key, f"a list{size} of non-empty strings", value)
         return tuple(value)
@@ -172,7 +169,6 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
     Parameters
     ----------
     path : str or Path
-        The case file.
     seed : int or Generator, default=0
         Seeds the Latin-hypercube initial design.
     default_timeout : float, optional
@@ -182,8 +178,8 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
     Returns
     -------
     Case
-        With ``true_delta`` unknown (None); its simulator runs in a process of its own
-        (:class:`mdcore._runs.SimulatorProcess`), which alone imports the module.
+        With ``true_delta`` unknown (None); its simulator runs (and alone imports the
+        module) in a process of its own (:class:`mdcore._runs.SimulatorProcess`).
 
     Raises
     ------
@@ -329,12 +325,10 @@ def load_case_file(path, *, seed=0, default_timeout: float | None = None) -> Cas
         theta_names=tuple(names), theta_units=tuple(units), theta_bounds=box,
         theta_true=None if true[0] is None else np.array(true, dtype=np.float64),
         x_names=inputs, x_units=x_units, output_names=outputs, output_units=out_units,
-        X_train=X[~test], z_train=z[~test], X_test=X[test], z_test=z[test],
-        noise_var=noise,
+        X_train=X[~test], z_train=z[~test], X_test=X[test], z_test=z[test], noise_var=noise,
         V_m=V_m, V_m_length=length, V_m_corr=corr,
         phi_prior=phi_prior, theta_prior=ThetaPrior(np.array(mean), np.array(var)),
-        initial_design=design, seed=0, _simulator=simulate, _true_delta=None,
-        timeout=timeout)
+        initial_design=design, seed=0, _simulator=simulate, timeout=timeout)
 
 
 def measurements_template(case: Case) -> str:
@@ -352,13 +346,12 @@ def measurements_template(case: Case) -> str:
 
 
 def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
-    """``base``'s simulator, parameters and priors with your own measurements (parsed, never
+    """``base``'s simulator, θ box, priors and V_m with your own measurements (parsed, never
     evaluated).
 
     Parameters
     ----------
     base : Case
-        The built-in case whose simulator, θ box, priors and V_m are kept.
     text : str
         CSV text in the layout of :func:`measurements_template`.
     source : str, default="upload"
@@ -373,7 +366,7 @@ def with_measurements(base: Case, text: str, *, source: str = "upload") -> Case:
     Raises
     ------
     MeasurementsError (a ValueError)
-        With one sentence per problem (``problems``), each naming the line and column.
+        One sentence per problem (``problems``), each naming the line and column.
     """
     if not isinstance(text, str):
         raise MeasurementsError([f"text must be CSV text (str); received "

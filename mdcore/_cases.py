@@ -41,9 +41,7 @@ class Case:
     name, title, description : str
         Identifier, one-line label, and where the data come from.
     stand_in : bool
-        Whether the data are a synthetic stand-in for measurements that are not public
-        (shear-5: the paper's laboratory data). The beams' data are synthetic in the paper
-        itself, so they are not stand-ins.
+        Whether the data stand in for measurements that are not public (shear-5's).
     theta_names, theta_units : tuple of str
     theta_bounds : ndarray of shape (p, 2)
         Prior box, in ``theta_units``.
@@ -53,27 +51,27 @@ class Case:
     X_train, X_test : ndarray of shape (N, d_x)
     z_train, z_test : ndarray of shape (N, n_out)
     noise_var : ndarray of shape (n_out,)
-        Variance of the measurement noise, in output units squared.
+        Variance of the measurement noise, output units².
     V_m : ndarray of shape (n_out,)
         Default model-discrepancy variance for history matching.
     phi_prior : GaussianPrior
-        Prior of each output's discrepancy-GP log hyperparameters (docs/method.md §2 layout,
+        Prior of each output's discrepancy-GP log hyperparameters (docs/method.md §2,
         ``P = 2 + n_out + d_x``).
     theta_prior : ThetaPrior
-        Gaussian prior of θ for the Kennedy–O'Hagan baseline (docs/method.md §7), ``mean`` and
-        ``var`` in ``theta_units`` and their squares.
+        Gaussian prior of θ for the Kennedy–O'Hagan baseline (docs/method.md §7): ``mean`` in
+        ``theta_units``, ``var`` in their squares.
     initial_design : ndarray of shape (R, p)
-        Parameter values of the first emulator's simulator runs.
+        θ of the first emulator's simulator runs.
     seed : int
         Seed the noise was drawn with.
     timeout : float or None, default=None
-        Seconds one simulator run (one θ) may take, n × timeout for n θ; past it a run
-        raises ``TimeoutError``: a failed run in history matching, an error in the scenarios.
-        A case file's simulator process is killed, another simulator's thread abandoned.
-        Set it with ``dataclasses.replace(case, timeout=30.0)``; None: no limit.
+        Seconds one simulator run (one θ) may take, n × timeout for n θ (None: no limit; set
+        it with ``dataclasses.replace``). Past it a run raises ``TimeoutError`` (a failed run in
+        history matching, an error in the scenarios): a case file's simulator process is
+        killed, another simulator's thread abandoned.
     V_m_length : ndarray of shape (n_out,), default 0
-        Correlation length ℓ_m of V_m over x per output, in ``x_units`` (0: independent),
-        for the multivariate rule (docs/multivariate_history_matching.md: 0 on the built-ins).
+        Correlation length ℓ_m of V_m over x per output, in ``x_units``, for the multivariate
+        rule (0: independent, as on the built-ins).
     V_m_corr : ndarray of shape (n_out, n_out) or None, default None
         Default correlation of the outputs' discrepancies (None: independent).
     """
@@ -113,7 +111,6 @@ class Case:
 
     @property
     def p(self) -> int:
-        """Number of calibration parameters."""
         return self.theta_bounds.shape[0]
 
     def scaled_v_m(self, v_m_1: float) -> np.ndarray:
@@ -125,23 +122,24 @@ class Case:
 
     @property
     def d_x(self) -> int:
-        """Number of input dimensions."""
         return self.X_train.shape[1]
 
     @property
     def n_out(self) -> int:
-        """Number of outputs."""
         return len(self.output_names)
 
-    def simulate(self, X, theta) -> np.ndarray:
-        """The simulator at ``X`` (N, d_x) in ``x_units`` and ``theta`` (n_theta, p) or (p,) in
-        ``theta_units``: outputs (n_theta, N, n_out) in ``output_units``."""
+    def _inputs(self, X) -> np.ndarray:
         X = as_float_array(X, "X", ndim=2, allow_empty=True)
         if X.shape[1] != self.d_x:
             raise ValueError(f"X must have shape (N, {self.d_x}) for {self.name} "
                              f"({', '.join(self.x_names)}); received {X.shape}.")
-        theta = as_float_array(theta, "theta")
-        theta = np.atleast_2d(theta)
+        return X
+
+    def simulate(self, X, theta) -> np.ndarray:
+        """The simulator at ``X`` (N, d_x) in ``x_units`` and ``theta`` (n_theta, p) or (p,) in
+        ``theta_units``: outputs (n_theta, N, n_out) in ``output_units``."""
+        X = self._inputs(X)
+        theta = np.atleast_2d(as_float_array(theta, "theta"))
         if theta.ndim != 2 or theta.shape[1] != self.p:
             raise ValueError(f"theta must have shape (n_theta, {self.p}) for {self.name} "
                              f"({', '.join(self.theta_names)}); received {theta.shape}.")
@@ -154,12 +152,7 @@ class Case:
 
     def true_delta(self, X) -> np.ndarray | None:
         """Noise-free true discrepancy at ``X`` (N, d_x) -> (N, n_out), or None if unknown."""
-        if self._true_delta is None:
-            return None
-        X = as_float_array(X, "X", ndim=2, allow_empty=True)
-        if X.shape[1] != self.d_x:
-            raise ValueError(f"X must have shape (N, {self.d_x}); received {X.shape}.")
-        return self._true_delta(X)
+        return None if self._true_delta is None else self._true_delta(self._inputs(X))
 
 
 # ---------------------------------------------------------------------------------------
@@ -198,35 +191,34 @@ def _beam2d_delta(X):
             - 0.2 * (1 - x1) * np.cos(6 * x2 * 2 * np.pi))[:, None]                # Eq. 20
 
 
-def _noisy(rng, simulator, delta, theta_true, X):
-    clean = simulator(X, theta_true[None])[0] + delta(X)
-    return clean + np.sqrt(BEAM_NOISE_VAR) * rng.standard_normal(clean.shape)
+def _beam_case(seed: int, theta_true, X_train, X_test, simulator, delta, **fields) -> Case:
+    """A beam case whose data are ``simulator + delta`` at ``theta_true`` plus noise (train's
+    draws first, then test's)."""
+    rng = np.random.default_rng(seed)
+    clean = [simulator(X, theta_true[None])[0] + delta(X) for X in (X_train, X_test)]
+    z_train, z_test = (c + np.sqrt(BEAM_NOISE_VAR) * rng.standard_normal(c.shape) for c in clean)
+    return Case(stand_in=False, theta_true=theta_true, output_names=("tip deflection",),
+                output_units=("mm",), X_train=X_train, z_train=z_train, X_test=X_test,
+                z_test=z_test, noise_var=np.array([BEAM_NOISE_VAR]), V_m=np.array([BEAM_V_M]),
+                phi_prior=_beam_prior(X_train.shape[1]), seed=seed, _simulator=simulator,
+                _true_delta=delta, **fields)
 
 
 def _beam1d(seed: int) -> Case:
-    theta_true = np.array([38.0, 68.0])
-    X_train = np.linspace(0.1, 0.9, 13)[:, None]
-    X_test = np.linspace(0.1, 0.9, 200)[:, None]
-    rng = np.random.default_rng(seed)
-    z_train = _noisy(rng, _beam1d_simulator, _beam1d_delta, theta_true, X_train)
-    z_test = _noisy(rng, _beam1d_simulator, _beam1d_delta, theta_true, X_test)
-    bounds = np.array([[0.0, 50.0], [50.0, 90.0]])
     grid = np.stack(np.meshgrid(np.linspace(0, 50, 5), np.linspace(50, 90, 5), indexing="ij"),
                     axis=-1).reshape(-1, 2)
-    return Case(
+    return _beam_case(
+        seed, np.array([38.0, 68.0]), np.linspace(0.1, 0.9, 13)[:, None],
+        np.linspace(0.1, 0.9, 200)[:, None], _beam1d_simulator, _beam1d_delta,
         name="beam-1d", title="Cracked cantilever, crack location as input (paper §4.1)",
         description=("Synthetic data from the paper's §4.1 set-up: tip deflection of a 1 m "
                      "cantilever with a Christides–Barr crack (l_cr = 38 mm, E = 68 GPa) plus "
                      "the discrepancy of Eq. 19 and Gaussian noise of variance 0.001 mm²."),
-        stand_in=False, theta_names=("l_cr", "E"), theta_units=("mm", "GPa"),
-        theta_bounds=bounds, theta_true=theta_true, x_names=("crack location",),
-        x_units=("m",), output_names=("tip deflection",), output_units=("mm",),
-        X_train=X_train, z_train=z_train, X_test=X_test, z_test=z_test,
-        noise_var=np.array([BEAM_NOISE_VAR]), V_m=np.array([BEAM_V_M]),
-        phi_prior=_beam_prior(1), initial_design=grid, seed=seed,
+        theta_names=("l_cr", "E"), theta_units=("mm", "GPa"),
+        theta_bounds=np.array([[0.0, 50.0], [50.0, 90.0]]), x_names=("crack location",),
+        x_units=("m",), initial_design=grid,
         # docs/method.md §7: l_cr ~ N(35, 10) mm, E ~ N(70, 36) GPa (second argument a variance).
-        theta_prior=ThetaPrior(mean=np.array([35.0, 70.0]), var=np.array([10.0, 36.0])),
-        _simulator=_beam1d_simulator, _true_delta=_beam1d_delta)
+        theta_prior=ThetaPrior(mean=np.array([35.0, 70.0]), var=np.array([10.0, 36.0])))
 
 
 def _grid2(n: int) -> np.ndarray:
@@ -235,28 +227,19 @@ def _grid2(n: int) -> np.ndarray:
 
 
 def _beam2d(seed: int) -> Case:
-    theta_true = np.array([68.0])
-    X_train, X_test = _grid2(8), _grid2(20)
-    rng = np.random.default_rng(seed)
-    z_train = _noisy(rng, _beam2d_simulator, _beam2d_delta, theta_true, X_train)
-    z_test = _noisy(rng, _beam2d_simulator, _beam2d_delta, theta_true, X_test)
-    return Case(
+    return _beam_case(
+        seed, np.array([68.0]), _grid2(8), _grid2(20), _beam2d_simulator, _beam2d_delta,
         name="beam-2d",
         title="Cracked cantilever, crack location and length as inputs (paper §4.2)",
         description=("Synthetic data from the paper's §4.2 set-up: crack location "
-                     "x₁ ∈ [0.1, 0.5] m "
-                     "and crack length x₂ ∈ [0, 0.05] m are inputs, E = 68 GPa is calibrated; "
-                     "discrepancy of Eq. 20 and Gaussian noise of variance 0.001 mm²."),
-        stand_in=False, theta_names=("E",), theta_units=("GPa",),
-        theta_bounds=np.array([[50.0, 90.0]]), theta_true=theta_true,
+                     "x₁ ∈ [0.1, 0.5] m and crack length x₂ ∈ [0, 0.05] m are inputs, "
+                     "E = 68 GPa is calibrated; discrepancy of Eq. 20 and Gaussian noise of "
+                     "variance 0.001 mm²."),
+        theta_names=("E",), theta_units=("GPa",), theta_bounds=np.array([[50.0, 90.0]]),
         x_names=("crack location", "crack length"), x_units=("m", "m"),
-        output_names=("tip deflection",), output_units=("mm",),
-        X_train=X_train, z_train=z_train, X_test=X_test, z_test=z_test,
-        noise_var=np.array([BEAM_NOISE_VAR]), V_m=np.array([BEAM_V_M]),
-        phi_prior=_beam_prior(2), initial_design=np.linspace(50, 90, 4)[:, None], seed=seed,
+        initial_design=np.linspace(50, 90, 4)[:, None],
         # Not in the paper: beam-1d's E ~ N(70, 36) GPa, the same material.
-        theta_prior=ThetaPrior(mean=np.array([70.0]), var=np.array([36.0])),
-        _simulator=_beam2d_simulator, _true_delta=_beam2d_delta)
+        theta_prior=ThetaPrior(mean=np.array([70.0]), var=np.array([36.0])))
 
 
 # ---------------------------------------------------------------------------------------
@@ -355,52 +338,45 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
     :data:`MAX_PROBLEMS` problems, each naming ``source``, the line and the column.
     """
     lines = text.removeprefix("\ufeff").splitlines()   # a BOM (Excel's UTF-8 CSV)
-    comments, header_line = [], None
-    for lineno, line in enumerate(lines, start=1):
-        if line.startswith("#"):
-            comments.append(line[1:].strip())
-        elif line.strip():
-            header_line = lineno
-            break
+    header_line = next((i for i, line in enumerate(lines, start=1)
+                        if line.strip() and not line.startswith("#")), None)
     if header_line is None:
         raise MeasurementsError([f"{source}: no header row found; the first non-comment line "
                                  "must name the columns."])
+    comments = [line[1:].strip() for line in lines[:header_line] if line.startswith("#")]
     # A name that mdcore._export wrote with a leading "'" (it would start a formula) reads
     # back as the name.
     header = [h[1:] if h[:1] == "'" and h[1:2] in ("=", "+", "-", "@") else h
               for h in (c.strip() for c in next(csv.reader([lines[header_line - 1]])))]
     inputs = tuple(inputs)
-    if outputs is None:
-        outputs = tuple(h for h in header if h not in inputs and h not in ignore)
-    outputs = tuple(outputs)
-    missing = [c for c in inputs + outputs if c not in header]
+    outputs = tuple(h for h in header if h not in inputs and h not in ignore) \
+        if outputs is None else tuple(outputs)
+    wanted = inputs + outputs
+    missing = [c for c in wanted if c not in header]
     for sep, word in ((";", "semicolons"), ("\t", "tabs")):
-        if missing and set(inputs + outputs) <= {h.strip() for h in
-                                                 lines[header_line - 1].split(sep)}:
+        if missing and set(wanted) <= {h.strip() for h in lines[header_line - 1].split(sep)}:
             raise MeasurementsError([f"{source} line {header_line}: the columns are separated "
                                      f"by {word}; save the file as CSV with commas (the "
-                                     f"columns {list(inputs + outputs)} are there)."])
+                                     f"columns {list(wanted)} are there)."])
     if missing:
         # The header is quoted only when it names a wanted column: this is then the
         # measurements file with a column misnamed, not some other file's first line.
         found = ("the header " + ", ".join(short(h, 30) for h in header[:20])
-                 if set(header) & set(inputs + outputs) else
+                 if set(header) & set(wanted) else
                  "a header with none of them (is this the measurements file?)")
         raise MeasurementsError([f"{source} line {header_line}: column(s) {missing} not found "
-                                 f"in {found}; the file needs the columns "
-                                 f"{list(inputs + outputs)}."])
+                                 f"in {found}; the file needs the columns {list(wanted)}."])
     if not outputs:
         raise MeasurementsError([f"{source}: no output columns; name them with outputs=."])
-    repeated = [c for c in dict.fromkeys(inputs + outputs) if header.count(c) > 1]
+    repeated = [c for c in dict.fromkeys(wanted) if header.count(c) > 1]
     if repeated:                      # which of the equal names is meant is ambiguous
         raise MeasurementsError([f"{source} line {header_line}: column(s) {repeated} appear "
                                  f"more than once in the header {header}; give each column "
                                  "a distinct name."])
-    cols = [header.index(c) for c in inputs + outputs]
+    cols = [header.index(c) for c in wanted]
     rows, problems = [], []
     n_rows = 0
-    for lineno in range(header_line + 1, len(lines) + 1):
-        line = lines[lineno - 1]
+    for lineno, line in enumerate(lines[header_line:], start=header_line + 1):
         if not line.strip() or line.startswith("#"):
             continue
         n_rows += 1
@@ -413,32 +389,29 @@ def parse_measurements(text: str, *, source: str, inputs, outputs=None,
             problems.append(f"{source} line {lineno}: {len(cells)} field(s), but the header "
                             f"has {len(header)}; every row needs one value per column.")
             continue
-        row = []
         for c in cols:
             text_c = cells[c].strip()
-            where = f"{source} line {lineno}, column {header[c]!r}: {short(text_c, 30)}"
             try:
                 v = float(text_c)
             except ValueError:
-                problems.append(f"{where} is not a number.")
-                continue
-            if not np.isfinite(v):
-                problems.append(f"{where} is not finite; remove the row or fill in the value.")
-                continue
-            if abs(v) > MAX_MAGNITUDE:
-                problems.append(f"{where} is larger in magnitude than {MAX_MAGNITUDE:g}, "
-                                "whose square (a variance) overflows; express the column in "
-                                "other units.")
-                continue
-            row.append(v)
-        rows.append(row)
+                v = np.nan
+                problem = "is not a number."
+            else:
+                problem = ("is not finite; remove the row or fill in the value."
+                           if not np.isfinite(v) else f"is larger in magnitude than "
+                           f"{MAX_MAGNITUDE:g}, whose square (a variance) overflows; express the "
+                           "column in other units." if abs(v) > MAX_MAGNITUDE else "")
+            if problem:
+                problems.append(f"{source} line {lineno}, column {header[c]!r}: "
+                                f"{short(text_c, 30)} {problem}")
+            rows.append(v)
     if problems:
         more = len(problems) - MAX_PROBLEMS
         raise MeasurementsError(problems[:MAX_PROBLEMS] + (
             [f"{source}: and {more} more problem(s) like these."] if more > 0 else []))
     if not rows:
         raise MeasurementsError([f"{source}: the header is followed by no data rows."])
-    data = np.array(rows)
+    data = np.reshape(rows, (-1, len(cols)))
     k = len(inputs)
     return Measurements(data[:, :k], data[:, k:], inputs, outputs, tuple(comments))
 
@@ -459,10 +432,9 @@ def _shear5(seed: int) -> Case:
         name="shear-5",
         title="Five-storey shear building, added mass as input (SYNTHETIC, paper §5)",
         description=("SYNTHETIC stand-in for the paper's laboratory structure, whose "
-                     "measurements are not public: a 'real' building (E = 70 GPa, "
-                     "ρ = 2700 kg/m³, 0.03 kg sensor "
-                     "mass per floor, rocking base spring) measured 10 times per added mass with "
-                     "noise sd 0.004 Hz; read from " + SHEAR5_CSV.name + "."),
+                     "measurements are not public: a 'real' building (E = 70 GPa, ρ = 2700 kg/m³, "
+                     "0.03 kg sensor mass per floor, rocking base spring) measured 10 times per "
+                     "added mass with noise sd 0.004 Hz; read from " + SHEAR5_CSV.name + "."),
         stand_in=True, theta_names=("E", "nu", "rho"), theta_units=("GPa", "-", "kg/m³"),
         theta_bounds=np.column_stack([lo, hi]),
         theta_true=np.array([SHEAR5_REAL["E"] / 1e9, SHEAR5_REAL["nu"], SHEAR5_REAL["rho"]]),

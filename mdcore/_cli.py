@@ -22,7 +22,7 @@ from ._export import write_tables
 from ._history_matching import RULE_NAMES, HistoryMatchResult, case_problem, iter_waves
 from ._koh import BURN_IN, N_ITER
 from ._pipeline import Method, Settings, metric_text, metrics_table
-from ._reproduce import CaseRun, default_methods, parse_methods, run_methods
+from ._reproduce import CaseRun, default_methods, run_methods
 from ._study import PAPER, study
 from ._validation import MAX_SEED, as_int, as_positive_float, as_seed_int, short
 
@@ -81,7 +81,8 @@ def _history_match(case, args, executor=None) -> HistoryMatchResult:
     with _Bar("history matching", problem.options.max_waves, "wave") as bar:
         for wave in iter_waves(problem):
             waves.append(wave)
-            bar.update_to(len(waves), f"wave {wave.index}: NROY {100 * wave.nroy_fraction:.2f} %")
+            bar.fraction(len(waves) / bar.total, f"wave {wave.index}: NROY "
+                         f"{100 * wave.nroy_fraction:.2f} %")
     return HistoryMatchResult(problem, tuple(waves))
 
 
@@ -157,15 +158,12 @@ class _Bar:
     def __enter__(self):
         return self
 
-    def update_to(self, done: float, message: str = "") -> None:
-        self._bar.n = min(done, self.total)
+    def fraction(self, f: float, message: str = "") -> None:
+        """The pipeline's ``progress(fraction, message)``."""
+        self._bar.n = min(int(round(f * self.total)), self.total)
         if message:
             self._bar.set_postfix_str(message, refresh=False)
         self._bar.refresh()
-
-    def fraction(self, f: float, message: str = "") -> None:
-        """The pipeline's ``progress(fraction, message)``."""
-        self.update_to(int(round(f * self.total)), message)
 
     def __exit__(self, *exc):
         self._bar.close()
@@ -207,7 +205,6 @@ def _settings(args, name: str) -> Settings:
 def _run(case, args, methods, settings_name: str) -> int:
     """History match with a bar, then the methods with a bar each, then the tables."""
     settings = _settings(args, settings_name)
-    methods = parse_methods(methods)
     with _executor(args) as executor:
         hm = _history_match(case, args, executor)
         print(hm.message, flush=True)
@@ -331,13 +328,11 @@ def _cmd_study(args) -> int:
     print(f"{'method':>6} {'output':>6} " + " ".join(f"{m:>24}" for m in shown))
     for method, entry in summary.items():
         n_out = len(entry["nmse_z"]["mean"])
+        refs = [paper.get(m, {}).get(method) if n_out == 1 else None for m in shown]
         for o in range(n_out):
-            cells = []
-            for metric in shown:
-                v, ref = entry[metric], paper.get(metric, {}).get(method)
-                tail = f" [{ref:g}]" if ref is not None and n_out == 1 else ""
-                cells.append("—" if v is None
-                             else f"{v['mean'][o]:.3f} ± {v['sd'][o]:.3f}{tail}")
+            cells = ["—" if v is None else f"{v['mean'][o]:.3f} ± {v['sd'][o]:.3f}"
+                     + ("" if ref is None else f" [{ref:g}]")
+                     for v, ref in zip((entry[m] for m in shown), refs)]
             print(f"{method:>6} {o + 1:>6} " + " ".join(c.rjust(24) for c in cells))
     pat = result.patterns()
     if pat["koh_delta_ratio"] is not None:
@@ -381,80 +376,71 @@ def _timeout(text: str) -> float:
 
 
 SEED_HELP = "seeds every random step (default 0): the same seed, the same numbers"
-#: The options of each command (flags, add_argument keywords), table-driven.
+#: The options of each command: (flags, help, the other add_argument keywords).
 METHOD_OPTIONS = [
-    (("--methods", "--scenarios"), dict(
-        dest="scenarios", nargs="+", choices=[m.value for m in Method],
-        help="decoupled scenarios 1–3 and/or koh, the Kennedy–O'Hagan baseline (default: 1 2 "
-        "3, plus koh for beam-1d)")),
-    (("--n-s",), dict(type=int, help="θ samples (default: paper's 1000)")),
-    (("--n-phi",), dict(type=int, help="hyperparameter samples per θ (default: paper's 500; "
-                        "beam-2d 1000)")),
-    (("--n-iter",), dict(type=int, default=N_ITER,
-                         help=f"KOH chain length (default: paper's {N_ITER:,})")),
-    (("--burn-in",), dict(type=int, default=BURN_IN,
-                          help=f"KOH burn-in (default: paper's {BURN_IN:,})")),
-    (("--proposal",), dict(choices=["adaptive", "prior"], default=Settings.proposal,
-                           help="scenario 3's φ proposal: adaptive importance sampling "
-                           "(default; reliable weights) or the paper's prior draws (same "
-                           "budget)")),
-    (("--backend",), dict(choices=list(compiled.BACKENDS), default="auto",
-                          help="GP kernels of scenarios 1–3: numba (compiled, fast) or numpy "
-                          "(the reference); auto = numba when installed. Same numbers to "
-                          "~1e-12")),
-    (("--json",), dict(metavar="PATH", help="also write the numbers here"))]
+    ("--methods --scenarios", "decoupled scenarios 1–3 and/or koh, the Kennedy–O'Hagan baseline "
+     "(default: 1 2 3, plus koh for beam-1d)",
+     dict(dest="scenarios", nargs="+", choices=[m.value for m in Method])),
+    ("--n-s", "θ samples (default: paper's 1000)", dict(type=int)),
+    ("--n-phi", "hyperparameter samples per θ (default: paper's 500; beam-2d 1000)",
+     dict(type=int)),
+    ("--n-iter", f"KOH chain length (default: paper's {N_ITER:,})", dict(type=int, default=N_ITER)),
+    ("--burn-in", f"KOH burn-in (default: paper's {BURN_IN:,})", dict(type=int, default=BURN_IN)),
+    ("--proposal", "scenario 3's φ proposal: adaptive importance sampling (default; reliable "
+     "weights) or the paper's prior draws (same budget)",
+     dict(choices=["adaptive", "prior"], default=Settings.proposal)),
+    ("--backend", "GP kernels of scenarios 1–3: numba (compiled, fast) or numpy (the reference); "
+     "auto = numba when installed. Same numbers to ~1e-12",
+     dict(choices=list(compiled.BACKENDS), default="auto")),
+    ("--json", "also write the numbers here", dict(metavar="PATH"))]
 OUTPUT_OPTIONS = [
-    (("--seed",), dict(type=_seed, default=0, help=SEED_HELP)),
-    (("--csv",), dict(metavar="DIR", help="also write nroy.csv and predictions.csv into this "
-                      "folder")),
-    (("--out",), dict(metavar="REPORT.html", help="also write a self-contained HTML report"))]
+    ("--seed", SEED_HELP, dict(type=_seed, default=0)),
+    ("--csv", "also write nroy.csv and predictions.csv into this folder", dict(metavar="DIR")),
+    ("--out", "also write a self-contained HTML report", dict(metavar="REPORT.html"))]
 RULE_OPTIONS = [
-    (("--v-m",), dict(type=float, nargs="+", metavar="V", help="model-discrepancy variance "
-                      "(output units²): one per output, or one for output 1 that the others "
-                      "scale by (z̄_i / z̄_1)², as in the app")),
-    (("--threshold",), dict(type=float, metavar="T", help="implausibility threshold T of the "
-                            "max rules (default 3)")),
-    (("--rule",), dict(choices=list(RULE_NAMES), help="how the targets' implausibilities "
-                       "combine (default max); multivariate: I_M² over all targets with the "
-                       "full covariance, against a χ² quantile")),
-    (("--v-m-length",), dict(type=float, nargs="+", metavar="L", help="correlation length ℓ_m "
-                             "of V_m over the inputs (inputs' units), one or one per output; "
-                             "0: independent. Used by the multivariate rule (default: the "
-                             "case's)")),
-    (("--v-m-corr",), dict(type=float, nargs="+", metavar="RHO", help="correlation of the "
-                           "outputs' discrepancies: one ρ for every pair, or the n_out × n_out "
-                           "matrix row by row (multivariate rule; default none)")),
-    (("--chi2-probability",), dict(type=float, metavar="P", help="the multivariate rule's "
-                                   "cut-off is the χ² quantile at P (default 0.995)"))]
+    ("--v-m", "model-discrepancy variance (output units²): one per output, or one for output 1 "
+     "that the others scale by (z̄_i / z̄_1)², as in the app",
+     dict(type=float, nargs="+", metavar="V")),
+    ("--threshold", "implausibility threshold T of the max rules (default 3)",
+     dict(type=float, metavar="T")),
+    ("--rule", "how the targets' implausibilities combine (default max); multivariate: I_M² over "
+     "all targets with the full covariance, against a χ² quantile", dict(choices=list(RULE_NAMES))),
+    ("--v-m-length", "correlation length ℓ_m of V_m over the inputs (inputs' units), one or one "
+     "per output; 0: independent. Used by the multivariate rule (default: the case's)",
+     dict(type=float, nargs="+", metavar="L")),
+    ("--v-m-corr", "correlation of the outputs' discrepancies: one ρ for every pair, or the "
+     "n_out × n_out matrix row by row (multivariate rule; default none)",
+     dict(type=float, nargs="+", metavar="RHO")),
+    ("--chi2-probability", "the multivariate rule's cut-off is the χ² quantile at P (default "
+     "0.995)", dict(type=float, metavar="P"))]
 RUN_OPTIONS = [
-    (("--max-waves",), dict(type=int, help="at most this many waves")),
-    (("--n-runs",), dict(type=int, help="simulator runs added per wave (default max(10, 5 p))")),
-    (("--n-candidates",), dict(type=int, help="candidate θ scored per wave (default 50,000 p)")),
-    (("--convergence-ratio",), dict(type=float, metavar="R", help="stop when the emulator "
-                                    "variance < R (V_o + V_m) (default 1)")),
-    (("--timeout",), dict(type=_timeout, metavar="SECONDS", help="seconds one simulator run "
-                          "may take; a longer run is stopped and counts as failed (default: "
-                          "the case file's [simulator] timeout, or none)"))]
+    ("--max-waves", "at most this many waves", dict(type=int)),
+    ("--n-runs", "simulator runs added per wave (default max(10, 5 p))", dict(type=int)),
+    ("--n-candidates", "candidate θ scored per wave (default 50,000 p)", dict(type=int)),
+    ("--convergence-ratio", "stop when the emulator variance < R (V_o + V_m) (default 1)",
+     dict(type=float, metavar="R")),
+    ("--timeout", "seconds one simulator run may take; a longer run is stopped and counts as "
+     "failed (default: the case file's [simulator] timeout, or none)",
+     dict(type=_timeout, metavar="SECONDS"))]
 DASK_OPTIONS = [
-    (("--dask",), dict(metavar="ADDRESS", help="run simulator batches on the Dask scheduler at "
-                       "ADDRESS, e.g. tcp://10.0.0.5:8786; the numbers equal a serial run's")),
-    (("--workers",), dict(dest="dask_workers", type=int, metavar="N", help="start a local Dask "
-                          "cluster of N processes for the simulator runs"))]
+    ("--dask", "run simulator batches on the Dask scheduler at ADDRESS, e.g. tcp://10.0.0.5:8786; "
+     "the numbers equal a serial run's", dict(metavar="ADDRESS")),
+    ("--workers", "start a local Dask cluster of N processes for the simulator runs",
+     dict(dest="dask_workers", type=int, metavar="N"))]
 STUDY_OPTIONS = [
-    (("--seeds",), dict(default="0-9", help="seeds, e.g. 0-9 or 0,3,5 (default 0-9)")),
-    (("--workers",), dict(type=int, default=2, help="processes running seeds in parallel "
-                          "(default 2; 1 runs in this one)")),
-    (("--dask",), dict(metavar="ADDRESS", help="run the seeds on the Dask scheduler at ADDRESS "
-                       "instead")),
-    (("--timeout",), dict(type=_timeout, metavar="SECONDS", help="seconds one simulator run may "
-                          "take (default: no limit)"))]
+    ("--seeds", "seeds, e.g. 0-9 or 0,3,5 (default 0-9)", dict(default="0-9")),
+    ("--workers", "processes running seeds in parallel (default 2; 1 runs in this one)",
+     dict(type=int, default=2)),
+    ("--dask", "run the seeds on the Dask scheduler at ADDRESS instead", dict(metavar="ADDRESS")),
+    ("--timeout", "seconds one simulator run may take (default: no limit)",
+     dict(type=_timeout, metavar="SECONDS"))]
 HISTORY_GROUP = "history matching (default: the case's settings)"
 DASK_GROUP = "simulator runs on a cluster (default: in this process)"
 
 
 def _add(parser, options) -> None:
-    for flags, kwargs in options:
-        parser.add_argument(*flags, **kwargs)
+    for flags, text, kwargs in options:
+        parser.add_argument(*flags.split(), help=text, **kwargs)
 
 
 EXIT_CODES = ("exit codes: 0 done; 2 bad input (the message names the option or file and "

@@ -78,30 +78,24 @@ class CaseRun:
 
     def to_dict(self) -> dict:
         """The JSON layout of ``reproduce --json`` (see the README), versioned."""
-        s = self.settings
+        s, hm, opts = self.settings, self.hm, self.hm.problem.options
         return {"schema_version": SCHEMA_VERSION, "case": self.case.name, "seed": self.seed,
                 "settings": {"n_s": s.n_s, "n_phi": s.n_phi, "n_iter": s.n_iter,
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
                              "fit_iterations": s.fit_iterations,
                              "backend": compiled.resolve_backend(s.backend)},
-                "history_matching": {"rule": self.hm.problem.options.rule,
-                                     "cutoff": self.hm.problem.cutoff,
-                                     "V_m_length": self.hm.problem.options.V_m_length.tolist(),
-                                     "V_m_corr": None if self.hm.problem.options.V_m_corr is None
-                                     else self.hm.problem.options.V_m_corr.tolist(),
-                                     "waves": len(self.hm.waves),
-                                     "nroy_fraction": self.hm.nroy_fraction,
-                                     "theta_map": self.hm.theta_map.tolist(),
-                                     "truth_nroy": self.truth_in_nroy,
-                                     "status": self.hm.status,
-                                     "failed_runs": [[{"theta": f.theta.tolist(),
-                                                       "message": f.message}
-                                                      for f in w.failures]
-                                                     for w in self.hm.waves],
-                                     "validation": [v.as_dict() for v in self.validation],
-                                     "space_removed": [
-                                         space_removed(w.nroy, self.hm.problem.bounds).tolist()
-                                         for w in self.hm.waves]},
+                "history_matching": {
+                    "rule": opts.rule, "cutoff": hm.problem.cutoff,
+                    "V_m_length": opts.V_m_length.tolist(),
+                    "V_m_corr": None if opts.V_m_corr is None else opts.V_m_corr.tolist(),
+                    "waves": len(hm.waves), "nroy_fraction": hm.nroy_fraction,
+                    "theta_map": hm.theta_map.tolist(), "truth_nroy": self.truth_in_nroy,
+                    "status": hm.status,
+                    "failed_runs": [[{"theta": f.theta.tolist(), "message": f.message}
+                                     for f in w.failures] for w in hm.waves],
+                    "validation": [v.as_dict() for v in self.validation],
+                    "space_removed": [space_removed(w.nroy, hm.problem.bounds).tolist()
+                                      for w in hm.waves]},
                 "methods": {r.method.value: {**_entry(r), "theta_delta": (
                     t := self.theta_delta.get(r.method.value)) and t.as_dict()}
                             for r in self.results}}
@@ -125,11 +119,10 @@ def _entry(r: MethodResult) -> dict:
 
 
 def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed=0,
-              report: Callable[[str], None] | None = None,
-              progress: Progress | None = None,
+              report: Callable[[str], None] | None = None, progress: Progress | None = None,
               executor: Executor | None = None, timeout: float | None = None,
               history_matching: dict | None = None) -> CaseRun:
-    """History-match a case, run the methods, and score them (the ``reproduce`` command).
+    """History-match a built-in case, run the methods, and score them (``reproduce``).
 
     Parameters
     ----------
@@ -140,19 +133,13 @@ def reproduce(name: str, *, methods=None, settings: Settings | None = None, seed
     settings : Settings, optional
         Default: the paper's sizes (:meth:`Settings.paper`).
     seed : int or numpy.random.Generator, default=0
-        Seeds the case's noise, the history match, the θ samples, the φ draws and the
-        KOH chain.
-    report : callable, optional
-        Called with a line of text as each stage finishes.
-    progress : callable, optional
-        ``progress(fraction, message)`` within each method (see :func:`run_method`).
-    executor : concurrent.futures.Executor, optional
-        Runs the simulator runs of the history match and the pair chunks of scenarios 2–3
-        (see :func:`run_case`); the numbers are identical to the serial run's.
+        Seeds the case's noise and everything :func:`run_case` seeds.
+    report, progress, executor
+        As in :func:`run_case`.
     timeout : float, optional
         Seconds one simulator run may take (:attr:`mdcore.Case.timeout`).
     history_matching : dict, optional
-        Options of :func:`mdcore._history_matching.setup` (``rule``, ``V_m_length`` …).
+        :func:`run_case`'s ``**history_matching``.
 
     Returns
     -------
@@ -180,14 +167,16 @@ def run_case(case: _cases.Case, *, methods=(Method.S1, Method.S2, Method.S3),
         Default :meth:`Settings.paper` of the case's name.
     seed : int or numpy.random.Generator, default=0
         Seeds the history match, the θ samples, the φ draws and the KOH chain.
-    report, progress : callable, optional
-        As in :func:`reproduce`.
+    report : callable, optional
+        Called with a line of text as each stage finishes.
+    progress : callable, optional
+        ``progress(fraction, message)`` within each method (see :func:`run_method`).
     executor : concurrent.futures.Executor, optional
         Runs the history match's simulator runs (one θ per task unless ``batch_size`` is
         given) and :func:`mdcore.run_method`'s chunks, with the serial run's numbers.
     **history_matching
-        Options of :func:`mdcore._history_matching.setup` (``n_runs``, ``convergence_ratio``,
-        ``batch_size``, ``timeout`` …).
+        Options of :func:`mdcore._history_matching.setup` (``rule``, ``n_runs``,
+        ``V_m_length``, ``batch_size`` …).
 
     Returns
     -------

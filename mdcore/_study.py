@@ -157,8 +157,7 @@ class Study:
                              "burn_in": s.burn_in, "prune": s.prune, "proposal": s.proposal,
                              "fit_iterations": s.fit_iterations},
                 "summary": self.summary(), "history_matching": self.history(),
-                "paper": PAPER.get(self.case),
-                "patterns": self.patterns(), "runs": list(self.runs)}
+                "paper": PAPER.get(self.case), "patterns": self.patterns(), "runs": list(self.runs)}
 
 
 def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
@@ -169,7 +168,6 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
     Parameters
     ----------
     name : str
-        Case study name.
     seeds : iterable of int, or str
         Seeds (``"0-9"`` is accepted, see :func:`parse_seeds`).
     methods : sequence of {1, 2, 3, "koh"}, optional
@@ -197,12 +195,9 @@ def study(name: str, seeds, *, methods=None, settings: Settings | None = None,
             raise ValueError(f"seeds must be non-negative integers; received {s!r}.")
     chosen = parse_methods(default_methods(name) if methods is None else methods)
     settings = Settings.paper(name) if settings is None else settings
-    labels = tuple(m.value for m in chosen)
-    if executor is None:
-        runs = [_one(name, int(s), labels, settings, timeout, history) for s in seeds]
-    else:
-        futures = [executor.submit(_one, name, int(s), labels, settings, timeout, history)
-                   for s in seeds]
-        runs = [f.result() for f in futures]
-    return Study(name, tuple(int(s) for s in seeds), settings, tuple(runs))
+    seeds = tuple(int(s) for s in seeds)
+    jobs = [(name, s, tuple(m.value for m in chosen), settings, timeout, history) for s in seeds]
+    runs = ([_one(*job) for job in jobs] if executor is None
+            else [f.result() for f in [executor.submit(_one, *job) for job in jobs]])
+    return Study(name, seeds, settings, tuple(runs))
 

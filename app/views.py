@@ -301,16 +301,19 @@ class ExplorerView(pn.viewable.Viewer):
         return pn.Column(intro, *cards, sizing_mode="stretch_width", max_width=900)
 
     def _try(self, exp) -> None:
-        """Run the card ``exp`` with its tab shown (from the top: see _fill_tabs); its
-        settings change the shown tab's figures, so not inside the button's own event."""
-        self._tabs.active = TAB_NAMES.index(exp.tab)
+        """Run the card ``exp``, then show its tab (from the top: see _fill_tabs); its
+        settings change the shown tab's figures, so not inside the button's own event.
 
+        The browser has shown the tab already (try_view). Shown here first, its stale
+        views were rebuilt from the old settings before the card's own changes, which
+        made them stale again, and the card's answer waited for that rebuild."""
         def run():
             self.state.try_experiment(exp.key)
             # Sent even when ``card`` is as it was (the same card again): the browser
-            # says "starting" since the click (try_view).
+            # says "starting" since the click.
             self._card_div.text = ""
             self._show_card()
+            self._tabs.active = TAB_NAMES.index(exp.tab)
         next_tick(run)
 
     def _shown_only(self, tabs: pn.Tabs, index: int, view, params: list[str]) -> pn.Column:

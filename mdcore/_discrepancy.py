@@ -243,11 +243,9 @@ def _mixture_chunk(pairs: compiled.Pairs, test: compiled.Test, backend: str
         var = np.where(bad[:, None], 0.0, var)
     dz = mean - test.centre[0]
     dd = mean - ystar - test.centre[1]
-    acc = np.zeros((4, test.X_star.shape[0]))
-    acc[0] += w @ dz
-    acc[1] += w @ dd
-    acc[2] += w @ (var + sn2 + dz * dz)          # Eq. 13/15: total variance of z*
-    acc[3] += w @ (var + dd * dd)                # latent variance goes to δ
+    acc = np.stack([w @ dz, w @ dd,
+                    w @ (var + sn2 + dz * dz),   # Eq. 13/15: total variance of z*
+                    w @ (var + dd * dd)])        # latent variance goes to δ
     return acc, bad, (0, 0, 0.0)                # gp.predict warned itself
 
 
@@ -579,15 +577,14 @@ def _fit_phi_hat(Y_map, X, z, options, rng, progress):
             raise ValueError(f"log_params_hat must have shape (n_out, P) = ({n_out}, {P}); "
                              f"received {hat.shape}.")
     else:
-        fits = []
+        hat = np.empty((n_out, P))
         for o in range(n_out):
-            fits.append(fit_hyperparameters(
+            hat[o] = fit_hyperparameters(
                 Y_map, X, z[:, o], log_prior=options.phi_prior, seed=rng, options=options.fit,
                 progress=None if progress is None
-                else (lambda f, o=o: progress((o + f) / n_out))))
+                else (lambda f, o=o: progress((o + f) / n_out))).log_params
             if progress is not None:
                 progress((o + 1) / n_out)
-        hat = np.array([f.log_params for f in fits])
     nlml = np.array([float(gp.neg_log_marginal_likelihood(hat[o], Y_map, X, z[:, o]))
                      for o in range(n_out)])
     return hat, nlml

@@ -177,12 +177,6 @@ class _EvidenceObjective:
         return float(f), grad.ravel()
 
 
-def _check_phi_prior(phi_prior, d_x: int) -> None:
-    if phi_prior is not None and phi_prior.size != 2 + d_x:
-        raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
-                         f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
-
-
 def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
     """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` (``phi_prior``: MAP) by
     ``n_starts`` L-BFGS-B runs, and that log evidence, from the simulator side's moments at
@@ -397,7 +391,9 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
     elif not callable(model):
         raise ValueError("model must be an Emulator or a callable simulate(X, theta); "
                          f"received {type(model).__name__}.")
-    _check_phi_prior(options.phi_prior, d_x)
+    if options.phi_prior is not None and options.phi_prior.size != 2 + d_x:
+        raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
+                         f"log ℓ_x…, log σ_n]); received {options.phi_prior.size}.")
     rng = np.random.default_rng(seed)
     at = _at(model, X, n_out)
 

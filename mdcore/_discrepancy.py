@@ -180,12 +180,9 @@ def check_executor(executor) -> Executor | None:
 
 def _in_order(executor: Executor | None, fn: Callable, payloads: Iterable[tuple]
               ) -> Generator[Any, None, None]:
-    """``fn(*args)`` for each ``args`` of ``payloads``, in order.
-
-    Without an executor the calls run here, one at a time. With one, up to
-    :data:`IN_FLIGHT` calls are submitted ahead of the one awaited; when the consumer stops
-    early (an exception, a cancel), the calls not yet collected are cancelled.
-    """
+    """``fn(*args)`` for each ``args`` of ``payloads``, in order: here, one at a time, or on
+    ``executor`` with up to :data:`IN_FLIGHT` calls ahead of the one awaited; when the consumer
+    stops early (an exception, a cancel), the calls not yet collected are cancelled."""
     if executor is None:
         for args in payloads:
             yield fn(*args)
@@ -284,9 +281,6 @@ class PriorDraws:
         offset = first * self.rows
         return draws[lo - offset:hi - offset]
 
-    def all(self) -> np.ndarray:
-        return self.between(0, self.n_theta)
-
 
 @dataclass(frozen=True, eq=False)
 class DiscrepancyModel:
@@ -341,7 +335,7 @@ class DiscrepancyModel:
         if self._log_params is None:
             if self.phi_draws is None:
                 raise ValueError("this model has neither log_params nor phi_draws.")
-            phi = self.phi_draws.all()
+            phi = self.phi_draws.between(0, self.phi_draws.n_theta)
             object.__setattr__(self, "_log_params",
                                np.broadcast_to(phi, (self.n_out,) + phi.shape))
         assert self._log_params is not None

@@ -148,7 +148,6 @@ class StudentT:
 
     @property
     def size(self) -> int:
-        """Dimension ``P``."""
         return self.mean.size
 
     def logpdf(self, x) -> np.ndarray:
@@ -165,8 +164,7 @@ class StudentT:
 
     def sample(self, n: int, seed=None) -> np.ndarray:
         """``n`` draws, shape (n, P): ``μ + L g / √(χ²_ν / ν)``."""
-        n = as_int(n, "n", 1)
-        rng = np.random.default_rng(seed)
+        n, rng = as_int(n, "n", 1), np.random.default_rng(seed)
         g = rng.standard_normal((n, self.size))
         chi = rng.chisquare(self.df, size=n)
         return self.mean + (g @ self._chol.T) / np.sqrt(chi / self.df)[:, None]
@@ -222,17 +220,13 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     :class:`mdcore.GaussianPrior`); ``progress`` gets the fraction done after each
     stage and may raise to stop.
     """
-    S = as_int(n_groups, "n_groups", 1)
-    sizes = stage_sizes(n, n_stages)
-    rng = np.random.default_rng(seed)
-    P = int(np.size(prior.var))
+    S, sizes = as_int(n_groups, "n_groups", 1), stage_sizes(n, n_stages)
+    rng, P = np.random.default_rng(seed), int(np.size(prior.var))
     n_total = sum(sizes)
     x = np.empty((S, n_total, P))
-    loglik = np.empty((S, n_total))
-    log_prior = np.empty((S, n_total))
-    # log Σ_s n_s q_s(x) of every draw so far: each stage adds its proposal to the old draws
-    # and all proposals to its new ones, so each q_s is evaluated once per draw.
-    log_mass = np.empty((S, n_total))
+    # log_mass = log Σ_s n_s q_s(x) of every draw so far: each stage adds its proposal to the
+    # old draws and all proposals to its new ones, so each q_s is evaluated once per draw.
+    loglik, log_prior, log_mass = np.empty((3, S, n_total))
     proposals: list = []
     floor = FLOOR * np.sqrt(np.asarray(prior.var, dtype=np.float64))
     col = 0

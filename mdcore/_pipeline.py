@@ -117,10 +117,8 @@ class Settings:
 
     Parameters
     ----------
-    n_s : int, default=1000
-        θ samples ``θ^(j) ~ p(θ | z)`` (scenarios 2 and 3).
-    n_phi : int, default=500
-        Hyperparameter samples per θ sample (scenario 3).
+    n_s, n_phi : int, default=1000 and 500
+        θ samples ``θ^(j) ~ p(θ | z)`` (scenarios 2–3); hyperparameter samples per θ (3).
     n_iter, burn_in : int, default=150,000 and 50,000
         The KOH chain (docs/method.md §7).
     prune : float, default=1e-12
@@ -305,21 +303,17 @@ def metrics_table(results, output_names) -> list[dict]:
     rows = []
     for r in results:
         m, imp, chain = r.metrics, r.importance, r.chain
-
-        def at(values, o):
-            return None if values is None else float(values[o])
-
+        whole = (None,) * 3 if chain is None else (
+            chain.acceptance_rate, max(chain.iat), min(chain.ess))
         for o, name in enumerate(output_names):
             cells = (m.nmse_z, m.nmse_delta, m.rmse_delta, m.mmd, m.lpl, m.coverage_z_2sd,
                      m.coverage_z_3sd, m.coverage_delta_2sd, m.coverage_delta_3sd,
                      *((None,) * 3 if imp is None else (imp.ess, imp.ess_phi, imp.k_hat)))
-            whole = (None,) * 3 if chain is None else (
-                chain.acceptance_rate, max(chain.iat), min(chain.ess))
-            values = [at(v, o) for v in cells] + [None if v is None else float(v)
-                                                  for v in whole] + [float(r.seconds)]
+            values = [None if v is None else v[o] for v in cells] + [*whole, r.seconds]
             rows.append({"method": r.method, "output": name,
                          "unreliable": imp is not None and imp.low[o],
-                         **dict(zip(METRIC_COLUMNS, values, strict=True))})
+                         **{k: None if v is None else float(v)
+                            for k, v in zip(METRIC_COLUMNS, values, strict=True)}})
     return rows
 
 

@@ -16,7 +16,7 @@ import scipy.linalg
 from scipy.special import logsumexp
 
 from . import _compiled as compiled
-from ._discrepancy import DiscrepancyPrediction, simulated
+from ._discrepancy import DiscrepancyPrediction, _blocks, simulated
 from ._emulator import Emulator, EmulatorAt, ThetaTerms
 from ._exceptions import ConvergenceWarning, NumericalWarning
 from ._gp import LOG_2PI
@@ -278,8 +278,8 @@ class KOHModel:
         log = JitterLog()
         parts = np.empty((4, idx.size, self.n_out, M))
         block = max(1, int(16 * 2**20 // (8 * self.n_out * (3 * M * N + N * N + 4 * M))))
-        for start in range(0, idx.size, block):
-            th = theta[start:start + block]
+        for sl in _blocks(idx.size, block):
+            th = theta[sl]
             terms = at.theta_terms(th, check=False)               # shared by X and X*
             mean, cov = at.moments_at(terms)
             mean_s, _ = at_s.moments_at(terms, with_cov=False)
@@ -293,14 +293,13 @@ class KOHModel:
                 np.swapaxes(Kd_s, -1, -2), (th.shape[0],) + Kd_s.shape[:1] + (N, M)
             ).reshape((-1, N, M)).copy())
             shape = (th.shape[0], self.n_out, M)
-            sl = slice(start, start + th.shape[0])
             parts[0, sl] = mean_s + np.einsum("bnm,bn->bm", G, a[..., 0]).reshape(shape)
             parts[1, sl] = np.maximum(var_s + (sf2 + sn2)[:, None]
                                       - np.sum(G * G, axis=1).reshape(shape), 0.0)
             parts[2, sl] = np.einsum("bnm,bn->bm", D, a[..., 0]).reshape(shape)
             parts[3, sl] = np.maximum(sf2[:, None] - np.sum(D * D, axis=1).reshape(shape), 0.0)
             if progress is not None:
-                progress(min(1.0, (start + th.shape[0]) / idx.size))
+                progress(sl.stop / idx.size)
         log.warn("KOH prediction")
         bad = ~np.all(np.isfinite(parts), axis=(0, 2, 3))
         if np.all(bad):

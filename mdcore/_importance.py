@@ -164,7 +164,8 @@ class StudentT:
 
     def sample(self, n: int, seed=None) -> np.ndarray:
         """``n`` draws, shape (n, P): ``μ + L g / √(χ²_ν / ν)``."""
-        n, rng = as_int(n, "n", 1), np.random.default_rng(seed)
+        n = as_int(n, "n", 1)
+        rng = np.random.default_rng(seed)
         g = rng.standard_normal((n, self.size))
         chi = rng.chisquare(self.df, size=n)
         return self.mean + (g @ self._chol.T) / np.sqrt(chi / self.df)[:, None]
@@ -220,8 +221,10 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     :class:`mdcore.GaussianPrior`); ``progress`` gets the fraction done after each
     stage and may raise to stop.
     """
-    S, sizes = as_int(n_groups, "n_groups", 1), stage_sizes(n, n_stages)
-    rng, P = np.random.default_rng(seed), int(np.size(prior.var))
+    S = as_int(n_groups, "n_groups", 1)
+    sizes = stage_sizes(n, n_stages)
+    rng = np.random.default_rng(seed)
+    P = int(np.size(prior.var))
     n_total = sum(sizes)
     x = np.empty((S, n_total, P))
     # log_mass = log Σ_s n_s q_s(x) of every draw so far: each stage adds its proposal to the

@@ -1,7 +1,7 @@
 """Metrics of docs/method.md §8: NMSE, MMD, LPL and band coverage.
 
 Every function takes column-wise data: ``(N,)`` for one output or ``(N, n_out)`` for
-several, and returns a float or an ``(n_out,)`` array (one per output) accordingly.
+several, and returns a float or an ``(n_out,)`` array accordingly.
 """
 
 from __future__ import annotations

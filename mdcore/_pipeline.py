@@ -130,8 +130,9 @@ class Settings:
         Swarm steps of the QPSO behind φ̂ of scenarios 1–2 (Eq. 8) before its L-BFGS-B
         polish (:func:`mdcore._hyperfit.fit_hyperparameters`).
     backend : {"auto", "numpy", "numba"}, default="auto"
-        Kernels of scenario 3 and the KOH chain (:func:`mdcore._compiled.resolve_backend`);
-        they agree to ~1e-12, so :meth:`key` leaves the backend out.
+        Kernels of scenario 3 and the KOH chain (:func:`mdcore._compiled.resolve_backend`;
+        "auto" is the compiled path when numba is installed); they agree to ~1e-12, so
+        :meth:`key` leaves the backend out.
 
     Examples
     --------
@@ -224,11 +225,11 @@ class Metrics:
 
 @dataclass(frozen=True)
 class ImportanceDiagnostics:
-    """How well scenario 3's importance weights (Eq. 15) are spread, per output: the ESS
-    over the ``n_pairs`` (θ, φ) pairs, ``1 / Σ w_jk²``, and ``ess_phi`` over the ``n_phi`` φ
-    given θ averaged with the θ weights, ``Σ_j w_j / Σ_k (w_jk / w_j)²``; the weight the
-    prediction skipped (below ``prune × max``); ``k_hat`` the Pareto shape of the raw
-    weights' tail (Vehtari et al.; above 0.7 unreliable); the ``proposal``."""
+    """How well scenario 3's importance weights (Eq. 15) are spread, per output: ``ess`` over
+    the ``n_pairs`` (θ, φ) pairs, ``1 / Σ w_jk²``, and ``ess_phi`` over the ``n_phi`` φ given
+    θ averaged with the θ weights, ``Σ_j w_j / Σ_k (w_jk / w_j)²``; the ``skipped_mass`` of
+    the prediction (below ``prune × max``); ``k_hat`` the Pareto shape of the raw weights'
+    tail (Vehtari et al.; above 0.7 unreliable); the ``proposal``."""
 
     ess: tuple
     ess_phi: tuple

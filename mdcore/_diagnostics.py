@@ -302,16 +302,14 @@ def theta_delta_split(model, X_star, *, n_theta: int = 100) -> ThetaDeltaSplit:
     X_u, inverse = np.unique(X_star, axis=0, return_inverse=True)    # replicates once
     Ys = np.asarray(model.simulate(X_u, model.theta[rows]), dtype=np.float64)
     cache: dict = {}
+    ks = np.arange(model.log_weights.shape[2])
     mean, var = np.empty((2, len(rows), X_u.shape[0], model.n_out))
     for i, j in enumerate(rows):
         lw = model.log_weights[:, j:j + 1] - np.where(                           # w_k | θ_j
             np.isfinite(log_w[:, j]), log_w[:, j], 0.0)[:, None, None]
         lw[~np.isfinite(log_w[:, j])] = 0.0       # an output where θ_j has no weight
-        if model.phi_draws is None or model._log_params is not None:
-            phi = model.log_params[:, j:j + 1]
-        else:                                     # scenario 3's draws, one θ row at a time
-            draws = model.phi_draws.between(int(j), int(j) + 1, cache)
-            phi = np.broadcast_to(draws, (model.n_out,) + draws.shape)
+        phi = np.stack([model._params(o, np.full_like(ks, j), ks, cache)   # one θ row at a time
+                        for o in range(model.n_out)])[:, None]          # (n_out, 1, K, P)
         one = dataclasses.replace(model, theta=model.theta[j:j + 1], Y=model.Y[j:j + 1],
                                   _log_params=phi, log_weights=lw, phi_draws=None,
                                   simulate=lambda X, t, y=Ys[i:i + 1]: y)

@@ -180,12 +180,9 @@ def check_executor(executor) -> Executor | None:
 
 def _in_order(executor: Executor | None, fn: Callable, payloads: Iterable[tuple]
               ) -> Generator[Any, None, None]:
-    """``fn(*args)`` for each ``args`` of ``payloads``, in order.
-
-    Without an executor the calls run here, one at a time. With one, up to
-    :data:`IN_FLIGHT` calls are submitted ahead of the one awaited; when the consumer stops
-    early (an exception, a cancel), the calls not yet collected are cancelled.
-    """
+    """``fn(*args)`` for each ``args`` of ``payloads``, in order: here, one at a time, or on
+    ``executor`` with up to :data:`IN_FLIGHT` calls ahead of the one awaited; when the consumer
+    stops early (an exception, a cancel), the calls not yet collected are cancelled."""
     if executor is None:
         for args in payloads:
             yield fn(*args)
@@ -243,11 +240,9 @@ def _mixture_chunk(pairs: compiled.Pairs, test: compiled.Test, backend: str
         var = np.where(bad[:, None], 0.0, var)
     dz = mean - test.centre[0]
     dd = mean - ystar - test.centre[1]
-    acc = np.zeros((4, test.X_star.shape[0]))
-    acc[0] += w @ dz
-    acc[1] += w @ dd
-    acc[2] += w @ (var + sn2 + dz * dz)          # Eq. 13/15: total variance of z*
-    acc[3] += w @ (var + dd * dd)                # latent variance goes to δ
+    acc = np.stack([w @ dz, w @ dd,
+                    w @ (var + sn2 + dz * dz),   # Eq. 13/15: total variance of z*
+                    w @ (var + dd * dd)])        # latent variance goes to δ
     return acc, bad, (0, 0, 0.0)                # gp.predict warned itself
 
 
@@ -285,9 +280,6 @@ class PriorDraws:
         draws = parts[0] if len(parts) == 1 else np.concatenate(parts)
         offset = first * self.rows
         return draws[lo - offset:hi - offset]
-
-    def all(self) -> np.ndarray:
-        return self.between(0, self.n_theta)
 
 
 @dataclass(frozen=True, eq=False)
@@ -343,7 +335,7 @@ class DiscrepancyModel:
         if self._log_params is None:
             if self.phi_draws is None:
                 raise ValueError("this model has neither log_params nor phi_draws.")
-            phi = self.phi_draws.all()
+            phi = self.phi_draws.between(0, self.phi_draws.n_theta)
             object.__setattr__(self, "_log_params",
                                np.broadcast_to(phi, (self.n_out,) + phi.shape))
         assert self._log_params is not None
@@ -579,15 +571,14 @@ def _fit_phi_hat(Y_map, X, z, options, rng, progress):
             raise ValueError(f"log_params_hat must have shape (n_out, P) = ({n_out}, {P}); "
                              f"received {hat.shape}.")
     else:
-        fits = []
+        hat = np.empty((n_out, P))
         for o in range(n_out):
-            fits.append(fit_hyperparameters(
+            hat[o] = fit_hyperparameters(
                 Y_map, X, z[:, o], log_prior=options.phi_prior, seed=rng, options=options.fit,
                 progress=None if progress is None
-                else (lambda f, o=o: progress((o + f) / n_out))))
+                else (lambda f, o=o: progress((o + f) / n_out))).log_params
             if progress is not None:
                 progress((o + 1) / n_out)
-        hat = np.array([f.log_params for f in fits])
     nlml = np.array([float(gp.neg_log_marginal_likelihood(hat[o], Y_map, X, z[:, o]))
                      for o in range(n_out)])
     return hat, nlml

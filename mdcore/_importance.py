@@ -148,7 +148,6 @@ class StudentT:
 
     @property
     def size(self) -> int:
-        """Dimension ``P``."""
         return self.mean.size
 
     def logpdf(self, x) -> np.ndarray:
@@ -228,11 +227,9 @@ def adaptive_importance_sampling(log_likelihood: Callable[[np.ndarray], np.ndarr
     P = int(np.size(prior.var))
     n_total = sum(sizes)
     x = np.empty((S, n_total, P))
-    loglik = np.empty((S, n_total))
-    log_prior = np.empty((S, n_total))
-    # log Σ_s n_s q_s(x) of every draw so far: each stage adds its proposal to the old draws
-    # and all proposals to its new ones, so each q_s is evaluated once per draw.
-    log_mass = np.empty((S, n_total))
+    # log_mass = log Σ_s n_s q_s(x) of every draw so far: each stage adds its proposal to the
+    # old draws and all proposals to its new ones, so each q_s is evaluated once per draw.
+    loglik, log_prior, log_mass = np.empty((3, S, n_total))
     proposals: list = []
     floor = FLOOR * np.sqrt(np.asarray(prior.var, dtype=np.float64))
     col = 0

@@ -16,7 +16,7 @@ import scipy.linalg
 from scipy.special import logsumexp
 
 from . import _compiled as compiled
-from ._discrepancy import DiscrepancyPrediction, simulated
+from ._discrepancy import DiscrepancyPrediction, _blocks, simulated
 from ._emulator import Emulator, EmulatorAt, ThetaTerms
 from ._exceptions import ConvergenceWarning, NumericalWarning
 from ._gp import LOG_2PI
@@ -177,12 +177,6 @@ class _EvidenceObjective:
         return float(f), grad.ravel()
 
 
-def _check_phi_prior(phi_prior, d_x: int) -> None:
-    if phi_prior is not None and phi_prior.size != 2 + d_x:
-        raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
-                         f"log ℓ_x…, log σ_n]); received {phi_prior.size}.")
-
-
 def _fit_phi(mean, cov, X, z, phi_prior, n_starts, rng, progress=None):
     """φ̂ (n_out, 2 + d_x) maximising ``log (1/M) Σ_m p(z | θ_m, φ)`` (``phi_prior``: MAP) by
     ``n_starts`` L-BFGS-B runs, and that log evidence, from the simulator side's moments at
@@ -284,8 +278,8 @@ class KOHModel:
         log = JitterLog()
         parts = np.empty((4, idx.size, self.n_out, M))
         block = max(1, int(16 * 2**20 // (8 * self.n_out * (3 * M * N + N * N + 4 * M))))
-        for start in range(0, idx.size, block):
-            th = theta[start:start + block]
+        for sl in _blocks(idx.size, block):
+            th = theta[sl]
             terms = at.theta_terms(th, check=False)               # shared by X and X*
             mean, cov = at.moments_at(terms)
             mean_s, _ = at_s.moments_at(terms, with_cov=False)
@@ -299,14 +293,13 @@ class KOHModel:
                 np.swapaxes(Kd_s, -1, -2), (th.shape[0],) + Kd_s.shape[:1] + (N, M)
             ).reshape((-1, N, M)).copy())
             shape = (th.shape[0], self.n_out, M)
-            sl = slice(start, start + th.shape[0])
             parts[0, sl] = mean_s + np.einsum("bnm,bn->bm", G, a[..., 0]).reshape(shape)
             parts[1, sl] = np.maximum(var_s + (sf2 + sn2)[:, None]
                                       - np.sum(G * G, axis=1).reshape(shape), 0.0)
             parts[2, sl] = np.einsum("bnm,bn->bm", D, a[..., 0]).reshape(shape)
             parts[3, sl] = np.maximum(sf2[:, None] - np.sum(D * D, axis=1).reshape(shape), 0.0)
             if progress is not None:
-                progress(min(1.0, (start + th.shape[0]) / idx.size))
+                progress(sl.stop / idx.size)
         log.warn("KOH prediction")
         bad = ~np.all(np.isfinite(parts), axis=(0, 2, 3))
         if np.all(bad):
@@ -397,7 +390,9 @@ def infer_koh(model, X, z, *, theta_prior, bounds, options: KOHOptions | None = 
     elif not callable(model):
         raise ValueError("model must be an Emulator or a callable simulate(X, theta); "
                          f"received {type(model).__name__}.")
-    _check_phi_prior(options.phi_prior, d_x)
+    if options.phi_prior is not None and options.phi_prior.size != 2 + d_x:
+        raise ValueError(f"phi_prior must have 2 + d_x = {2 + d_x} entries ([log σ_f, "
+                         f"log ℓ_x…, log σ_n]); received {options.phi_prior.size}.")
     rng = np.random.default_rng(seed)
     at = _at(model, X, n_out)
 

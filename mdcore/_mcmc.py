@@ -59,8 +59,7 @@ def integrated_autocorr_time(x, *, c: float = 5.0) -> np.ndarray:
     chain ``x`` (n ≥ 2,) or (n, d), ``ρ`` by FFT and ``M`` the smallest window with
     ``M ≥ c τ(M)`` (Sokal 1997, as emcee); 1 ≤ τ ≤ n (n for a chain that never moved)."""
     x = as_float_array(x, "x")
-    if x.ndim == 1:
-        x = x[:, None]
+    x = x[:, None] if x.ndim == 1 else x
     if x.ndim != 2 or x.shape[0] < 2:
         raise ValueError(f"x must have shape (n, d) with n ≥ 2; received {x.shape}.")
     n = x.shape[0]

@@ -34,9 +34,8 @@ def _squeeze(out: np.ndarray, like: np.ndarray):
 
 
 def nmse(target, prediction):
-    """Normalised mean squared error in percent (docs/method.md §8).
-
-    ``100 / (N var(t)) Σ (t_i − t̂_i)²`` with the 1/N variance of the targets.
+    """Normalised mean squared error in percent, ``100 / (N var(t)) Σ (t_i − t̂_i)²`` with the
+    1/N variance of the targets (docs/method.md §8).
 
     Parameters
     ----------
@@ -44,10 +43,6 @@ def nmse(target, prediction):
         Test observations z, or the noise-free true δ.
     prediction : ndarray of the same shape
         Predictive means.
-
-    Returns
-    -------
-    float or ndarray of shape (n_out,)
     """
     t = _columns("target", target)
     p = _columns("prediction", prediction, t)
@@ -67,10 +62,6 @@ def lpl(target, mean, var):
         Test observations.
     mean, var : ndarray of the same shape
         Predictive mean and variance of a new observation (including σ_n²).
-
-    Returns
-    -------
-    float or ndarray of shape (n_out,)
     """
     t, m, v = _predictive(target, mean, var, strict=True)
     return _squeeze(-0.5 * np.sum((t - m) ** 2 / v + np.log(2.0 * np.pi * v), axis=0), t)
@@ -81,15 +72,10 @@ def coverage(target, mean, var, *, k: float = 3.0):
 
     Parameters
     ----------
-    target : ndarray of shape (N,) or (N, n_out)
-    mean, var : ndarray of the same shape
-        Predictive mean and variance (non-negative).
+    target, mean, var : ndarray of shape (N,) or (N, n_out)
+        Test observations, predictive mean and variance (non-negative).
     k : float, default=3.0
         Band half-width in standard deviations (the paper reports 2 and 3).
-
-    Returns
-    -------
-    float or ndarray of shape (n_out,)
     """
     k = as_positive_float(k, "k", "It is the band half-width in standard deviations.")
     t, m, v = _predictive(target, mean, var, strict=False)
@@ -156,10 +142,6 @@ def mmd(target, mean, var, *, X=None):
         Predictive mean and variance of a new observation at each row.
     X : ndarray of shape (N, d_x), optional
         Test inputs, to group repeats. Default: every row is its own input.
-
-    Returns
-    -------
-    float or ndarray of shape (n_out,)
     """
     t, m, v = _predictive(target, mean, var, strict=False)
     groups = _groups(X, t.shape[0])

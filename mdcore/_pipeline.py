@@ -25,6 +25,7 @@ from ._discrepancy import (
     DiscrepancyModel,
     DiscrepancyOptions,
     DiscrepancyPrediction,
+    _blocks,
     check_executor,
     check_prune,
     infer_discrepancy,
@@ -116,10 +117,8 @@ class Settings:
 
     Parameters
     ----------
-    n_s : int, default=1000
-        θ samples ``θ^(j) ~ p(θ | z)`` (scenarios 2 and 3).
-    n_phi : int, default=500
-        Hyperparameter samples per θ sample (scenario 3).
+    n_s, n_phi : int, default=1000 and 500
+        θ samples ``θ^(j) ~ p(θ | z)`` (scenarios 2–3); hyperparameter samples per θ (3).
     n_iter, burn_in : int, default=150,000 and 50,000
         The KOH chain (docs/method.md §7).
     prune : float, default=1e-12
@@ -128,13 +127,11 @@ class Settings:
     proposal : {"adaptive", "prior"}, default="adaptive"
         Scenario 3's φ proposal: adaptive (reliable weights) or the paper's prior draws.
     fit_iterations : int, default=120
-        Swarm steps of the QPSO behind φ̂ (scenario 1's fit, Eq. 8, also scenario 2's when
-        it is not given φ̂), before its L-BFGS-B polish
-        (:func:`mdcore._hyperfit.fit_hyperparameters`).
+        Swarm steps of the QPSO behind φ̂ of scenarios 1–2 (Eq. 8) before its L-BFGS-B
+        polish (:func:`mdcore._hyperfit.fit_hyperparameters`).
     backend : {"auto", "numpy", "numba"}, default="auto"
-        Kernels of scenario 3 and of the KOH chain
-        (:func:`mdcore._compiled.resolve_backend`): ``"auto"`` is the compiled path when
-        numba is installed. The backends agree to ~1e-12, so
+        Kernels of scenario 3 and the KOH chain (:func:`mdcore._compiled.resolve_backend`;
+        "auto" is the compiled path when numba is installed); they agree to ~1e-12, so
         :meth:`key` leaves the backend out.
 
     Examples
@@ -228,19 +225,11 @@ class Metrics:
 
 @dataclass(frozen=True)
 class ImportanceDiagnostics:
-    """How well scenario 3's importance weights (Eq. 15) are spread, per output.
-
-    Attributes
-    ----------
-    ess, ess_phi : tuple of float
-        ESS over the (θ, φ) pairs, ``1 / Σ w_jk²`` (of ``n_pairs``), and over φ given θ
-        averaged with the θ weights, ``Σ_j w_j / Σ_k (w_jk / w_j)²`` (of ``n_phi``).
-    skipped_mass, k_hat : tuple of float
-        Weight the prediction skipped (below ``prune × max``); Pareto shape of the raw
-        weights' tail (Vehtari et al.; above 0.7 unreliable).
-    n_pairs, n_phi : int
-    proposal : {"prior", "adaptive"}
-    """
+    """How well scenario 3's importance weights (Eq. 15) are spread, per output: ``ess`` over
+    the ``n_pairs`` (θ, φ) pairs, ``1 / Σ w_jk²``, and ``ess_phi`` over the ``n_phi`` φ given
+    θ averaged with the θ weights, ``Σ_j w_j / Σ_k (w_jk / w_j)²``; the ``skipped_mass`` of
+    the prediction (below ``prune × max``); ``k_hat`` the Pareto shape of the raw weights'
+    tail (Vehtari et al.; above 0.7 unreliable); the ``proposal``."""
 
     ess: tuple
     ess_phi: tuple
@@ -259,18 +248,10 @@ class ImportanceDiagnostics:
 
 @dataclass(frozen=True)
 class ChainDiagnostics:
-    """The KOH chain (docs/method.md §7): acceptance, autocorrelation and effective sample size.
-
-    Attributes
-    ----------
-    acceptance_rate : float
-    iat, ess : tuple of float
-        Integrated autocorrelation time and ``n_kept / iat`` per parameter.
-    n_iter, burn_in : int
-    reliable : bool
-        Whether the chain is longer than 50 autocorrelation times in every parameter
-        (emcee's check); when not, the IAT and ESS are themselves uncertain.
-    """
+    """The KOH chain (docs/method.md §7): acceptance rate, integrated autocorrelation time
+    ``iat`` and ``ess = n_kept / iat`` per parameter, and whether it is ``reliable``: longer
+    than 50 autocorrelation times in every parameter (emcee's check; if not, the IAT and ESS
+    are themselves uncertain)."""
 
     acceptance_rate: float
     iat: tuple
@@ -282,30 +263,11 @@ class ChainDiagnostics:
 
 @dataclass(frozen=True, eq=False)
 class MethodResult:
-    """One method run on one case (:func:`run_method`).
-
-    Attributes
-    ----------
-    method : Method
-    key : MethodKey
-        The settings the result depends on.
-    seed : int
-    model : DiscrepancyModel or KOHModel
-        The fitted model (call its ``predict`` for other inputs).
-    on_test : DiscrepancyPrediction
-        Prediction at ``case.X_test``, each field (N_test, n_out).
-    on_extra : DiscrepancyPrediction or None
-        Prediction at the ``X_extra`` given to :func:`run_method` (e.g. a plotting grid).
-    metrics : Metrics
-    importance : ImportanceDiagnostics or None
-        Scenario 3 only.
-    chain : ChainDiagnostics or None
-        KOH only.
-    warnings : tuple of str
-        What the diagnostics call for (low ESS, an unreliable chain), in words.
-    seconds : float
-        Inference and prediction time.
-    """
+    """One method run on one case (:func:`run_method`) with the ``key`` of settings it depends
+    on: the fitted ``model`` (its ``predict`` takes other inputs), the predictions ``on_test``
+    at ``case.X_test`` (each field (N_test, n_out)) and ``on_extra`` at ``X_extra`` (or None),
+    the ``metrics``, the ``importance`` (scenario 3) or ``chain`` (KOH) diagnostics or None,
+    the ``warnings`` they call for in words, and the inference and prediction ``seconds``."""
 
     method: Method
     key: MethodKey
@@ -342,21 +304,17 @@ def metrics_table(results, output_names) -> list[dict]:
     rows = []
     for r in results:
         m, imp, chain = r.metrics, r.importance, r.chain
-
-        def at(values, o):
-            return None if values is None else float(values[o])
-
+        whole = (None,) * 3 if chain is None else (
+            chain.acceptance_rate, max(chain.iat), min(chain.ess))
         for o, name in enumerate(output_names):
             cells = (m.nmse_z, m.nmse_delta, m.rmse_delta, m.mmd, m.lpl, m.coverage_z_2sd,
                      m.coverage_z_3sd, m.coverage_delta_2sd, m.coverage_delta_3sd,
                      *((None,) * 3 if imp is None else (imp.ess, imp.ess_phi, imp.k_hat)))
-            whole = (None,) * 3 if chain is None else (
-                chain.acceptance_rate, max(chain.iat), min(chain.ess))
-            values = [at(v, o) for v in cells] + [None if v is None else float(v)
-                                                  for v in whole] + [float(r.seconds)]
+            values = [None if v is None else v[o] for v in cells] + [*whole, r.seconds]
             rows.append({"method": r.method, "output": name,
                          "unreliable": imp is not None and imp.low[o],
-                         **dict(zip(METRIC_COLUMNS, values, strict=True))})
+                         **{k: None if v is None else float(v)
+                            for k, v in zip(METRIC_COLUMNS, values, strict=True)}})
     return rows
 
 
@@ -366,32 +324,33 @@ def metric_text(heading: str, value) -> str:
     return "—" if value is None else METRIC_COLUMNS[heading].format(value)
 
 
+def _floats(values) -> tuple:
+    return tuple(float(v) for v in np.atleast_1d(values))
+
+
 def scores(case: Case, prediction: DiscrepancyPrediction) -> Metrics:
     """docs/method.md §8 metrics, per output, of a prediction at ``case.X_test``."""
-    z = case.z_test
-    if prediction.z_mean.shape != z.shape:
+    z, p = case.z_test, prediction
+    if p.z_mean.shape != z.shape:
         raise ValueError(f"prediction must be at case.X_test: z_mean has shape "
-                         f"{prediction.z_mean.shape}, z_test {z.shape}.")
-
-    def tup(values) -> tuple:
-        return tuple(float(v) for v in np.atleast_1d(values))
-
+                         f"{p.z_mean.shape}, z_test {z.shape}.")
     delta = case.true_delta(case.X_test)
+
+    def of_delta(metric) -> tuple | None:
+        return None if delta is None else _floats(metric(delta))
+
     return Metrics(
-        nmse_z=tup(nmse(z, prediction.z_mean)),
-        mmd=tup(mmd(z, prediction.z_mean, prediction.z_var, X=case.X_test)),
-        lpl=tup(lpl(z, prediction.z_mean, prediction.z_var)),
-        coverage_z_2sd=tup(coverage(z, prediction.z_mean, prediction.z_var, k=2)),
-        coverage_z_3sd=tup(coverage(z, prediction.z_mean, prediction.z_var, k=3)),
-        nmse_delta=None if delta is None else tup(nmse(delta, prediction.delta_mean)),
-        coverage_delta_2sd=None if delta is None else tup(
-            coverage(delta, prediction.delta_mean, prediction.delta_var, k=2)),
-        coverage_delta_3sd=None if delta is None else tup(
-            coverage(delta, prediction.delta_mean, prediction.delta_var, k=3)),
-        rmse_delta=None if delta is None else tup(
-            np.sqrt(np.mean((delta - prediction.delta_mean) ** 2, axis=0))),
-        sd_z=tup(np.mean(np.sqrt(prediction.z_var), axis=0)),
-        sd_delta=tup(np.mean(np.sqrt(prediction.delta_var), axis=0)))
+        nmse_z=_floats(nmse(z, p.z_mean)),
+        mmd=_floats(mmd(z, p.z_mean, p.z_var, X=case.X_test)),
+        lpl=_floats(lpl(z, p.z_mean, p.z_var)),
+        coverage_z_2sd=_floats(coverage(z, p.z_mean, p.z_var, k=2)),
+        coverage_z_3sd=_floats(coverage(z, p.z_mean, p.z_var, k=3)),
+        nmse_delta=of_delta(lambda d: nmse(d, p.delta_mean)),
+        coverage_delta_2sd=of_delta(lambda d: coverage(d, p.delta_mean, p.delta_var, k=2)),
+        coverage_delta_3sd=of_delta(lambda d: coverage(d, p.delta_mean, p.delta_var, k=3)),
+        rmse_delta=of_delta(lambda d: np.sqrt(np.mean((d - p.delta_mean) ** 2, axis=0))),
+        sd_z=_floats(np.mean(np.sqrt(p.z_var), axis=0)),
+        sd_delta=_floats(np.mean(np.sqrt(p.delta_var), axis=0)))
 
 
 def koh_phi_prior(case: Case) -> GaussianPrior:
@@ -412,8 +371,7 @@ def importance_diagnostics(model: DiscrepancyModel) -> ImportanceDiagnostics:
     n_out, S, K = lw_all.shape
     lw_theta = np.empty((n_out, S))                                    # log w_j
     log_ess_j = np.empty((n_out, S))
-    for start in range(0, S, DIAGNOSTIC_ROWS):
-        rows = slice(start, min(S, start + DIAGNOSTIC_ROWS))
+    for rows in _blocks(S, DIAGNOSTIC_ROWS):
         lw = lw_all[:, rows]
         lw_theta[:, rows] = logsumexp(lw, axis=2)
         # ESS_j over φ given θ_j: 1 / Σ_k (w_jk / w_j)², in log space.
@@ -423,20 +381,17 @@ def importance_diagnostics(model: DiscrepancyModel) -> ImportanceDiagnostics:
                                             axis=2)
     ess_phi = np.sum(np.exp(lw_theta + np.where(np.isfinite(lw_theta), log_ess_j, 0.0)),
                      axis=1)
-    return ImportanceDiagnostics(tuple(float(e) for e in model.ess),
-                                 tuple(float(e) for e in ess_phi),
-                                 tuple(float(m) for m in model.skipped_mass),
-                                 tuple(float(k) for k in np.broadcast_to(
-                                     np.nan if model.k_hat is None else model.k_hat, n_out)),
-                                 S * K, K,
+    k_hat = np.broadcast_to(np.nan if model.k_hat is None else model.k_hat, n_out)
+    return ImportanceDiagnostics(_floats(model.ess), _floats(ess_phi),
+                                 _floats(model.skipped_mass), _floats(k_hat), S * K, K,
                                  str(model.proposal))
 
 
 def _chain_diagnostics(model: KOHModel) -> ChainDiagnostics:
     chain = model.chain
-    return ChainDiagnostics(float(chain.acceptance_rate), tuple(float(t) for t in chain.iat),
-                            tuple(float(e) for e in chain.ess), int(chain.n_iter),
-                            int(chain.burn_in), bool(chain.reliable))
+    return ChainDiagnostics(float(chain.acceptance_rate), _floats(chain.iat),
+                            _floats(chain.ess), int(chain.n_iter), int(chain.burn_in),
+                            bool(chain.reliable))
 
 
 def _advice(importance, chain) -> tuple:
@@ -492,21 +447,15 @@ def run_method(case: Case, hm: HistoryMatchResult, method, settings: Settings, *
     progress : callable, optional
         ``progress(fraction, message)`` as the work goes on.
     cancel : threading.Event, optional
-        Checked between chunks of work; when set, the run stops with :class:`Cancelled`.
+        Checked between chunks of work; when set, the run raises :class:`Cancelled`.
     executor : concurrent.futures.Executor, optional
         Runs the chunks of (θ, φ) pairs of scenarios 2–3 (:mod:`mdcore._discrepancy`), e.g.
         a Dask ``Client(...).get_executor()``, with the serial run's numbers. Default: here.
-
-    Returns
-    -------
-    MethodResult
 
     Raises
     ------
     ValueError
         For bad input, or a history match that ruled out everything.
-    Cancelled
-        When ``cancel`` is set.
     """
     start = time.perf_counter()
     check_type(case, Case, "case", "an mdcore Case (mdcore.load_case)")

@@ -33,7 +33,6 @@ class _DiagonalGaussian:
 
     @property
     def size(self) -> int:
-        """Number of parameters."""
         return self.mean.size
 
     def logpdf(self, x) -> np.ndarray:
@@ -58,10 +57,8 @@ class GaussianPrior(_DiagonalGaussian):
 
     Parameters
     ----------
-    mean : ndarray of shape (P,)
-        Prior means of the log hyperparameters.
-    var : ndarray of shape (P,)
-        Prior variances.
+    mean, var : ndarray of shape (P,)
+        Prior means and variances of the log hyperparameters.
 
     Examples
     --------
@@ -80,37 +77,27 @@ class ThetaPrior(_DiagonalGaussian):
 
     Parameters
     ----------
-    mean : ndarray of shape (p,)
-        Prior means, in the parameters' units.
-    var : ndarray of shape (p,)
-        Prior variances, in the units squared.
+    mean, var : ndarray of shape (p,)
+        Prior means in the parameters' units and variances in the units squared.
     """
 
     def __post_init__(self):
         self._check("theta_prior", "Give a variance per parameter, in its units squared.")
 
     def sample_in(self, bounds, n: int, seed=None) -> np.ndarray:
-        """``n`` draws of the prior restricted to the box ``bounds`` (p, 2), by rejection.
-
-        Raises
-        ------
-        ValueError
-            If the prior has almost no mass in the box (nothing accepted in 20 rounds).
-        """
+        """``n`` draws of the prior restricted to the box ``bounds`` (p, 2), by rejection; a
+        ValueError if the prior has almost no mass in the box (nothing accepted in 20 rounds)."""
         b = as_float_array(bounds, "bounds", ndim=2)
         if b.shape != (self.size, 2):
             raise ValueError(f"bounds must have shape (p, 2) = ({self.size}, 2), one row per "
                              f"prior mean; received {b.shape}.")
         n = as_int(n, "n", 1)
         rng = np.random.default_rng(seed)
-        out: list[np.ndarray] = []
-        tries = 0
+        out: list[np.ndarray] = []                     # one entry per round
         while sum(len(o) for o in out) < n:
             draw = self.sample(max(4 * n, 1000), seed=rng)
-            inside = np.all((draw >= b[:, 0]) & (draw <= b[:, 1]), axis=1)
-            out.append(draw[inside])
-            tries += 1
-            if tries == 20 and not any(len(o) for o in out):
+            out.append(draw[np.all((draw >= b[:, 0]) & (draw <= b[:, 1]), axis=1)])
+            if len(out) == 20 and not any(len(o) for o in out):
                 raise ValueError(f"the θ prior (mean {self.mean.tolist()}, var "
                                  f"{self.var.tolist()}) has almost no mass inside bounds "
                                  f"{b.tolist()}; centre the prior inside the box.")

@@ -7,6 +7,7 @@ to Panel objects and to raw Bokeh models reach the browser in one message. Not s
 from __future__ import annotations
 
 import logging
+import weakref
 
 import panel as pn
 from panel.io.state import set_curdoc
@@ -18,6 +19,13 @@ log = logging.getLogger("mdcore_app")
 #: with its state: a tab is then drawn before it is clicked, and the work waits for a
 #: pause instead of delaying what is in view.
 CATCH_UP_AFTER = 0.5
+#: Seconds between two hooks of a session's catching up, longer than the browser takes to
+#: lay out one rebuilt view: run in one go, they kept the browser busy 3-6 s after a run,
+#: and a card's click waited that long for its answer (1.3 s when catching up was off;
+#: docs/performance.md).
+CATCH_UP_GAP = 1.0
+#: Per session state: the hooks waiting for their turn to catch up, in order.
+_catch_up_queue: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _served_doc():
@@ -90,17 +98,33 @@ def when_idle(state, hook):
     ``poke``. ``poke(busy=True)`` calls it even while a job runs (a hidden tab whose
     data a job is changing: its first drawing then happens while the browser waits).
 
-    ``hook`` decides itself whether anything is left to do (a view that is stale). A
-    change of what is shown (a band, a scenario hidden) does not poke: hidden tabs would
-    redo their plots for each click, and the browser lays out the page again each time."""
+    A session's hooks run one at a time, :data:`CATCH_UP_GAP` s apart, in the order they
+    were poked. ``hook`` decides itself whether anything is left to do (a view that is
+    stale). A change of what is shown (a band, a scenario hidden) does not poke: hidden
+    tabs would redo their plots for each click, and the browser lays out the page again
+    each time."""
     if _served_doc() is None:
         return lambda *_, busy=False: None
 
     def poke(*_, busy: bool = False):
-        later(CATCH_UP_AFTER, lambda: (state.busy and not busy) or hook())
+        queue = _catch_up_queue.setdefault(state, [])
+        queue.append(lambda: (state.busy and not busy) or hook())
+        if len(queue) == 1:                       # else the hook before it calls it
+            later(CATCH_UP_AFTER, lambda: _next_catch_up(queue))
 
     state.param.watch(lambda event: event.new or state.cancelled or poke(), "busy")
     return poke
+
+
+def _next_catch_up(queue: list) -> None:
+    """Run the first hook waiting in ``queue``, and the next one :data:`CATCH_UP_GAP` s
+    after it returns."""
+    try:
+        queue[0]()
+    finally:
+        del queue[0]
+        if queue:
+            later(CATCH_UP_GAP, lambda: _next_catch_up(queue))
 
 
 #: CSS class of the line above a box whose content is being rebuilt.

@@ -435,3 +435,44 @@ def test_a_served_session_gets_job_callbacks_on_its_own_loop_in_order():
     for _, callback in doc.added:          # as the session's next ticks would
         callback()
     assert ran == list(range(len(fns)))
+
+
+def test_a_sessions_views_catch_up_one_at_a_time_with_a_gap():
+    """After a run, every hidden view of a session caught up at once: the browser laid
+    them out for 3-6 s, and a card's click waited that long for its answer. Each waits
+    now for the one before it, plus a gap in which the browser lays out the last one."""
+    import param
+    from bokeh.document import Document as BokehDocument
+    from panel.io.state import set_curdoc
+
+    from mdcore_app import session_loop
+
+    class Document(BokehDocument):
+        """A served session's document that records its timeout callbacks."""
+        session_context = object()
+
+        def __init__(self):
+            super().__init__()
+            self.timeouts = []
+
+        def add_timeout_callback(self, callback, timeout_milliseconds):
+            self.timeouts.append((callback, timeout_milliseconds))
+
+    class State(param.Parameterized):
+        busy = param.Boolean(False)
+        cancelled = param.Boolean(False)
+
+    doc, state, ran = Document(), State(), []
+    with set_curdoc(doc):
+        for k in range(3):
+            session_loop.when_idle(state, lambda k=k: ran.append(k))
+        state.busy = True
+        state.busy = False                              # a job ended: all three are due
+        delays = []
+        while doc.timeouts:
+            assert len(doc.timeouts) == 1, "two views would catch up at once"
+            callback, ms = doc.timeouts.pop()
+            delays.append(ms / 1000)
+            callback()
+    assert ran == [0, 1, 2]
+    assert delays == [session_loop.CATCH_UP_AFTER] + [session_loop.CATCH_UP_GAP] * 2

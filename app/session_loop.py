@@ -103,11 +103,17 @@ def when_idle(state, hook):
     stale). A change of what is shown (a band, a scenario hidden) does not poke: hidden
     tabs would redo their plots for each click, and the browser lays out the page again
     each time."""
-    if _served_doc() is None:
+    doc = _served_doc()
+    if doc is None:
         return lambda *_, busy=False: None
+    queue = _catch_up_queue.get(state)
+    if queue is None:
+        queue = _catch_up_queue[state] = []
+        # A closed session's pending timeouts never run: its hooks (and through them its
+        # state, the queue's key) must not stay in the queue.
+        doc.on_session_destroyed(lambda _context: queue.clear())
 
     def poke(*_, busy: bool = False):
-        queue = _catch_up_queue.setdefault(state, [])
         queue.append(lambda: (state.busy and not busy) or hook())
         if len(queue) == 1:                       # else the hook before it calls it
             later(CATCH_UP_AFTER, lambda: _next_catch_up(queue))

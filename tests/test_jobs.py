@@ -476,3 +476,11 @@ def test_a_sessions_views_catch_up_one_at_a_time_with_a_gap():
             callback()
     assert ran == [0, 1, 2]
     assert delays == [session_loop.CATCH_UP_AFTER] + [session_loop.CATCH_UP_GAP] * 2
+    # A session closed while its views wait lets go of them (and of its state).
+    with set_curdoc(doc):
+        state.busy = True
+        state.busy = False
+    assert session_loop._catch_up_queue[state]
+    for callback in doc.session_destroyed_callbacks:
+        callback(None)
+    assert session_loop._catch_up_queue[state] == []

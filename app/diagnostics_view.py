@@ -25,7 +25,7 @@ from bokeh.palettes import Category10, RdBu11, Viridis256
 from bokeh.plotting import figure
 
 from mdcore import theta_delta_split, validate_waves
-from mdcore._diagnostics import space_views
+from mdcore._diagnostics import SMALLEST_P, space_views
 from mdcore._pipeline import Method
 
 from .alerts import alert_box, warnings_html
@@ -165,7 +165,7 @@ def loo_table(validations) -> str:
             "<th>p</th><th>wrongly ruled out</th></tr>")
     body = "".join(
         f"<tr><td>{v.wave}</td><td>{len(v.theta)}</td><td>{100 * v.share_beyond_3:.1f} %"
-        f"</td><td>{np.abs(v.loo.error).max():.1f}</td><td>{max(v.p_value, 1e-16):.2g}</td>"
+        f"</td><td>{np.abs(v.loo.error).max():.1f}</td><td>{max(v.p_value, SMALLEST_P):.2g}</td>"
         f"<td>{int(v.wrongly_ruled_out.sum())}</td></tr>" for v in validations)
     return (f"<table class='diag-loo-table' style='border-collapse:collapse' cellpadding='4'>"
             f"{head}{body}</table>")

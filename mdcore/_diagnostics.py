@@ -27,6 +27,9 @@ from ._validation import as_float_array, as_int, check_type
 P_BEYOND_3 = float(2.0 * scipy.stats.norm.sf(3.0))
 #: A wave's errors are "clearly too large" when :func:`loo_p_value` is below this.
 TOO_CONFIDENT_P = 1e-3
+#: The smallest p-value bound stated (advice, the app's table): below it the bound has
+#: underflowed in double precision, and read "p ≤ 0.0e+00" beside a table's "1e-16".
+SMALLEST_P = 1e-16
 #: δ is "mostly a consequence of θ" above this share of its variance (between > within).
 MOSTLY_THETA = 0.5
 #: Candidates scored at once by :func:`space_views` (bounds the emulator variance array).
@@ -136,7 +139,8 @@ def validate_wave(wave, *, warn: bool = True) -> WaveValidation:
     if p_value < TOO_CONFIDENT_P:
         parts.append(f"{100 * share:.1f} % of its leave-one-out standardised errors are beyond "
                      f"±3 and the largest is {np.max(np.abs(loo.error)):.1f} (calibrated: about "
-                     f"0.3 %, rarely above 4.5; p ≤ {p_value:.1e}), so it is too confident")
+                     f"0.3 %, rarely above 4.5; p ≤ {max(p_value, SMALLEST_P):.1e}), so it is too "
+                     "confident")
     if wrong.any():
         parts.append(f"{int(wrong.sum())} of its {len(wrong)} runs would be ruled out by the "
                      f"emulator without that run (implausibility up to {I_loo[wrong].max():.2f}, "

@@ -172,6 +172,9 @@ def test_validation_of_a_too_confident_emulator_warns_and_names_the_wave(rule):
                       r"simulator runs"):
         v = validate_wave(bad)
     assert v.p_value < diagnostics.TOO_CONFIDENT_P and v.share_beyond_3 > 0.2
+    # an underflowed bound is stated as the smallest one, as the app's table shows it
+    assert f"p ≤ {max(v.p_value, diagnostics.SMALLEST_P):.1e})" in v.advice, v.advice
+    assert "p ≤ 0.0e+00" not in v.advice, v.p_value
     # the wrongly-ruled-out runs, from the naive loop's moments and the simulator itself
     mean, var, cov = naive_loo(bad_em)
     I_loo = naive_implausibility(problem, mean, var, cov)

@@ -328,7 +328,7 @@ class ExplorerView(pn.viewable.Viewer):
             stale[0] = False
             box.objects = [view()]
 
-        when_idle(self.state, lambda: stale[0] and build())
+        when_idle(self.state, lambda: stale[0] and (build() or True))
 
         def refresh(*_):
             if tabs.active != index:

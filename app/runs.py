@@ -270,8 +270,13 @@ class DiscrepancyModel(HistoryModel):
             self._refresh_results()
             if self._restoring:
                 return                  # open_session submits one job for everything
-            if self.results.keys() != set(self.scenarios) and self.waves and self._cache:
-                self.run_discrepancy()  # only when the user has run discrepancy before
+            # Only when the user has run discrepancy before, or is running it (a change
+            # during the first run, with nothing cached yet, left the tab empty).
+            job = self._jobs.job
+            running = self._jobs.busy and job is not None and job.label == "discrepancy"
+            if self.results.keys() != set(self.scenarios) and (
+                    (self.waves and self._cache) or running):
+                self.run_discrepancy()
 
     def cached_phi_hat(self, key: ResultKey):
         """φ̂ of a cached scenario-1 result on the same match and seed, or None.

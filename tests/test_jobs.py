@@ -386,6 +386,24 @@ def test_state_cancel_stops_a_running_discrepancy_run():
     assert s.progress_message == ""
 
 
+def test_a_seed_changed_during_the_first_discrepancy_run_runs_it_again():
+    """A discrepancy setting changed while the first run was still working (nothing
+    cached yet) started no run: the first run's results, for the old seed, were not
+    shown for the new one, and the tab stayed empty (seen as a CI flake of the end-to-end
+    browser test). The change now restarts the run with the new setting."""
+    inbox: queue.Queue = queue.Queue()
+    s = _state(background=True, schedule=inbox.put)
+    s.run_to_convergence()
+    drain(inbox, timeout=TIMEOUT, until=lambda: len(s.waves) >= 1 and not s.busy)
+    s.run_discrepancy()
+    first = s.jobs.job
+    assert s.busy and not s.results
+    s.seed = 1
+    assert s.jobs.job is not first and first.status == "superseded"
+    drain(inbox, timeout=TIMEOUT, until=lambda: not s.busy)
+    assert set(s.results) == set(s.scenarios)     # the results shown are the seed's own
+
+
 def test_a_served_session_gets_job_callbacks_on_its_own_loop_in_order():
     """The job's worker thread added its callbacks to the Bokeh document itself. While the
     session's thread held the document (Panel's ``hold``), Bokeh queued the event without

@@ -272,8 +272,7 @@ class DiscrepancyModel(HistoryModel):
                 return                  # open_session submits one job for everything
             # Only when the user has run discrepancy before, or is running it (a change
             # during the first run, with nothing cached yet, left the tab empty).
-            job = self._jobs.job
-            running = self._jobs.busy and job is not None and job.label == "discrepancy"
+            running = self._jobs.busy and self._jobs.job.label == "discrepancy"
             if self.results.keys() != set(self.scenarios) and (
                     (self.waves and self._cache) or running):
                 self.run_discrepancy()

@@ -20,9 +20,8 @@ log = logging.getLogger("mdcore_app")
 #: pause instead of delaying what is in view.
 CATCH_UP_AFTER = 0.5
 #: Seconds between two hooks of a session's catching up, longer than the browser takes to
-#: lay out one rebuilt view: run in one go, they kept the browser busy 3-6 s after a run,
-#: and a card's click waited that long for its answer (1.3 s when catching up was off;
-#: docs/performance.md).
+#: lay out one rebuilt view: run in one go, they kept the browser busy for seconds after a
+#: run, and a card's click waited for all of them (docs/performance.md, "A card's click").
 CATCH_UP_GAP = 1.0
 #: Per session state: the hooks waiting for their turn to catch up, in order.
 _catch_up_queue: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()

@@ -283,9 +283,10 @@ class ExplorerView(pn.viewable.Viewer):
             button = pn.widgets.Button(label="Run it", color="primary",
                                        css_classes=[f"try-{exp.key}"], width=120)
             button.on_click(lambda _, e=exp: self._try(e))
-            # The card's tab and line at once, in the browser: a busy server (hidden tabs
-            # catching up after a run, a loaded machine) answered the click 3-11 s later,
-            # and until then the class saw nothing happen.
+            # The card's tab and line at once, in the browser: the server's answer can
+            # wait seconds behind a busy page (hidden tabs catching up after a run, a
+            # loaded machine), and until then the class saw nothing happen
+            # (docs/performance.md, "A card's click").
             button.js_on_click(args={"tabs": self._tabs, "line": self._card_div}, code=(
                 f"tabs.active = {TAB_NAMES.index(exp.tab)}; "
                 f"line.text = {json.dumps(starting_html(exp))}; line.visible = true;"))

@@ -480,7 +480,7 @@ def test_the_teaching_preset_shows_waves_shrinking(case, waves):
 def test_a_card_builds_its_tab_once_from_its_own_settings(monkeypatch):
     """A card showed its tab before it ran: the tab's stale views were rebuilt from the
     settings before the card, then again from the card's, and the card's answer waited
-    for the first rebuild (the ESS card after a run: 3.6 s in the browser, now 1.0-1.3 s).
+    for the first rebuild (docs/performance.md, "A card's click").
     The card now runs first and shows its tab after."""
     from mdcore_app.experiments import EXPERIMENTS
     s = small_state("beam-1d")

@@ -302,7 +302,7 @@ def wait_card_answer(page, timeout: float = 60.0) -> None:
 
 def test_a_card_shows_its_tab_at_once_while_the_server_is_busy(browser, server):
     """Under load (tests alongside, hidden tabs catching up after a run) the server
-    answered a card's click 3-11 s later, and until then the page showed nothing: the
+    answered a card's click seconds later, and until then the page showed nothing: the
     tab switch looked lost. The browser now switches the tab and says the card is starting
     by itself; the server's answer follows. The server is stopped (SIGSTOP) to show it."""
     import os

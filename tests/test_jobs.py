@@ -457,7 +457,7 @@ def test_a_served_session_gets_job_callbacks_on_its_own_loop_in_order():
 
 def test_a_sessions_views_catch_up_one_at_a_time_with_a_gap():
     """After a run, every hidden view of a session caught up at once: the browser laid
-    them out for 3-6 s, and a card's click waited that long for its answer. Each waits
+    them out for seconds, and a card's click waited that long for its answer. Each waits
     now for the one before it, plus a gap in which the browser lays out the last one."""
     import param
     from bokeh.document import Document as BokehDocument

@@ -34,7 +34,7 @@ from .live_figures import (
 )
 from .plots import METHOD_COLORS, axis_label
 from .runs import method_order
-from .session_loop import next_tick, when_shown
+from .session_loop import watch_in_session, when_shown
 from .state import ExplorerState
 
 #: The "Show" choices of a 1-D case and the quantities they show.
@@ -83,9 +83,9 @@ class DiscrepancyPanel(LivePanel):
         self._drawn: set[Method] = set()         # methods whose plots hold data
         self._ready = lambda: False              # whether to prebuild (the tab is shown)
         self._head_fixed: list = []              # beam-2d: the slider and the truth map
-        self.state.param.watch(self._slice_moved, "slice_x2")
-        self.param.watch(self._quantity_changed, "quantity")
-        self.state.param.watch(self._quantity_changed, "output")
+        watch_in_session(self.state, self._slice_moved, "slice_x2")
+        watch_in_session(self, self._quantity_changed, "quantity")
+        watch_in_session(self.state, self._quantity_changed, "output")
 
     # --- structure -----------------------------------------------------------------------
     def _rebuild(self, *_):
@@ -348,14 +348,8 @@ class DiscrepancyPanel(LivePanel):
             return                     # the warnings stay with the dimmed plots they concern
         advice = [w for m in sorted(s.results, key=method_order) for w in s.results[m].warnings]
         text = warnings_html(advice) + not_run_html(s) if shown else empty_html(s)
-        # On the next tick: a run's start (busy) comes inside its button's click event,
-        # where Bokeh refuses a change of a raw model ("_pending_writes should be non-None").
-        self._message = text
-        next_tick(self._show_message)
-
-    def _show_message(self) -> None:
-        if self._warnings_div.text != self._message:
-            self._warnings_div.text = self._message
+        if self._warnings_div.text != text:
+            self._warnings_div.text = text
 
     @property
     def message(self) -> str:

@@ -26,7 +26,7 @@ from bokeh.plotting import figure
 
 from mdcore._validation import as_float_array, as_int, check_positive
 
-from .session_loop import when_idle, when_shown
+from .session_loop import watch_in_session, when_idle, when_shown
 from .sources import blank, replace_data
 
 TOOLS = "pan,wheel_zoom,box_zoom,reset,save"
@@ -147,8 +147,8 @@ class LivePanel(pn.viewable.Viewer):
         self._shown = lambda: True               # see defer_while_hidden
         self._poke = lambda busy=False: None     # ... and its catching up (when_idle)
         self._stale = False                      # a case change waits for the tab
-        self.state.param.watch(self._case_changed, "case")
-        self.state.param.watch(self._state_changed, list(self.UPDATE_ON))
+        watch_in_session(self.state, self._case_changed, "case")
+        watch_in_session(self.state, self._state_changed, list(self.UPDATE_ON))
         if shown_in is not None:
             self.defer_while_hidden(*shown_in)
         self._case_changed()

@@ -60,6 +60,18 @@ def next_tick(fn) -> None:
         doc.add_next_tick_callback(_held(doc, fn))
 
 
+def watch_in_session(obj, fn, names) -> None:
+    """``obj.param.watch(fn, names)``, with ``fn(*events)`` called on the session's next
+    tick (:func:`next_tick`; not served: at once): for a watcher that changes raw Bokeh
+    models (a figure's data, a :func:`~mdcore_app.live_figures.live_text` line).
+
+    A button pressed while a field's change waits for Panel's short debounce makes Panel
+    process that change first, outside Bokeh's document lock, and Bokeh then refuses a raw
+    model's change ("_pending_writes should be non-None"): the page stopped following the
+    state. In a callback of the session, Bokeh holds the lock."""
+    obj.param.watch(lambda *events: next_tick(lambda: fn(*events)), names)
+
+
 def job_scheduler(doc):
     """``schedule(fn)`` for a session's jobs: ``fn()`` on the session's next tick, called
     from any thread (not served: at once).

@@ -21,7 +21,7 @@ from .live_figures import live_text
 from .markup import html_text, markdown_text
 from .metrics_view import metrics_panel
 from .progress_view import progress_panel
-from .session_loop import later, next_tick, show_updating, when_idle, when_shown
+from .session_loop import later, next_tick, show_updating, watch_in_session, when_idle, when_shown
 from .state import ExplorerState
 from .waves_panel import WavesPanel
 
@@ -85,12 +85,12 @@ class ExplorerView(pn.viewable.Viewer):
         self.waves_view = WavesPanel(state=self.state, shown_in=(self._tabs, 1))
         self.calibration_view = CalibrationPanel(state=self.state, shown_in=(self._tabs, 1))
         self.status_view, self._status_div = live_text("hm-status")
-        self.state.param.watch(self._show_status, ["status", "waves"])
+        watch_in_session(self.state, self._show_status, ["status", "waves"])
         self._show_status()
         self._card_pane, self._card_div = live_text("card-note")
         self._card_div.styles = {"font-size": "0.9em", "padding": "2px 6px",
                                  "background": "#e8f1fb"}
-        self.state.param.watch(self._show_card, "card")
+        watch_in_session(self.state, self._show_card, "card")
         self._show_card()
         self._fill_tabs()
 

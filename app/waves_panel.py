@@ -51,6 +51,7 @@ from .live_figures import (
     live_text,
 )
 from .plots import THETA_MAP_COLOR, THETA_MAP_MARKER, TRUTH_MARKER, axis_label
+from .session_loop import watch_in_session
 from .sources import blank, replace_data, set_range, set_top
 from .state import ExplorerState
 from .wave_data import (
@@ -108,7 +109,7 @@ class WavesPanel(LivePanel):
         self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
                                   loop_policy="once", interval=800,
                                   show_loop_controls=False, styles=PLAYER_HIDDEN)
-        self._player.param.watch(self._player_moved, "value")
+        watch_in_session(self._player, self._player_moved, "value")
         self._syncing = False
 
     def _state_changed(self, *events):

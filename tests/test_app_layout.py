@@ -278,6 +278,10 @@ def overlaps(a, b) -> bool:
                 or a["y"] + a["height"] <= b["y"] or b["y"] + b["height"] <= a["y"])
 
 
+def shown_status(page) -> str:
+    return page.locator(".hm-status").evaluate("e => (e.shadowRoot || e).textContent")
+
+
 def card_note(page) -> str:
     return page.locator(".card-note").evaluate("e => (e.shadowRoot || e).textContent")
 
@@ -469,5 +473,29 @@ def test_no_plot_title_is_cut_off_with_four_methods_at_1280(browser, server, cas
     page.locator(".diag-plot canvas").nth(5).wait_for(timeout=60_000)
     page.wait_for_timeout(1500)
     assert page.evaluate(WIDE_TITLES) == []
+    assert log.errors == []
+    page.close()
+
+
+def test_a_button_pressed_while_a_change_is_on_its_way_keeps_the_page_updating(
+        browser, server):
+    """Panel waits a moment before it processes a field's change; a button pressed
+    meanwhile made it process the change outside Bokeh's document lock, where the views
+    that redraw raw Bokeh models raised "_pending_writes should be non-None" and the page
+    stopped following the state (a case chosen and "Next wave" pressed at once)."""
+    page, log = open_page(browser, server.url)
+    tab(page, "History matching")
+    wait_idle(page)
+    before = server.log.text().count("Traceback")
+    for case in ("beam-2d", "shear-5", "beam-1d"):
+        page.locator("select").first.select_option(case)
+        page.locator(".next-wave button").click()
+        wait_idle(page)
+        end = time.monotonic() + 30
+        while "wave 1:" not in shown_status(page):
+            assert time.monotonic() < end, (case, shown_status(page),
+                                            server.log.text()[-3000:])
+            page.wait_for_timeout(250)
+    assert server.log.text().count("Traceback") == before, server.log.text()[-3000:]
     assert log.errors == []
     page.close()

@@ -134,8 +134,8 @@ EXPERIMENTS = (
         "Raise V_m back to 0.05, press “Run to convergence” and compare. Is it the "
         "emulator's fault? The simulator itself at the true θ has implausibility 3.07 "
         "> T = 3 at V_m = 0.014 mm² (1.67 at 0.05): V_m rules the truth out.",
-        look="History matching tab: the non-implausible θ against the truth × and θ_MAP "
-             "(the star).",
+        look="History matching tab: the legend's verdict on the truth ×, and the "
+             "non-implausible θ around it and θ_MAP (the star).",
         promise="A small NROY set (0.37 % of the box) survives, but the truth × is "
                 "outside it: too small a V_m rules out the truth and keeps a wrong θ. "
                 "Below about 0.01 mm² nothing survives at all.",

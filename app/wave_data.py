@@ -12,6 +12,8 @@ from .plots import THETA_MAP_COLOR, WAVE_COLORS
 MAX_POINTS = 1500
 #: Histogram bins over a single parameter's prior box (p = 1).
 BINS = 40
+#: Colour of the words saying that the true θ is ruled out.
+RULED_OUT_COLOR = "#b00020"
 #: Most waves a history match can have (the upper bound of the Max waves control).
 MAX_WAVES = HistoryModel.param.max_waves.bounds[1]
 
@@ -92,13 +94,44 @@ def padded(values, n: int) -> np.ndarray:
     return out
 
 
-def legend_html(waves, truth: bool, theta_map: bool, lines: bool = False) -> str:
+def truth_verdict(waves, theta_true) -> tuple[bool, str]:
+    r"""Whether ``theta_true`` (p,) is non-implausible after ``waves`` (mdcore ``Wave``\ s,
+    in order): inside the prior box and at most the cutoff in every wave (Eq. 16), and
+    that in words, with the implausibility that decides it.
+
+    Beside NROY's edge the cross can sit on the last wave's points while being just
+    outside (beam-1d at V_m = 0.014 mm²): the class needs the number, not only the picture.
+    """
+    problem = waves[0].problem
+    t = np.asarray(theta_true, float).reshape(1, -1)
+    b, cut = problem.bounds, problem.cutoff
+    if not np.all((t[0] >= b[:, 0]) & (t[0] <= b[:, 1])):
+        return False, "outside the prior box"
+    largest = 0.0
+    for w in waves:
+        value = float(w.combined_implausibility(t)[0])
+        if not value <= cut:
+            return False, (f"ruled out at wave {w.index} (implausibility {value:.3g} > "
+                           f"{cut:.3g})")
+        largest = max(largest, value)
+    return True, f"non-implausible (implausibility ≤ {largest:.3g} ≤ {cut:.3g})"
+
+
+def legend_html(waves, truth: bool | tuple[bool, str], theta_map: bool,
+                lines: bool = False) -> str:
     """A legend line: a swatch per wave shown, then the true θ and θ_MAP markers (a cross
-    and a star, or for ``lines`` (p = 1) a dashed and a solid vertical line)."""
+    and a star, or for ``lines`` (p = 1) a dashed and a solid vertical line). ``truth``:
+    whether to name the true θ, or :func:`truth_verdict`'s answer to say it too (in red
+    when the truth is ruled out)."""
     items = [f'<span style="color:{WAVE_COLORS[(w.index - 1) % len(WAVE_COLORS)]}">■</span> '
              f"wave {w.index}" for w in waves]
     if truth:
-        items.append("<b>┆</b> true θ" if lines else "<b>×</b> true θ")
+        item = "<b>┆</b> true θ" if lines else "<b>×</b> true θ"
+        if isinstance(truth, tuple):
+            inside, words = truth
+            item += f": {words}" if inside else \
+                f': <b style="color:{RULED_OUT_COLOR}">{words}</b>'
+        items.append(item)
     if theta_map:
         mark = "│" if lines else "★"
         items.append(f'<span style="color:{THETA_MAP_COLOR}"><b>{mark}</b></span> θ_MAP '

@@ -62,6 +62,7 @@ from .wave_data import (
     legend_html,
     nroy_columns,
     padded,
+    truth_verdict,
     variance_ratios,
     wave_colors,
 )
@@ -267,8 +268,9 @@ class WavesPanel(LivePanel):
             self._map_line.location = None if theta_map is None else float(theta_map[0])
         if self._image is not None:
             self._show_map(s.implausibility_maps.get(upto), hm.problem, upto)
-        self._legend_div.text = legend_html(shown, c.theta_true is not None,
-                                          theta_map is not None, lines=c.p == 1)
+        truth = c.theta_true is not None and truth_verdict(shown, c.theta_true)
+        self._legend_div.text = legend_html(shown, truth, theta_map is not None,
+                                            lines=c.p == 1)
         k = [w.index for w in shown]
         replace_data(self._fraction, {"wave": k,
                                       "percent": [100 * w.nroy_fraction for w in shown]})

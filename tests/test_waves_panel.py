@@ -14,10 +14,12 @@ from mdcore_app.plots import WAVE_COLORS  # noqa: E402
 from mdcore_app.state import ExplorerState  # noqa: E402
 from mdcore_app.wave_data import (  # noqa: E402
     MAX_POINTS,
+    RULED_OUT_COLOR,
     contour_lines,
     histogram_columns,
     nroy_columns,
     padded,
+    truth_verdict,
     variance_ratios,
     wave_colors,
 )
@@ -257,3 +259,36 @@ def test_a_marker_on_the_edge_of_the_box_is_drawn_whole():
         for rng, (lo, hi) in ((fig.x_range, bounds[i]), (fig.y_range, bounds[j])):
             margin = 0.03 * (hi - lo)
             assert rng.start <= lo - margin and rng.end >= hi + margin, fig.title.text
+
+
+def test_the_legend_says_whether_the_truth_is_ruled_out_and_by_how_much():
+    """At V_m = 0.014 mm² (the "rule out" card) the truth's cross sat on the edge of the
+    last wave's points, so the class could not see that it was outside NROY: the legend
+    says it, with the implausibility that decides it (Eq. 16 from the emulator's moments)."""
+    s = ExplorerState()
+    s.v_m = 0.014
+    s.run_to_convergence()
+    hm, t = s.history_match, np.asarray(s.case.theta_true, float)
+    assert not hm.contains(t)[0] and hm.waves[-1].nroy.shape[0] > 0
+    p = hm.problem
+    # Eq. 16 by hand: max over targets of |z − E[y]| / √(V_o + V_m + Var y), per wave.
+    by_hand = []
+    for w in hm.waves:
+        pred = w.emulator.predict(p.X, t[None, :])
+        by_hand.append(float(np.max(np.abs(p.z - pred.mean[0])
+                                    / np.sqrt(p.V_o + p.V_m + pred.var[0]))))
+    first = next(k for k, v in enumerate(by_hand) if v > 3.0)
+    inside, words = truth_verdict(hm.waves, t)
+    assert not inside
+    assert words == f"ruled out at wave {first + 1} (implausibility {by_hand[first]:.3g} > 3)"
+    panel = WavesPanel(state=s)
+    assert f'<b style="color:{RULED_OUT_COLOR}">{words}</b>' in panel._legend_div.text
+    # The default V_m keeps it, and says by how much; outside the box, it says so.
+    s.v_m = float(s.case.V_m[0])
+    s.run_to_convergence()
+    inside, words = truth_verdict(s.history_match.waves, t)
+    assert inside and s.history_match.contains(t)[0]
+    assert words.startswith("non-implausible (implausibility ≤ ") and words.endswith("≤ 3)")
+    assert f"true θ: {words}" in panel._legend_div.text
+    assert truth_verdict(s.history_match.waves, [60.0, 68.0]) == (False,
+                                                                  "outside the prior box")

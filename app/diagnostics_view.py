@@ -324,7 +324,7 @@ class DiagnosticsView(pn.viewable.Viewer):
                                on_error=lambda m: (self._say(m), state.report_error(m)))
         state.param.watch(self._changed, ["waves", "results", "output"])
         when_shown(tabs, index, lambda: self._stale and self.refresh())
-        when_idle(state, lambda: self._stale and (self.refresh() or True))   # after a job
+        when_idle(state, lambda: self._stale and self.refresh())     # after a job
         self._say("Press “Next wave” or “Run to convergence”, then come back to this tab.")
 
     numbers = property(lambda self: self._numbers and self._numbers[2], doc="What it shows.")

@@ -166,12 +166,10 @@ class LivePanel(pn.viewable.Viewer):
         when_shown(tabs, index, self._catch_up)
         self._poke = when_idle(self.state, self._catch_up)
 
-    def _catch_up(self) -> bool:
-        if not self._stale:
-            return False
-        self._stale = False
-        self._rebuild()
-        return True
+    def _catch_up(self) -> None:
+        if self._stale:
+            self._stale = False
+            self._rebuild()
 
     def _case_changed(self, *_) -> None:
         if self._shown():

@@ -109,11 +109,11 @@ def when_idle(state, hook):
     ``poke``. ``poke(busy=True)`` calls it even while a job runs (a hidden tab whose
     data a job is changing: its first drawing then happens while the browser waits).
 
-    ``hook`` decides itself whether anything is left to do (a view that is stale), and
-    returns whether it drew anything. A session's hooks run in the order they were poked,
-    each :data:`CATCH_UP_GAP` s after the last one that drew. A change of what is shown (a
-    band, a scenario hidden) does not poke: hidden tabs would redo their plots for each
-    click, and the browser lays out the page again each time."""
+    A session's hooks run one at a time, :data:`CATCH_UP_GAP` s apart, in the order they
+    were poked. ``hook`` decides itself whether anything is left to do (a view that is
+    stale). A change of what is shown (a band, a scenario hidden) does not poke: hidden
+    tabs would redo their plots for each click, and the browser lays out the page again
+    each time."""
     doc = _served_doc()
     if doc is None:
         return lambda *_, busy=False: None
@@ -125,7 +125,7 @@ def when_idle(state, hook):
         doc.on_session_destroyed(lambda _context: queue.clear())
 
     def poke(*_, busy: bool = False):
-        queue.append(lambda: not (state.busy and not busy) and bool(hook()))
+        queue.append(lambda: (state.busy and not busy) or hook())
         if len(queue) == 1:                       # else the hook before it calls it
             later(CATCH_UP_AFTER, lambda: _next_catch_up(queue))
 
@@ -134,17 +134,12 @@ def when_idle(state, hook):
 
 
 def _next_catch_up(queue: list) -> None:
-    """Run the hooks waiting in ``queue`` until one draws something, and the rest
-    :data:`CATCH_UP_GAP` s after it (a hook in the queue until it returns: a poke meanwhile
-    joins this run)."""
-    drew = False
+    """Run the first hook waiting in ``queue``, and the next one :data:`CATCH_UP_GAP` s
+    after it returns."""
     try:
-        while queue and not drew:
-            try:
-                drew = queue[0]()
-            finally:
-                del queue[0]
+        queue[0]()
     finally:
+        del queue[0]
         if queue:
             later(CATCH_UP_GAP, lambda: _next_catch_up(queue))
 

@@ -329,7 +329,7 @@ class ExplorerView(pn.viewable.Viewer):
             stale[0] = False
             box.objects = [view()]
 
-        when_idle(self.state, lambda: stale[0] and (build() or True))
+        when_idle(self.state, lambda: stale[0] and build())
 
         def refresh(*_):
             if tabs.active != index:

@@ -184,3 +184,22 @@ SHOWN = """(cls) => {
 def shown(page, css_class: str) -> bool:
     """Whether the page shows the element of ``css_class`` now (see :data:`SHOWN`)."""
     return page.evaluate(SHOWN, css_class)
+
+
+#: Counts, in ``window.mdcoreJobs``, the busy lines the server sends (BokehJS's public
+#: ``Document.on_change``): a short job (a seed's rerun: 0.3 s) can start and end between
+#: two polls of ``wait_for_selector(".mdcore-busy")`` on a loaded machine.
+COUNT_JOBS = """() => { window.mdcoreJobs = 0;
+  for (const d of Bokeh.documents) d.on_change(e => {
+    if (e.attr !== undefined && String(e.value).includes('mdcore-busy')) window.mdcoreJobs++;
+  }); }"""
+
+
+def count_jobs(page) -> None:
+    """From now on, count the jobs started in ``page`` (see :func:`wait_job_started`)."""
+    page.evaluate(COUNT_JOBS)
+
+
+def wait_job_started(page, timeout: float = 30_000) -> None:
+    """Until a job has started since :func:`count_jobs` (it may have ended already)."""
+    page.wait_for_function("() => window.mdcoreJobs > 0", timeout=timeout)

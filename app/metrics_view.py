@@ -18,15 +18,14 @@ from .runs import method_order
 #: Shown in the metrics table where a diagnostic does not apply to a method.
 NOT_APPLICABLE = "—"
 #: The columns of :func:`metrics_frame` shown in the diagnostics table, not the metrics one.
-DIAGNOSTICS = ("ESS pairs", "ESS φ", "Pareto k", "acceptance", "IAT (max)", "chain ESS (min)")
+DIAGNOSTICS = ("ESS pairs", "ESS φ", "Pareto k̂", "acceptance", "IAT (max)", "chain ESS (min)")
 
 
 def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
     """One row per (method, output): the metrics (docs/method.md §8), the δ RMSE (output
     units), then the method's diagnostics.
 
-    The importance-sampling diagnostics (ESS over the (θ, φ) pairs, ESS over φ, Pareto k̂,
-    "Pareto k")
+    The importance-sampling diagnostics (ESS over the (θ, φ) pairs, ESS over φ, Pareto k̂)
     belong to scenario 3 and the chain diagnostics (acceptance, the largest IAT, the
     smallest chain ESS over the parameters) to KOH; elsewhere, and for δ metrics where the
     true δ is unknown, the cell holds :data:`NOT_APPLICABLE`, never NaN.
@@ -51,7 +50,7 @@ def metrics_frame(case, results: dict[Method, MethodResult]) -> pd.DataFrame:
                 "cover δ ±3σ": per_output(m.coverage_delta_3sd, o),
                 "ESS pairs": per_output(None if imp is None else imp.ess, o),
                 "ESS φ": per_output(None if imp is None else imp.ess_phi, o),
-                "Pareto k": per_output(None if imp is None else imp.k_hat, o),
+                "Pareto k̂": per_output(None if imp is None else imp.k_hat, o),
                 "acceptance": NOT_APPLICABLE if chain is None else chain.acceptance_rate,
                 "IAT (max)": NOT_APPLICABLE if chain is None else max(chain.iat),
                 "chain ESS (min)": NOT_APPLICABLE if chain is None else min(chain.ess),

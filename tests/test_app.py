@@ -117,6 +117,9 @@ def test_waves_then_scenarios_for_each_case(case):
     s3 = table["method"] == "Scenario 3"
     assert np.all(np.isfinite(table.loc[s3, "ESS pairs"].astype(float)))
     assert np.all(np.isfinite(table.loc[s3, "ESS φ"].astype(float)))
+    # k̂, as the glossary and the advice write it (the header said "Pareto k")
+    np.testing.assert_array_equal(table.loc[s3, "Pareto k̂"].astype(float),
+                                  s.results[Method.S3].importance.k_hat)
     assert set(table.loc[~s3, "ESS pairs"]) == {NA}                 # "—", never NaN
     assert set(table["acceptance"]) == {NA}                         # no KOH here
     assert not table.isna().any().any()

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import html
 
+from .glossary import in_app_words
+
 #: Colours (text, background, border) of a message box, as Bootstrap's alerts.
 ALERT_COLORS = {"info": ("#055160", "#cff4fc", "#b6effb"),
                 "success": ("#0f5132", "#d1e7dd", "#badbcc"),
@@ -26,8 +28,10 @@ def alert_box(inner_html: str, kind: str) -> str:
 
 def warnings_html(advice: list[str]) -> str:
     """The diagnostics' warnings in a warning box (HTML, escaped), each "subject: text"
-    with its subject in bold; '' for none."""
+    with its subject in bold and mdcore's option names as the app's labels
+    (:func:`~mdcore_app.glossary.in_app_words`); '' for none."""
     if not advice:
         return ""
     return alert_box("".join("<p style='margin:4px 0'><b>{}</b>{}{}</p>".format(
-        *(html.escape(part) for part in w.partition(":"))) for w in advice), "warning")
+        *(html.escape(part) for part in in_app_words(w).partition(":"))) for w in advice),
+        "warning")

@@ -1,11 +1,14 @@
 """The words a newcomer meets on screen, defined once: the app's tooltips and the README's
 Glossary (tests/test_glossary.py holds them equal). ``GLOSSARY``: term as written on
 screen -> a sentence or two; ``SECTION``: term -> the section of docs/method.md on it.
+:func:`in_app_words` puts the app's control labels for mdcore's option names in its
+messages.
 """
 
 from __future__ import annotations
 
 import html
+import re
 
 GLOSSARY = {
     "θ": "The simulator's calibration parameters, e.g. crack length l_cr and Young's "
@@ -69,3 +72,17 @@ def terms_html(*words: str) -> str:
     spans = " · ".join(f'<abbr title="{html.escape(tooltip(w))}">{html.escape(w)}</abbr>'
                        for w in words)
     return f"Words on this tab (hover for their meaning): {spans}"
+
+
+#: mdcore's options that its messages name -> the label of the app's control for it.
+CONTROL_LABELS = {"n_runs": "Runs per wave", "n_candidates": "Candidates per wave",
+                  "max_waves": "Max waves", "convergence_ratio": "Convergence ratio",
+                  "n_s": "N_s", "n_phi": "N_φ"}
+_OPTION = re.compile(r"\b(" + "|".join(CONTROL_LABELS) + r")\b")
+
+
+def in_app_words(message: str) -> str:
+    """``message`` (mdcore's advice, a warning) with each option name it gives as the
+    app's control label, quoted: the advice said "n_runs" beside a field called "Runs
+    per wave"."""
+    return _OPTION.sub(lambda m: f"“{CONTROL_LABELS[m.group(1)]}”", message)

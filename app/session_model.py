@@ -7,6 +7,7 @@ import param
 
 from mdcore._pipeline import Method, Settings
 
+from .glossary import in_app_words
 from .jobs import JobRunner
 
 # The app's own limits, tighter than the library's: each bounds the time and memory of one
@@ -148,8 +149,9 @@ class SessionModel(param.Parameterized):
         self.report_error(f"{why} The field keeps {getattr(self, name)!r}.")
 
     def report_error(self, message: str) -> None:
-        """Show ``message`` as one error notification."""
-        self.param.update(error=message, n_errors=self.n_errors + 1)
+        """Show ``message`` as one error notification (mdcore's option names as the app's
+        labels: :func:`~mdcore_app.glossary.in_app_words`)."""
+        self.param.update(error=in_app_words(message), n_errors=self.n_errors + 1)
 
     def _report_notice(self, message: str) -> None:
-        self.param.update(notice=message, n_notices=self.n_notices + 1)
+        self.param.update(notice=in_app_words(message), n_notices=self.n_notices + 1)

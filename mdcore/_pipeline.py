@@ -41,6 +41,7 @@ from ._exceptions import (
 from ._history_matching import HistoryMatchResult
 from ._hyperfit import QPSO_ITERATIONS, FitOptions
 from ._koh import BURN_IN, FAST, MAX_CHAIN, N_ITER, KOHModel, KOHOptions, infer_koh
+from ._mcmc import chain_length
 from ._metrics import coverage, lpl, mmd, nmse
 from ._priors import GaussianPrior
 from ._validation import as_float_array, as_int, as_seed_int, check_type, choose
@@ -160,10 +161,9 @@ class Settings:
                              f"scenario 3; received n_s = {self.n_s:,} and n_phi = "
                              f"{self.n_phi:,} ({self.n_s * self.n_phi:,} pairs). Lower one of "
                              "them (the paper: 1000 × 500).")
-        if self.burn_in >= self.n_iter:
-            raise ValueError(f"burn_in must be smaller than n_iter; received burn_in = "
-                             f"{self.burn_in}, n_iter = {self.n_iter}. Raise n_iter or lower "
-                             "burn_in (the paper: 150,000 and 50,000).")
+        # The chain's own rule (two kept samples), so that KOH never refuses what passed here.
+        chain_length(self.n_iter, self.burn_in, " Raise n_iter or lower burn_in (the paper: "
+                     "150,000 and 50,000).")
         object.__setattr__(self, "prune", check_prune(self.prune))
         choose(self.proposal, "proposal", PROPOSALS)
         compiled.resolve_backend(choose(self.backend, "backend", compiled.BACKENDS))

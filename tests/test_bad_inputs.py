@@ -317,8 +317,10 @@ API = [
      r"n_s must be an integer ≥ 1; received 2\.5", ()),
     ("Settings-n_iter-huge", lambda c: _call(Settings, n_iter=HUGE),
      r"n_iter must be an integer ≥ 2 and ≤ 100,000,000; received 1000000000000", ()),
-    ("Settings-burn_in-ge-n_iter", lambda c: _call(Settings, n_iter=1000, burn_in=1000),
-     r"burn_in must be smaller than n_iter; received burn_in = 1000, n_iter = 1000", ()),
+    # n_iter − 1: Settings accepted it, then KOH refused it (one kept sample)
+    ("Settings-burn_in-ge-n_iter", lambda c: _call(Settings, n_iter=1000, burn_in=999),
+     r"burn_in must be smaller than n_iter − 1 = 999 so that at least two samples are kept; "
+     r"received burn_in=999\. Raise n_iter or lower burn_in", ()),
     ("Settings-proposal-unknown", lambda c: _call(Settings, proposal="bogus"),
      r"'bogus' is not a valid proposal\. It must be one of \['adaptive', 'prior'\]", ()),
     ("run_method-empty-nroy", lambda c: _call(run_method, c.case, c.ruled_out, 1,
@@ -640,8 +642,8 @@ CLI = [
                                   "100000", *OUT],
      r"n_s × n_phi must be at most 100,000,000 \(θ, φ\) pairs"),
     ("reproduce-burn-in-ge-n-iter", ["reproduce", "beam-1d", "--n-iter", "100", "--burn-in",
-                                     "100", *OUT],
-     r"burn_in must be smaller than n_iter; received burn_in = 100, n_iter = 100"),
+                                     "99", *OUT],
+     r"burn_in must be smaller than n_iter − 1 = 99 .*received burn_in=99"),
     ("reproduce-unknown-scenario", ["reproduce", "beam-1d", "--scenarios", "4", *OUT],
      r"argument (--methods/)?--scenarios: invalid choice: '4'"),
     ("run-missing-case-file", ["run", "missing.toml", *OUT],

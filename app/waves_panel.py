@@ -77,11 +77,6 @@ LEGEND_HEIGHT = 28
 #: legend line).
 EMPTY_TEXT = "Press **Next wave** to run the first wave."
 EMPTY_HTML = "Press <b>Next wave</b> to run the first wave."
-#: The player's styles: not shown (below two waves), keeping its place, or shown. Opacity,
-#: not only visibility: Panel's player sets its title's ``visibility`` to visible itself;
-#: and no clicks on it while it is not shown.
-PLAYER_HIDDEN = {**SLOT, "opacity": "0", "pointer-events": "none"}
-PLAYER_SHOWN = {**CURRENT, "pointer-events": "auto"}
 
 
 #: Share of a parameter's range left blank on each side of the box in the plots: a marker
@@ -105,11 +100,12 @@ class WavesPanel(LivePanel):
         self._placeholder = pn.pane.Markdown(EMPTY_TEXT, css_classes=["hm-placeholder"])
         self._layout.objects = [self._placeholder]
         # One player for the session, kept in the layout: rebuilding it for each wave
-        # re-laid-out the page. Kept in its place but not shown until there are two waves
-        # to step through (a style: see _show_body).
+        # re-laid-out the page. Left out until there are two waves to step through: kept
+        # in its place unseen, it left a 90-px gap above the plots of a one-wave match; the
+        # page is laid out again once, when the second wave comes.
         self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
-                                  loop_policy="once", interval=800,
-                                  show_loop_controls=False, styles=PLAYER_HIDDEN)
+                                         loop_policy="once", interval=800,
+                                         show_loop_controls=False, visible=False)
         watch_in_session(self._player, self._player_moved, "value")
         self._syncing = False
 
@@ -333,11 +329,9 @@ class WavesPanel(LivePanel):
             self._body.styles = styles
 
     def _sync_player(self, n: int, upto: int) -> None:
-        """The player shows wave ``upto`` of ``n`` (one message; below 2 waves it keeps its
-        place, not shown: see :meth:`_show_body`)."""
+        """The player shows wave ``upto`` of ``n`` (one message; left out below 2 waves)."""
         p = self._player
-        want = {"end": max(n, 2), "value": max(upto, 1),
-                "styles": PLAYER_SHOWN if n >= 2 else PLAYER_HIDDEN}
+        want = {"end": max(n, 2), "value": max(upto, 1), "visible": n >= 2}
         changed = {k: v for k, v in want.items() if getattr(p, k) != v}
         if changed:
             self._syncing = True

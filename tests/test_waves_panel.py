@@ -23,7 +23,7 @@ from mdcore_app.wave_data import (  # noqa: E402
     variance_ratios,
     wave_colors,
 )
-from mdcore_app.waves_panel import MAX_WAVES, PLAYER_HIDDEN, PLAYER_SHOWN, WavesPanel  # noqa: E402
+from mdcore_app.waves_panel import MAX_WAVES, WavesPanel  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -130,7 +130,7 @@ def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
                                   np.minimum(I, 3 * s.history_match.problem.options.threshold))
 
     player = panel._player
-    assert (player.styles, player.end, player.value) == (PLAYER_SHOWN, n, n)
+    assert (player.visible, player.end, player.value) == (True, n, n)
     player.value = 2                                       # the player: waves 1–2 only
     assert s.selected_wave == 2
     assert set(shown_waves(panel)) == {1, 2}               # all waves kept, 1–2 shown
@@ -180,9 +180,9 @@ def test_many_outputs_each_have_a_variance_line():
     # Three pairs of (E, ν, ρ) share one source.
     assert set(nroy_columns(s.waves, 3)) == {"t0", "t1", "t2", "wave"}
     assert len(panel._body.objects) == 4 and panel._image is None   # player, legend, 2 rows
-    # One wave: nothing to step; the player keeps its place, not shown, and nothing
-    # in the tab changes its visible (a page-wide re-layout in BokehJS).
-    assert panel._player.styles == PLAYER_HIDDEN and panel._player.visible
+    # One wave: nothing to step, and no player (unseen in its place, it left a 90-px gap
+    # above the plots).
+    assert not panel._player.visible
 
 
 def test_bad_inputs_name_the_argument():

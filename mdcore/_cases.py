@@ -435,7 +435,7 @@ def _shear5(seed: int) -> Case:
                      "measurements are not public: a 'real' building (E = 70 GPa, ρ = 2700 kg/m³, "
                      "0.03 kg sensor mass per floor, rocking base spring) measured 10 times per "
                      "added mass with noise sd 0.004 Hz; read from " + SHEAR5_CSV.name + "."),
-        stand_in=True, theta_names=("E", "nu", "rho"), theta_units=("GPa", "-", "kg/m³"),
+        stand_in=True, theta_names=("E", "ν", "ρ"), theta_units=("GPa", "-", "kg/m³"),
         theta_bounds=np.column_stack([lo, hi]),
         theta_true=np.array([SHEAR5_REAL["E"] / 1e9, SHEAR5_REAL["nu"], SHEAR5_REAL["rho"]]),
         x_names=("added mass",), x_units=("kg",),

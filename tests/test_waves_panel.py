@@ -177,8 +177,11 @@ def test_many_outputs_each_have_a_variance_line():
     np.testing.assert_allclose(ratios[:, 0], w.max_var / w.var_threshold)
     panel = WavesPanel(state=s)
     assert len(panel._ratios) == 5
-    # Three pairs of (E, ν, ρ) share one source.
+    # Three pairs of (E, ν, ρ) share one source, titled with the symbols the cards and
+    # the README use (they said "nu" and "rho").
     assert set(nroy_columns(s.waves, 3)) == {"t0", "t1", "t2", "wave"}
+    titles = [o.object.title.text for o in panel._body.objects[2]]
+    assert titles == ["NROY samples: E vs ν", "NROY samples: E vs ρ", "NROY samples: ν vs ρ"]
     assert len(panel._body.objects) == 4 and panel._image is None   # player, legend, 2 rows
     # One wave: nothing to step, and no player (unseen in its place, it left a 90-px gap
     # above the plots).

@@ -94,6 +94,14 @@ def padded(values, n: int) -> np.ndarray:
     return out
 
 
+def decades(lo: float, hi: float) -> tuple[float, float]:
+    """The log axis ``[lo, hi]`` (both > 0) widened to whole powers of ten, two decades at
+    least: over less, BokehJS's log ticker labels 1, 2, 3 … 6 within a few pixels (the
+    emulator-variance plot of one wave)."""
+    start = 10.0 ** np.floor(np.log10(lo))
+    return start, max(10.0 ** np.ceil(np.log10(hi)), 100.0 * start)
+
+
 def truth_verdict(waves, theta_true) -> tuple[bool, str]:
     r"""Whether ``theta_true`` (p,) is non-implausible after ``waves`` (mdcore ``Wave``\ s,
     in order): inside the prior box and at most the cutoff in every wave (Eq. 16), and

@@ -58,6 +58,7 @@ from .wave_data import (
     MAX_WAVES,
     SHOWN_WAVES_JS,
     contour_lines,
+    decades,
     histogram_columns,
     legend_html,
     nroy_columns,
@@ -77,6 +78,12 @@ LEGEND_HEIGHT = 28
 #: legend line).
 EMPTY_TEXT = "Press **Next wave** to run the first wave."
 EMPTY_HTML = "Press <b>Next wave</b> to run the first wave."
+#: The player's styles: left out (below two waves), or shown (its host's own display).
+#: A style, not ``visible`` (see :meth:`WavesPanel._show_body`); kept in its place unseen
+#: instead, it left a 90-px gap above the plots of a one-wave match. BokehJS sets the keys
+#: of a new ``styles`` and leaves the others, so both give every key.
+PLAYER_HIDDEN = {"display": "none"}
+PLAYER_SHOWN = {"display": "block"}
 
 
 #: Share of a parameter's range left blank on each side of the box in the plots: a marker
@@ -100,12 +107,10 @@ class WavesPanel(LivePanel):
         self._placeholder = pn.pane.Markdown(EMPTY_TEXT, css_classes=["hm-placeholder"])
         self._layout.objects = [self._placeholder]
         # One player for the session, kept in the layout: rebuilding it for each wave
-        # re-laid-out the page. Left out until there are two waves to step through: kept
-        # in its place unseen, it left a 90-px gap above the plots of a one-wave match; the
-        # page is laid out again once, when the second wave comes.
+        # re-laid-out the page. Not displayed until there are two waves to step through.
         self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
                                          loop_policy="once", interval=800,
-                                         show_loop_controls=False, visible=False)
+                                         show_loop_controls=False, styles=PLAYER_HIDDEN)
         watch_in_session(self._player, self._player_moved, "value")
         self._syncing = False
 
@@ -277,7 +282,7 @@ class WavesPanel(LivePanel):
         finite = ratios[np.isfinite(ratios) & (ratios > 0)]
         lo = min(float(finite.min()) if finite.size else 1.0, 1.0) / 3
         hi = max(float(finite.max()) if finite.size else 1.0, 1.0) * 3
-        set_range(self._variance_range, lo, hi)
+        set_range(self._variance_range, *decades(lo, hi))
         set_range(self._wave_range, 0.5, max(len(k), 1) + 0.5)
         set_top(self._fraction_range, max(100 * w.nroy_fraction for w in shown), pad=0.08)
         for ticker in (self._fraction_ticks, self._variance_ticks):
@@ -331,7 +336,8 @@ class WavesPanel(LivePanel):
     def _sync_player(self, n: int, upto: int) -> None:
         """The player shows wave ``upto`` of ``n`` (one message; left out below 2 waves)."""
         p = self._player
-        want = {"end": max(n, 2), "value": max(upto, 1), "visible": n >= 2}
+        want = {"end": max(n, 2), "value": max(upto, 1),
+                "styles": PLAYER_SHOWN if n >= 2 else PLAYER_HIDDEN}
         changed = {k: v for k, v in want.items() if getattr(p, k) != v}
         if changed:
             self._syncing = True

@@ -637,7 +637,7 @@ def test_a_case_switch_rebuilds_only_the_live_panels_in_view():
     tabs.active = 1
     assert not waves._stale and waves._case is s.case and view.calibration_view._case is s.case
     titles = [p.title.text for p in plots()]
-    assert "NROY samples: E vs nu" in titles               # shear-5's pairs, with the wave
+    assert "NROY samples: E vs ν" in titles               # shear-5's pairs, with the wave
     s.case_name = "beam-1d"                                 # in view now: at once
     assert not waves._stale and waves._case is s.case
 

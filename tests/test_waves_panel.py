@@ -16,6 +16,7 @@ from mdcore_app.wave_data import (  # noqa: E402
     MAX_POINTS,
     RULED_OUT_COLOR,
     contour_lines,
+    decades,
     histogram_columns,
     nroy_columns,
     padded,
@@ -23,7 +24,7 @@ from mdcore_app.wave_data import (  # noqa: E402
     variance_ratios,
     wave_colors,
 )
-from mdcore_app.waves_panel import MAX_WAVES, WavesPanel  # noqa: E402
+from mdcore_app.waves_panel import MAX_WAVES, PLAYER_HIDDEN, PLAYER_SHOWN, WavesPanel  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -130,7 +131,7 @@ def test_panel_draws_the_waves_and_the_player_redraws_in_place(beam):
                                   np.minimum(I, 3 * s.history_match.problem.options.threshold))
 
     player = panel._player
-    assert (player.visible, player.end, player.value) == (True, n, n)
+    assert (player.styles, player.end, player.value) == (PLAYER_SHOWN, n, n)
     player.value = 2                                       # the player: waves 1–2 only
     assert s.selected_wave == 2
     assert set(shown_waves(panel)) == {1, 2}               # all waves kept, 1–2 shown
@@ -183,9 +184,18 @@ def test_many_outputs_each_have_a_variance_line():
     titles = [o.object.title.text for o in panel._body.objects[2]]
     assert titles == ["NROY samples: E vs ν", "NROY samples: E vs ρ", "NROY samples: ν vs ρ"]
     assert len(panel._body.objects) == 4 and panel._image is None   # player, legend, 2 rows
-    # One wave: nothing to step, and no player (unseen in its place, it left a 90-px gap
-    # above the plots).
-    assert not panel._player.visible
+    # One wave: nothing to step, and no player: not displayed (unseen in its place, it
+    # left a 90-px gap above the plots), by a style (a change of ``visible`` lays out the
+    # whole page in BokehJS).
+    assert panel._player.styles == PLAYER_HIDDEN == {"display": "none"}
+    assert panel._player.visible
+    # Its variance ratios on whole decades, two at least (1, 2, … 6 crowded the axis).
+    r = variance_ratios(s.waves, s.case.n_out)
+    lo, hi = min(r.min(), 1) / 3, max(r.max(), 1) * 3
+    y = panel._body.objects[3][1].object.y_range
+    assert np.log10(y.start) == np.floor(np.log10(lo)) and y.start <= lo
+    assert np.log10(y.end) == max(np.ceil(np.log10(hi)), np.log10(y.start) + 2) and y.end >= hi
+    assert decades(0.33, 6.3) == (0.1, 10.0) and decades(1e-3, 30.0) == (1e-3, 100.0)
 
 
 def test_bad_inputs_name_the_argument():

@@ -149,9 +149,10 @@ class SessionModel(param.Parameterized):
         self.report_error(f"{why} The field keeps {getattr(self, name)!r}.")
 
     def report_error(self, message: str) -> None:
-        """Show ``message`` as one error notification (mdcore's option names as the app's
-        labels: :func:`~mdcore_app.glossary.in_app_words`)."""
-        self.param.update(error=in_app_words(message), n_errors=self.n_errors + 1)
+        """Show ``message`` as one error notification."""
+        self.param.update(error=message, n_errors=self.n_errors + 1)
 
     def _report_notice(self, message: str) -> None:
+        # A method's advice: mdcore's option names as the app's labels (an error keeps its
+        # names: a session file's key path, "controls.n_s", is what to fix).
         self.param.update(notice=in_app_words(message), n_notices=self.n_notices + 1)

@@ -70,12 +70,11 @@ def test_messages_name_the_apps_controls_not_mdcores_options():
     """The diagnostics' advice said "Add simulator runs (n_runs)" beside a field called
     "Runs per wave"; messages now use the controls' labels (other words stay)."""
     from mdcore_app.alerts import warnings_html
-    from mdcore_app.state import ExplorerState
+    from mdcore_app.glossary import in_app_words
 
     advice = ("wave 2: 3 of its 12 runs would be ruled out. Add simulator runs (n_runs), "
               "raise V_m if the simulator itself is near the cut-off.")
     shown = warnings_html([advice])
     assert "Add simulator runs (“Runs per wave”), raise V_m" in shown and "n_runs" not in shown
-    s = ExplorerState()
-    s.report_error("raise n_phi or n_s (n_starts and n_samples stay)")
-    assert s.error == "raise “N_φ” or “N_s” (n_starts and n_samples stay)"
+    assert in_app_words("raise n_phi or n_s (n_starts and n_samples stay)") == \
+        "raise “N_φ” or “N_s” (n_starts and n_samples stay)"

@@ -7,6 +7,7 @@ to Panel objects and to raw Bokeh models reach the browser in one message. Not s
 from __future__ import annotations
 
 import logging
+import time
 import weakref
 
 import panel as pn
@@ -15,16 +16,43 @@ from tornado.ioloop import IOLoop
 
 log = logging.getLogger("mdcore_app")
 
-#: Seconds a served session stays idle (no job) before the views of hidden tabs catch up
-#: with its state: a tab is then drawn before it is clicked, and the work waits for a
-#: pause instead of delaying what is in view.
+#: Seconds after a poke before the views of hidden tabs start to catch up with the state:
+#: a tab is then drawn before it is clicked.
 CATCH_UP_AFTER = 0.5
+#: ... and seconds the session's state must have stayed unchanged (no setting, card or
+#: job's end) when no job runs: the work waits for the user to pause on a result, and a
+#: click right after a run is not delayed by it (docs/performance.md, "A card's click").
+CATCH_UP_QUIET = 3.0
 #: Seconds between two hooks of a session's catching up, longer than the browser takes to
 #: lay out one rebuilt view: run in one go, they kept the browser busy for seconds after a
 #: run, and a card's click waited for all of them (docs/performance.md, "A card's click").
 CATCH_UP_GAP = 1.0
-#: Per session state: the hooks waiting for their turn to catch up, in order.
+#: Per session state: its :class:`_Waiting` hooks.
 _catch_up_queue: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+#: The clock of :data:`CATCH_UP_QUIET` (a test's own clock replaces it).
+clock = time.monotonic
+
+
+class _Waiting:
+    """A session's hooks waiting for their turn to catch up, in order, and when its state
+    last changed. It holds the state weakly: it is the value of the state's entry in
+    :data:`_catch_up_queue`."""
+
+    def __init__(self, state):
+        self.hooks: list = []
+        self.changed = clock()
+        self._state = weakref.ref(state)
+        state.param.watch(self._touch, [p for p in state.param if p != "name"])
+
+    def _touch(self, *_) -> None:
+        self.changed = clock()
+
+    def wait(self) -> float:
+        """Seconds until the state has been quiet long enough (0 while a job runs)."""
+        state = self._state()
+        if state is None or state.busy:
+            return 0.0
+        return max(0.0, CATCH_UP_QUIET - (clock() - self.changed))
 
 
 def _served_doc():
@@ -110,38 +138,46 @@ def when_idle(state, hook):
     data a job is changing: its first drawing then happens while the browser waits).
 
     A session's hooks run one at a time, :data:`CATCH_UP_GAP` s apart, in the order they
-    were poked. ``hook`` decides itself whether anything is left to do (a view that is
-    stale). A change of what is shown (a band, a scenario hidden) does not poke: hidden
-    tabs would redo their plots for each click, and the browser lays out the page again
-    each time."""
+    were poked, each once the state has not changed for :data:`CATCH_UP_QUIET` s (or at
+    once while a job runs). ``hook`` decides itself whether anything is left to do (a view
+    that is stale). A change of what is shown (a band, a scenario hidden) does not poke:
+    hidden tabs would redo their plots for each click, and the browser lays out the page
+    again each time."""
     doc = _served_doc()
     if doc is None:
         return lambda *_, busy=False: None
-    queue = _catch_up_queue.get(state)
-    if queue is None:
-        queue = _catch_up_queue[state] = []
+    waiting = _catch_up_queue.get(state)
+    if waiting is None:
+        waiting = _catch_up_queue[state] = _Waiting(state)
         # A closed session's pending timeouts never run: its hooks (and through them its
         # state, the queue's key) must not stay in the queue.
-        doc.on_session_destroyed(lambda _context: queue.clear())
+        doc.on_session_destroyed(lambda _context: waiting.hooks.clear())
+    queue = waiting.hooks
 
     def poke(*_, busy: bool = False):
         queue.append(lambda: (state.busy and not busy) or hook())
         if len(queue) == 1:                       # else the hook before it calls it
-            later(CATCH_UP_AFTER, lambda: _next_catch_up(queue))
+            later(CATCH_UP_AFTER, lambda: _next_catch_up(waiting))
 
     state.param.watch(lambda event: event.new or state.cancelled or poke(), "busy")
     return poke
 
 
-def _next_catch_up(queue: list) -> None:
-    """Run the first hook waiting in ``queue``, and the next one :data:`CATCH_UP_GAP` s
-    after it returns."""
+def _next_catch_up(waiting: _Waiting) -> None:
+    """Run the first hook waiting, once the state is quiet, and the next one
+    :data:`CATCH_UP_GAP` s after it returns."""
+    queue, wait = waiting.hooks, waiting.wait()
+    if not queue:
+        return
+    if wait > 0:
+        later(wait, lambda: _next_catch_up(waiting))
+        return
     try:
         queue[0]()
     finally:
         del queue[0]
         if queue:
-            later(CATCH_UP_GAP, lambda: _next_catch_up(queue))
+            later(CATCH_UP_GAP, lambda: _next_catch_up(waiting))
 
 
 #: CSS class of the line above a box whose content is being rebuilt.

@@ -78,12 +78,13 @@ LEGEND_HEIGHT = 28
 #: legend line).
 EMPTY_TEXT = "Press **Next wave** to run the first wave."
 EMPTY_HTML = "Press <b>Next wave</b> to run the first wave."
-#: The player's styles: left out (below two waves), or shown (its host's own display).
-#: A style, not ``visible`` (see :meth:`WavesPanel._show_body`); kept in its place unseen
-#: instead, it left a 90-px gap above the plots of a one-wave match. BokehJS sets the keys
-#: of a new ``styles`` and leaves the others, so both give every key.
-PLAYER_HIDDEN = {"display": "none"}
-PLAYER_SHOWN = {"display": "block"}
+#: The player's styles: not shown (below two waves), keeping its place, or shown. Opacity,
+#: not only visibility: Panel's player sets its title's ``visibility`` to visible itself;
+#: and no clicks on it while it is not shown. Not ``display: none``: a one-wave match then
+#: had no gap above its plots, but a card's tab, to be shown from its top, often kept its
+#: old scroll position (the player hidden and shown again as the card reran the waves).
+PLAYER_HIDDEN = {**SLOT, "opacity": "0", "pointer-events": "none"}
+PLAYER_SHOWN = {**CURRENT, "pointer-events": "auto"}
 
 
 #: Share of a parameter's range left blank on each side of the box in the plots: a marker
@@ -107,7 +108,8 @@ class WavesPanel(LivePanel):
         self._placeholder = pn.pane.Markdown(EMPTY_TEXT, css_classes=["hm-placeholder"])
         self._layout.objects = [self._placeholder]
         # One player for the session, kept in the layout: rebuilding it for each wave
-        # re-laid-out the page. Not displayed until there are two waves to step through.
+        # re-laid-out the page. Kept in its place but not shown until there are two waves
+        # to step through (a style: see _show_body).
         self._player = pn.widgets.Player(label="Wave shown", start=1, end=2, value=1,
                                          loop_policy="once", interval=800,
                                          show_loop_controls=False, styles=PLAYER_HIDDEN)
@@ -334,7 +336,8 @@ class WavesPanel(LivePanel):
             self._body.styles = styles
 
     def _sync_player(self, n: int, upto: int) -> None:
-        """The player shows wave ``upto`` of ``n`` (one message; left out below 2 waves)."""
+        """The player shows wave ``upto`` of ``n`` (one message; below 2 waves it keeps its
+        place, not shown: see :meth:`_show_body`)."""
         p = self._player
         want = {"end": max(n, 2), "value": max(upto, 1),
                 "styles": PLAYER_SHOWN if n >= 2 else PLAYER_HIDDEN}

@@ -273,6 +273,15 @@ SCROLL_ANCESTOR = """(e) => {
 }"""
 
 
+#: The scroll offset of the nearest scrolling box around an element (across shadow roots).
+SCROLL_TOP = """(e) => {
+  while (e) { if (['auto', 'scroll'].includes(getComputedStyle(e).overflowY))
+      return e.scrollTop;
+    e = e.parentElement || (e.getRootNode() && e.getRootNode().host); }
+  return null;
+}"""
+
+
 def overlaps(a, b) -> bool:
     return not (a["x"] + a["width"] <= b["x"] or b["x"] + b["width"] <= a["x"]
                 or a["y"] + a["height"] <= b["y"] or b["y"] + b["height"] <= a["y"])
@@ -355,7 +364,7 @@ def test_a_card_shows_its_plot_in_view_even_after_the_tab_was_scrolled(browser, 
     assert not in_view(page, nroy)
     run_card(page, "rule-out", "History matching")
     page.wait_for_timeout(500)
-    assert in_view(page, nroy)
+    assert in_view(page, nroy), (nroy.bounding_box(), nroy.evaluate(SCROLL_TOP))
     assert log.errors == []
     page.close()
 

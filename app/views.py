@@ -367,10 +367,8 @@ class ExplorerView(pn.viewable.Viewer):
                              "band."),
             metrics, sizing_mode="stretch_width")
         # Each tab scrolls on its own, below its header, beside the sidebar; shown from its
-        # top (kept scrolled down, a card's plot was out of view). On the next tick: a
-        # card's click brings the tab change, and Panel handles it outside Bokeh's lock
-        # (see watch_in_session), where the scroll event was lost.
-        tabs.param.watch(lambda e: next_tick(lambda: tabs[e.new].scroll_to(0)), "active")
+        # top (kept scrolled down, a card's plot was out of view).
+        tabs.param.watch(lambda e: tabs[e.new].scroll_to(0), "active")
         tabs.extend([pn.Column(view, name=name, scroll=True, sizing_mode="stretch_both")
                      for name, view in (
                          ("Data", pn.Column(terms("V_o", "V_m", "θ"), self.data_view,

@@ -187,7 +187,7 @@ def shown(page, css_class: str) -> bool:
 
 
 #: Counts, in ``window.mdcoreJobs``, the busy lines the server sends (BokehJS's public
-#: ``Document.on_change``): a short job (a seed's rerun: 0.3 s) can start and end between
+#: ``Document.on_change``): a short job (a seed's rerun) can start and end between
 #: two polls of ``wait_for_selector(".mdcore-busy")`` on a loaded machine.
 COUNT_JOBS = """() => { window.mdcoreJobs = 0;
   for (const d of Bokeh.documents) d.on_change(e => {

@@ -461,8 +461,8 @@ def test_a_sessions_views_catch_up_one_at_a_time_once_the_user_pauses(monkeypatc
     them out for seconds, and a card's click waited that long for its answer. Each waits
     now for the one before it, plus a gap in which the browser lays out the last one; and
     none starts before the state has been unchanged for CATCH_UP_QUIET s, so that a click
-    right after a run (a band, a card) is not delayed by them (bench_browser: band ±2σ
-    4.26 s when they landed in it)."""
+    right after a run (a band, a card) is not delayed by them (docs/performance.md, "A
+    card's click")."""
     import param
     from bokeh.document import Document as BokehDocument
     from panel.io.state import set_curdoc
@@ -513,7 +513,7 @@ def test_a_sessions_views_catch_up_one_at_a_time_once_the_user_pauses(monkeypatc
         delays = run_timeouts()
     assert ran == [0, 1, 2]
     np.testing.assert_allclose(delays, [after, quiet - after, gap, gap])
-    # A change of the state as they wait (the band, 1 s after the run) puts them off
+    # A change of the state as they wait (the band, as the first timeout fires) puts them off
     # until it has been quiet again; none of them runs before.
     ran.clear()
     with set_curdoc(doc):
